@@ -1,0 +1,37 @@
+"""The exception tree. User mistakes exit 2 with one line; failures inside a stage exit 1."""
+
+from __future__ import annotations
+
+
+class TagtrailError(Exception):
+    """Base of every error tagtrail raises on purpose."""
+
+    exit_code = 2
+
+
+class SpecError(TagtrailError):
+    """pipeline.yaml or a command line is invalid (bad YAML, unknown stage/parameter, bad value)."""
+
+
+class SourceError(TagtrailError):
+    """An input file, folder, bag or topic is missing or unreadable."""
+
+
+class DataError(TagtrailError):
+    """The data cannot give a result (no tags, a disconnected tag graph, too few common tags)."""
+
+
+class DisconnectedTagGraph(DataError):
+    """Some tags are not connected to the anchor and the pipeline was told to fail on it."""
+
+
+class StageError(TagtrailError):
+    """An unexpected failure inside a stage; names the stage and dataset."""
+
+    exit_code = 1
+
+    def __init__(self, stage: str, dataset: str, cause: BaseException) -> None:
+        super().__init__(f"stage {stage} [{dataset}] failed: {type(cause).__name__}: {cause}")
+        self.stage = stage
+        self.dataset = dataset
+        self.cause = cause
