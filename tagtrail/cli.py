@@ -1,0 +1,200 @@
+"""The ``tagtrail`` command: parse → call → print → exit code (0 ok, 1 failure, 2 user error)."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+import sys
+import tempfile
+import time
+import traceback
+from collections.abc import Sequence
+from pathlib import Path
+
+from tagtrail.errors import StageError, TagtrailError
+
+EXAMPLES = {
+    "run": "examples:\n  tagtrail run\n  tagtrail run optimize -S optimize.f_scale=0.05\n"
+    "  tagtrail run --dry-run\n  tagtrail run --force -j 2",
+    "status": "examples:\n  tagtrail status\n  tagtrail status -p my_pipeline.yaml",
+    "dag": "examples:\n  tagtrail dag\n  tagtrail dag --mermaid > dag.mmd",
+    "show": "examples:\n  tagtrail show extract\n  tagtrail show pnp --dataset query\n"
+    "  tagtrail show extract --csv detections.csv",
+}
+
+
+def _registry():  # noqa: ANN202 - imported lazily so `tagtrail --help` stays fast
+    from tagtrail.stages import REGISTRY
+
+    return REGISTRY
+
+
+def _runner(args: argparse.Namespace):  # noqa: ANN202
+    from tagtrail.runner.execute import Runner
+    from tagtrail.runner.spec import load_pipeline
+
+    pipe = load_pipeline(Path(args.pipeline), _registry(), getattr(args, "set", None) or ())
+    return Runner(pipe, jobs=getattr(args, "jobs", 1), echo=print)
+
+
+def cmd_run(args: argparse.Namespace) -> int:
+    from tagtrail.runner.export import export_outputs
+
+    runner = _runner(args)
+    if args.dry_run:
+        for st in runner.plan(args.stages, force=args.force):
+            what = "would run" if st.status == "stale" else "cached"
+            print(f"{st.stage + ' [' + st.dataset + ']':<28} {what:<9} ({st.reason})")
+        return 0
+    t0 = time.perf_counter()
+    states = runner.run(args.stages, force=args.force)
+    written = export_outputs(runner)
+    ran = sum(s.status == "ran" for s in states)
+    print(f"{ran} ran, {len(states) - ran} cached in {time.perf_counter() - t0:.2f}s")
+    for ds, folder in written.items():
+        print(f"outputs [{ds}]: {folder}")
+    if args.json:
+        from dataclasses import asdict
+
+        print(json.dumps([asdict(s) for s in states], indent=2))
+    return 0
+
+
+def cmd_status(args: argparse.Namespace) -> int:
+    runner = _runner(args)
+    for st in runner.plan():
+        label = "up to date" if st.status == "cached" else "out of date"
+        print(f"{st.stage + ' [' + st.dataset + ']':<28} {label:<12} " +
+              ("" if st.status == "cached" else f"({st.reason})"))
+    for node, why in sorted(runner.graph.skipped.items()):
+        print(f"{str(node):<28} {'n/a':<12} ({why})")
+    return 0
+
+
+def cmd_dag(args: argparse.Namespace) -> int:
+    from tagtrail.runner.dag import mermaid, text
+
+    runner = _runner(args)
+    print(mermaid(runner.graph) if args.mermaid else text(runner.graph))
+    return 0
+
+
+def cmd_show(args: argparse.Namespace) -> int:
+    from tagtrail.runner.show import show
+
+    return show(_runner(args), args.stage, args.dataset, args.output, args.csv, args.rows)
+
+
+def _sub(sp, name: str, help: str) -> argparse.ArgumentParser:  # noqa: ANN001
+    p = sp.add_parser(
+        name, help=help, description=help, epilog=EXAMPLES.get(name),
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+    return p
+
+
+def _pipeline_arg(p: argparse.ArgumentParser) -> None:
+    p.add_argument("-p", "--pipeline", default="pipeline.yaml", help="pipeline file")
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(
+        prog="tagtrail",
+        description="Record a robot's trajectory against AprilTags and relocalize against it.",
+        epilog="examples:\n  tagtrail demo\n  tagtrail run\n  tagtrail status\n"
+        "  tagtrail show optimize",
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+    parser.add_argument("-v", "--verbose", action="store_true", help="debug logging")
+    sp = parser.add_subparsers(dest="command", metavar="COMMAND")
+
+    p = _sub(sp, "run", "bring the pipeline's stages up to date (make-style)")
+    p.add_argument("stages", nargs="*", metavar="STAGE", help="stages to run (with ancestors)")
+    _pipeline_arg(p)
+    p.add_argument("-S", "--set", action="append", metavar="STAGE.PARAM=VALUE",
+                   help="override a stage parameter (repeatable)")
+    p.add_argument("--force", action="store_true", help="rerun even if up to date")
+    p.add_argument("--dry-run", action="store_true", help="say what would run and why")
+    p.add_argument("-j", "--jobs", type=int, default=1, help="stages run in parallel")
+    p.add_argument("--json", action="store_true", help="print the run log as JSON")
+    p.set_defaults(func=cmd_run)
+
+    p = _sub(sp, "status", "which stages are up to date, and why the others are not")
+    _pipeline_arg(p)
+    p.add_argument("-S", "--set", action="append", metavar="STAGE.PARAM=VALUE")
+    p.set_defaults(func=cmd_status)
+
+    p = _sub(sp, "dag", "print the stage graph")
+    _pipeline_arg(p)
+    p.add_argument("--mermaid", action="store_true", help="mermaid flowchart")
+    p.set_defaults(func=cmd_dag)
+
+    p = _sub(sp, "show", "inspect a stage's artifact: schema, rows, head, statistics")
+    p.add_argument("stage")
+    _pipeline_arg(p)
+    p.add_argument("--dataset", default=None, help="dataset (default: the reference)")
+    p.add_argument("--output", default=None, help="which output of the stage")
+    p.add_argument("--csv", type=Path, default=None, help="export the table to CSV")
+    p.add_argument("--rows", type=int, default=10, help="rows of head to print")
+    p.set_defaults(func=cmd_show)
+
+    _optional_commands(sp)
+    return parser
+
+
+def _optional_commands(sp) -> None:  # noqa: ANN001
+    """Commands implemented in their own modules (simulate, relocalize, demo, stream…)."""
+    import importlib
+
+    for name, module, help in (
+        ("simulate", "tagtrail.sim.cli", "render rosbag2 recordings with ground truth"),
+        ("relocalize", "tagtrail.relocalize", "relocalize a query run against a reference"),
+        ("demo", "tagtrail.demo", "simulate the demo recordings and run everything"),
+        ("init", "tagtrail.init", "inspect sources and write a pipeline file"),
+        ("stream", "tagtrail.stream.cli", "live relocalization over zenoh"),
+    ):
+        try:
+            mod = importlib.import_module(module)
+        except ModuleNotFoundError as err:
+            if err.name and module.startswith(err.name):
+                continue
+            raise
+        p = _sub(sp, name, help)
+        mod.add_arguments(p)
+        p.set_defaults(func=mod.main)
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    logging.basicConfig(
+        level=logging.DEBUG if args.verbose else logging.INFO,
+        format="%(levelname)s %(name)s: %(message)s",
+    )
+    if not getattr(args, "func", None):
+        parser.print_help()
+        return 2
+    try:
+        return int(args.func(args))
+    except StageError as err:
+        where = getattr(err, "log_path", None)
+        print(f"error: {err}" + (f" (traceback in {where})" if where else ""), file=sys.stderr)
+        return err.exit_code
+    except TagtrailError as err:
+        print(f"error: {err}", file=sys.stderr)
+        return err.exit_code
+    except KeyboardInterrupt:
+        print("interrupted", file=sys.stderr)
+        return 130
+    except Exception as err:  # noqa: BLE001 - unexpected: full traceback to a file, one line out
+        fd, path = tempfile.mkstemp(prefix="tagtrail-error-", suffix=".log")
+        with open(fd, "w") as f:
+            f.write("".join(traceback.format_exception(err)))
+        print(f"error: unexpected {type(err).__name__}: {err} (traceback in {path})",
+              file=sys.stderr)
+        return 1
+
+
+def main_entry() -> None:
+    sys.exit(main())

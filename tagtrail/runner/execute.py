@@ -1,0 +1,250 @@
+"""Plan and execute a pipeline: cache keys, make-style reruns, parallel stages, the run log."""
+
+from __future__ import annotations
+
+import concurrent.futures as cf
+import logging
+import time
+import traceback
+from collections.abc import Callable
+from dataclasses import asdict, dataclass
+from pathlib import Path
+from typing import Any
+
+from tagtrail.errors import StageError, TagtrailError
+from tagtrail.runner.cache import SourceHasher, Store, canonical_json, pretty_json, sha256_text
+from tagtrail.runner.dag import Graph, Node, build_graph, select
+from tagtrail.runner.spec import Pipeline
+
+log = logging.getLogger("tagtrail.runner")
+
+
+@dataclass
+class NodeState:
+    """What happened (or would happen) to one node: ``cached``, ``stale``, ``ran``, ``failed``."""
+
+    stage: str
+    dataset: str
+    status: str
+    reason: str = ""
+    key: str | None = None
+    seconds: float = 0.0
+    rows: int | None = None
+
+    def line(self) -> str:
+        node = f"{self.stage} [{self.dataset}]"
+        if self.status == "cached":
+            return f"{node:<28} cached  {(self.key or '')[:12]}"
+        rows = f"  {self.rows:,} rows" if self.rows is not None else ""
+        took = f"  {self.seconds:6.2f}s" if self.status in ("ran", "failed") else ""
+        return f"{node:<28} {self.status:<7}{took}{rows}  ({self.reason})"
+
+
+def _param_diff(old: dict[str, Any], new: dict[str, Any]) -> str:
+    keys = sorted(set(old) | set(new))
+    parts = [f"{k}: {old.get(k)!r} → {new.get(k)!r}" for k in keys if old.get(k) != new.get(k)]
+    return ", ".join(parts)
+
+
+class Runner:
+    """Executes a validated pipeline against its artifact store."""
+
+    def __init__(
+        self, pipe: Pipeline, jobs: int = 1, echo: Callable[[str], None] | None = None
+    ) -> None:
+        self.pipe = pipe
+        self.graph: Graph = build_graph(pipe)
+        self.store = Store(pipe.artifacts)
+        self.hasher = SourceHasher(pipe.artifacts / "sources.json")
+        self.jobs = max(1, jobs)
+        self.echo = echo or (lambda s: None)
+        self._source_fp: dict[tuple[str, str], str] = {}
+
+    # --- keys -------------------------------------------------------------------------------
+
+    def _special_fp(self, dataset: str, special: str) -> str:
+        memo = (dataset, special)
+        if memo not in self._source_fp:
+            ds = self.pipe.datasets[dataset]
+            if special == "source":
+                doc = {
+                    "source": self.hasher.hash(ds.source),
+                    "topics": ds.topics.model_dump(mode="json"),
+                    "camera": self.hasher.hash(ds.camera) if ds.camera else None,
+                }
+                self._source_fp[memo] = sha256_text(canonical_json(doc))
+            else:
+                assert ds.ground_truth is not None
+                self._source_fp[memo] = self.hasher.hash(ds.ground_truth)
+        return self._source_fp[memo]
+
+    def record_for(self, node: Node, keys: dict[Node, str]) -> dict[str, Any] | None:
+        """The cache record of ``node`` given its upstream keys, or None if one is unknown."""
+        spec = self.pipe.stages[node.stage]
+        inputs: dict[str, str] = {}
+        for arg, (ref, up) in self.graph.inputs[node].items():
+            if up is None:
+                assert ref.special is not None
+                inputs[arg] = self._special_fp(node.dataset, ref.special)
+                continue
+            if up not in keys:
+                return None
+            manifest = self.store.lookup(up.stage, keys[up])
+            if manifest is None:
+                return None
+            inputs[arg] = manifest["outputs"][ref.output]["sha256"]
+        return {
+            "stage": node.stage,
+            "code": spec.code_fingerprint,
+            "schema": spec.schema_version,
+            "params": self.pipe.params[node.stage].model_dump(mode="json"),
+            "inputs": inputs,
+        }
+
+    def why_stale(self, node: Node, record: dict[str, Any]) -> str:
+        last = self.store.last_record(node.dataset, node.stage)
+        if last is None:
+            return "never run"
+        reasons = []
+        if last.get("code") != record["code"]:
+            reasons.append("code changed")
+        if last.get("params") != record["params"]:
+            reasons.append("params changed: " + _param_diff(last["params"], record["params"]))
+        changed = [a for a in record["inputs"] if last.get("inputs", {}).get(a) != record["inputs"][a]]
+        if changed:
+            refs = self.graph.inputs[node]
+            reasons.append("input changed: " + ", ".join(f"{a} ({refs[a][0]})" for a in changed))
+        if last.get("schema") != record["schema"]:
+            reasons.append("schema version changed")
+        return "; ".join(reasons) or "artifact missing or corrupt"
+
+    # --- status / dry run -------------------------------------------------------------------
+
+    def plan(self, stages: list[str] | None = None, force: bool = False) -> list[NodeState]:
+        """What ``run`` would do, without running anything (``status``, ``--dry-run``)."""
+        chosen = select(self.pipe, self.graph, stages or [])
+        keys: dict[Node, str] = {}
+        states = []
+        for node in (n for n in self.graph.order if n in chosen):
+            record = self.record_for(node, keys)
+            if record is None:
+                ups = sorted(str(u) for u in self.graph.deps(node) if u not in keys)
+                states.append(NodeState(node.stage, node.dataset, "stale",
+                                        f"upstream out of date: {', '.join(ups)}"))
+                continue
+            key = sha256_text(canonical_json(record))
+            if not force and self.store.lookup(node.stage, key) is not None:
+                keys[node] = key
+                states.append(NodeState(node.stage, node.dataset, "cached", "up to date", key))
+            else:
+                why = "forced" if force else self.why_stale(node, record)
+                states.append(NodeState(node.stage, node.dataset, "stale", why, key))
+        self.hasher.save()
+        return states
+
+    # --- run --------------------------------------------------------------------------------
+
+    def _execute(self, node: Node, key: str, record: dict[str, Any], keys: dict[Node, str]) -> int | None:
+        spec = self.pipe.stages[node.stage]
+        kwargs: dict[str, Any] = {}
+        for arg, (ref, up) in self.graph.inputs[node].items():
+            if up is None:
+                ds = self.pipe.datasets[node.dataset]
+                kwargs[arg] = ds if ref.special == "source" else ds.ground_truth
+            else:
+                assert ref.output is not None
+                kwargs[arg] = self.store.load(up.stage, keys[up], ref.output)
+        outputs = spec.run(self.pipe.params[node.stage], **kwargs)
+        if not isinstance(outputs, dict) or set(outputs) != set(spec.outputs):
+            got = sorted(outputs) if isinstance(outputs, dict) else type(outputs).__name__
+            raise TypeError(f"run() returned {got}, expected outputs {list(spec.outputs)}")
+        manifest = self.store.write(node.stage, key, outputs, record)
+        self.store.save_record(node.dataset, node.stage, record)
+        rows = [o["rows"] for o in manifest["outputs"].values() if o["rows"] is not None]
+        return sum(rows) if rows else None
+
+    def run(self, stages: list[str] | None = None, force: bool = False) -> list[NodeState]:
+        """Bring the selected nodes up to date; raise the first failure after others finish."""
+        chosen = select(self.pipe, self.graph, stages or [])
+        order = [n for n in self.graph.order if n in chosen]
+        keys: dict[Node, str] = {}
+        states: dict[Node, NodeState] = {}
+        failure: BaseException | None = None
+        with self.store.lock(), cf.ThreadPoolExecutor(self.jobs) as pool:
+            running: dict[cf.Future[int | None], tuple[Node, NodeState, float]] = {}
+            pending = list(order)
+            while pending or running:
+                progressed = True
+                while progressed and failure is None:
+                    progressed = False
+                    for node in list(pending):
+                        if not self.graph.deps(node) <= set(keys):
+                            continue
+                        pending.remove(node)
+                        progressed = True
+                        record = self.record_for(node, keys)
+                        assert record is not None
+                        key = sha256_text(canonical_json(record))
+                        if not force and self.store.lookup(node.stage, key) is not None:
+                            keys[node] = key
+                            st = NodeState(node.stage, node.dataset, "cached", "up to date", key)
+                            states[node] = st
+                            self.echo(st.line())
+                            continue
+                        why = "forced" if force else self.why_stale(node, record)
+                        st = NodeState(node.stage, node.dataset, "ran", why, key)
+                        fut = pool.submit(self._execute, node, key, record, dict(keys))
+                        running[fut] = (node, st, time.perf_counter())
+                if not running:
+                    break
+                done, _ = cf.wait(running, return_when=cf.FIRST_COMPLETED)
+                for fut in done:
+                    node, st, t0 = running.pop(fut)
+                    st.seconds = time.perf_counter() - t0
+                    states[node] = st
+                    try:
+                        st.rows = fut.result()
+                        keys[node] = st.key or ""
+                    except BaseException as err:  # noqa: BLE001 - reported below, with context
+                        st.status = "failed"
+                        st.reason = f"{type(err).__name__}: {err}"
+                        failure = failure or self._wrap(node, err)
+                    self.echo(st.line())
+        self.hasher.save()
+        result = [states[n] for n in order if n in states]
+        self._save_run_log(result)
+        if failure is not None:
+            raise failure
+        return result
+
+    def _wrap(self, node: Node, err: BaseException) -> BaseException:
+        if isinstance(err, TagtrailError) and not isinstance(err, StageError):
+            new = type(err)(f"{node}: {err}")
+            new.__cause__ = err
+            return new
+        wrapped = StageError(node.stage, node.dataset, err)
+        logdir = self.pipe.artifacts / "logs"
+        logdir.mkdir(parents=True, exist_ok=True)
+        path = logdir / f"error-{time.strftime('%Y%m%d-%H%M%S')}-{node.stage}-{node.dataset}.log"
+        path.write_text("".join(traceback.format_exception(err)))
+        wrapped.log_path = path  # type: ignore[attr-defined]
+        return wrapped
+
+    def _save_run_log(self, states: list[NodeState]) -> None:
+        p = self.pipe.artifacts / "runs" / "last_run.json"
+        p.parent.mkdir(parents=True, exist_ok=True)
+        p.write_text(pretty_json([asdict(s) for s in states]))
+
+    def key_of(self, stage: str, dataset: str) -> str | None:
+        """The key of the up-to-date artifact of a node, if there is one (for ``show``)."""
+        target = Node(stage, dataset)
+        if target not in self.graph.inputs:
+            return None
+        for st in self.plan([stage]):
+            if (st.stage, st.dataset) == (stage, dataset):
+                return st.key if st.status == "cached" else None
+        return None
+
+
+def last_run_path(artifacts: Path) -> Path:
+    return artifacts / "runs" / "last_run.json"

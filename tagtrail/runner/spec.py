@@ -1,0 +1,163 @@
+"""Load and validate ``pipeline.yaml`` against the stage registry.
+
+Every user mistake becomes one :class:`SpecError` naming the file and the offending key, with a
+did-you-mean for misspelt stage, dataset and parameter names.
+"""
+
+from __future__ import annotations
+
+import difflib
+from collections.abc import Iterable, Mapping
+from dataclasses import dataclass
+from pathlib import Path
+from types import ModuleType
+from typing import Any
+
+import yaml
+from pydantic import ValidationError
+
+from tagtrail.errors import SpecError
+from tagtrail.runner.stage import InputRef, StageSpec, stage_spec
+from tagtrail.schemas.pipeline import DatasetConfig, PipelineConfig
+from tagtrail.stages.base import StageParams
+
+
+def did_you_mean(word: str, choices: Iterable[str]) -> str:
+    close = difflib.get_close_matches(word, list(choices), n=1, cutoff=0.6)
+    return f" — did you mean {close[0]!r}?" if close else ""
+
+
+def _fmt_validation(where: str, err: ValidationError, fields: Iterable[str] = ()) -> str:
+    e = err.errors()[0]
+    loc = ".".join(str(p) for p in e["loc"])
+    if e["type"] == "extra_forbidden":
+        key = str(e["loc"][-1])
+        return f"{where}: unknown key {loc!r}{did_you_mean(key, fields)}"
+    got = f" (got {e['input']!r})" if "input" in e and not isinstance(e["input"], dict) else ""
+    return f"{where}.{loc}: {e['msg']}{got}" if loc else f"{where}: {e['msg']}"
+
+
+@dataclass(frozen=True)
+class Pipeline:
+    """A validated pipeline: datasets (paths absolute), stages with their validated params."""
+
+    path: Path
+    root: Path
+    config: PipelineConfig
+    stages: dict[str, StageSpec]
+    params: dict[str, StageParams]
+
+    @property
+    def datasets(self) -> dict[str, DatasetConfig]:
+        return self.config.datasets
+
+    @property
+    def reference(self) -> str:
+        return self.config.reference
+
+    @property
+    def artifacts(self) -> Path:
+        return self.root / "artifacts"
+
+    @property
+    def outputs(self) -> Path:
+        return self.root / "outputs"
+
+
+def parse_override(text: str) -> tuple[str, list[str], Any]:
+    """``stage.param[.key]=value`` → (stage, key path, YAML-parsed value)."""
+    if "=" not in text:
+        raise SpecError(f"bad override {text!r}: expected stage.param=value")
+    lhs, rhs = text.split("=", 1)
+    parts = lhs.strip().split(".")
+    if len(parts) < 2 or not all(parts):
+        raise SpecError(f"bad override {text!r}: expected stage.param=value")
+    try:
+        value = yaml.safe_load(rhs) if rhs.strip() else None
+    except yaml.YAMLError as err:
+        raise SpecError(f"bad override {text!r}: value is not valid YAML ({err})") from err
+    return parts[0], parts[1:], value
+
+
+def _resolve_dataset(name: str, ds: DatasetConfig, root: Path) -> DatasetConfig:
+    def absolute(p: Path | None) -> Path | None:
+        return None if p is None else (p if p.is_absolute() else (root / p)).resolve()
+
+    source = absolute(ds.source)
+    assert source is not None
+    if not source.exists():
+        raise SpecError(f"dataset {name!r}: source {source} does not exist")
+    camera = absolute(ds.camera)
+    if camera is not None and not camera.is_file():
+        raise SpecError(f"dataset {name!r}: camera file {camera} does not exist")
+    gt = absolute(ds.ground_truth)
+    if gt is None and source.is_dir() and (source / "ground_truth").is_dir():
+        gt = source / "ground_truth"
+    elif gt is not None and not gt.is_dir():
+        raise SpecError(f"dataset {name!r}: ground_truth folder {gt} does not exist")
+    return ds.model_copy(update={"source": source, "camera": camera, "ground_truth": gt})
+
+
+def load_pipeline(
+    path: Path,
+    registry: Mapping[str, ModuleType],
+    overrides: Iterable[str] = (),
+) -> Pipeline:
+    """Read, validate and resolve a pipeline file; apply ``-S stage.param=value`` overrides."""
+    path = Path(path)
+    if not path.is_file():
+        raise SpecError(f"{path}: pipeline file not found (create one with `tagtrail init`)")
+    try:
+        doc = yaml.safe_load(path.read_text(encoding="utf-8"))
+    except yaml.YAMLError as err:
+        mark = getattr(err, "problem_mark", None)
+        where = f" line {mark.line + 1}" if mark is not None else ""
+        problem = getattr(err, "problem", None) or str(err).splitlines()[0]
+        raise SpecError(f"{path}:{where}: invalid YAML: {problem}") from err
+    if not isinstance(doc, dict):
+        raise SpecError(f"{path}: expected a mapping with 'datasets:' and 'stages:'")
+    try:
+        config = PipelineConfig.model_validate(doc)
+    except ValidationError as err:
+        raise SpecError(_fmt_validation(str(path), err, PipelineConfig.model_fields)) from err
+    if not config.datasets:
+        raise SpecError(f"{path}: no datasets declared")
+    if config.reference not in config.datasets:
+        raise SpecError(
+            f"{path}: reference dataset {config.reference!r} is not declared"
+            f"{did_you_mean(config.reference, config.datasets)}"
+        )
+
+    stages = {name: stage_spec(name, mod) for name, mod in registry.items()}
+    raw: dict[str, dict[str, Any]] = {k: dict(v or {}) for k, v in config.stages.items()}
+    for stage, keys, value in (parse_override(o) for o in overrides):
+        node = raw.setdefault(stage, {})
+        for k in keys[:-1]:
+            node = node.setdefault(k, {})
+            if not isinstance(node, dict):
+                raise SpecError(f"override -S {stage}.{'.'.join(keys)}: {k} is not a mapping")
+        node[keys[-1]] = value
+    for name in raw:
+        if name not in stages:
+            raise SpecError(f"{path}: unknown stage {name!r}{did_you_mean(name, stages)}")
+    params: dict[str, StageParams] = {}
+    for name, spec in stages.items():
+        try:
+            params[name] = spec.params_model.model_validate(raw.get(name, {}))
+        except ValidationError as err:
+            where = f"{path}: stages.{name}"
+            raise SpecError(_fmt_validation(where, err, spec.params_model.model_fields)) from err
+
+    root = path.resolve().parent
+    datasets = {n: _resolve_dataset(n, ds, root) for n, ds in config.datasets.items()}
+    for n, ds in datasets.items():
+        for key, ref in ds.inputs.items():
+            stage, _, arg = key.partition(".")
+            if stage not in stages or arg not in stages[stage].inputs:
+                raise SpecError(
+                    f"{path}: datasets.{n}.inputs: {key!r} is not '<stage>.<input>'"
+                    f"{did_you_mean(key, (f'{s}.{a}' for s in stages for a in stages[s].inputs))}"
+                )
+            InputRef.parse(ref)
+    config = config.model_copy(update={"datasets": datasets})
+    return Pipeline(path=path, root=root, config=config, stages=stages, params=params)

@@ -1,0 +1,247 @@
+"""The runner on toy stages and real files: what executes, what is cached, and why."""
+
+from __future__ import annotations
+
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+import yaml
+
+from tagtrail.errors import SpecError
+from tagtrail.runner.execute import Runner
+from tagtrail.runner.spec import load_pipeline
+from tests.runner.toy import copy_stages, load_registry
+
+DRIVER = Path(__file__).parent / "toy" / "driver.py"
+
+
+def write_project(root: Path, stages: dict | None = None, **datasets: str) -> Path:
+    root.mkdir(parents=True, exist_ok=True)
+    for name, text in (datasets or {"reference": "value\n1\n2\n3\n", "query": "value\n4\n5\n"}).items():
+        (root / f"{name}.csv").write_text(text)
+    doc = {
+        "datasets": {n: {"source": f"{n}.csv"} for n in (datasets or {"reference": 0, "query": 0})},
+        "stages": stages or {"scale": {"factor": 2.0}},
+    }
+    (root / "pipeline.yaml").write_text(yaml.safe_dump(doc))
+    return root / "pipeline.yaml"
+
+
+@pytest.fixture
+def project(tmp_path: Path):
+    stages_dir = copy_stages(tmp_path / "stages")
+    pipe_file = write_project(tmp_path / "proj")
+
+    def runner(*overrides: str, jobs: int = 1) -> Runner:
+        reg = load_registry(stages_dir)
+        return Runner(load_pipeline(pipe_file, reg, overrides), jobs=jobs)
+
+    runner.stages_dir = stages_dir  # type: ignore[attr-defined]
+    runner.pipe_file = pipe_file  # type: ignore[attr-defined]
+    return runner
+
+
+def executed(states) -> set[tuple[str, str]]:
+    return {(s.stage, s.dataset) for s in states if s.status == "ran"}
+
+
+def cached(states) -> set[tuple[str, str]]:
+    return {(s.stage, s.dataset) for s in states if s.status == "cached"}
+
+
+ALL = {
+    (s, d)
+    for s in ("load", "scale", "slow", "total", "compare")
+    for d in ("reference", "query")
+    if not (s == "compare" and d == "reference")
+}
+
+
+def test_second_run_executes_nothing(project) -> None:
+    assert executed(project().run()) == ALL
+    states = project().run()
+    assert executed(states) == set()
+    assert cached(states) == ALL
+
+
+def test_param_change_reruns_exactly_stage_and_descendants(project) -> None:
+    project().run()
+    states = project("scale.factor=3").run()
+    assert executed(states) == ALL - {("load", "reference"), ("load", "query")}
+    assert project("scale.factor=3").run() and executed(project("scale.factor=3").run()) == set()
+
+
+def test_status_says_why(project) -> None:
+    project().run()
+    plan = {(s.stage, s.dataset): s for s in project("scale.factor=3").plan()}
+    assert plan[("load", "reference")].status == "cached"
+    assert plan[("scale", "reference")].status == "stale"
+    assert "params changed: factor: 2.0 → 3.0" in plan[("scale", "reference")].reason
+    assert "upstream out of date" in plan[("total", "query")].reason
+
+
+def test_editing_stage_code_invalidates_that_stage(project) -> None:
+    project().run()
+    f = project.stages_dir / "total.py"
+    f.write_text(f.read_text().replace('"n": len(table)', '"n": len(table), "edited": True'))
+    r = project()
+    why = {(s.stage, s.dataset): s.reason for s in r.plan() if s.status == "stale"}
+    assert why[("total", "reference")] == why[("total", "query")] == "code changed"
+    assert why[("compare", "query")].startswith("upstream out of date")
+    assert executed(r.run()) == {("total", "reference"), ("total", "query"), ("compare", "query")}
+
+
+def test_unchanged_output_stops_propagation(project) -> None:
+    """A comment-only edit reruns the stage, but identical outputs keep descendants cached."""
+    project().run()
+    f = project.stages_dir / "scale.py"
+    f.write_text(f.read_text() + "\n# a comment\n")
+    assert executed(project().run()) == {("scale", "reference"), ("scale", "query")}
+
+
+def test_source_change_reruns_its_dataset_only(project) -> None:
+    project().run()
+    src = project.pipe_file.parent / "query.csv"
+    src.write_text("value\n4\n6\n")
+    states = project().run()
+    assert executed(states) == {(s, d) for s, d in ALL if d == "query"}
+
+
+def test_corrupt_or_partial_artifact_is_a_miss(project) -> None:
+    r = project()
+    r.run()
+    entry = next((r.store.objects / "scale").iterdir())
+    pq = entry / "table.parquet"
+    pq.write_bytes(pq.read_bytes()[:-7])  # truncated, as after a crash mid-copy
+    (next((r.store.objects / "total").iterdir()) / "manifest.json").unlink()
+    states = project().run()
+    assert {s for s, _ in executed(states)} == {"scale", "total"}
+
+
+def test_parallel_run_matches_serial(project, tmp_path: Path) -> None:
+    states = project(jobs=2).run()
+    assert executed(states) == ALL
+    assert executed(project(jobs=2).run()) == set()
+
+
+def test_dry_run_and_plan_write_nothing(project) -> None:
+    r = project()
+    plan = r.plan()
+    assert {s.status for s in plan} == {"stale"}
+    assert not (r.store.objects).exists()
+
+
+def test_ground_truth_and_scope_skips(project) -> None:
+    r = project()
+    assert "runs on query datasets only" in r.graph.skipped[
+        next(n for n in r.graph.skipped if n.stage == "compare")
+    ]
+
+
+def test_bad_specs_raise_spec_errors(project, tmp_path: Path) -> None:
+    reg = load_registry(project.stages_dir)
+    with pytest.raises(SpecError, match="did you mean 'factor'"):
+        load_pipeline(project.pipe_file, reg, ["scale.facter=2"])
+    with pytest.raises(SpecError, match="greater than 0"):
+        load_pipeline(project.pipe_file, reg, ["scale.factor=-1"])
+    with pytest.raises(SpecError, match="unknown stage 'scal'.*did you mean 'scale'"):
+        load_pipeline(project.pipe_file, reg, ["scal.factor=2"])
+
+
+def _cli(stages_dir: Path, cwd: Path, *args: str, **kw) -> subprocess.CompletedProcess[str]:
+    env = {**os.environ, "PYTHONPATH": str(Path(__file__).resolve().parents[2])}
+    return subprocess.run(
+        [sys.executable, str(DRIVER), str(stages_dir), *args],
+        cwd=cwd, env=env, capture_output=True, text=True, timeout=120, **kw,
+    )
+
+
+@pytest.mark.parametrize(
+    "mutate, message",
+    [
+        (lambda t: t.replace("datasets:", "datasets: [oops"), "invalid YAML"),
+        (lambda t: t + "  scale:\n    fctor: 1\n", None),
+        (lambda t: t.replace("factor: 2.0", "fctor: 2.0"), "unknown key 'fctor' — did you mean 'factor'"),
+        (lambda t: t.replace("source: query.csv", "source: nowhere.csv"), "nowhere.csv does not exist"),
+        (lambda t: t.replace("factor: 2.0", "factor: lots"), "factor"),
+    ],
+)
+def test_cli_user_errors_are_one_line_exit_2(project, mutate, message) -> None:
+    f = project.pipe_file
+    text = mutate(f.read_text())
+    f.write_text(text)
+    res = _cli(project.stages_dir, f.parent, "run")
+    assert res.returncode == 2, res.stderr
+    lines = res.stderr.strip().splitlines()
+    assert len(lines) == 1 and lines[0].startswith("error: "), res.stderr
+    assert "Traceback" not in res.stderr
+    if message:
+        assert message in lines[0]
+
+
+def test_cli_run_status_dag_show(project, tmp_path: Path) -> None:
+    cwd = project.pipe_file.parent
+    res = _cli(project.stages_dir, cwd, "run")
+    assert res.returncode == 0, res.stderr
+    assert "scale [reference]" in res.stdout and "ran" in res.stdout
+    res = _cli(project.stages_dir, cwd, "run", "-S", "scale.factor=5", "--dry-run")
+    assert "would run" in res.stdout and "factor: 2.0 → 5" in res.stdout
+    res = _cli(project.stages_dir, cwd, "status")
+    assert res.returncode == 0 and "out of date" not in res.stdout
+    res = _cli(project.stages_dir, cwd, "dag", "--mermaid")
+    assert res.stdout.startswith("flowchart LR") and "-->" in res.stdout
+    out = tmp_path / "scale.csv"
+    res = _cli(project.stages_dir, cwd, "show", "scale", "--dataset", "query", "--csv", str(out))
+    assert res.returncode == 0, res.stderr
+    assert "rows: 2" in res.stdout
+    assert out.read_text() == "value\n8.0\n10.0\n"
+    res = _cli(project.stages_dir, cwd, "show", "scael")
+    assert res.returncode == 2 and "did you mean 'scale'" in res.stderr
+
+
+def test_stage_failure_names_stage_and_keeps_finished_artifacts(project) -> None:
+    (project.pipe_file.parent / "query.csv").write_text("other\n1\n")
+    res = _cli(project.stages_dir, project.pipe_file.parent, "run")
+    assert res.returncode == 1
+    assert "load [query]" in res.stderr and "traceback in" in res.stderr
+    r = project()
+    plan = {(s.stage, s.dataset): s.status for s in r.plan()}
+    assert plan[("load", "reference")] == "cached"
+
+
+def test_kill_9_mid_stage_then_rerun_is_identical(project, tmp_path: Path) -> None:
+    cwd = project.pipe_file.parent
+    proc = subprocess.Popen(
+        [sys.executable, str(DRIVER), str(project.stages_dir), "run", "-S", "slow.seconds=0.6"],
+        cwd=cwd, env={**os.environ, "PYTHONPATH": str(Path(__file__).resolve().parents[2])},
+        stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
+    )
+    marker = cwd / "artifacts" / "runs" / "reference" / "scale.json"
+    deadline = time.time() + 60
+    while not marker.exists() and time.time() < deadline:
+        time.sleep(0.02)
+    time.sleep(0.3)
+    proc.send_signal(signal.SIGKILL)
+    proc.wait()
+    assert _cli(project.stages_dir, cwd, "run", "-S", "slow.seconds=0.6").returncode == 0
+    # An uninterrupted run in a fresh copy of the project gives byte-identical artifacts.
+    fresh = tmp_path / "fresh"
+    fresh.mkdir()
+    for f in ("pipeline.yaml", "reference.csv", "query.csv"):
+        (fresh / f).write_bytes((cwd / f).read_bytes())
+    assert _cli(project.stages_dir, fresh, "run", "-S", "slow.seconds=0.6").returncode == 0
+
+    def entries(root: Path) -> dict[str, bytes]:
+        return {
+            str(p.relative_to(root)): p.read_bytes()
+            for p in (root / "artifacts" / "objects").rglob("*")
+            if p.is_file() and p.name != "manifest.json"
+        }
+
+    assert entries(cwd) == entries(fresh)
+    assert not any((cwd / "artifacts" / "tmp").iterdir())
