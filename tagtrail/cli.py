@@ -98,7 +98,7 @@ def _pipeline_arg(p: argparse.ArgumentParser) -> None:
     p.add_argument("-p", "--pipeline", default="pipeline.yaml", help="pipeline file")
 
 
-def build_parser() -> argparse.ArgumentParser:
+def build_parser(command: str | None = None) -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog="tagtrail",
         description="Record a robot's trajectory against AprilTags and relocalize against it.",
@@ -139,34 +139,37 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--rows", type=int, default=10, help="rows of head to print")
     p.set_defaults(func=cmd_show)
 
-    _optional_commands(sp)
+    _optional_commands(sp, command)
     return parser
 
 
-def _optional_commands(sp) -> None:  # noqa: ANN001
-    """Commands implemented in their own modules (simulate, relocalize, demo, stream…)."""
-    import importlib
+OPTIONAL = (
+    ("simulate", "tagtrail.sim.cli", "render rosbag2 recordings with ground truth"),
+    ("relocalize", "tagtrail.relocalize", "relocalize a query run against a reference"),
+    ("demo", "tagtrail.demo", "simulate the demo recordings and run everything"),
+    ("init", "tagtrail.init", "inspect sources and write a pipeline file"),
+    ("stream", "tagtrail.stream.cli", "live relocalization over zenoh"),
+)
 
-    for name, module, help in (
-        ("simulate", "tagtrail.sim.cli", "render rosbag2 recordings with ground truth"),
-        ("relocalize", "tagtrail.relocalize", "relocalize a query run against a reference"),
-        ("demo", "tagtrail.demo", "simulate the demo recordings and run everything"),
-        ("init", "tagtrail.init", "inspect sources and write a pipeline file"),
-        ("stream", "tagtrail.stream.cli", "live relocalization over zenoh"),
-    ):
-        try:
-            mod = importlib.import_module(module)
-        except ModuleNotFoundError as err:
-            if err.name and module.startswith(err.name):
-                continue
-            raise
+
+def _optional_commands(sp, command: str | None) -> None:  # noqa: ANN001
+    """Commands implemented in their own modules; only the one being run is imported."""
+    import importlib.util
+
+    for name, module, help in OPTIONAL:
+        if importlib.util.find_spec(module) is None:
+            continue
         p = _sub(sp, name, help)
-        mod.add_arguments(p)
-        p.set_defaults(func=mod.main)
+        if name == command:
+            mod = importlib.import_module(module)
+            mod.add_arguments(p)
+            p.set_defaults(func=mod.main)
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    parser = build_parser()
+    argv = list(sys.argv[1:] if argv is None else argv)
+    command = next((a for a in argv if not a.startswith("-")), None)
+    parser = build_parser(command)
     args = parser.parse_args(argv)
     logging.basicConfig(
         level=logging.DEBUG if args.verbose else logging.INFO,
