@@ -17,7 +17,7 @@ F64 = NDArray[np.float64]
 
 
 def make_T(R: ArrayLike, t: ArrayLike) -> F64:
-    """Build ``(..., 4, 4)`` transforms from rotations ``(..., 3, 3)`` and translations ``(..., 3)``."""
+    """Transforms ``(..., 4, 4)`` from rotations ``(..., 3, 3)`` and translations ``(..., 3)``."""
     R = np.asarray(R, dtype=np.float64)
     t = np.asarray(t, dtype=np.float64)
     shape = np.broadcast_shapes(R.shape[:-2], t.shape[:-1])
@@ -87,7 +87,7 @@ def T_from_xyz_quat(xyz: ArrayLike, q_xyzw: ArrayLike) -> F64:
 
 
 def xyz_quat_from_T(T: ArrayLike) -> tuple[F64, F64]:
-    """Split transforms into positions ``(..., 3)`` and quaternions ``(..., 4)`` (qx, qy, qz, qw)."""
+    """Split transforms into positions ``(..., 3)`` and quaternions ``(..., 4)`` (xyzw)."""
     T = np.asarray(T, dtype=np.float64)
     return T[..., :3, 3].copy(), quat_xyzw_from_R(T[..., :3, :3])
 

@@ -110,7 +110,8 @@ class Runner:
             reasons.append("code changed")
         if last.get("params") != record["params"]:
             reasons.append("params changed: " + _param_diff(last["params"], record["params"]))
-        changed = [a for a in record["inputs"] if last.get("inputs", {}).get(a) != record["inputs"][a]]
+        old_inputs = last.get("inputs", {})
+        changed = [a for a in record["inputs"] if old_inputs.get(a) != record["inputs"][a]]
         if changed:
             refs = self.graph.inputs[node]
             reasons.append("input changed: " + ", ".join(f"{a} ({refs[a][0]})" for a in changed))
@@ -144,7 +145,9 @@ class Runner:
 
     # --- run --------------------------------------------------------------------------------
 
-    def _execute(self, node: Node, key: str, record: dict[str, Any], keys: dict[Node, str]) -> int | None:
+    def _execute(
+        self, node: Node, key: str, record: dict[str, Any], keys: dict[Node, str]
+    ) -> int | None:
         spec = self.pipe.stages[node.stage]
         kwargs: dict[str, Any] = {}
         for arg, (ref, up) in self.graph.inputs[node].items():

@@ -22,7 +22,9 @@ def export_outputs(runner: Runner) -> dict[str, Path]:
     for dataset in runner.pipe.datasets:
         cache: dict[tuple[str, str], Any] = {}
 
-        def get(stage: str, output: str, dataset: str = dataset) -> Any:
+        def get(
+            stage: str, output: str, dataset: str = dataset, cache: dict[Any, Any] = cache
+        ) -> Any:
             key = keys.get((stage, dataset))
             if key is None or output not in runner.pipe.stages[stage].outputs:
                 return None

@@ -13,7 +13,8 @@ from typing import Any
 from tagtrail.errors import SpecError
 from tagtrail.stages.base import StageParams
 
-_REF = re.compile(r"^(?:(?P<ds>reference):)?(?P<stage>[a-z_][a-z0-9_]*)\.(?P<out>[a-z_][a-z0-9_]*)$")
+_NAME = r"[a-z_][a-z0-9_]*"
+_REF = re.compile(rf"^(?:(?P<ds>reference):)?(?P<stage>{_NAME})\.(?P<out>{_NAME})$")
 SPECIAL_INPUTS = ("source", "ground_truth")
 SCOPES = ("all", "query")
 

@@ -22,10 +22,11 @@ DRIVER = Path(__file__).parent / "toy" / "driver.py"
 
 def write_project(root: Path, stages: dict | None = None, **datasets: str) -> Path:
     root.mkdir(parents=True, exist_ok=True)
-    for name, text in (datasets or {"reference": "value\n1\n2\n3\n", "query": "value\n4\n5\n"}).items():
+    datasets = datasets or {"reference": "value\n1\n2\n3\n", "query": "value\n4\n5\n"}
+    for name, text in datasets.items():
         (root / f"{name}.csv").write_text(text)
     doc = {
-        "datasets": {n: {"source": f"{n}.csv"} for n in (datasets or {"reference": 0, "query": 0})},
+        "datasets": {n: {"source": f"{n}.csv"} for n in datasets},
         "stages": stages or {"scale": {"factor": 2.0}},
     }
     (root / "pipeline.yaml").write_text(yaml.safe_dump(doc))
@@ -166,8 +167,10 @@ def _cli(stages_dir: Path, cwd: Path, *args: str, **kw) -> subprocess.CompletedP
     [
         (lambda t: t.replace("datasets:", "datasets: [oops"), "invalid YAML"),
         (lambda t: t + "  scale:\n    fctor: 1\n", None),
-        (lambda t: t.replace("factor: 2.0", "fctor: 2.0"), "unknown key 'fctor' — did you mean 'factor'"),
-        (lambda t: t.replace("source: query.csv", "source: nowhere.csv"), "nowhere.csv does not exist"),
+        (lambda t: t.replace("factor: 2.0", "fctor: 2.0"),
+         "unknown key 'fctor' — did you mean 'factor'"),
+        (lambda t: t.replace("source: query.csv", "source: nowhere.csv"),
+         "nowhere.csv does not exist"),
         (lambda t: t.replace("factor: 2.0", "factor: lots"), "factor"),
     ],
 )
