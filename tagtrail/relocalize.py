@@ -1,0 +1,215 @@
+"""``tagtrail relocalize REFERENCE QUERY``: relocalization on existing files, without a pipeline.
+
+REFERENCE and QUERY are folders (or trajectory files inside folders) in tagtrail's or the original
+tool's layouts: ``trajectory.csv`` / ``trajetoria_camera.csv`` plus, for tag alignment,
+``tag_map.csv`` / ``mapa_tags.csv`` / ``tag_map.yaml`` next to it. The work is done by the same
+functions the pipeline runs (:func:`tagtrail.stages.align.run`, :func:`tagtrail.stages.report.run`);
+this module only reads, writes and prints.
+"""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import sys
+from collections.abc import Sequence
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pandas as pd
+
+from tagtrail.errors import DataError, SourceError, TagtrailError
+from tagtrail.geometry.plane import PLANES
+from tagtrail.io import reloc_files
+from tagtrail.io.layouts import POSE_COLS, TAG_MAP_NAMES, read_tag_map, read_trajectory
+from tagtrail.stages import align as align_stage
+from tagtrail.stages import report as report_stage
+
+log = logging.getLogger(__name__)
+OUTPUT_FILES = ("relocalization.csv", "summary.json", "relocalization.png", "map.png")
+EXAMPLES = """examples:
+  tagtrail relocalize outputs/reference outputs/query -o reloc
+  tagtrail relocalize ref/trajetoria_camera.csv query/ --mode point --plane xz
+  tagtrail relocalize ref query --align none --mode trajectory
+"""
+
+
+def load_dataset(path: Path) -> tuple[pd.DataFrame, pd.DataFrame | None]:
+    """A trajectory (folder or file) and the tag map of its folder (None when it has none)."""
+    path = Path(path)
+    if not path.exists():
+        raise SourceError(f"{path}: no such file or folder")
+    traj = read_trajectory(path)
+    if len(traj) == 0:
+        raise DataError(f"{path}: the trajectory has no poses")
+    folder = path if path.is_dir() else path.parent
+    if not any((folder / name).is_file() for name in TAG_MAP_NAMES):
+        return traj, None
+    return traj, read_tag_map(folder)[0]
+
+
+def _empty_tags() -> pd.DataFrame:
+    return pd.DataFrame({c: pd.Series(dtype=float) for c in ["tag_id", *POSE_COLS, "n_obs"]})
+
+
+def relocalize(
+    reference: Path,
+    query: Path,
+    out: Path,
+    mode: str = "auto",
+    align: str = "auto",
+    align_model: str = "similarity",
+    plane: str = "auto",
+    allow_scale: bool = False,
+) -> dict[str, Any]:
+    """Relocalize ``query`` against ``reference`` and write the SPEC files into ``out``.
+
+    Returns the ``summary.json`` dict. Raises :class:`SourceError` (missing/unreadable input) or
+    :class:`DataError` (no common tags with ``align="tags"``, scale out of range, …).
+    """
+    return _relocalize(
+        reference, query, out, mode, align, align_model, plane, allow_scale
+    )["summary"]
+
+
+def _relocalize(
+    reference: Path,
+    query: Path,
+    out: Path,
+    mode: str,
+    align: str,
+    align_model: str,
+    plane: str,
+    allow_scale: bool,
+) -> dict[str, Any]:
+    ref_traj, ref_tags = load_dataset(reference)
+    q_traj, q_tags = load_dataset(query)
+    if ref_tags is None or q_tags is None:
+        missing = reference if ref_tags is None else query
+        msg = f"{missing}: no tag map ({', '.join(TAG_MAP_NAMES)})"
+        if align == "tags":
+            raise DataError(f"{msg}; --align tags needs the tag maps of both datasets")
+        if align == "auto":
+            log.warning("%s; the query is evaluated in its own frame", msg)
+    a_params = align_stage.Params(
+        align=align, model=align_model, plane=plane, allow_scale=allow_scale
+    )
+    aligned = align_stage.run(
+        q_tags if q_tags is not None else _empty_tags(),
+        ref_tags if ref_tags is not None else _empty_tags(),
+        q_traj, ref_traj, a_params,
+    )  # fmt: skip
+    r_params = report_stage.Params(mode=mode, plane=plane)
+    result = report_stage.run(aligned["trajectory"], ref_traj, aligned["alignment"], r_params)
+    reloc, summary = result["relocalization"], result["summary"]
+    _write(Path(out), reloc, summary, aligned["trajectory"], ref_traj, ref_tags, plane)
+    return result
+
+
+def _write(
+    out: Path,
+    reloc: pd.DataFrame,
+    summary: dict[str, Any],
+    q_traj: pd.DataFrame,
+    ref_traj: pd.DataFrame,
+    ref_tags: pd.DataFrame | None,
+    plane_name: str,
+) -> None:
+    plane = align_stage.reference_plane(plane_name, ref_traj)
+    ref_P, ref_R = align_stage.poses(ref_traj)
+    names = {"xz": ("x", "z"), "xy": ("x", "y"), "yz": ("y", "z")}.get(plane_name, ("u", "v"))
+    # v is drawn downwards when the normal points along the cameras' "down" (seen from above)
+    flip_v = bool(plane.n @ ref_R[:, :, 1].mean(axis=0) > 0)
+    d, p = summary["distance_m"], summary["abs_heading_error_deg"]
+    title = f"{summary['mode']} mode, plane {plane_name}: " + (
+        f"D {d['mean']:.4f} m, phi {reloc['heading_error_deg'].iloc[0]:+.2f} deg"
+        if len(reloc) == 1
+        else f"D mean {d['mean']:.3f} m, |phi| mean {p['mean']:.2f} deg"
+    )
+    reloc_files.write_relocalization_csv(out / "relocalization.csv", reloc)
+    reloc_files.write_summary_json(out / "summary.json", summary)
+    reloc_files.write_relocalization_png(out / "relocalization.png", reloc, title)
+    tags_uv = None if ref_tags is None else plane.to_uv(ref_tags[["x_m", "y_m", "z_m"]].to_numpy())
+    reloc_files.write_map_png(
+        out / "map.png", plane.to_uv(ref_P), plane.to_uv(align_stage.poses(q_traj)[0]), reloc,
+        tags_uv, [] if ref_tags is None else ref_tags["tag_id"].astype(int).tolist(),
+        names, flip_v, title,
+    )  # fmt: skip
+
+
+def summary_text(summary: dict[str, Any], reloc: pd.DataFrame, out: Path) -> str:
+    """A short human summary: D, phi, the alignment and the files written."""
+    d, p, a = summary["distance_m"], summary["abs_heading_error_deg"], summary["alignment"]
+    lines = [f"relocalization: {summary['mode']} mode, plane {summary['plane']}, n={summary['n']}"]
+    if summary["n"] == 1:
+        phi = float(reloc["heading_error_deg"].iloc[0])
+        lines += [f"  D   = {d['mean']:.4f} m", f"  phi = {phi:+.2f} deg"]
+    else:
+        lines += [
+            f"  D    mean {d['mean']:.4f} m, median {d['median']:.4f}, p95 {d['p95']:.4f}, "
+            f"max {d['max']:.4f}",
+            f"  |phi| mean {p['mean']:.2f} deg, median {p['median']:.2f}, p95 {p['p95']:.2f}, "
+            f"max {p['max']:.2f}",
+        ]
+    if a["model"] == "none":
+        lines.append(f"  alignment: none ({a['common_tags']} common tags)")
+    else:
+        lines.append(
+            f"  alignment: {a['model']} on {a['inliers']}/{a['common_tags']} common tags, "
+            f"scale {a['scale']:.4f}, rotation {a['rotation_deg']:.2f} deg, "
+            f"translation {np.round(a['translation'], 4).tolist()} m, "
+            f"rms {1000 * a['rms_m']:.1f} mm"
+        )
+    lines.append("wrote:")
+    lines += [f"  {out / name}" for name in OUTPUT_FILES]
+    return "\n".join(lines)
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> argparse.ArgumentParser:
+    """Add the ``relocalize`` arguments to ``parser`` (returned)."""
+    parser.add_argument("reference", type=Path, help="reference folder or trajectory file")
+    parser.add_argument("query", type=Path, help="query folder or trajectory file")
+    parser.add_argument("-o", "--out", type=Path, default=Path("relocalization"),
+                        help="output folder (default: ./relocalization)")  # fmt: skip
+    parser.add_argument("--mode", choices=["auto", "trajectory", "point"], default="auto",
+                        help="point = a parked robot; auto picks point when the query stays "
+                        "within 0.20 m (default: auto)")  # fmt: skip
+    parser.add_argument("--align", choices=["auto", "none", "tags"], default="auto",
+                        help="align the query map onto the reference map with the common tags "
+                        "(default: auto = when there are 2 or more)")  # fmt: skip
+    parser.add_argument("--align-model", choices=["similarity", "rigid", "sim3", "se3"],
+                        default="similarity", help="default: similarity")  # fmt: skip
+    parser.add_argument("--plane", choices=list(PLANES), default="auto",
+                        help="plane of D and phi (default: auto, fitted to the reference)",
+                        )  # fmt: skip
+    parser.add_argument("--allow-scale", action="store_true",
+                        help="accept an alignment scale outside [0.9, 1.1]")  # fmt: skip
+    return parser
+
+
+def build_parser() -> argparse.ArgumentParser:
+    return add_arguments(
+        argparse.ArgumentParser(
+            prog="tagtrail relocalize",
+            description="Distance D and heading error phi of a query against a reference "
+            "trajectory (files of tagtrail or of the original tool).",
+            epilog=EXAMPLES,
+            formatter_class=argparse.RawDescriptionHelpFormatter,
+        )
+    )
+
+
+def main(args: argparse.Namespace | Sequence[str] | None = None) -> int:
+    """Run from parsed arguments (or an argv list); 0 on success, the error's exit code else."""
+    ns = args if isinstance(args, argparse.Namespace) else build_parser().parse_args(args)
+    try:
+        result = _relocalize(
+            ns.reference, ns.query, ns.out, ns.mode, ns.align, ns.align_model, ns.plane,
+            getattr(ns, "allow_scale", False),
+        )  # fmt: skip
+    except TagtrailError as err:
+        print(f"error: {err}", file=sys.stderr)
+        return err.exit_code
+    print(summary_text(result["summary"], result["relocalization"], Path(ns.out)))
+    return 0

@@ -1,0 +1,179 @@
+"""Stage ``align``: bring a query dataset into the reference world with the common tags (§3.2.1).
+
+The query's and the reference's tag maps share some tag ids; a similarity (or rigid) transform
+of their in-plane positions is fitted with RANSAC + least squares (Eqs. 3.9–3.10), or a 3-D
+Sim(3)/SE(3) one (``model: sim3|se3``). A planar transform acts in the plane only: in-plane
+coordinates are scaled, rotated and shifted, the normal coordinate is kept, orientations are
+rotated about the plane normal (headings gain the planar angle). ``align: auto`` aligns when
+there are enough common tags and otherwise keeps the query frame, with a warning.
+"""
+
+from __future__ import annotations
+
+import logging
+from typing import Any, Literal
+
+import numpy as np
+import pandas as pd
+from numpy.typing import NDArray
+from pydantic import Field
+
+from tagtrail.errors import DataError
+from tagtrail.geometry import se3
+from tagtrail.geometry.align2d import MODELS, Alignment, ransac_align
+from tagtrail.geometry.plane import Plane, resolve_plane
+from tagtrail.stages.base import StageParams
+
+F64 = NDArray[np.float64]
+log = logging.getLogger(__name__)
+
+INPUTS = {
+    "tag_map": "optimize.tag_map",
+    "ref_tag_map": "reference:optimize.tag_map",
+    "trajectory": "smooth.trajectory",
+    "ref_trajectory": "reference:smooth.trajectory",
+}
+OUTPUTS = ("alignment", "trajectory")
+SCOPE = "query"
+DEPENDS = ("tagtrail.geometry.align2d", "tagtrail.geometry.plane", "tagtrail.geometry.se3")
+_POSE = ["x_m", "y_m", "z_m", "qx", "qy", "qz", "qw"]
+
+
+class Params(StageParams):
+    """``align``: auto | none | tags; ``model``: similarity | rigid (planar), sim3 | se3 (3-D)."""
+
+    align: Literal["auto", "none", "tags"] = "auto"
+    model: Literal["similarity", "rigid", "se3", "sim3"] = "similarity"
+    plane: Literal["auto", "xz", "xy", "yz"] = "auto"
+    ransac_threshold_m: float = Field(0.10, gt=0)
+    ransac_iterations: int = Field(300, ge=1)
+    seed: int = 0
+    allow_scale: bool = False  # accept a fitted scale outside scale_range
+    scale_range: tuple[float, float] = (0.9, 1.1)
+
+
+def poses(traj: pd.DataFrame) -> tuple[F64, F64]:
+    """Positions ``(N, 3)`` (m) and rotations ``(N, 3, 3)`` of a trajectory's world_T_cam."""
+    P = traj[["x_m", "y_m", "z_m"]].to_numpy(np.float64)
+    return P, se3.R_from_quat_xyzw(traj[["qx", "qy", "qz", "qw"]].to_numpy(np.float64))
+
+
+def reference_plane(name: str, ref_trajectory: pd.DataFrame) -> Plane:
+    """The plane ``name``; ``auto`` is fitted to the reference trajectory (SPEC Conventions)."""
+    if name != "auto":
+        return resolve_plane(name)
+    if len(ref_trajectory) == 0:
+        raise DataError("plane 'auto': the reference trajectory is empty")
+    return resolve_plane("auto", *poses(ref_trajectory))
+
+
+def common_tags(tag_map: pd.DataFrame, ref_tag_map: pd.DataFrame) -> tuple[F64, F64, list[int]]:
+    """World positions ``(n, 3)`` of the tags both maps hold (query, reference) and their ids."""
+    q = tag_map.drop_duplicates("tag_id").set_index("tag_id")
+    r = ref_tag_map.drop_duplicates("tag_id").set_index("tag_id")
+    ids = sorted(set(q.index.astype(int)) & set(r.index.astype(int)))
+    cols = ["x_m", "y_m", "z_m"]
+    return q.loc[ids, cols].to_numpy(np.float64), r.loc[ids, cols].to_numpy(np.float64), ids
+
+
+def world_transform(al: Alignment, plane: Plane | None) -> tuple[F64, F64]:
+    """``ref_A_query (4, 4)`` acting on positions and ``ref_R_query (3, 3)`` on orientations.
+
+    3-D models: ``A = [sR | t]``, ``R``. Planar models, with ``B`` the rows (e1, e2, n):
+    ``A[:3,:3] = Bᵀ diag(sR₂, 1) B``, ``A[:3,3] = t_u e1 + t_v e2``, ``R = Bᵀ diag(R₂, 1) B``.
+    """
+    A = np.eye(4)
+    if al.dim == 3:
+        A[:3, :3], A[:3, 3] = al.scale * al.R, al.t
+        return A, al.R.copy()
+    if plane is None:
+        raise DataError("a planar alignment needs its plane")
+    B = plane.basis
+    M = np.eye(3)
+    M[:2, :2] = al.scale * al.R
+    A[:3, :3] = B.T @ M @ B
+    A[:3, 3] = B[:2].T @ al.t
+    return A, plane.rotation_about_normal(np.radians(al.rotation_deg))
+
+
+def transform_trajectory(traj: pd.DataFrame, A: F64, R: F64) -> pd.DataFrame:
+    """The trajectory with positions mapped by ``A (4, 4)`` and rotations by ``R (3, 3)``."""
+    out = traj.copy()
+    if len(out) == 0:
+        return out
+    P, Rc = poses(traj)
+    out[["x_m", "y_m", "z_m"]] = P @ A[:3, :3].T + A[:3, 3]
+    out[["qx", "qy", "qz", "qw"]] = se3.quat_xyzw_from_R(R @ Rc)
+    return out
+
+
+def alignment_block(model: str, al: Alignment | None, n_common: int, dim: int) -> dict[str, Any]:
+    """SPEC ``summary.json`` "alignment" block (``translation`` in plane (u, v) or world, m)."""
+    if al is None:
+        return {
+            "model": "none", "scale": 1.0, "rotation_deg": 0.0, "translation": [0.0] * dim,
+            "inliers": 0, "common_tags": n_common, "rms_m": None,
+        }
+    return {
+        "model": model,
+        "scale": al.scale,
+        "rotation_deg": al.rotation_deg,
+        "translation": [float(v) for v in al.t],
+        "inliers": int(al.inliers.sum()),
+        "common_tags": n_common,
+        "rms_m": al.rms_m,
+    }
+
+
+def estimate(
+    tag_map: pd.DataFrame, ref_tag_map: pd.DataFrame, plane: Plane | None, params: Params
+) -> tuple[Alignment | None, int]:
+    """The query→reference alignment (None when not aligning) and the number of common tags."""
+    dim, _ = MODELS[params.model]
+    q, r, ids = common_tags(tag_map, ref_tag_map)
+    if params.align == "none":
+        return None, len(ids)
+    if len(ids) < dim:
+        msg = (
+            f"only {len(ids)} common tag(s) between the query and the reference maps "
+            f"({params.model} alignment needs {dim})"
+        )
+        if params.align == "tags":
+            raise DataError(f"{msg}: check that both recordings saw the same tags, or align=none")
+        log.warning("align: %s; keeping the query's own frame (align=none)", msg)
+        return None, len(ids)
+    if dim == 2:
+        if plane is None:
+            raise DataError(f"{params.model} alignment needs a plane")
+        q, r = plane.to_uv(q), plane.to_uv(r)
+    al = ransac_align(
+        q, r, params.model, params.ransac_threshold_m, params.ransac_iterations, params.seed
+    )
+    return al.check_scale(*params.scale_range, allow=params.allow_scale), len(ids)
+
+
+def run(
+    tag_map: pd.DataFrame,
+    ref_tag_map: pd.DataFrame,
+    trajectory: pd.DataFrame,
+    ref_trajectory: pd.DataFrame,
+    params: Params,
+) -> dict[str, Any]:
+    """Align the query ``trajectory`` to the reference world (Eqs. 3.9–3.10).
+
+    Returns ``alignment`` (SPEC "alignment" block) and ``trajectory`` (the query's world_T_cam in
+    the reference world; other columns kept).
+    """
+    dim, _ = MODELS[params.model]
+    plane = None
+    if dim == 2 and params.align != "none":
+        plane = reference_plane(params.plane, ref_trajectory)
+    al, n_common = estimate(tag_map, ref_tag_map, plane, params)
+    if al is None:
+        return {"alignment": alignment_block(params.model, None, n_common, dim),
+                "trajectory": trajectory.copy()}
+    A, R = world_transform(al, plane)
+    return {
+        "alignment": alignment_block(params.model, al, n_common, dim),
+        "trajectory": transform_trajectory(trajectory, A, R),
+    }
