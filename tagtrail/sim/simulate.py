@@ -1,0 +1,132 @@
+"""``simulate()``: build a scenario's scenes, write each recording and its ground truth, atomically.
+
+``OUT/<recording>/`` is a rosbag2 folder (or an observations folder), ``OUT/<recording>/
+ground_truth/`` holds ``trajectory.csv`` (world_T_cam per frame), ``tag_map.yaml``/``.csv``
+(world_T_tag, with ``size_m``; ``n_obs`` = frames in which the tag is detectable), ``scene.yaml``
+and, for parked recordings, ``test_poses.csv``. World = the anchor tag's frame. Everything is
+written into a hidden temporary folder of ``OUT`` and renamed into place at the end.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import difflib
+import os
+import shutil
+import tempfile
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pandas as pd
+import yaml
+
+from tagtrail.errors import SpecError
+from tagtrail.geometry.se3 import F64, xyz_quat_from_T
+from tagtrail.io.layouts import POSE_COLS, atomic_write_text, write_tag_map, write_trajectory_csv
+from tagtrail.sim import bagwrite
+from tagtrail.sim.camera import tag_visibility
+from tagtrail.sim.scenarios import RECORDINGS, SCENARIOS, SimOptions, build
+from tagtrail.sim.scene import Scene
+
+
+def make_options(**options: Any) -> SimOptions:
+    """``SimOptions`` from keyword arguments, with a did-you-mean error for unknown names."""
+    names = [f.name for f in dataclasses.fields(SimOptions)]
+    for key in options:
+        if key not in names:
+            hint = difflib.get_close_matches(key, names, n=1)
+            extra = f" (did you mean {hint[0]!r}?)" if hint else ""
+            raise SpecError(f"unknown simulate option {key!r}{extra}")
+    return SimOptions(**options)
+
+
+def _pose_frame(T: F64, t_ns: np.ndarray) -> pd.DataFrame:
+    xyz, q = xyz_quat_from_T(T)
+    df = pd.DataFrame(np.hstack([xyz, q]), columns=POSE_COLS)
+    df.insert(0, "t_ns", np.asarray(t_ns, dtype=np.int64))
+    return df
+
+
+def write_ground_truth(folder: Path, scene: Scene, scenario: str, opts: SimOptions) -> None:
+    """Write the ground-truth files of ``scene`` into ``folder`` (world = anchor tag frame)."""
+    folder.mkdir(parents=True, exist_ok=True)
+    world_T_cam = scene.world_T_cam()
+    write_trajectory_csv(folder / "trajectory.csv", _pose_frame(world_T_cam, scene.t_ns))
+    if scene.parked:
+        write_trajectory_csv(folder / "test_poses.csv",
+                             _pose_frame(world_T_cam[:1], scene.t_ns[:1]))
+    vis = tag_visibility(scene.camera, scene.cam_T_tags(), scene.tag_sizes,
+                         max_range_m=opts.max_range_m, max_incidence_deg=opts.max_incidence_deg)
+    tags = _pose_frame(scene.world_T_tags(), np.zeros(len(scene.tags)))
+    tags = tags.drop(columns="t_ns")
+    tags.insert(0, "tag_id", scene.tag_ids)
+    tags["n_obs"] = vis.visible.sum(axis=0).astype(np.int64)
+    tags["size_m"] = scene.tag_sizes
+    write_tag_map(folder, tags, scene.anchor_id)
+    doc = {
+        "scenario": scenario,
+        "recording": scene.name,
+        "world_frame": f"anchor tag frame (tag36h11:{scene.anchor_id}); floor = its x-z plane",
+        "anchor_id": scene.anchor_id,
+        "seed": opts.seed,
+        "camera": scene.camera.to_dict(),
+        "tags": [{"id": int(t.tag_id), "size_m": float(t.size_m)} for t in scene.tags],
+        "tag_family": "tag36h11",
+        "n_frames": len(scene.t_ns),
+        "fps": opts.fps,
+        "parked": scene.parked,
+        "content": ("observations" if scenario == "observations"
+                    else "detections" if opts.detections
+                    else "compressed images" if opts.compressed else "images"),
+        "options": opts.to_dict(),
+        "info": scene.info,
+    }
+    atomic_write_text(folder / "scene.yaml", yaml.safe_dump(_plain(doc), sort_keys=False))
+
+
+def _plain(x: Any) -> Any:
+    if isinstance(x, dict):
+        return {str(k): _plain(v) for k, v in x.items()}
+    if isinstance(x, list | tuple):
+        return [_plain(v) for v in x]
+    if isinstance(x, np.generic):
+        return x.item()
+    return x
+
+
+def simulate(scenario: str, out: Path, **options: Any) -> dict[str, Path]:
+    """Simulate ``scenario`` into ``out``; returns {recording name: its folder}.
+
+    ``options`` are :class:`SimOptions` fields (e.g. ``frames=60``, ``detections=True``,
+    ``seed=3``, ``force=True``). Refuses to overwrite an existing recording unless ``force``.
+    """
+    if scenario not in SCENARIOS:
+        raise SpecError(f"unknown scenario {scenario!r}; choose one of {', '.join(SCENARIOS)}")
+    opts = make_options(**options)
+    out = Path(out)
+    existing = [out / n for n in RECORDINGS[scenario] if (out / n).exists()]
+    if existing and not opts.force:
+        raise SpecError(f"{existing[0]} exists already; use --force to overwrite it")
+    scenes = build(scenario, opts)
+    out.mkdir(parents=True, exist_ok=True)
+    tmp = Path(tempfile.mkdtemp(prefix=f".simulate-{scenario}-", dir=out))
+    try:
+        for k, scene in enumerate(scenes):
+            rng = np.random.default_rng([opts.seed, k])
+            folder = tmp / scene.name
+            if scenario == "observations":
+                bagwrite.write_observations(folder, scene, opts, rng)
+            else:
+                bagwrite.write_bag(folder, scene, opts, rng)
+            write_ground_truth(folder / "ground_truth", scene, scenario, opts)
+        result = {}
+        for scene in scenes:
+            dest = out / scene.name
+            if dest.exists():
+                shutil.rmtree(dest) if dest.is_dir() else dest.unlink()
+            os.replace(tmp / scene.name, dest)
+            result[scene.name] = dest
+        return result
+    finally:
+        shutil.rmtree(tmp, ignore_errors=True)
