@@ -97,7 +97,7 @@ class Runner:
             "stage": node.stage,
             "code": spec.code_fingerprint,
             "schema": spec.schema_version,
-            "params": self.pipe.params[node.stage].model_dump(mode="json"),
+            "params": self.pipe.params_for(node.stage, node.dataset).model_dump(mode="json"),
             "inputs": inputs,
         }
 
@@ -157,7 +157,7 @@ class Runner:
             else:
                 assert ref.output is not None
                 kwargs[arg] = self.store.load(up.stage, keys[up], ref.output)
-        outputs = spec.run(self.pipe.params[node.stage], **kwargs)
+        outputs = spec.run(self.pipe.params_for(node.stage, node.dataset), **kwargs)
         if not isinstance(outputs, dict) or set(outputs) != set(spec.outputs):
             got = sorted(outputs) if isinstance(outputs, dict) else type(outputs).__name__
             raise TypeError(f"run() returned {got}, expected outputs {list(spec.outputs)}")

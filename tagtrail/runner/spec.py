@@ -46,6 +46,11 @@ class Pipeline:
     config: PipelineConfig
     stages: dict[str, StageSpec]
     params: dict[str, StageParams]
+    dataset_params: dict[tuple[str, str], StageParams]
+
+    def params_for(self, stage: str, dataset: str) -> StageParams:
+        """The stage's parameters for one dataset (its ``params:`` overrides applied)."""
+        return self.dataset_params.get((stage, dataset), self.params[stage])
 
     @property
     def datasets(self) -> dict[str, DatasetConfig]:
@@ -148,6 +153,20 @@ def load_pipeline(
             where = f"{path}: stages.{name}"
             raise SpecError(_fmt_validation(where, err, spec.params_model.model_fields)) from err
 
+    dataset_params: dict[tuple[str, str], StageParams] = {}
+    for ds_name, ds in config.datasets.items():
+        for name, extra in ds.params.items():
+            if name not in stages:
+                raise SpecError(f"{path}: datasets.{ds_name}.params: unknown stage {name!r}"
+                                f"{did_you_mean(name, stages)}")
+            merged = {**raw.get(name, {}), **(extra or {})}
+            try:
+                dataset_params[(name, ds_name)] = stages[name].params_model.model_validate(merged)
+            except ValidationError as err:
+                where = f"{path}: datasets.{ds_name}.params.{name}"
+                fields = stages[name].params_model.model_fields
+                raise SpecError(_fmt_validation(where, err, fields)) from err
+
     root = path.resolve().parent
     datasets = {n: _resolve_dataset(n, ds, root) for n, ds in config.datasets.items()}
     for n, ds in datasets.items():
@@ -160,4 +179,5 @@ def load_pipeline(
                 )
             InputRef.parse(ref)
     config = config.model_copy(update={"datasets": datasets})
-    return Pipeline(path=path, root=root, config=config, stages=stages, params=params)
+    return Pipeline(path=path, root=root, config=config, stages=stages, params=params,
+                    dataset_params=dataset_params)

@@ -25,7 +25,8 @@ class DatasetConfig(BaseModel):
     observations`` writes). ``camera``: camera_info YAML (image folders; overrides the bag's).
     ``ground_truth``: folder with SPEC-layout ground truth (default ``<source>/ground_truth`` if
     present). ``inputs``: rewiring, e.g. ``{"trajectory.tag_map": "reference:optimize.tag_map"}``
-    localizes this dataset directly against the reference map.
+    localizes this dataset directly against the reference map. ``params``: per-stage parameter
+    overrides for this dataset only (merged over the pipeline's ``stages:``).
     """
 
     model_config = ConfigDict(extra="forbid", frozen=True)
@@ -34,6 +35,7 @@ class DatasetConfig(BaseModel):
     camera: Path | None = None
     ground_truth: Path | None = None
     inputs: dict[str, str] = Field(default_factory=dict)
+    params: dict[str, dict[str, Any]] = Field(default_factory=dict)
 
 
 class PipelineConfig(BaseModel):

@@ -248,3 +248,16 @@ def test_kill_9_mid_stage_then_rerun_is_identical(project, tmp_path: Path) -> No
 
     assert entries(cwd) == entries(fresh)
     assert not any((cwd / "artifacts" / "tmp").iterdir())
+
+
+def test_per_dataset_params_override_only_that_dataset(project) -> None:
+    project().run()
+    doc = yaml.safe_load(project.pipe_file.read_text())
+    doc["datasets"]["query"]["params"] = {"scale": {"factor": 10}}
+    project.pipe_file.write_text(yaml.safe_dump(doc))
+    states = project().run()
+    assert executed(states) == {(s, d) for s, d in ALL if d == "query" and s != "load"}
+    doc["datasets"]["query"]["params"] = {"scale": {"factr": 10}}
+    project.pipe_file.write_text(yaml.safe_dump(doc))
+    with pytest.raises(SpecError, match="datasets.query.params.scale.*did you mean 'factor'"):
+        project()
