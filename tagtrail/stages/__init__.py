@@ -4,4 +4,26 @@ from __future__ import annotations
 
 from types import ModuleType
 
-REGISTRY: dict[str, ModuleType] = {}
+from tagtrail.stages import (
+    align,
+    edges,
+    eval,
+    extract,
+    optimize,
+    pnp,
+    report,
+    smooth,
+    trajectory,
+)
+
+REGISTRY: dict[str, ModuleType] = {
+    "extract": extract,
+    "pnp": pnp,
+    "edges": edges,
+    "optimize": optimize,
+    "trajectory": trajectory,
+    "smooth": smooth,
+    "eval": eval,
+    "align": align,
+    "report": report,
+}

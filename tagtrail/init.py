@@ -1,0 +1,92 @@
+"""``tagtrail init``: inspect the sources, pick their topics, write a pipeline file."""
+
+from __future__ import annotations
+
+import argparse
+import os
+from pathlib import Path
+from typing import Any
+
+import yaml
+
+from tagtrail.errors import SpecError
+from tagtrail.io.layouts import atomic_write_text
+from tagtrail.schemas.pipeline import DatasetConfig, Topics
+
+EXAMPLES = """examples:
+  tagtrail init --reference bags/run1 --query bags/parked1
+  tagtrail init --reference photos/ --camera photos/camera.yaml --tag-size 0.127
+  tagtrail init --reference run1.bag --anchor 0 -o lab.yaml"""
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.epilog = EXAMPLES
+    parser.formatter_class = argparse.RawDescriptionHelpFormatter
+    parser.add_argument("--reference", type=Path, required=True, metavar="SRC",
+                        help="the reference recording (rosbag2 folder, .bag, image folder)")
+    parser.add_argument("--query", type=Path, action="append", default=[], metavar="SRC",
+                        help="a query recording (repeatable: query, query_2, …)")
+    parser.add_argument("--camera", type=Path, default=None, metavar="FILE",
+                        help="camera_info YAML (image folders, or to override the bag's)")
+    parser.add_argument("--tag-size", type=float, default=None, metavar="M",
+                        help="edge of the tags' black square in metres (default 0.16)")
+    parser.add_argument("--anchor", type=int, default=None, metavar="ID",
+                        help="anchor (world) tag id (default: the most observed tag)")
+    parser.add_argument("-o", "--output", type=Path, default=Path("pipeline.yaml"),
+                        help="pipeline file to write (pipeline.yaml)")
+    parser.add_argument("--force", action="store_true", help="overwrite an existing file")
+
+
+def inspect(source: Path, camera: Path | None) -> tuple[DatasetConfig, str]:
+    """Open a source as the pipeline will; return its dataset entry and a one-line description."""
+    from tagtrail.io.sources import open_source
+
+    cfg = DatasetConfig(source=source.resolve(), camera=camera.resolve() if camera else None)
+    with open_source(cfg) as src:
+        topics: dict[str, Any] = {}
+        topic = getattr(src, "topic", None)
+        if topic is not None:
+            topics["detections" if src.kind == "detections" else "image"] = topic
+            if getattr(src, "camera_info_topic", None):
+                topics["camera_info"] = src.camera_info_topic
+        if src.kind != "observations" and src.camera() is None:
+            raise SpecError(f"{source}: no camera calibration found; pass --camera FILE "
+                            "(a ROS camera_info YAML)")
+        desc = src.describe()
+    return cfg.model_copy(update={"topics": Topics(**topics)}), desc
+
+
+def _rel(path: Path, base: Path) -> str:
+    try:
+        return os.path.relpath(path, base)
+    except ValueError:
+        return str(path)
+
+
+def main(args: argparse.Namespace) -> int:
+    out: Path = args.output
+    if out.exists() and not args.force:
+        raise SpecError(f"{out} exists already; use --force to overwrite it")
+    base = out.resolve().parent
+    names = ["reference"] + [f"query{'' if i == 0 else f'_{i + 1}'}"
+                             for i in range(len(args.query))]
+    datasets: dict[str, Any] = {}
+    for name, src in zip(names, [args.reference, *args.query], strict=True):
+        cfg, desc = inspect(src, args.camera)
+        entry: dict[str, Any] = {"source": _rel(cfg.source, base)}
+        topics = cfg.topics.model_dump(exclude_none=True)
+        if topics:
+            entry["topics"] = topics
+        if cfg.camera is not None:
+            entry["camera"] = _rel(cfg.camera, base)
+        datasets[name] = entry
+        print(f"{name}: {desc}")
+    stages: dict[str, Any] = {"pnp": {"tag_size": args.tag_size or 0.16}}
+    if args.anchor is not None:
+        stages["edges"] = {"anchor_id": args.anchor}
+    doc = {"reference": "reference", "datasets": datasets, "stages": stages}
+    header = ("# Written by `tagtrail init`. Stage parameters not listed keep their defaults;\n"
+              "# see `tagtrail dag` and `tagtrail run --dry-run`.\n")
+    atomic_write_text(out, header + yaml.safe_dump(doc, sort_keys=False))
+    print(f"wrote {out}; next: tagtrail run -p {out}")
+    return 0

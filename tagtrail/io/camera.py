@@ -1,0 +1,236 @@
+"""Pinhole camera with ROS distortion models: pixels ↔ normalized coordinates.
+
+Pixel convention: OpenCV/ROS (pixel centres at integer coordinates, origin at the top-left pixel's
+centre), the convention of ``K`` in ``sensor_msgs/CameraInfo``. Points ``p_cam`` are in the
+camera optical frame (x right, y down, z forward), metres. Normalized coordinates are
+``(x/z, y/z)`` of the undistorted ray.
+
+Distortion models (ROS names): ``plumb_bob`` (k1 k2 p1 p2 k3), ``rational_polynomial``
+(k1 k2 p1 p2 k3 k4 k5 k6) — both OpenCV's Brown–Conrady model —, ``equidistant`` (k1..k4, OpenCV's
+``cv2.fisheye``) and ``none``.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import cv2
+import numpy as np
+import yaml
+from numpy.typing import ArrayLike, NDArray
+
+from tagtrail.errors import SourceError
+
+F64 = NDArray[np.float64]
+MODELS = ("plumb_bob", "rational_polynomial", "equidistant", "none")
+_ALIASES = {"": "none", "fisheye": "equidistant", "radtan": "plumb_bob", "pinhole": "none"}
+_OPENCV_NCOEF = (4, 5, 8, 12, 14)
+# Tight criteria: OpenCV's default (5 iterations) leaves ~1e-9 rad of error with strong distortion.
+_CRITERIA = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 100, 1e-14)
+
+
+@dataclass(frozen=True, eq=False)
+class CameraModel:
+    """Intrinsics of one camera, as in ``sensor_msgs/CameraInfo``.
+
+    ``K``: (3, 3) camera matrix (px); ``D``: (n,) distortion coefficients in ROS order.
+    """
+
+    width: int
+    height: int
+    K: F64 = field(repr=False)
+    D: F64 = field(repr=False)
+    distortion_model: str = "plumb_bob"
+
+    def __post_init__(self) -> None:
+        model = _ALIASES.get(str(self.distortion_model).strip(), str(self.distortion_model).strip())
+        if model not in MODELS:
+            raise SourceError(
+                f"unsupported distortion model {self.distortion_model!r} "
+                f"(supported: {', '.join(MODELS)})"
+            )
+        K = np.array(self.K, dtype=np.float64).reshape(3, 3)
+        D = np.array(self.D, dtype=np.float64).reshape(-1)
+        if not np.isfinite(K).all() or K[0, 0] <= 0 or K[1, 1] <= 0:
+            raise SourceError(f"camera matrix K is not a calibration (fx, fy must be > 0): {K}")
+        if not np.isfinite(D).all():
+            raise SourceError(f"distortion coefficients are not finite: {D}")
+        if model == "equidistant":
+            D = np.concatenate([D, np.zeros(4)])[:4] if D.size != 4 else D
+        elif model == "none":
+            D = np.zeros(0)
+        K.setflags(write=False)
+        D.setflags(write=False)
+        object.__setattr__(self, "distortion_model", model)
+        object.__setattr__(self, "K", K)
+        object.__setattr__(self, "D", D)
+        object.__setattr__(self, "width", int(self.width))
+        object.__setattr__(self, "height", int(self.height))
+
+    # --- construction -----------------------------------------------------------------------
+
+    @classmethod
+    def from_camera_info(cls, msg: Any) -> CameraModel:
+        """From a deserialized ``sensor_msgs/msg/CameraInfo`` (rosbags message, ROS 1 or 2)."""
+        # ROS 1 spells the arrays K, D; ROS 2 k, d.
+        return cls(
+            width=int(msg.width),
+            height=int(msg.height),
+            K=np.asarray(_field(msg, "k"), dtype=np.float64),
+            D=np.asarray(_field(msg, "d"), dtype=np.float64),
+            distortion_model=str(msg.distortion_model),
+        )
+
+    @classmethod
+    def from_yaml(cls, path: Path | str) -> CameraModel:
+        """From a ROS camera_info YAML (``camera_calibration`` output).
+
+        Also accepts the simpler form ``camera: {width, height, fx, fy, cx, cy,
+        distortion_model, distortion}`` (the realdata ``meta.yaml`` files), with or without the
+        ``camera:`` level.
+        """
+        path = Path(path)
+        try:
+            doc = yaml.safe_load(path.read_text(encoding="utf-8"))
+        except (OSError, yaml.YAMLError, UnicodeDecodeError) as err:
+            raise SourceError(f"{path}: cannot read camera YAML: {err}") from err
+        try:
+            return cls._from_doc(doc)
+        except SourceError as err:
+            raise SourceError(f"{path}: {err}") from err
+        except (KeyError, TypeError, ValueError, AttributeError) as err:
+            raise SourceError(
+                f"{path}: not a camera_info YAML (needs image_width, image_height, "
+                f"camera_matrix.data, distortion_model, distortion_coefficients.data): {err!r}"
+            ) from err
+
+    @classmethod
+    def _from_doc(cls, doc: Any) -> CameraModel:
+        if not isinstance(doc, dict):
+            raise TypeError("top level is not a mapping")
+        if "camera_matrix" in doc:
+            dist = doc.get("distortion_coefficients") or {}
+            return cls(
+                width=int(doc["image_width"]),
+                height=int(doc["image_height"]),
+                K=np.asarray(doc["camera_matrix"]["data"], dtype=np.float64),
+                D=np.asarray(dist.get("data") or [], dtype=np.float64),
+                distortion_model=str(doc.get("distortion_model", "plumb_bob")),
+            )
+        cam = doc["camera"] if isinstance(doc.get("camera"), dict) else doc
+        K = [cam["fx"], 0.0, cam["cx"], 0.0, cam["fy"], cam["cy"], 0.0, 0.0, 1.0]
+        D = cam.get("distortion") or cam.get("D") or []
+        return cls(
+            width=int(cam["width"]),
+            height=int(cam["height"]),
+            K=np.asarray(K, dtype=np.float64),
+            D=np.asarray(D, dtype=np.float64),
+            distortion_model=str(cam.get("distortion_model", "plumb_bob" if D else "none")),
+        )
+
+    def to_dict(self) -> dict[str, Any]:
+        """JSON-able form (the ``extract.camera`` artifact)."""
+        return {
+            "width": self.width,
+            "height": self.height,
+            "distortion_model": self.distortion_model,
+            "K": [float(v) for v in self.K.reshape(-1)],
+            "D": [float(v) for v in self.D],
+        }
+
+    @classmethod
+    def from_dict(cls, d: dict[str, Any]) -> CameraModel:
+        """Inverse of :meth:`to_dict`."""
+        try:
+            return cls(
+                width=int(d["width"]),
+                height=int(d["height"]),
+                K=np.asarray(d["K"], dtype=np.float64),
+                D=np.asarray(d.get("D", []), dtype=np.float64),
+                distortion_model=str(d.get("distortion_model", "plumb_bob")),
+            )
+        except (KeyError, TypeError, ValueError) as err:
+            raise SourceError(f"invalid camera description {d!r}: {err!r}") from err
+
+    def same_as(self, other: CameraModel, rtol: float = 1e-9) -> bool:
+        """Equal size, model and (to ``rtol``) coefficients."""
+        return (
+            (self.width, self.height, self.distortion_model)
+            == (other.width, other.height, other.distortion_model)
+            and self.D.shape == other.D.shape
+            and np.allclose(self.K, other.K, rtol=rtol, atol=0)
+            and np.allclose(self.D, other.D, rtol=rtol, atol=1e-15)
+        )
+
+    # --- geometry ---------------------------------------------------------------------------
+
+    def _cv_D(self) -> F64:
+        """Coefficients padded to a length OpenCV accepts."""
+        if self.distortion_model == "none" or self.D.size == 0:
+            return np.zeros(5)
+        n = next((k for k in _OPENCV_NCOEF if k >= self.D.size), None)
+        if n is None:
+            raise SourceError(f"{self.D.size} distortion coefficients: OpenCV takes at most 14")
+        return np.concatenate([self.D, np.zeros(n - self.D.size)])
+
+    def undistort(self, px: ArrayLike) -> F64:
+        """Distorted pixels ``(..., 2)`` → normalized undistorted coordinates ``(..., 2)``."""
+        px = np.asarray(px, dtype=np.float64)
+        shape = px.shape
+        if shape[-1] != 2:
+            raise ValueError(f"pixels must have shape (..., 2), got {shape}")
+        if px.size == 0:
+            return np.zeros(shape)
+        pts = px.reshape(-1, 1, 2)
+        if self.distortion_model == "none":
+            h = np.concatenate([pts[:, 0], np.ones((pts.shape[0], 1))], axis=1)
+            out = np.linalg.solve(self.K, h.T).T
+            return (out[:, :2] / out[:, 2:]).reshape(shape)
+        if self.distortion_model == "equidistant":
+            und = cv2.fisheye.undistortPoints(pts, self.K, self.D, criteria=_CRITERIA)
+        else:
+            und = cv2.undistortPoints(pts, self.K, self._cv_D(), None, None, criteria=_CRITERIA)
+        return np.asarray(und, dtype=np.float64).reshape(shape)
+
+    def project(self, p_cam: ArrayLike) -> F64:
+        """Points ``(..., 3)`` in the camera frame (m) → distorted pixels ``(..., 2)``.
+
+        Vectorised numpy of OpenCV's models (``projectPoints``, ``fisheye.projectPoints``).
+        """
+        p = np.asarray(p_cam, dtype=np.float64)
+        if p.shape[-1] != 3:
+            raise ValueError(f"points must have shape (..., 3), got {p.shape}")
+        x, y = p[..., 0] / p[..., 2], p[..., 1] / p[..., 2]
+        d = self.D
+        if self.distortion_model == "equidistant":
+            r = np.hypot(x, y)
+            th = np.arctan(r)
+            th2 = th * th
+            thd = th * (1 + th2 * (d[0] + th2 * (d[1] + th2 * (d[2] + th2 * d[3]))))
+            scale = np.divide(thd, r, out=np.ones_like(r), where=r > 1e-12)
+            x, y = x * scale, y * scale
+        elif self.distortion_model != "none" and d.size:
+            if d.size > 8:  # thin-prism / tilted models: OpenCV itself
+                return self._project_cv(p)
+            k = np.concatenate([d, np.zeros(8 - d.size)])
+            r2 = x * x + y * y
+            radial = (1 + r2 * (k[0] + r2 * (k[1] + r2 * k[4]))) / (
+                1 + r2 * (k[5] + r2 * (k[6] + r2 * k[7]))
+            )
+            x, y = (
+                x * radial + 2 * k[2] * x * y + k[3] * (r2 + 2 * x * x),
+                y * radial + k[2] * (r2 + 2 * y * y) + 2 * k[3] * x * y,
+            )
+        K = self.K
+        return np.stack([K[0, 0] * x + K[0, 1] * y + K[0, 2], K[1, 1] * y + K[1, 2]], axis=-1)
+
+    def _project_cv(self, p: F64) -> F64:
+        uv, _ = cv2.projectPoints(p.reshape(-1, 1, 3), np.zeros(3), np.zeros(3), self.K,
+                                  self._cv_D())
+        return np.asarray(uv, dtype=np.float64).reshape(p.shape[:-1] + (2,))
+
+
+def _field(msg: Any, name: str) -> Any:
+    return getattr(msg, name) if hasattr(msg, name) else getattr(msg, name.upper())

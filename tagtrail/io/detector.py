@@ -1,0 +1,139 @@
+"""The AprilTag detector (pupil-apriltags, tag36h11), guarded, and the per-chunk worker function.
+
+Two defects of pupil-apriltags 1.0.4.post11 are worked around here:
+
+- ``Detector.__del__`` frees the tag family and *then* destroys the detector, whose teardown
+  reads the freed family (a use-after-free; upstream pupil-labs/apriltags#46): intermittent
+  segfaults, mostly at interpreter exit. :class:`GuardedDetector` detaches the family first, and
+  detectors are cached for the process lifetime (:func:`get_detector`) — in tagtrail they live only
+  in worker processes, which leave through ``os._exit`` (multiprocessing's fork/forkserver) and
+  whose results are collected before they exit.
+- ``Detector.__init__`` casts ``decode_sharpening`` to ``int`` (0.25 → 0); the double the C
+  library reads is set again here. ``max_hamming`` is the C library's ``bits_corrected`` (the
+  binding hard-codes 2).
+
+Corners are returned in the OpenCV pixel convention (pixel centres at integers): the C library
+puts them at +0.5 px (measured +0.49 px against OpenCV).
+"""
+
+from __future__ import annotations
+
+import ctypes
+import functools
+from dataclasses import dataclass
+from typing import Any
+
+import cv2
+import numpy as np
+from numpy.typing import NDArray
+from pupil_apriltags import Detector
+
+from tagtrail.io.images import RawImage
+
+FAMILY = "tag36h11"
+C_LIBRARY_PIXEL_OFFSET = 0.5
+
+
+@dataclass(frozen=True)
+class DetectorConfig:
+    """Detector settings plus the filters applied to its output (hashable: a cache key)."""
+
+    quad_decimate: float = 2.0
+    quad_sigma: float = 0.0
+    refine_edges: bool = True
+    decode_sharpening: float = 0.25
+    max_hamming: int = 0
+    min_decision_margin: float = 0.0
+    tag_ids: tuple[int, ...] | None = None
+
+
+class GuardedDetector(Detector):  # type: ignore[misc]
+    """pupil-apriltags' single-threaded tag36h11 detector with the fixes above."""
+
+    def __init__(self, cfg: DetectorConfig) -> None:
+        super().__init__(
+            families=FAMILY,
+            nthreads=1,
+            quad_decimate=cfg.quad_decimate,
+            quad_sigma=cfg.quad_sigma,
+            refine_edges=int(cfg.refine_edges),
+            decode_sharpening=cfg.decode_sharpening,
+        )
+        self.tag_detector_ptr.contents.decode_sharpening = float(cfg.decode_sharpening)
+        self.libc.apriltag_detector_remove_family.restype = None
+        fam = self.tag_families[FAMILY]
+        self.libc.apriltag_detector_remove_family(self.tag_detector_ptr, fam)
+        self.libc.apriltag_detector_add_family_bits(
+            self.tag_detector_ptr, fam, ctypes.c_int(int(cfg.max_hamming))
+        )
+
+    def __del__(self) -> None:
+        ptr = getattr(self, "tag_detector_ptr", None)
+        if ptr is not None:
+            for fam in self.tag_families.values():
+                self.libc.apriltag_detector_remove_family(ptr, fam)
+        super().__del__()
+
+
+_DETECTORS: dict[DetectorConfig, GuardedDetector] = {}
+
+
+def get_detector(cfg: DetectorConfig) -> GuardedDetector:
+    """A detector for ``cfg``, created once and kept for the life of the process."""
+    det = _DETECTORS.get(cfg)
+    if det is None:
+        det = _DETECTORS[cfg] = GuardedDetector(cfg)
+    return det
+
+
+def detect(img: NDArray[np.uint8], cfg: DetectorConfig) -> tuple[NDArray[np.int32], NDArray[Any]]:
+    """Detect tags in a gray image ``(H, W)`` uint8.
+
+    Returns ``ints`` (m, 2) = (tag_id, hamming) and ``floats`` (m, 9) = (decision_margin,
+    c0x, c0y, …, c3x, c3y) — corners in px, detector order, OpenCV convention — after the
+    ``max_hamming``/``min_decision_margin``/``tag_ids`` filters, in detector order.
+    """
+    dets = get_detector(cfg).detect(img)
+    ints = np.array([(d.tag_id, d.hamming) for d in dets], dtype=np.int32).reshape(-1, 2)
+    floats = np.array(
+        [(d.decision_margin, *(np.asarray(d.corners).reshape(8) - C_LIBRARY_PIXEL_OFFSET))
+         for d in dets],
+        dtype=np.float64,
+    ).reshape(-1, 9)
+    keep = (ints[:, 1] <= cfg.max_hamming) & (floats[:, 0] >= cfg.min_decision_margin)
+    if cfg.tag_ids is not None:
+        keep &= np.isin(ints[:, 0], np.asarray(cfg.tag_ids, dtype=np.int32))
+    return ints[keep], floats[keep]
+
+
+@functools.cache
+def _single_threaded_opencv() -> None:
+    cv2.setNumThreads(1)  # one worker per core already; OpenCV's own threads would oversubscribe
+
+
+def detect_chunk(
+    chunk: list[tuple[int, int, RawImage]], cfg: DetectorConfig
+) -> dict[str, NDArray[Any]]:
+    """Decode and detect a chunk of frames (runs in a worker process).
+
+    Returns arrays: ``frame_idx`` (n,), ``n_det`` (n,), ``shape`` (n, 2) image (H, W), and per
+    detection ``det_frame`` (m,), ``det_ints`` (m, 2), ``det_floats`` (m, 9) (see :func:`detect`).
+    """
+    _single_threaded_opencv()
+    n_det, shapes, det_frame, ints, floats = [], [], [], [], []
+    for idx, _t_ns, raw in chunk:
+        img = raw.decode()
+        i, f = detect(img, cfg)
+        n_det.append(len(i))
+        shapes.append(img.shape)
+        det_frame.append(np.full(len(i), idx, dtype=np.int64))
+        ints.append(i)
+        floats.append(f)
+    return {
+        "frame_idx": np.array([c[0] for c in chunk], dtype=np.int64),
+        "n_det": np.array(n_det, dtype=np.int32),
+        "shape": np.array(shapes, dtype=np.int64).reshape(-1, 2),
+        "det_frame": np.concatenate(det_frame) if det_frame else np.zeros(0, np.int64),
+        "det_ints": np.concatenate(ints) if ints else np.zeros((0, 2), np.int32),
+        "det_floats": np.concatenate(floats) if floats else np.zeros((0, 9)),
+    }

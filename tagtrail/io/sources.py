@@ -1,0 +1,473 @@
+"""Dataset sources: rosbag2 folders (MCAP/sqlite3), ROS 1 bags, image folders, observations.
+
+:func:`open_source` inspects a :class:`~tagtrail.schemas.pipeline.DatasetConfig` and returns a
+source of one of three kinds:
+
+- ``"images"`` — frames are :class:`~tagtrail.io.images.RawImage` (undecoded; ``decode()`` them,
+  preferably in worker processes — iterating the source itself decodes in-process);
+- ``"detections"`` — frames are lists of :class:`TagDetection` (``apriltag_msgs``);
+- ``"observations"`` — camera→tag poses given directly (``observations.csv``).
+
+Every source yields ``(frame_idx, t_ns, payload)`` in recording order; ``frame_idx`` counts from 0.
+
+Topic choice in bags: ``topics.detections`` set → a detection source; otherwise an image source
+when the bag has an image topic (``sensor_msgs/Image`` or ``CompressedImage``), else a detection
+source. Each choice must be unambiguous or named in ``pipeline.yaml`` (``topics: {image: ...}``).
+Stamps come from message headers (receive time when a header stamp is zero); the camera model
+from ``DatasetConfig.camera`` if given, else the first ``CameraInfo`` message (a warning if it
+changes later). Corners of detection messages are converted to the OpenCV pixel convention.
+"""
+
+from __future__ import annotations
+
+import csv
+import logging
+import os
+import re
+from collections.abc import Iterator
+from contextlib import contextmanager
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Literal
+
+import numpy as np
+import pandas as pd
+from numpy.typing import NDArray
+from rosbags.highlevel import AnyReader
+
+from tagtrail.errors import SourceError
+from tagtrail.io import msgs
+from tagtrail.io.camera import CameraModel
+from tagtrail.io.detector import C_LIBRARY_PIXEL_OFFSET  # apriltag_ros uses the C library
+from tagtrail.io.images import RawImage
+from tagtrail.io.layouts import POSE_COLS, parse_tag_name
+from tagtrail.schemas.pipeline import DatasetConfig
+
+log = logging.getLogger("tagtrail.sources")
+
+Kind = Literal["images", "detections", "observations"]
+IMAGE_EXTS = (".jpg", ".jpeg", ".png")
+IMAGE_TYPES = (msgs.IMAGE, msgs.COMPRESSED_IMAGE)
+FOLDER_PERIOD_NS = 100_000_000  # image folders without stamps.csv: 10 Hz from t = 0
+OBS_CSV_HEADER = ["stamp_sec", "stamp_nanosec", "tag", "x", "y", "z", "qx", "qy", "qz", "qw"]
+
+
+@dataclass(frozen=True)
+class TagDetection:
+    """One tag in one frame. ``corners``: (4, 2) px, detector order, OpenCV convention."""
+
+    tag_id: int
+    hamming: int
+    decision_margin: float
+    corners: NDArray[np.float64]
+    family: str = "tag36h11"
+
+
+Frame = tuple[int, int, Any]
+
+
+class Source:
+    """Base of every source: ``kind``, ``camera()``, ``len()``, iteration, ``chunks()``."""
+
+    kind: Kind
+    path: Path
+
+    def camera(self) -> CameraModel | None:
+        """The camera model (None for observations sources)."""
+        raise NotImplementedError
+
+    def __len__(self) -> int:
+        raise NotImplementedError
+
+    def iter_raw(self) -> Iterator[Frame]:
+        """``(frame_idx, t_ns, payload)`` with images left undecoded (:class:`RawImage`)."""
+        raise NotImplementedError
+
+    def __iter__(self) -> Iterator[Frame]:
+        """``(frame_idx, t_ns, payload)``; images decoded to gray uint8 ``(H, W)``."""
+        for idx, t_ns, payload in self.iter_raw():
+            yield idx, t_ns, payload.decode() if isinstance(payload, RawImage) else payload
+
+    def chunks(self, size: int) -> Iterator[list[Frame]]:
+        """Lists of up to ``size`` consecutive raw frames (to ship to worker processes)."""
+        chunk: list[Frame] = []
+        for frame in self.iter_raw():
+            chunk.append(frame)
+            if len(chunk) >= size:
+                yield chunk
+                chunk = []
+        if chunk:
+            yield chunk
+
+    def observations(self) -> pd.DataFrame:
+        """Observations sources: ``t_ns, frame_idx, tag_id`` + pose columns (cam_T_tag)."""
+        raise SourceError(f"{self.path}: a {self.kind} source carries no observations")
+
+    def describe(self) -> str:
+        return f"{self.kind} source {self.path}"
+
+    def close(self) -> None:
+        """Release open files (sources reopen them when iterated again)."""
+
+    def __enter__(self) -> Source:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+
+def open_source(cfg: DatasetConfig) -> Source:
+    """The source a dataset names; raises :class:`SourceError` with one clear message."""
+    path = Path(cfg.source)
+    if not path.exists():
+        raise SourceError(f"{path}: no such file or folder (dataset source)")
+    camera = _camera_override(cfg.camera)
+    if path.is_file():
+        if path.suffix == ".bag":
+            return BagSource(path, cfg, camera)
+        if path.suffix in (".mcap", ".db3"):
+            if (path.parent / "metadata.yaml").is_file():
+                return BagSource(path.parent, cfg, camera)
+            raise SourceError(
+                f"{path}: no metadata.yaml next to it; a rosbag2 recording is a folder "
+                f"(`ros2 bag reindex {path.parent}` recreates a lost metadata.yaml)"
+            )
+        if path.name == "observations.csv":
+            return ObservationsSource(path.parent)
+        raise SourceError(
+            f"{path}: not a source (expected a rosbag2 folder, a ROS 1 .bag, an image folder or "
+            "an observations folder)"
+        )
+    if (path / "metadata.yaml").is_file():
+        return BagSource(path, cfg, camera)
+    if (path / "observations.csv").is_file():
+        return ObservationsSource(path)
+    if _image_files(path):
+        return ImageFolderSource(path, camera)
+    if any(path.glob("*.mcap")) or any(path.glob("*.db3")):
+        raise SourceError(
+            f"{path}: bag files without metadata.yaml (`ros2 bag reindex {path}` recreates it)"
+        )
+    bags = sorted(path.glob("*.bag"))
+    if bags:
+        raise SourceError(f"{path}: holds ROS 1 bags; name one as the source, e.g. {bags[0]}")
+    raise SourceError(
+        f"{path}: empty or unrecognised source folder (expected metadata.yaml of a rosbag2 "
+        f"recording, jpg/png images, or observations.csv)"
+    )
+
+
+def _camera_override(path: Path | None) -> CameraModel | None:
+    if path is None:
+        return None
+    if not Path(path).is_file():
+        raise SourceError(f"{path}: camera file not found (`camera:` of the dataset)")
+    return CameraModel.from_yaml(path)
+
+
+# --- bags ------------------------------------------------------------------------------------
+
+
+def _stamp_ns(stamp: Any) -> int:
+    sec = stamp.sec if hasattr(stamp, "sec") else stamp.secs
+    nsec = stamp.nanosec if hasattr(stamp, "nanosec") else stamp.nsecs
+    return int(sec) * 1_000_000_000 + int(nsec)
+
+
+def _detections_from_msg(msg: Any) -> list[TagDetection]:
+    out = []
+    for d in msg.detections:
+        corners = np.array([[c.x, c.y] for c in d.corners], dtype=np.float64)
+        out.append(
+            TagDetection(
+                tag_id=int(d.id),
+                hamming=int(d.hamming),
+                decision_margin=float(d.decision_margin),
+                corners=corners - C_LIBRARY_PIXEL_OFFSET,
+                family=str(d.family),
+            )
+        )
+    return out
+
+
+def _raw_image_from_msg(msg: Any, msgtype: str) -> RawImage:
+    if msgtype == msgs.COMPRESSED_IMAGE:
+        return RawImage("compressed", bytes(msg.data), encoding=str(msg.format))
+    return RawImage(
+        "raw",
+        bytes(msg.data),
+        encoding=str(msg.encoding),
+        width=int(msg.width),
+        height=int(msg.height),
+        step=int(msg.step),
+        bigendian=bool(msg.is_bigendian),
+    )
+
+
+class BagSource(Source):
+    """A rosbag2 folder (MCAP or sqlite3) or a ROS 1 ``.bag``, read with rosbags' AnyReader."""
+
+    def __init__(self, path: Path, cfg: DatasetConfig, camera: CameraModel | None) -> None:
+        self.path = Path(path)
+        self._spare: AnyReader | None = None
+        with self._reader(keep=True) as reader:
+            by_topic: dict[str, list[Any]] = {}
+            for c in reader.connections:
+                by_topic.setdefault(c.topic, []).append(c)
+            self._types = {t: cs[0].msgtype for t, cs in by_topic.items()}
+            self._counts = {t: sum(c.msgcount for c in cs) for t, cs in by_topic.items()}
+            self.kind, self.topic = self._choose_topic(cfg)
+            self.camera_info_topic: str | None = None
+            self._camera = camera
+            if camera is None:
+                self.camera_info_topic = self._choose_camera_info(cfg)
+                if self.camera_info_topic is not None:
+                    self._camera = self._first_camera_info(reader)
+        if self._counts[self.topic] == 0:
+            raise SourceError(f"{self.path}: topic {self.topic} has no messages (empty bag?)")
+
+    @contextmanager
+    def _reader(self, keep: bool = False) -> Iterator[AnyReader]:
+        """An open reader; ``keep``: left open for the first iteration (opening parses the
+        bag's message definitions, ~0.1–0.2 s)."""
+        reader, self._spare = self._spare, None
+        if reader is None:
+            try:
+                reader = AnyReader([self.path], default_typestore=msgs.typestore())
+                reader.open()
+            except Exception as err:  # rosbags raises many types (ReaderError, sqlite3, mcap)
+                raise SourceError(f"{self.path}: cannot read bag: {err}") from err
+        ok = False
+        try:
+            yield reader
+            ok = True
+        finally:
+            if keep and ok:
+                self._spare = reader
+            else:
+                reader.close()
+
+    def close(self) -> None:
+        reader, self._spare = self._spare, None
+        if reader is not None:
+            reader.close()
+
+    def __del__(self) -> None:
+        self.close()
+
+    def _listing(self, types: tuple[str, ...] | None = None) -> str:
+        items = [
+            f"{t} ({m}, {self._counts[t]} msgs)"
+            for t, m in sorted(self._types.items())
+            if types is None or m in types
+        ]
+        return ", ".join(items) or "none"
+
+    def _topic_of(self, name: str, key: str, types: tuple[str, ...]) -> str:
+        if name not in self._types:
+            raise SourceError(
+                f"{self.path}: topic {name} (topics.{key} in pipeline.yaml) is not in the bag; "
+                f"topics there: {self._listing()}"
+            )
+        if self._types[name] not in types:
+            raise SourceError(
+                f"{self.path}: topic {name} has type {self._types[name]}, "
+                f"not {' or '.join(types)} (topics.{key})"
+            )
+        return name
+
+    def _unique(self, types: tuple[str, ...], key: str) -> str | None:
+        cands = sorted(t for t, m in self._types.items() if m in types)
+        if len(cands) > 1:
+            raise SourceError(
+                f"{self.path}: several {' / '.join(types)} topics: {self._listing(types)}; "
+                f"choose one with `topics: {{{key}: {cands[0]}}}` for this dataset in pipeline.yaml"
+            )
+        return cands[0] if cands else None
+
+    def _choose_topic(self, cfg: DatasetConfig) -> tuple[Kind, str]:
+        if cfg.topics.detections is not None:
+            if cfg.topics.image is not None:
+                log.warning("%s: topics.detections is set, so topics.image is ignored", self.path)
+            return "detections", self._topic_of(cfg.topics.detections, "detections",
+                                                (msgs.DETECTIONS,))
+        if cfg.topics.image is not None:
+            return "images", self._topic_of(cfg.topics.image, "image", IMAGE_TYPES)
+        image = self._unique(IMAGE_TYPES, "image")
+        if image is not None:
+            return "images", image
+        dets = self._unique((msgs.DETECTIONS,), "detections")
+        if dets is not None:
+            return "detections", dets
+        raise SourceError(
+            f"{self.path}: no image (sensor_msgs/msg/Image, CompressedImage) or detection "
+            f"({msgs.DETECTIONS}) topic; topics there: {self._listing()}"
+        )
+
+    def _choose_camera_info(self, cfg: DatasetConfig) -> str | None:
+        if cfg.topics.camera_info is not None:
+            return self._topic_of(cfg.topics.camera_info, "camera_info", (msgs.CAMERA_INFO,))
+        cands = sorted(t for t, m in self._types.items() if m == msgs.CAMERA_INFO)
+        if len(cands) > 1:
+            # The usual layout: /ns/image_raw next to /ns/camera_info — pick the closest namespace.
+            def shared(t: str) -> int:
+                return len(os.path.commonprefix([t.split("/")[:-1], self.topic.split("/")]))
+
+            best = max(shared(t) for t in cands)
+            top = [t for t in cands if shared(t) == best]
+            if len(top) == 1 and best > 1:
+                return top[0]
+            raise SourceError(
+                f"{self.path}: several CameraInfo topics: {self._listing((msgs.CAMERA_INFO,))}; "
+                f"choose one with `topics: {{camera_info: {cands[0]}}}` in pipeline.yaml"
+            )
+        return cands[0] if cands else None
+
+    def _first_camera_info(self, reader: AnyReader) -> CameraModel | None:
+        conns = [c for c in reader.connections if c.topic == self.camera_info_topic]
+        for conn, _, raw in reader.messages(connections=conns):
+            try:
+                return CameraModel.from_camera_info(reader.deserialize(raw, conn.msgtype))
+            except Exception as err:  # a bad calibration or an undecodable message
+                raise SourceError(f"{self.path}: topic {conn.topic}: {err}") from err
+        return None
+
+    def camera(self) -> CameraModel | None:
+        return self._camera
+
+    def __len__(self) -> int:
+        return self._counts[self.topic]
+
+    def describe(self) -> str:
+        return f"bag {self.path}, topic {self.topic} ({self._types[self.topic]}, {len(self)} msgs)"
+
+    def iter_raw(self) -> Iterator[Frame]:
+        with self._reader() as reader:
+            topics = {self.topic, self.camera_info_topic}
+            conns = [c for c in reader.connections if c.topic in topics]
+            idx, warned = 0, False
+            try:
+                for conn, t_recv, raw in reader.messages(connections=conns):
+                    msg = reader.deserialize(raw, conn.msgtype)
+                    if conn.topic == self.camera_info_topic:
+                        if not warned and self._camera is not None:
+                            cam = CameraModel.from_camera_info(msg)
+                            if not cam.same_as(self._camera):
+                                log.warning("%s: %s changes during the recording; using the "
+                                            "first message", self.path, conn.topic)
+                                warned = True
+                        continue
+                    t_ns = _stamp_ns(msg.header.stamp) or int(t_recv)
+                    if conn.msgtype == msgs.DETECTIONS:
+                        yield idx, t_ns, _detections_from_msg(msg)
+                    else:
+                        yield idx, t_ns, _raw_image_from_msg(msg, conn.msgtype)
+                    idx += 1
+            except SourceError:
+                raise
+            except Exception as err:
+                raise SourceError(
+                    f"{self.path}: cannot read message {idx} of {self.topic}: {err}"
+                ) from err
+
+
+# --- image folders -----------------------------------------------------------------------------
+
+
+def _natural_key(name: str) -> list[Any]:
+    return [int(p) if p.isdigit() else p.lower() for p in re.split(r"(\d+)", name)]
+
+
+def _image_files(folder: Path) -> list[Path]:
+    files = [p for p in folder.iterdir() if p.is_file() and p.suffix.lower() in IMAGE_EXTS]
+    return sorted(files, key=lambda p: _natural_key(p.name))
+
+
+class ImageFolderSource(Source):
+    """jpg/png files in natural file-name order; ``camera.yaml``; optional ``stamps.csv``."""
+
+    kind: Kind = "images"
+
+    def __init__(self, path: Path, camera: CameraModel | None) -> None:
+        self.path = Path(path)
+        self.files = _image_files(self.path)
+        if camera is None and (self.path / "camera.yaml").is_file():
+            camera = CameraModel.from_yaml(self.path / "camera.yaml")
+        self._camera = camera
+        self.stamps_ns = self._stamps()
+
+    def _stamps(self) -> NDArray[np.int64]:
+        f = self.path / "stamps.csv"
+        if not f.is_file():
+            return np.arange(len(self.files), dtype=np.int64) * FOLDER_PERIOD_NS
+        try:
+            with f.open(newline="", encoding="utf-8") as fh:
+                rows = {r["file"].strip(): int(r["stamp_sec"]) * 1_000_000_000
+                        + int(r["stamp_nanosec"]) for r in csv.DictReader(fh)}
+        except (OSError, KeyError, ValueError, TypeError, AttributeError) as err:
+            raise SourceError(
+                f"{f}: cannot read stamps (header file,stamp_sec,stamp_nanosec): {err!r}"
+            ) from err
+        missing = [p.name for p in self.files if p.name not in rows]
+        if missing:
+            raise SourceError(f"{f}: no stamp for {len(missing)} image(s), e.g. {missing[0]}")
+        return np.array([rows[p.name] for p in self.files], dtype=np.int64)
+
+    def camera(self) -> CameraModel | None:
+        return self._camera
+
+    def __len__(self) -> int:
+        return len(self.files)
+
+    def describe(self) -> str:
+        return f"image folder {self.path} ({len(self)} images)"
+
+    def iter_raw(self) -> Iterator[Frame]:
+        for idx, (p, t_ns) in enumerate(zip(self.files, self.stamps_ns, strict=True)):
+            yield idx, int(t_ns), RawImage("file", str(p))
+
+
+# --- observations ------------------------------------------------------------------------------
+
+
+class ObservationsSource(Source):
+    """``observations.csv``: ``stamp_sec,stamp_nanosec,tag,x,y,z,qx,qy,qz,qw`` (cam_T_tag)."""
+
+    kind: Kind = "observations"
+
+    def __init__(self, path: Path) -> None:
+        self.path = Path(path)
+        f = self.path / "observations.csv"
+        try:
+            df = pd.read_csv(f)
+        except (OSError, ValueError, pd.errors.ParserError) as err:
+            raise SourceError(f"{f}: cannot read observations: {err}") from err
+        missing = [c for c in OBS_CSV_HEADER if c not in df.columns]
+        if missing:
+            raise SourceError(f"{f}: not an observations CSV, missing columns {missing}")
+        t_ns = df["stamp_sec"].to_numpy(np.int64) * 1_000_000_000 + df["stamp_nanosec"].to_numpy(
+            np.int64
+        )
+        out = pd.DataFrame({"t_ns": t_ns})
+        out["tag_id"] = np.array([parse_tag_name(t) for t in df["tag"]], dtype=np.int32)
+        for src, dst in zip(OBS_CSV_HEADER[3:], POSE_COLS, strict=True):
+            out[dst] = df[src].to_numpy(np.float64)
+        if not np.isfinite(out[POSE_COLS].to_numpy()).all():
+            raise SourceError(f"{f}: non-finite pose values")
+        out = out.sort_values(["t_ns", "tag_id"], kind="stable").reset_index(drop=True)
+        frame_idx = np.unique(out["t_ns"].to_numpy(), return_inverse=True)[1]
+        out.insert(1, "frame_idx", frame_idx.astype(np.int32))
+        self._obs = out
+
+    def camera(self) -> CameraModel | None:
+        return None
+
+    def __len__(self) -> int:
+        return int(self._obs["frame_idx"].nunique())
+
+    def observations(self) -> pd.DataFrame:
+        return self._obs.copy()
+
+    def iter_raw(self) -> Iterator[Frame]:
+        for (idx, t_ns), grp in self._obs.groupby(["frame_idx", "t_ns"], sort=True):
+            yield int(idx), int(t_ns), grp.reset_index(drop=True)

@@ -1,0 +1,288 @@
+"""A small pool of subprocess workers mapping one function over pickled tasks.
+
+Why not :mod:`multiprocessing`: ``fork`` is unsafe from the runner's threads (a lock held by
+another thread stays locked in the child), and ``forkserver``/``spawn`` re-import the caller's
+``__main__`` in every worker (an unguarded user script would run again; the CLI entry point
+would import the whole package). Workers here are plain ``python -m tagtrail.io.workers
+MODULE:FUNC`` processes that import only the module they need and exchange pickles over their
+stdin/stdout pipes.
+
+:func:`shared_pool` keeps idle pools for reuse within the process (a pipeline extracts several
+datasets; a sweep re-runs extract): worker start-up (~0.3 s of imports) is paid once.
+
+Each result is read before its worker is told to stop, and a worker's exit status is not
+trusted: workers leave through ``os._exit(0)`` (no interpreter teardown), so a library that
+crashes in its finalizers (pupil-apriltags, upstream pupil-labs/apriltags#46) can never fail a
+run. A worker that dies *while* holding a task is an error.
+"""
+
+from __future__ import annotations
+
+import atexit
+import importlib
+import os
+import pickle
+import queue
+import signal
+import subprocess
+import sys
+import threading
+from collections.abc import Iterable, Iterator
+from contextlib import contextmanager
+from pathlib import Path
+from typing import Any, BinaryIO
+
+import tagtrail
+
+try:
+    import fcntl
+except ImportError:  # not POSIX
+    pass
+
+_POLL_S = 0.05
+DEPTH = 2  # tasks in flight per worker
+_PIPE_BYTES = 1 << 20
+
+
+class WorkerPool:
+    """``workers`` processes running ``func`` (``"package.module:function"``) on tasks.
+
+    Use as a context manager; :meth:`imap_unordered` takes tuples of arguments and yields the
+    function's results as they complete. Worker exceptions are re-raised in the caller.
+    """
+
+    def __init__(self, func: str, workers: int) -> None:
+        env = dict(os.environ)
+        root = str(Path(tagtrail.__file__).resolve().parents[1])
+        env["PYTHONPATH"] = os.pathsep.join([root, *filter(None, [env.get("PYTHONPATH")])])
+        self.procs = [
+            subprocess.Popen(
+                [sys.executable, "-m", "tagtrail.io.workers", func],
+                stdin=subprocess.PIPE, stdout=subprocess.PIPE, env=env,
+            )
+            for _ in range(max(1, workers))
+        ]
+        for p in self.procs:  # fewer context switches for MB-sized raw images (Linux)
+            for f in (p.stdin, p.stdout):
+                try:
+                    fcntl.fcntl(f.fileno(), fcntl.F_SETPIPE_SZ, _PIPE_BYTES)  # type: ignore
+                except (AttributeError, OSError, NameError):
+                    pass
+        self._threads: list[threading.Thread] = []
+        self._closing = threading.Event()
+        self._clean = True  # no task in flight: safe to reuse
+
+    def __enter__(self) -> WorkerPool:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close(kill=exc[0] is not None)
+
+    def close(self, kill: bool = False) -> None:
+        """Stop the workers (EOF on their stdin, or SIGKILL), ignoring their exit status."""
+        self._closing.set()
+        for p in self.procs:
+            if kill:
+                p.kill()
+            try:
+                if p.stdin is not None:
+                    p.stdin.close()
+            except OSError:
+                pass
+        for p in self.procs:
+            try:
+                p.wait(timeout=10)
+            except subprocess.TimeoutExpired:
+                p.kill()
+                p.wait()
+        for t in self._threads:  # their worker is gone: they return at EOF
+            t.join()
+        for p in self.procs:
+            if p.stdout is not None:
+                p.stdout.close()
+
+    def alive(self) -> bool:
+        """Every worker running and no result left unread."""
+        return self._clean and all(p.poll() is None for p in self.procs)
+
+    def imap_unordered(self, tasks: Iterable[tuple[Any, ...]]) -> Iterator[Any]:
+        """Results of ``func(*task)`` in completion order.
+
+        Each worker has up to ``DEPTH`` tasks in flight (the next one is already in its pipe
+        when it finishes one), fed by a writer thread; a reader thread collects its results.
+        """
+        todo: queue.Queue[tuple[Any, ...]] = queue.Queue(maxsize=len(self.procs))
+        results: queue.Queue[tuple[bool, Any]] = queue.Queue()
+        fed_all = threading.Event()
+        threads = []
+        for p in self.procs:
+            slots = threading.Semaphore(DEPTH)
+            threads += [
+                threading.Thread(target=_write, args=(p, todo, slots, fed_all, self._closing),
+                                 daemon=True),
+                threading.Thread(target=_read, args=(p, results, slots), daemon=True),
+            ]
+        self._threads = [t for t in self._threads if t.is_alive()] + threads
+        self._clean = False
+        for t in threads:
+            t.start()
+        pending = 0
+        try:
+            for task in tasks:
+                while True:
+                    try:
+                        todo.put(task, timeout=_POLL_S)
+                        pending += 1
+                        break
+                    except queue.Full:
+                        while not results.empty():
+                            pending -= 1
+                            yield _unwrap(results.get())
+                while not results.empty():
+                    pending -= 1
+                    yield _unwrap(results.get())
+            fed_all.set()
+            while pending:
+                pending -= 1
+                yield _unwrap(results.get())
+            for t in threads:
+                t.join()
+            self._clean = True
+        finally:
+            fed_all.set()
+
+
+_IDLE: dict[tuple[str, int], WorkerPool] = {}
+_IDLE_LOCK = threading.Lock()
+
+
+@contextmanager
+def shared_pool(func: str, workers: int) -> Iterator[WorkerPool]:
+    """A pool for exclusive use, reused from an earlier call when one is idle; returned for
+    reuse afterwards (closed instead after an error). Idle pools are closed at exit."""
+    key = (func, workers)
+    with _IDLE_LOCK:
+        pool = _IDLE.pop(key, None)
+    if pool is not None and not pool.alive():
+        pool.close(kill=True)
+        pool = None
+    pool = pool or WorkerPool(func, workers)
+    ok = False
+    try:
+        yield pool
+        ok = True
+    finally:
+        if ok and pool.alive():
+            with _IDLE_LOCK:
+                keep = key not in _IDLE
+                if keep:
+                    _IDLE[key] = pool
+            if not keep:
+                pool.close()
+        else:
+            pool.close(kill=True)
+
+
+@atexit.register
+def _close_idle() -> None:
+    with _IDLE_LOCK:
+        pools = list(_IDLE.values())
+        _IDLE.clear()
+    for pool in pools:
+        pool.close()
+
+
+def _unwrap(item: tuple[bool, Any]) -> Any:
+    ok, value = item
+    if not ok:
+        raise value
+    return value
+
+
+def _write(
+    proc: subprocess.Popen[bytes],
+    todo: queue.Queue[tuple[Any, ...]],
+    slots: threading.Semaphore,
+    fed_all: threading.Event,
+    closing: threading.Event,
+) -> None:
+    """Send tasks to one worker while it has a free slot; then the end marker (a thread)."""
+    assert proc.stdin is not None
+    try:
+        while not closing.is_set():
+            if not slots.acquire(timeout=_POLL_S):
+                continue
+            while True:
+                try:
+                    task: tuple[Any, ...] | None = todo.get(timeout=_POLL_S)
+                    break
+                except queue.Empty:
+                    if fed_all.is_set() or closing.is_set():
+                        task = None
+                        break
+            pickle.dump(task, proc.stdin, protocol=pickle.HIGHEST_PROTOCOL)
+            proc.stdin.flush()
+            if task is None:
+                return
+    except (OSError, ValueError):
+        return  # the reader reports the dead worker
+
+
+def _read(
+    proc: subprocess.Popen[bytes], results: queue.Queue[tuple[bool, Any]],
+    slots: threading.Semaphore,
+) -> None:
+    """Collect one worker's results until its end marker (runs in a thread)."""
+    assert proc.stdout is not None
+    while True:
+        try:
+            ok, value = pickle.load(proc.stdout)
+        except (EOFError, OSError, ValueError, pickle.UnpicklingError) as err:
+            try:
+                code: int | None = proc.wait(timeout=1)
+            except subprocess.TimeoutExpired:
+                code = None
+            results.put((False, RuntimeError(
+                f"worker process {proc.pid} died while working on a task "
+                f"(exit status {code}): {type(err).__name__}: {err}"
+            )))
+            return
+        if ok is None:  # end marker
+            return
+        results.put((ok, value))
+        slots.release()
+
+
+def _worker_main(func_spec: str) -> None:
+    """Worker loop: read a pickled task tuple, call the function, write ``(ok, result)``."""
+    signal.signal(signal.SIGINT, signal.SIG_IGN)  # the parent handles Ctrl-C and closes pipes
+    out: BinaryIO = os.fdopen(os.dup(1), "wb")
+    os.dup2(2, 1)  # stray prints (Python or C) go to stderr, not into the result stream
+    mod, _, name = func_spec.partition(":")
+    func = getattr(importlib.import_module(mod), name)
+    inp = sys.stdin.buffer
+    while True:
+        try:
+            task = pickle.load(inp)
+        except (EOFError, OSError):
+            break
+        if task is None:  # end of a batch: echo the marker, stay alive for the next one
+            out.write(pickle.dumps((None, None)))
+            out.flush()
+            continue
+        try:
+            reply: tuple[bool, Any] = (True, func(*task))
+        except Exception as err:  # noqa: BLE001 - sent back and re-raised in the parent
+            reply = (False, err)
+        try:
+            data = pickle.dumps(reply, protocol=pickle.HIGHEST_PROTOCOL)
+        except Exception as err:  # noqa: BLE001 - an unpicklable exception
+            data = pickle.dumps((False, RuntimeError(f"{type(reply[1]).__name__}: {err}")))
+        out.write(data)
+        out.flush()
+    out.close()
+    os._exit(0)  # skip interpreter teardown (library finalizers that may crash)
+
+
+if __name__ == "__main__":
+    _worker_main(sys.argv[1])

@@ -1,0 +1,126 @@
+"""eval: errors of the trajectory and the tag map against a dataset's ground truth.
+
+Ground truth is a SPEC folder (``trajectory.csv`` of ``world_T_cam`` with world = the GT anchor
+tag's frame, ``tag_map.yaml``/``.csv`` with every tag). The estimate's world is its anchor's frame
+(the tag at the identity pose); when it differs from the GT anchor, GT is re-expressed in it first:
+``a_T_x = (gt_T_a)^-1 gt_T_x``. Trajectory poses are matched by exact stamp; tags by id (the
+anchor itself, exact by construction, is left out of the tag statistics). Errors: position
+``|p - p_gt|`` (m) and rotation angle of ``R_gt^T R`` (deg); statistics mean, median, rmse, p95,
+max, min. This stage reads files (the ground truth) -- I/O at the edge, by design.
+"""
+
+from __future__ import annotations
+
+import logging
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pandas as pd
+
+from tagtrail.errors import DataError
+from tagtrail.geometry.se3 import T_from_xyz_quat, inv, pose_error
+from tagtrail.io.layouts import POSE_COLS, read_tag_map, read_trajectory
+from tagtrail.stages.base import StageParams
+
+log = logging.getLogger(__name__)
+
+
+class Params(StageParams):
+    pass
+
+
+INPUTS = {
+    "trajectory": "smooth.trajectory",
+    "raw_trajectory": "trajectory.trajectory",
+    "tag_map": "optimize.tag_map",
+    "ground_truth": "ground_truth",
+}
+OUTPUTS = ("evaluation",)
+SCOPE = "all"
+DEPENDS = ("tagtrail.geometry.se3", "tagtrail.io.layouts")
+
+
+def error_stats(x: np.ndarray) -> dict[str, float | None]:
+    """mean, median, rmse, p95, max, min of errors ``x`` (None when there are none)."""
+    x = np.asarray(x, dtype=np.float64)
+    keys = ("mean", "median", "rmse", "p95", "max", "min")
+    if x.size == 0:
+        return dict.fromkeys(keys)
+    vals = (x.mean(), np.median(x), np.sqrt(np.mean(x * x)), np.percentile(x, 95), x.max(), x.min())
+    return {k: float(v) for k, v in zip(keys, vals, strict=True)}
+
+
+def _poses(df: pd.DataFrame, cols: list[str] = POSE_COLS) -> np.ndarray:
+    v = df[cols].to_numpy(np.float64)
+    return T_from_xyz_quat(v[:, :3], v[:, 3:])
+
+
+def _block(T: np.ndarray, T_gt: np.ndarray, n_ref: int) -> dict[str, Any]:
+    dt, dr = pose_error(T, T_gt)
+    return {
+        "n": int(len(dt)),
+        "coverage": float(len(dt) / n_ref) if n_ref else 0.0,
+        "position_m": error_stats(dt),
+        "angle_deg": error_stats(np.rad2deg(dr)),
+    }
+
+
+def trajectory_errors(
+    est: pd.DataFrame, gt: pd.DataFrame, gt_T_world: np.ndarray
+) -> dict[str, Any]:
+    """Errors of ``est`` against ``gt`` (``gt_world_T_cam``) at equal ``t_ns``; ``gt_T_world``
+    ``(4, 4)``: the estimate's world frame expressed in GT's world."""
+    m = est[["t_ns", *POSE_COLS]].merge(gt[["t_ns", *POSE_COLS]], on="t_ns", suffixes=("", "_gt"))
+    T_gt = inv(gt_T_world) @ _poses(m, [f"{c}_gt" for c in POSE_COLS])
+    return _block(_poses(m), T_gt, len(gt))
+
+
+def estimated_anchor(tag_map: pd.DataFrame) -> int | None:
+    """The tag at the identity pose (the optimiser's fixed gauge), if any."""
+    v = tag_map[POSE_COLS].to_numpy(np.float64)
+    ident = np.abs(v - [0, 0, 0, 0, 0, 0, 1]).max(axis=1, initial=0.0) < 1e-9
+    return int(tag_map["tag_id"].to_numpy()[ident][0]) if ident.any() else None
+
+
+def run(
+    trajectory: pd.DataFrame,
+    raw_trajectory: pd.DataFrame,
+    tag_map: pd.DataFrame,
+    ground_truth: str | Path,
+    params: Params,
+) -> dict[str, Any]:
+    """Evaluation JSON: anchors, ``trajectory``, ``trajectory_raw``, ``tags`` error blocks."""
+    gt_dir = Path(ground_truth)
+    gt_traj = read_trajectory(gt_dir)
+    gt_tags, gt_anchor = read_tag_map(gt_dir)
+    gt_tags = gt_tags.drop_duplicates("tag_id").set_index("tag_id")
+    anchor = estimated_anchor(tag_map)
+    if anchor is None:
+        anchor = gt_anchor
+        log.warning("eval: the tag map has no tag at the identity; assuming GT's world frame")
+    if anchor is not None and anchor != gt_anchor:
+        if anchor not in gt_tags.index:
+            raise DataError(
+                f"eval: the map's anchor tag {anchor} is not in the ground-truth tag map"
+                f" {gt_dir} (its tags: {sorted(gt_tags.index)[:20]})"
+            )
+        gt_T_world = _poses(gt_tags.loc[[anchor]])[0]
+    else:
+        gt_T_world = np.eye(4)
+
+    common = np.intersect1d(tag_map["tag_id"].to_numpy(np.int64), gt_tags.index.to_numpy())
+    common = common[common != anchor]
+    est_tags = tag_map.set_index("tag_id").loc[common]
+    T_tag = _poses(est_tags)
+    T_tag_gt = inv(gt_T_world) @ _poses(gt_tags.loc[common])
+    evaluation = {
+        "anchor_id": anchor,
+        "gt_anchor_id": gt_anchor,
+        "trajectory": trajectory_errors(trajectory, gt_traj, gt_T_world),
+        "trajectory_raw": trajectory_errors(raw_trajectory, gt_traj, gt_T_world),
+        "tags": _block(T_tag, T_tag_gt, len(gt_tags) - (anchor in gt_tags.index)),
+    }
+    if evaluation["trajectory"]["n"] == 0:
+        log.warning("eval: no trajectory stamp matches the ground truth in %s", gt_dir)
+    return {"evaluation": evaluation}

@@ -1,0 +1,258 @@
+"""Stage ``extract``: a dataset source → frames, tag detections, camera model, given observations.
+
+Image sources are decoded and detected by worker processes over chunks of frames
+(:mod:`tagtrail.io.workers`): the parent only reads the bag (raw message bytes / file paths),
+workers decode and run pupil-apriltags (tag36h11). No detector is ever built in the calling
+process, and workers' exit status is not trusted (see :mod:`tagtrail.io.detector` for the
+upstream exit-time segfault this avoids). Detection sources (``apriltag_msgs``) are filtered
+with the same ``max_hamming`` / ``min_decision_margin`` / ``tag_ids`` rules; observation sources
+fill ``observations`` and leave ``detections`` empty.
+
+Outputs (columns as docs/ARCHITECTURE.md): ``frames`` (every frame, with or without tags),
+``detections`` (corners in px, detector order, OpenCV convention — pixel centres at integers —,
+in the raw, distorted image), ``camera`` (:meth:`CameraModel.to_dict`, ``{}`` for observation
+sources), ``observations`` (cam_T_tag given by the source). Rows sorted by (frame_idx, tag_id).
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+import time
+from collections import Counter
+from collections.abc import Iterator
+from typing import Any
+
+import numpy as np
+import pandas as pd
+from numpy.typing import NDArray
+from pydantic import Field
+from tqdm import tqdm
+
+from tagtrail.errors import SourceError
+from tagtrail.io.detector import DetectorConfig
+from tagtrail.io.layouts import POSE_COLS
+from tagtrail.io.sources import Frame, Source, TagDetection, open_source
+from tagtrail.io.workers import shared_pool
+from tagtrail.schemas.pipeline import DatasetConfig
+from tagtrail.stages.base import StageParams
+
+log = logging.getLogger("tagtrail.extract")
+
+INPUTS = {"source": "source"}
+OUTPUTS = ("frames", "detections", "camera", "observations")
+DEPENDS = ("tagtrail.io.sources", "tagtrail.io.images", "tagtrail.io.detector",
+           "tagtrail.io.camera", "tagtrail.io.workers")
+CORNER_COLS = [f"c{i}{a}" for i in range(4) for a in "xy"]
+DETECTION_COLS = ["t_ns", "frame_idx", "tag_id", "hamming", "decision_margin", *CORNER_COLS]
+OBSERVATION_COLS = ["t_ns", "frame_idx", "tag_id", *POSE_COLS]
+
+
+class Params(StageParams):
+    """Detector settings (tag36h11, pupil-apriltags defaults) and output filters."""
+
+    quad_decimate: float = Field(2.0, ge=1.0)
+    quad_sigma: float = Field(0.0, ge=0.0)
+    refine_edges: bool = True
+    decode_sharpening: float = Field(0.25, ge=0.0)
+    max_hamming: int = Field(
+        0, ge=0, le=3, description="bit errors corrected (3: ~5 s to build the decode table)"
+    )
+    min_decision_margin: float = Field(20.0, ge=0.0)
+    tag_ids: tuple[int, ...] | None = None
+    workers: int = Field(0, ge=0, description="detector processes; 0 = all cores")
+    chunk_size: int = Field(16, ge=1, description="frames per task sent to a worker")
+
+    def detector(self) -> DetectorConfig:
+        return DetectorConfig(
+            quad_decimate=self.quad_decimate,
+            quad_sigma=self.quad_sigma,
+            refine_edges=self.refine_edges,
+            decode_sharpening=self.decode_sharpening,
+            max_hamming=self.max_hamming,
+            min_decision_margin=self.min_decision_margin,
+            tag_ids=None if self.tag_ids is None else tuple(sorted(set(self.tag_ids))),
+        )
+
+
+def run(source: DatasetConfig, params: Params) -> dict[str, Any]:
+    """Read the source and detect tags; see the module docstring for the outputs."""
+    with open_source(source) as src:
+        return _run(src, params)
+
+
+def _run(src: Source, params: Params) -> dict[str, Any]:
+    if src.kind == "observations":
+        obs = src.observations()[OBSERVATION_COLS]
+        frames = obs.groupby(["frame_idx", "t_ns"], sort=True).size().reset_index(name="n_det")
+        return {
+            "frames": _frames_table(frames["t_ns"], frames["frame_idx"], frames["n_det"]),
+            "detections": _detections_table(*_empty_detections()),
+            "camera": {},
+            "observations": _typed(obs, OBSERVATION_COLS),
+        }
+    camera = src.camera()
+    if camera is None:
+        raise SourceError(
+            f"{src.describe()}: no camera intrinsics — record sensor_msgs/msg/CameraInfo, put a "
+            "camera.yaml in the image folder, or set `camera: <camera_info.yaml>` for this "
+            "dataset in pipeline.yaml"
+        )
+    start = time.perf_counter()
+    if src.kind == "detections":
+        t_ns, frame_idx, n_det, det = _from_detection_msgs(src, params.detector())
+    else:
+        t_ns, frame_idx, n_det, det = _detect_images(src, params, (camera.height, camera.width))
+    n_frames = len(frame_idx)
+    if n_frames == 0:
+        raise SourceError(f"{src.describe()}: no frames")
+    dt = max(time.perf_counter() - start, 1e-9)
+    log.info("extract: %d frames, %d detections in %.2f s (%.1f frames/s) from %s",
+             n_frames, len(det[0]), dt, n_frames / dt, src.describe())
+    obs = pd.DataFrame({c: np.zeros(0) for c in OBSERVATION_COLS})
+    return {
+        "frames": _frames_table(t_ns, frame_idx, n_det),
+        "detections": _detections_table(*det),
+        "camera": camera.to_dict(),
+        "observations": _typed(obs, OBSERVATION_COLS),
+    }
+
+
+# --- detection sources -------------------------------------------------------------------------
+
+
+def _from_detection_msgs(src: Source, cfg: DetectorConfig) -> tuple[Any, Any, Any, Any]:
+    t_ns, frame_idx, n_det, ints, floats = [], [], [], [], []
+    dropped: Counter[str] = Counter()
+    for idx, t, dets in tqdm(src.iter_raw(), total=len(src), unit="frame", disable=None,
+                             desc="extract", leave=False):
+        kept = 0
+        for d in _filter_msgs(dets, cfg, dropped):
+            ints.append((t, idx, d.tag_id, d.hamming))
+            floats.append((d.decision_margin, *d.corners.reshape(8)))
+            kept += 1
+        t_ns.append(t)
+        frame_idx.append(idx)
+        n_det.append(kept)
+    if dropped:
+        log.warning("%s: kept %d detections, dropped %s", src.describe(), len(ints),
+                    ", ".join(f"{n} {why}" for why, n in sorted(dropped.items())))
+    i = np.array(ints, dtype=np.int64).reshape(-1, 4)
+    det = (i[:, 0], i[:, 1], i[:, 2:4].astype(np.int32), np.array(floats).reshape(-1, 9))
+    return t_ns, frame_idx, n_det, det
+
+
+def _filter_msgs(
+    dets: list[TagDetection], cfg: DetectorConfig, dropped: Counter[str]
+) -> Iterator[TagDetection]:
+    """The image path's filters, applied to detection messages; counts what it drops."""
+    for d in dets:
+        if d.family and "36h11" not in d.family:
+            dropped[f"of family {d.family} (tagtrail reads tag36h11)"] += 1
+        elif d.hamming > cfg.max_hamming:
+            dropped[f"with hamming > max_hamming {cfg.max_hamming}"] += 1
+        elif d.decision_margin < cfg.min_decision_margin:
+            dropped[f"with decision_margin < min_decision_margin {cfg.min_decision_margin}"] += 1
+        elif cfg.tag_ids is not None and d.tag_id not in cfg.tag_ids:
+            dropped["not in tag_ids"] += 1
+        else:
+            yield d
+
+
+# --- image sources -----------------------------------------------------------------------------
+
+
+def _n_workers(requested: int) -> int:
+    if requested > 0:
+        return requested
+    try:
+        return max(len(os.sched_getaffinity(0)), 1)
+    except AttributeError:  # not on Linux
+        return os.cpu_count() or 1
+
+
+def _detect_images(
+    src: Source, params: Params, shape: tuple[int, int]
+) -> tuple[Any, Any, Any, Any]:
+    t_of: dict[int, int] = {}
+
+    def chunks() -> Iterator[list[Frame]]:
+        for chunk in src.chunks(params.chunk_size):
+            t_of.update((idx, t) for idx, t, _ in chunk)
+            yield chunk
+
+    bar = tqdm(total=len(src), unit="frame", disable=None, desc="extract", leave=False)
+    try:
+        parts = list(_map_chunks(chunks(), params, bar, len(src)))
+    finally:
+        bar.close()
+    frame_idx = np.concatenate([p["frame_idx"] for p in parts]) if parts else np.zeros(0, int)
+    order = np.argsort(frame_idx, kind="stable")
+    frame_idx = frame_idx[order]
+    n_det = np.concatenate([p["n_det"] for p in parts])[order] if parts else np.zeros(0, int)
+    shapes = np.concatenate([p["shape"] for p in parts]) if parts else np.zeros((0, 2), int)
+    bad = np.any(shapes != np.asarray(shape), axis=1)
+    if bad.any():
+        log.warning("%s: %d frame(s) are %dx%d, the camera model says %dx%d", src.describe(),
+                    int(bad.sum()), shapes[bad][0][1], shapes[bad][0][0], shape[1], shape[0])
+    t_ns = np.array([t_of[int(i)] for i in frame_idx], dtype=np.int64)
+    det_frame = np.concatenate([p["det_frame"] for p in parts]) if parts else np.zeros(0, int)
+    det_t = np.array([t_of[int(i)] for i in det_frame], dtype=np.int64)
+    ints = np.concatenate([p["det_ints"] for p in parts]) if parts else np.zeros((0, 2), int)
+    floats = np.concatenate([p["det_floats"] for p in parts]) if parts else np.zeros((0, 9))
+    return t_ns, frame_idx, n_det, (det_t, det_frame, ints, floats)
+
+
+def _map_chunks(
+    chunks: Iterator[list[Frame]], params: Params, bar: Any, n_frames: int
+) -> Iterator[dict[str, NDArray[Any]]]:
+    """``detect_chunk`` over ``chunks`` in worker processes (never in this one)."""
+    cfg = params.detector()
+    workers = min(_n_workers(params.workers), max(1, -(-n_frames // params.chunk_size)))
+    with shared_pool("tagtrail.io.detector:detect_chunk", workers) as pool:
+        for part in pool.imap_unordered((chunk, cfg) for chunk in chunks):
+            bar.update(len(part["frame_idx"]))
+            yield part
+
+
+# --- tables ------------------------------------------------------------------------------------
+
+
+def _empty_detections() -> tuple[Any, Any, Any, Any]:
+    return np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros((0, 2), np.int32), np.zeros(
+        (0, 9)
+    )
+
+
+def _frames_table(t_ns: Any, frame_idx: Any, n_det: Any) -> pd.DataFrame:
+    return pd.DataFrame({
+        "t_ns": np.asarray(t_ns, dtype=np.int64),
+        "frame_idx": np.asarray(frame_idx, dtype=np.int32),
+        "n_det": np.asarray(n_det, dtype=np.int32),
+    })
+
+
+def _detections_table(t_ns: Any, frame_idx: Any, ints: Any, floats: Any) -> pd.DataFrame:
+    """One row per detection, sorted by (frame_idx, tag_id), detector order within ties."""
+    frame_idx = np.asarray(frame_idx, dtype=np.int64)
+    order = np.lexsort((ints[:, 0], frame_idx))
+    out = pd.DataFrame({
+        "t_ns": np.asarray(t_ns, dtype=np.int64)[order],
+        "frame_idx": frame_idx[order].astype(np.int32),
+        "tag_id": ints[order, 0].astype(np.int32),
+        "hamming": ints[order, 1].astype(np.int32),
+        "decision_margin": floats[order, 0].astype(np.float64),
+    })
+    for k, col in enumerate(CORNER_COLS):
+        out[col] = floats[order, 1 + k].astype(np.float64)
+    return out
+
+
+def _typed(df: pd.DataFrame, cols: list[str]) -> pd.DataFrame:
+    out = df[cols].reset_index(drop=True).copy()
+    out["t_ns"] = out["t_ns"].astype(np.int64)
+    out["frame_idx"] = out["frame_idx"].astype(np.int32)
+    out["tag_id"] = out["tag_id"].astype(np.int32)
+    for c in POSE_COLS:
+        out[c] = out[c].astype(np.float64)
+    return out

@@ -1,0 +1,189 @@
+"""Stage ``pnp``: tag corners → camera→tag poses ``cam_T_tag``, both IPPE solutions.
+
+Tag frame (SPEC): origin at the tag centre, x right, y up, z out of the face; the detector's
+corners 0..3 sit at (−s/2, −s/2), (s/2, −s/2), (s/2, s/2), (−s/2, s/2). OpenCV's
+``SOLVEPNP_IPPE_SQUARE`` ignores the object points' values and assumes its canonical square
+(−s/2, s/2), (s/2, s/2), (s/2, −s/2), (−s/2, −s/2) — the SPEC corners 3, 2, 1, 0 — so the
+corners are passed in that order and the pose comes out in the SPEC frame directly.
+
+Corners are undistorted to normalized coordinates with the camera model (all distortion models),
+then solved with an identity camera matrix for a unit square; IPPE is scale-covariant, so the
+translation is scaled by each tag's size. ``reproj_px`` = RMS over the 4 corners of the pixel
+distance between the measured corners and the corners projected (with distortion) from the pose;
+solutions are ordered best first; ``ambiguity`` = reproj_px / alt_reproj_px (near 1: ambiguous).
+Observations given by the source (``extract.observations``) pass through with NaN errors.
+"""
+
+from __future__ import annotations
+
+import logging
+from typing import Any
+
+import cv2
+import numpy as np
+import pandas as pd
+from numpy.typing import NDArray
+from pydantic import Field, field_validator
+
+from tagtrail.errors import SourceError
+from tagtrail.geometry import se3
+from tagtrail.io.camera import CameraModel
+from tagtrail.io.layouts import POSE_COLS
+from tagtrail.stages.base import StageParams
+
+log = logging.getLogger("tagtrail.pnp")
+
+INPUTS = {
+    "detections": "extract.detections",
+    "camera": "extract.camera",
+    "extracted": "extract.observations",
+}
+OUTPUTS = ("observations",)
+DEPENDS = ("tagtrail.io.camera", "tagtrail.geometry.se3")
+CORNER_COLS = [f"c{i}{a}" for i in range(4) for a in "xy"]
+ALT_COLS = [f"alt_{c}" for c in POSE_COLS]
+COLUMNS = ["t_ns", "frame_idx", "tag_id", "size_m", *POSE_COLS, "reproj_px", *ALT_COLS,
+           "alt_reproj_px", "ambiguity"]
+# SPEC corner order, unit square (x right, y up, z out).
+UNIT_CORNERS_TAG = np.array(
+    [[-0.5, -0.5, 0.0], [0.5, -0.5, 0.0], [0.5, 0.5, 0.0], [-0.5, 0.5, 0.0]]
+)
+_IPPE_ORDER = [3, 2, 1, 0]  # SPEC corners in IPPE_SQUARE's canonical order
+
+
+class Params(StageParams):
+    """Tag edge length (black square, metres), with per-id overrides."""
+
+    tag_size: float = Field(0.16, gt=0.0)
+    tag_sizes: dict[int, float] = Field(default_factory=dict)
+
+    @field_validator("tag_sizes")
+    @classmethod
+    def _positive(cls, v: dict[int, float]) -> dict[int, float]:
+        bad = {k: s for k, s in v.items() if not s > 0}
+        if bad:
+            raise ValueError(f"tag sizes must be > 0 m, got {bad}")
+        return v
+
+    def sizes(self, tag_ids: NDArray[Any]) -> NDArray[np.float64]:
+        """Edge length per tag id, (n,) m."""
+        ids, inv = np.unique(np.asarray(tag_ids, dtype=np.int64), return_inverse=True)
+        per_id = np.array([self.tag_sizes.get(int(t), self.tag_size) for t in ids], np.float64)
+        return per_id[inv.reshape(-1)]
+
+
+def solve_ippe(
+    corners_px: NDArray[Any], sizes: NDArray[Any], camera: CameraModel
+) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    """Both IPPE poses of square tags.
+
+    ``corners_px``: (n, 4, 2) distorted pixels, SPEC corner order; ``sizes``: (n,) m.
+    Returns ``cam_T_tag`` (n, 2, 4, 4) and ``reproj_px`` (n, 2), best solution first; a tag whose
+    solve fails gets NaN.
+    """
+    corners_px = np.asarray(corners_px, dtype=np.float64).reshape(-1, 4, 2)
+    n = len(corners_px)
+    norm = np.ascontiguousarray(camera.undistort(corners_px)[:, _IPPE_ORDER])
+    obj = np.ascontiguousarray(UNIT_CORNERS_TAG[_IPPE_ORDER])
+    eye = np.eye(3)
+    rv = np.full((n, 2, 3), np.nan)
+    tv = np.full((n, 2, 3), np.nan)
+    for i in range(n):
+        try:
+            k, rvecs, tvecs, _ = cv2.solvePnPGeneric(
+                obj, norm[i], eye, None, flags=cv2.SOLVEPNP_IPPE_SQUARE
+            )
+        except cv2.error:
+            continue
+        for j in range(min(int(k), 2)):
+            rv[i, j] = rvecs[j].reshape(3)
+            tv[i, j] = tvecs[j].reshape(3)
+    ok = np.isfinite(rv).all(axis=-1)
+    R = np.full((n, 2, 3, 3), np.nan)
+    R[ok] = se3.R_from_rotvec(rv[ok])
+    t = tv * np.asarray(sizes, dtype=np.float64)[:, None, None]
+    T = se3.make_T(R, t)
+    pts_tag = UNIT_CORNERS_TAG * np.asarray(sizes, dtype=np.float64)[:, None, None]  # (n, 4, 3)
+    pts_cam = se3.transform_points(T[:, :, None], pts_tag[:, None])  # (n, 2, 4, 3)
+    err = np.full((n, 2), np.nan)
+    if ok.any():
+        proj = camera.project(pts_cam[ok])  # (k, 4, 2)
+        d2 = np.sum((proj - np.broadcast_to(corners_px[:, None], (n, 2, 4, 2))[ok]) ** 2, -1)
+        err[ok] = np.sqrt(d2.mean(-1))
+    swap = np.nan_to_num(err[:, 1], nan=np.inf) < np.nan_to_num(err[:, 0], nan=np.inf)
+    T[swap] = T[swap][:, ::-1]
+    err[swap] = err[swap][:, ::-1]
+    return T, err
+
+
+def run(
+    detections: pd.DataFrame, camera: dict[str, Any], extracted: pd.DataFrame, params: Params
+) -> dict[str, pd.DataFrame]:
+    """Poses of every detection plus the source's own observations; see the module docstring."""
+    parts = []
+    if len(detections):
+        if not camera:
+            raise SourceError(
+                "extract.camera is empty: the source has no camera intrinsics for its detections"
+            )
+        parts.append(_solve_table(detections, CameraModel.from_dict(camera), params))
+    if len(extracted):
+        parts.append(_passthrough(extracted, params))
+    if not parts:
+        return {"observations": _typed(pd.DataFrame({c: np.zeros(0) for c in COLUMNS}))}
+    out = pd.concat(parts, ignore_index=True) if len(parts) > 1 else parts[0]
+    out = out.sort_values(["frame_idx", "tag_id"], kind="stable").reset_index(drop=True)
+    return {"observations": _typed(out)}
+
+
+def _solve_table(det: pd.DataFrame, camera: CameraModel, params: Params) -> pd.DataFrame:
+    corners = det[CORNER_COLS].to_numpy(np.float64).reshape(-1, 4, 2)
+    tag_id = det["tag_id"].to_numpy(np.int32)
+    sizes = params.sizes(tag_id)
+    T, err = solve_ippe(corners, sizes, camera)
+    good = np.isfinite(err[:, 0])
+    if not good.all():
+        log.warning("pnp: %d of %d detections gave no pose (degenerate corners)",
+                    int((~good).sum()), len(good))
+    cols: dict[str, Any] = {
+        "t_ns": det["t_ns"].to_numpy(np.int64),
+        "frame_idx": det["frame_idx"].to_numpy(np.int32),
+        "tag_id": tag_id,
+        "size_m": sizes,
+    }
+    for prefix, k in (("", 0), ("alt_", 1)):
+        xyz, q = _xyz_quat(T[:, k])
+        for c, v in zip(POSE_COLS, [*xyz.T, *q.T], strict=True):
+            cols[prefix + c] = v
+        cols[prefix + "reproj_px"] = err[:, k]
+    alt = err[:, 1]
+    cols["ambiguity"] = np.divide(err[:, 0], alt, out=np.ones(len(alt)), where=alt > 0)
+    return pd.DataFrame(cols)[COLUMNS][good].reset_index(drop=True)
+
+
+def _xyz_quat(T: NDArray[np.float64]) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    """(n, 4, 4) possibly NaN → xyz (n, 3), q_xyzw (n, 4), NaN rows kept NaN."""
+    xyz = T[:, :3, 3].copy()
+    q = np.full((len(T), 4), np.nan)
+    ok = np.isfinite(T).all(axis=(1, 2))
+    if ok.any():
+        q[ok] = se3.quat_xyzw_from_R(T[ok, :3, :3])
+    return xyz, q
+
+
+def _passthrough(obs: pd.DataFrame, params: Params) -> pd.DataFrame:
+    out = obs[["t_ns", "frame_idx", "tag_id", *POSE_COLS]].reset_index(drop=True).copy()
+    out.insert(3, "size_m", params.sizes(out["tag_id"].to_numpy()))
+    for c in ["reproj_px", *ALT_COLS, "alt_reproj_px", "ambiguity"]:
+        out[c] = np.nan
+    return out[COLUMNS]
+
+
+def _typed(df: pd.DataFrame) -> pd.DataFrame:
+    out = df[COLUMNS].copy()
+    out["t_ns"] = out["t_ns"].astype(np.int64)
+    out["frame_idx"] = out["frame_idx"].astype(np.int32)
+    out["tag_id"] = out["tag_id"].astype(np.int32)
+    for c in COLUMNS[3:]:
+        out[c] = out[c].astype(np.float64)
+    return out

@@ -1,0 +1,80 @@
+"""smooth: temporal regularisation of the raw trajectory (paper Sec. 3.1, before export).
+
+``method="lsq"``: robust sparse least squares on SO(3) x R^3 -- a data term keeping each pose
+near its raw estimate plus a penalty on linear and angular accelerations (second differences,
+non-uniform stamps; see :mod:`tagtrail.geometry.smoothing`). Weights are 1/standard deviation:
+``pos_sigma_m`` / ``rot_sigma_deg`` (per-frame noise of the raw poses) against ``pos_acc_mps2`` /
+``rot_acc_dps2`` (plausible accelerations); the robust ``loss`` (scale ``f_scale`` standard
+deviations) keeps manoeuvres and rejects outlier frames. Segments break at gaps > ``max_gap_s``.
+``method="none"`` passes the trajectory through unchanged. Measured on the simulator's circle /
+room / corridor recordings (30 fps, pnp trajectory): mean position error 3.2 / 3.9 / 27.8 cm raw,
+3.1 / 3.1 / 10.7 cm smoothed (with a linear instead of robust loss: 17.9 cm on the corridor).
+"""
+
+from __future__ import annotations
+
+from typing import Any, Literal
+
+import numpy as np
+import pandas as pd
+from pydantic import Field
+
+from tagtrail.geometry.robust import LossName
+from tagtrail.geometry.se3 import R_from_quat_xyzw, quat_xyzw_from_R
+from tagtrail.geometry.smoothing import smooth_poses
+from tagtrail.io.layouts import POSE_COLS
+from tagtrail.stages.base import StageParams
+
+
+class Params(StageParams):
+    method: Literal["none", "lsq"] = "lsq"
+    pos_sigma_m: float = Field(0.02, gt=0.0)
+    """Per-frame position noise of the raw trajectory (m): weight of the position data term."""
+    rot_sigma_deg: float = Field(1.0, gt=0.0)
+    """Per-frame orientation noise (deg): weight of the rotation data term."""
+    pos_acc_mps2: float = Field(1.0, gt=0.0)
+    """Standard deviation of the linear acceleration (m/s^2): smaller = smoother positions."""
+    rot_acc_dps2: float = Field(60.0, gt=0.0)
+    """Standard deviation of the angular acceleration (deg/s^2): smaller = smoother rotations."""
+    loss: LossName = "soft_l1"
+    f_scale: float = Field(3.0, gt=0.0)
+    """Robust scale, in standard deviations of each term."""
+    max_gap_s: float = Field(1.0, gt=0.0)
+    """Stamps further apart than this start a new segment (no smoothing across the gap)."""
+
+
+INPUTS = {"trajectory": "trajectory.trajectory"}
+OUTPUTS = ("trajectory",)
+SCOPE = "all"
+DEPENDS = (
+    "tagtrail.geometry.smoothing",
+    "tagtrail.geometry.posegraph",
+    "tagtrail.geometry.robust",
+    "tagtrail.geometry.rotations",
+    "tagtrail.geometry.se3",
+)
+
+
+def run(trajectory: pd.DataFrame, params: Params) -> dict[str, Any]:
+    """The smoothed trajectory: same rows (sorted by ``t_ns``) and columns as the input."""
+    traj = trajectory.sort_values("t_ns", kind="stable").reset_index(drop=True)
+    if params.method == "none" or len(traj) < 3:
+        return {"trajectory": traj}
+    t_ns = traj["t_ns"].to_numpy(np.int64)
+    t_s = (t_ns - t_ns[0]).astype(np.float64) * 1e-9
+    vals = traj[POSE_COLS].to_numpy(np.float64)
+    R, p = smooth_poses(
+        t_s,
+        R_from_quat_xyzw(vals[:, 3:]),
+        vals[:, :3],
+        pos_sigma_m=params.pos_sigma_m,
+        rot_sigma_rad=np.deg2rad(params.rot_sigma_deg),
+        pos_acc=params.pos_acc_mps2,
+        rot_acc=np.deg2rad(params.rot_acc_dps2),
+        loss=params.loss,
+        f_scale=params.f_scale,
+        max_gap_s=params.max_gap_s,
+    )
+    out = traj.copy()
+    out[POSE_COLS] = np.concatenate([p, quat_xyzw_from_R(R)], axis=1)
+    return {"trajectory": out}

@@ -1,0 +1,95 @@
+"""CameraModel: YAML/CameraInfo/JSON forms, projection ↔ undistortion for every model."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+
+from tagtrail.errors import SourceError
+from tagtrail.io.camera import CameraModel
+from tests.io import bags
+
+K = [500.0, 0.0, 320.0, 0.0, 505.0, 240.0, 0.0, 0.0, 1.0]
+MODELS = {
+    "none": [],
+    "plumb_bob": [0.1, -0.2, 0.001, 0.002, 0.05],
+    "rational_polynomial": [0.1, -0.2, 0.001, 0.002, 0.05, 0.01, -0.02, 0.01],
+    "equidistant": [0.05, -0.01, 0.002, -0.001],
+}
+
+
+def points_cam(n: int = 200) -> np.ndarray:
+    rng = np.random.default_rng(0)
+    z = rng.uniform(0.5, 3.0, n)
+    xy = rng.uniform(-0.5, 0.5, (n, 2)) * z[:, None]
+    return np.c_[xy, z].reshape(10, -1, 3)  # a batch dimension too
+
+
+@pytest.mark.parametrize("model", list(MODELS))
+def test_undistort_inverts_project(model: str) -> None:
+    cam = CameraModel(640, 480, K, MODELS[model], model)
+    p = points_cam()
+    px = cam.project(p)
+    assert px.shape == p.shape[:-1] + (2,)
+    np.testing.assert_allclose(cam.undistort(px), p[..., :2] / p[..., 2:], atol=1e-10)
+
+
+@pytest.mark.parametrize("model", ["plumb_bob", "rational_polynomial", "equidistant"])
+def test_project_matches_opencv(model: str) -> None:
+    cam = CameraModel(640, 480, K, MODELS[model], model)
+    p = points_cam().reshape(-1, 3)
+    Km = np.array(K).reshape(3, 3)
+    if model == "equidistant":
+        ref, _ = cv2.fisheye.projectPoints(p[None], np.zeros(3), np.zeros(3), Km,
+                                           np.array(MODELS[model]))
+    else:
+        ref, _ = cv2.projectPoints(p, np.zeros(3), np.zeros(3), Km, np.array(MODELS[model]))
+    np.testing.assert_allclose(cam.project(p), ref.reshape(-1, 2), atol=1e-9)
+    assert not np.allclose(cam.project(p), CameraModel(640, 480, K, [], "none").project(p))
+
+
+def test_none_model_is_k_inverse() -> None:
+    cam = CameraModel(640, 480, K, [], "none")
+    np.testing.assert_allclose(cam.undistort([[320.0, 240.0], [820.0, 745.0]]), [[0, 0], [1, 1]])
+
+
+@pytest.mark.parametrize("model", list(MODELS))
+def test_from_camera_info_and_json_round_trip(model: str) -> None:
+    cam = CameraModel(640, 480, K, MODELS[model], model)
+    back = CameraModel.from_camera_info(bags.camera_info_msg(cam))
+    assert back.same_as(cam)
+    d = json.loads(json.dumps(cam.to_dict()))
+    assert set(d) == {"width", "height", "distortion_model", "K", "D"}
+    assert len(d["K"]) == 9 and d["D"] == MODELS[model]
+    assert CameraModel.from_dict(d).same_as(cam)
+
+
+def test_from_yaml_camera_calibration_format(realdata: Path) -> None:
+    cam = CameraModel.from_yaml(realdata / "photonvision_frc2024_field/images/camera.yaml")
+    assert (cam.width, cam.height, cam.distortion_model) == (1280, 720, "plumb_bob")
+    assert cam.K[0, 0] == 1142.3413236140077 and cam.D[4] == 2.502076853514765
+
+
+def test_from_yaml_simple_meta_form(realdata: Path) -> None:
+    cam = CameraModel.from_yaml(realdata / "swatbotics_mapping_feb_2014/meta.yaml")
+    assert (cam.width, cam.height, cam.distortion_model) == (816, 612, "none")
+    np.testing.assert_allclose(cam.K, [[765.0, 0, 393.72], [0, 764.18, 304.66], [0, 0, 1]])
+    cam = CameraModel.from_yaml(realdata / "photonvision_frc2024_field/meta.yaml")
+    assert cam.distortion_model == "plumb_bob" and cam.D.size == 5
+
+
+def test_bad_camera_input_raises_source_error(tmp_path: Path) -> None:
+    with pytest.raises(SourceError, match="unsupported distortion model 'kannala'"):
+        CameraModel(640, 480, K, [0.1], "kannala")
+    with pytest.raises(SourceError, match="fx, fy must be > 0"):
+        CameraModel(640, 480, [0.0] * 9, [], "none")
+    f = tmp_path / "cam.yaml"
+    f.write_text("image_width: 640\n")
+    with pytest.raises(SourceError, match=r"cam\.yaml: not a camera_info YAML"):
+        CameraModel.from_yaml(f)
+    with pytest.raises(SourceError, match="cannot read camera YAML"):
+        CameraModel.from_yaml(tmp_path / "missing.yaml")

@@ -1,0 +1,122 @@
+"""Stage edges: Eq. 3.2 pairs, anchor choice, ambiguity filter, connectivity."""
+
+from __future__ import annotations
+
+import logging
+
+import numpy as np
+import pandas as pd
+import pydantic
+import pytest
+from scipy.spatial.transform import Rotation
+
+from tagtrail.errors import DataError, DisconnectedTagGraph
+from tagtrail.geometry.se3 import T_from_xyz_quat, inv, make_T
+from tagtrail.runner.stage import stage_spec
+from tagtrail.stages import edges
+from tests.stages.mapping_scene import POSE, observations, ring_scene
+
+
+def test_stage_contract() -> None:
+    spec = stage_spec("edges", edges)
+    assert spec.outputs == ("edges", "graph")
+    assert str(spec.inputs["observations"]) == "pnp.observations"
+    with pytest.raises(pydantic.ValidationError):
+        edges.Params(on_disconnected="ignore")
+    with pytest.raises(pydantic.ValidationError):
+        edges.Params(max_ambiguity=1.5)
+
+
+def test_pair_indices_match_a_loop() -> None:
+    frame = np.array([0, 0, 0, 1, 2, 2, 3, 3, 3, 3])
+    a, b = edges.pair_indices(frame)
+    loop = [(i, j) for i in range(10) for j in range(i + 1, 10) if frame[i] == frame[j]]
+    assert list(zip(a.tolist(), b.tolist(), strict=True)) == loop
+    assert len(edges.pair_indices(np.zeros(0, int))[0]) == 0
+
+
+def test_edges_are_exact_relative_poses() -> None:
+    scene = ring_scene()
+    obs = observations(scene)
+    out = edges.run(obs, edges.Params(weighting="uniform"))
+    e, graph = out["edges"], out["graph"]
+    assert list(e.columns) == ["t_ns", "tag_i", "tag_j", *POSE, "weight"]
+    assert e["t_ns"].dtype == np.int64 and e["tag_i"].dtype == np.int32
+    assert (e["tag_i"] < e["tag_j"]).all() and (e["weight"] == 1.0).all()
+    T = T_from_xyz_quat(e[POSE[:3]].to_numpy(), e[POSE[3:]].to_numpy())
+    W = scene.world_T_tag
+    expected = inv(W[e["tag_i"].to_numpy()]) @ W[e["tag_j"].to_numpy()]
+    assert np.abs(T - expected).max() < 1e-12
+    n_pairs = sum(k * (k - 1) // 2 for k in np.bincount(scene.frame))
+    assert len(e) == n_pairs
+    assert graph["tags"] == list(range(12)) and graph["dropped"] == []
+    assert graph["n_components"] == 1
+
+
+def test_anchor_most_observed_lowest_id_on_ties_or_given() -> None:
+    obs = observations(ring_scene())
+    counts = obs["tag_id"].value_counts()
+    top = counts[counts == counts.max()].index.min()
+    assert edges.run(obs, edges.Params())["graph"]["anchor_id"] == top
+    assert edges.run(obs, edges.Params(anchor_id=5))["graph"]["anchor_id"] == 5
+    with pytest.raises(DataError, match="anchor tag 99 is never observed"):
+        edges.run(obs, edges.Params(anchor_id=99))
+    with pytest.raises(DataError, match="no tag observations"):
+        edges.run(obs.iloc[:0], edges.Params())
+
+
+def _two_islands() -> pd.DataFrame:
+    """Tags 0-1 seen together 3 times; tags 7-8 together twice (never with 0 or 1)."""
+    scene = ring_scene()
+    obs = observations(scene)
+    rows = []
+    for f, (a, b) in enumerate([(0, 1), (0, 1), (0, 1), (7, 8), (7, 8)]):
+        for tag in (a, b):
+            r = obs.iloc[0].copy()
+            r["frame_idx"], r["t_ns"], r["tag_id"] = f, 1000 + f, tag
+            r[POSE[:3]] = [0.1 * tag, 0.0, 2.0]
+            rows.append(r)
+    df = pd.DataFrame(rows).reset_index(drop=True)
+    return df.astype({"frame_idx": np.int32, "tag_id": np.int32, "t_ns": np.int64})
+
+
+def test_disconnected_graph_dropped_with_warning(caplog: pytest.LogCaptureFixture) -> None:
+    with caplog.at_level(logging.WARNING, logger="tagtrail.stages.edges"):
+        out = edges.run(_two_islands(), edges.Params())
+    g = out["graph"]
+    assert g["anchor_id"] == 0 and g["tags"] == [0, 1] and g["n_components"] == 2
+    assert g["dropped"] == [{"tag_id": 7, "n_obs": 2}, {"tag_id": 8, "n_obs": 2}]
+    assert set(out["edges"]["tag_i"]) == {0}
+    assert "7 (2 obs), 8 (2 obs)" in caplog.text and "anchor tag 0" in caplog.text
+
+
+def test_disconnected_graph_fails_when_told() -> None:
+    with pytest.raises(DisconnectedTagGraph, match=r"7 \(2 obs\), 8 \(2 obs\)"):
+        edges.run(_two_islands(), edges.Params(on_disconnected="fail"))
+
+
+def test_min_edge_obs_cuts_weak_pairs() -> None:
+    out = edges.run(_two_islands(), edges.Params(anchor_id=7, min_edge_obs=3))
+    assert out["graph"]["tags"] == [7] and len(out["edges"]) == 0
+    assert [d["tag_id"] for d in out["graph"]["dropped"]] == [0, 1, 8]
+
+
+def test_ambiguous_observations_are_left_out() -> None:
+    scene = ring_scene()
+    obs = observations(scene)
+    flip = make_T(Rotation.from_euler("x", 40, degrees=True).as_matrix(), np.zeros(3))
+    alt = scene.cam_T_tag() @ flip
+    amb = np.where(np.arange(len(obs)) % 5 == 0, 0.9, 0.2)
+    obs = observations(scene, ambiguity=amb, alt_cam_T_tag=alt)
+    kept = edges.run(obs, edges.Params())["edges"]
+    all_ = edges.run(obs, edges.Params(max_ambiguity=None))["edges"]
+    assert 0 < len(kept) < len(all_)
+    assert len(edges.run(obs, edges.Params(max_ambiguity=0.95))["edges"]) == len(all_)
+    ob = edges.run(obs.assign(ambiguity=np.nan), edges.Params())["edges"]  # NaN: kept
+    assert len(ob) == len(all_)
+
+
+def test_distance_weights_favour_close_tags() -> None:
+    w = edges.edge_weights(np.array([1.0, 1.0, 3.0]), np.array([1.0, 2.0, 3.0]),
+                           np.full(3, 0.16), np.full(3, 0.16))
+    assert w[1] == 1.0 and w[0] > w[1] > w[2]
