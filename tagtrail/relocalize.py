@@ -103,11 +103,11 @@ def _relocalize(
     r_params = report_stage.Params(mode=mode, plane=plane)
     result = report_stage.run(aligned["trajectory"], ref_traj, aligned["alignment"], r_params)
     reloc, summary = result["relocalization"], result["summary"]
-    _write(Path(out), reloc, summary, aligned["trajectory"], ref_traj, ref_tags, plane)
+    write_outputs(Path(out), reloc, summary, aligned["trajectory"], ref_traj, ref_tags, plane)
     return result
 
 
-def _write(
+def write_outputs(
     out: Path,
     reloc: pd.DataFrame,
     summary: dict[str, Any],
@@ -116,6 +116,7 @@ def _write(
     ref_tags: pd.DataFrame | None,
     plane_name: str,
 ) -> None:
+    """Write SPEC's relocalization files into ``out`` (also used by the pipeline's exports)."""
     plane = align_stage.reference_plane(plane_name, ref_traj)
     ref_P, ref_R = align_stage.poses(ref_traj)
     names = {"xz": ("x", "z"), "xy": ("x", "y"), "yz": ("y", "z")}.get(plane_name, ("u", "v"))

@@ -1,8 +1,8 @@
 """After a run: the human-facing SPEC files in ``outputs/<dataset>/``, from the artifacts.
 
 Exporters live in ``tagtrail.io.exports`` (I/O at the edge). Each is called per dataset with a
-getter ``get(stage, output)`` that returns the up-to-date artifact or ``None``, and writes the
-files whose artifacts exist, atomically.
+getter ``get(stage, output, reference=False)`` that returns the up-to-date artifact (of this
+dataset or of the reference) or ``None``, and writes the files whose artifacts exist, atomically.
 """
 
 from __future__ import annotations
@@ -23,14 +23,19 @@ def export_outputs(runner: Runner) -> dict[str, Path]:
         cache: dict[tuple[str, str], Any] = {}
 
         def get(
-            stage: str, output: str, dataset: str = dataset, cache: dict[Any, Any] = cache
+            stage: str,
+            output: str,
+            reference: bool = False,
+            dataset: str = dataset,
+            cache: dict[Any, Any] = cache,
         ) -> Any:
-            key = keys.get((stage, dataset))
+            ds = runner.pipe.reference if reference else dataset
+            key = keys.get((stage, ds))
             if key is None or output not in runner.pipe.stages[stage].outputs:
                 return None
-            if (stage, output) not in cache:
-                cache[(stage, output)] = runner.store.load(stage, key, output)
-            return cache[(stage, output)]
+            if (stage, output, ds) not in cache:
+                cache[(stage, output, ds)] = runner.store.load(stage, key, output)
+            return cache[(stage, output, ds)]
 
         folder = runner.pipe.outputs / dataset
         wrote = False
