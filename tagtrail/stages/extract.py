@@ -4,9 +4,10 @@ Image sources are decoded and detected by worker processes over chunks of frames
 (:mod:`tagtrail.io.workers`): the parent only reads the bag (raw message bytes / file paths),
 workers decode and run pupil-apriltags (tag36h11). No detector is ever built in the calling
 process, and workers' exit status is not trusted (see :mod:`tagtrail.io.detector` for the
-upstream exit-time segfault this avoids). Detection sources (``apriltag_msgs``) are filtered
-with the same ``max_hamming`` / ``min_decision_margin`` / ``tag_ids`` rules; observation sources
-fill ``observations`` and leave ``detections`` empty.
+upstream exit-time segfault this avoids); idle workers are kept for the next extract run.
+Detection sources (``apriltag_msgs``) are filtered with the same ``max_hamming`` /
+``min_decision_margin`` / ``tag_ids`` rules; observation sources fill ``observations`` and leave
+``detections`` empty.
 
 Outputs (columns as docs/ARCHITECTURE.md): ``frames`` (every frame, with or without tags),
 ``detections`` (corners in px, detector order, OpenCV convention — pixel centres at integers —,
