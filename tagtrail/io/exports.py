@@ -17,6 +17,8 @@ import pandas as pd
 from tagtrail.io import layouts
 
 Getter = Callable[..., Any]
+# Modules whose code shapes the files (with this one): a change re-exports.
+DEPENDS = ("tagtrail.io.layouts", "tagtrail.io.reloc_files", "tagtrail.relocalize")
 
 
 def trajectories(get: Getter, folder: Path, dataset: str) -> bool:
