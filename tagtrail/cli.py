@@ -155,11 +155,9 @@ OPTIONAL = (
 
 def _optional_commands(sp, command: str | None) -> None:  # noqa: ANN001
     """Commands implemented in their own modules; only the one being run is imported."""
-    import importlib.util
+    import importlib
 
     for name, module, help in OPTIONAL:
-        if importlib.util.find_spec(module) is None:
-            continue
         p = _sub(sp, name, help)
         if name == command:
             mod = importlib.import_module(module)
