@@ -53,7 +53,8 @@ def transform_points(a_T_b: ArrayLike, pts_b: ArrayLike) -> F64:
 
 def _batch_rot(R: F64) -> tuple[Rotation, tuple[int, ...]]:
     lead = R.shape[:-2]
-    return Rotation.from_matrix(R.reshape(-1, 3, 3)), lead
+    # scipy's Cython kernels reject read-only buffers (e.g. arrays from Parquet): copy.
+    return Rotation.from_matrix(np.array(R.reshape(-1, 3, 3))), lead
 
 
 def rotvec_from_R(R: ArrayLike) -> F64:
@@ -65,7 +66,7 @@ def rotvec_from_R(R: ArrayLike) -> F64:
 def R_from_rotvec(rv: ArrayLike) -> F64:
     """Rotation matrices ``(..., 3, 3)`` of axis-angle vectors ``(..., 3)``."""
     rv = np.asarray(rv, dtype=np.float64)
-    return Rotation.from_rotvec(rv.reshape(-1, 3)).as_matrix().reshape(rv.shape[:-1] + (3, 3))
+    return Rotation.from_rotvec(np.array(rv.reshape(-1, 3))).as_matrix().reshape(rv.shape[:-1] + (3, 3))
 
 
 def quat_xyzw_from_R(R: ArrayLike) -> F64:
@@ -78,7 +79,7 @@ def quat_xyzw_from_R(R: ArrayLike) -> F64:
 def R_from_quat_xyzw(q_xyzw: ArrayLike) -> F64:
     """Rotation matrices of quaternions ``(..., 4)`` ordered (qx, qy, qz, qw); normalised first."""
     q = np.asarray(q_xyzw, dtype=np.float64)
-    return Rotation.from_quat(q.reshape(-1, 4)).as_matrix().reshape(q.shape[:-1] + (3, 3))
+    return Rotation.from_quat(np.array(q.reshape(-1, 4))).as_matrix().reshape(q.shape[:-1] + (3, 3))
 
 
 def T_from_xyz_quat(xyz: ArrayLike, q_xyzw: ArrayLike) -> F64:

@@ -47,3 +47,12 @@ def test_pose_error() -> None:
     dt, dr = se3.pose_error(T @ d, T)
     assert np.isclose(dt, np.linalg.norm(T[:3, :3] @ [0.3, 0, 0.4]))
     assert np.isclose(dr, 0.1)
+
+
+def test_read_only_inputs_as_loaded_from_parquet() -> None:
+    T = random_T(np.random.default_rng(4), 3)
+    xyz, q = se3.xyz_quat_from_T(T)
+    for a in (T, xyz, q):
+        a.setflags(write=False)
+    assert np.allclose(se3.T_from_xyz_quat(xyz, q), T)
+    assert np.allclose(se3.R_from_rotvec(se3.rotvec_from_R(T[:, :3, :3])), T[:, :3, :3])
