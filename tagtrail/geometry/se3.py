@@ -66,7 +66,8 @@ def rotvec_from_R(R: ArrayLike) -> F64:
 def R_from_rotvec(rv: ArrayLike) -> F64:
     """Rotation matrices ``(..., 3, 3)`` of axis-angle vectors ``(..., 3)``."""
     rv = np.asarray(rv, dtype=np.float64)
-    return Rotation.from_rotvec(np.array(rv.reshape(-1, 3))).as_matrix().reshape(rv.shape[:-1] + (3, 3))
+    R = Rotation.from_rotvec(np.array(rv.reshape(-1, 3))).as_matrix()
+    return R.reshape(rv.shape[:-1] + (3, 3))
 
 
 def quat_xyzw_from_R(R: ArrayLike) -> F64:
