@@ -25,10 +25,10 @@ from typing import Any
 
 import numpy as np
 import pandas as pd
-import pyarrow as pa
 import pyarrow.parquet as pq
 
 from tagtrail.errors import SourceError, SpecError
+from tagtrail.schemas.artifacts import conform
 
 
 def canonical_json(obj: Any) -> str:
@@ -148,8 +148,7 @@ class Store:
             for name, value in outputs.items():
                 if isinstance(value, pd.DataFrame):
                     fname = f"{name}.parquet"
-                    table = pa.Table.from_pandas(value, preserve_index=False)
-                    pq.write_table(table, tmp / fname)
+                    pq.write_table(conform(f"{stage}.{name}", value), tmp / fname)
                 elif isinstance(value, dict):
                     fname = f"{name}.json"
                     (tmp / fname).write_text(pretty_json(value))

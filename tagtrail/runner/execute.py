@@ -15,6 +15,7 @@ from tagtrail.errors import StageError, TagtrailError
 from tagtrail.runner.cache import SourceHasher, Store, canonical_json, pretty_json, sha256_text
 from tagtrail.runner.dag import Graph, Node, build_graph, select
 from tagtrail.runner.spec import Pipeline
+from tagtrail.schemas.artifacts import VERSION as ARTIFACT_SCHEMA_VERSION
 
 log = logging.getLogger("tagtrail.runner")
 
@@ -96,7 +97,7 @@ class Runner:
         return {
             "stage": node.stage,
             "code": spec.code_fingerprint,
-            "schema": spec.schema_version,
+            "schema": [spec.schema_version, ARTIFACT_SCHEMA_VERSION],
             "params": self.pipe.params_for(node.stage, node.dataset).model_dump(mode="json"),
             "inputs": inputs,
         }
