@@ -98,7 +98,7 @@ class Runner:
             "stage": node.stage,
             "code": spec.code_fingerprint,
             "schema": [spec.schema_version, ARTIFACT_SCHEMA_VERSION],
-            "params": self.pipe.params_for(node.stage, node.dataset).model_dump(mode="json"),
+            "params": self.pipe.params_for(node.stage, node.dataset).key_dump(),
             "inputs": inputs,
         }
 

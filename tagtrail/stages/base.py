@@ -4,7 +4,7 @@ A stage module defines, at module level:
 
 - ``class Params(StageParams)`` — validated parameters (pydantic, unknown keys rejected, frozen).
 - ``INPUTS: dict[str, str]`` — ``run`` argument name → reference:
-    ``"source"``             the dataset's validated :class:`~tagtrail.schemas.pipeline.DatasetConfig`
+    ``"source"``             the dataset's validated ``DatasetConfig`` (schemas.pipeline)
     ``"ground_truth"``       the dataset's ground-truth folder (the stage is skipped without one)
     ``"<stage>.<output>"``   an artifact of the same dataset
     ``"reference:<stage>.<output>"``  an artifact of the reference dataset
@@ -18,10 +18,21 @@ A stage module defines, at module level:
 
 from __future__ import annotations
 
+from typing import ClassVar
+
 from pydantic import BaseModel, ConfigDict
 
 
 class StageParams(BaseModel):
-    """Base of every stage's parameters: strict, immutable, hashable as canonical JSON."""
+    """Base of every stage's parameters: strict, immutable, hashable as canonical JSON.
+
+    ``EXECUTION_ONLY`` names fields that change how a stage runs but not what it computes
+    (e.g. worker counts); they are left out of the cache key.
+    """
 
     model_config = ConfigDict(extra="forbid", frozen=True)
+    EXECUTION_ONLY: ClassVar[frozenset[str]] = frozenset()
+
+    def key_dump(self) -> dict[str, object]:
+        """The parameters that enter the cache key, as JSON-able values."""
+        return self.model_dump(mode="json", exclude=set(self.EXECUTION_ONLY))

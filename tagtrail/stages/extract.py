@@ -61,6 +61,8 @@ class Params(StageParams):
     )
     min_decision_margin: float = Field(20.0, ge=0.0)
     tag_ids: tuple[int, ...] | None = None
+    EXECUTION_ONLY = frozenset({"workers", "chunk_size"})  # same output whatever their values
+
     workers: int = Field(0, ge=0, description="detector processes; 0 = all cores")
     chunk_size: int = Field(16, ge=1, description="frames per task sent to a worker")
 

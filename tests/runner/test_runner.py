@@ -261,3 +261,19 @@ def test_per_dataset_params_override_only_that_dataset(project) -> None:
     project.pipe_file.write_text(yaml.safe_dump(doc))
     with pytest.raises(SpecError, match="datasets.query.params.scale.*did you mean 'factor'"):
         project()
+
+
+def test_execution_only_params_do_not_invalidate(tmp_path: Path) -> None:
+    from tagtrail.stages import REGISTRY
+
+    pipe = tmp_path / "p.yaml"
+    (tmp_path / "imgs").mkdir()
+    pipe.write_text("datasets:\n  reference: {source: imgs}\n")
+    a = Runner(load_pipeline(pipe, REGISTRY, ["extract.workers=1"])).record_for
+    b = Runner(load_pipeline(pipe, REGISTRY, ["extract.workers=2", "extract.chunk_size=4"]))
+    from tagtrail.runner.dag import Node
+
+    node = Node("extract", "reference")
+    assert b.record_for(node, {}) == a(node, {})
+    c = Runner(load_pipeline(pipe, REGISTRY, ["extract.quad_decimate=1.0"]))
+    assert c.record_for(node, {}) != a(node, {})
