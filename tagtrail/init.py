@@ -82,8 +82,8 @@ def main(args: argparse.Namespace) -> int:
         datasets[name] = entry
         print(f"{name}: {desc}")
     stages: dict[str, Any] = {"pnp": {"tag_size": args.tag_size or 0.16}}
-    if args.anchor is not None:
-        stages["edges"] = {"anchor_id": args.anchor}
+    if args.anchor is not None:  # the reference's gauge; queries may never see that tag
+        datasets["reference"]["params"] = {"edges": {"anchor_id": args.anchor}}
     doc = {"reference": "reference", "datasets": datasets, "stages": stages}
     header = ("# Written by `tagtrail init`. Stage parameters not listed keep their defaults;\n"
               "# see `tagtrail dag` and `tagtrail run --dry-run`.\n")

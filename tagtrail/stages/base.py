@@ -12,6 +12,7 @@ A stage module defines, at module level:
   keys); a ``pandas.DataFrame`` is stored as Parquet, a ``dict`` as JSON.
 - ``SCOPE`` — ``"all"`` (every dataset, default) or ``"query"`` (datasets other than the reference).
 - ``DEPENDS: tuple[str, ...]`` — modules whose source also enters the code fingerprint.
+- ``PRIMARY`` — the output ``tagtrail show STAGE --csv`` exports (default: the first).
 - ``def run(<inputs...>, params: Params) -> dict[str, DataFrame | dict]`` — a pure function:
   no artifact I/O, no global state; the same inputs and params give the same outputs.
 """

@@ -42,6 +42,7 @@ log = logging.getLogger("tagtrail.extract")
 
 INPUTS = {"source": "source"}
 OUTPUTS = ("frames", "detections", "camera", "observations")
+PRIMARY = "detections"  # what `tagtrail show extract --csv` exports
 DEPENDS = ("tagtrail.io.sources", "tagtrail.io.images", "tagtrail.io.detector",
            "tagtrail.io.camera", "tagtrail.io.workers")
 CORNER_COLS = [f"c{i}{a}" for i in range(4) for a in "xy"]

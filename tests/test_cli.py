@@ -1,0 +1,79 @@
+"""The tagtrail command with the real stages: init, run, show, and one-line user errors."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+import yaml
+
+from tagtrail.cli import main
+from tagtrail.sim import simulate
+
+
+@pytest.fixture(scope="module")
+def bags(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    root = tmp_path_factory.mktemp("bags")
+    simulate("room", root, frames=40, query_frames=5, detections=True, storage="sqlite3")
+    return root
+
+
+def one_error_line(capsys: pytest.CaptureFixture[str]) -> str:
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith("error: "), err
+    return err[0]
+
+
+def test_init_then_run_then_show(bags: Path, tmp_path: Path, monkeypatch, capsys) -> None:
+    monkeypatch.chdir(tmp_path)
+    rc = main(["init", "--reference", str(bags / "reference"), "--query", str(bags / "query_1"),
+               "--tag-size", "0.16", "--anchor", "0"])
+    assert rc == 0
+    doc = yaml.safe_load(Path("pipeline.yaml").read_text())
+    assert doc["datasets"]["reference"]["topics"] == {"detections": "/detections",
+                                                      "camera_info": "/camera_info"}
+    assert doc["stages"] == {"pnp": {"tag_size": 0.16}}
+    assert doc["datasets"]["reference"]["params"] == {"edges": {"anchor_id": 0}}
+    assert main(["init", "--reference", str(bags / "reference")]) == 2
+    assert "exists already" in one_error_line(capsys)
+    assert main(["run", "report"]) == 0
+    out = capsys.readouterr().out
+    assert "report [query]" in out and (tmp_path / "outputs" / "query" / "summary.json").is_file()
+    assert main(["show", "extract", "--csv", "det.csv"]) == 0
+    header = Path("det.csv").read_text().splitlines()[0]
+    assert header == ("stamp_sec,stamp_nanosec,tag_id,hamming,decision_margin,"
+                      "c0x,c0y,c1x,c1y,c2x,c2y,c3x,c3y")
+
+
+@pytest.mark.parametrize(
+    "stages, message",
+    [
+        ({"optimize": {"f_scal": 0.1}}, "unknown key 'f_scal' — did you mean 'f_scale'"),
+        ({"optimize": {"loss": "l2"}}, "stages.optimize.loss"),
+        ({"extrct": {}}, "unknown stage 'extrct' — did you mean 'extract'"),
+    ],
+)
+def test_bad_parameters_one_line_exit_2(bags, tmp_path, monkeypatch, capsys, stages, message):
+    monkeypatch.chdir(tmp_path)
+    doc = {"datasets": {"reference": {"source": str(bags / "reference")}}, "stages": stages}
+    Path("pipeline.yaml").write_text(yaml.safe_dump(doc))
+    assert main(["run"]) == 2
+    assert message in one_error_line(capsys)
+
+
+def test_missing_source_and_bad_source(tmp_path: Path, monkeypatch, capsys) -> None:
+    monkeypatch.chdir(tmp_path)
+    Path("pipeline.yaml").write_text("datasets:\n  reference: {source: nowhere}\n")
+    assert main(["status"]) == 2
+    assert "nowhere does not exist" in one_error_line(capsys)
+    Path("empty").mkdir()
+    Path("pipeline.yaml").write_text("datasets:\n  reference: {source: empty}\n")
+    assert main(["run"]) == 2
+    assert "extract [reference]" in one_error_line(capsys)
+    assert main(["init", "--reference", "empty"]) == 2
+    one_error_line(capsys)
+
+
+def test_simulate_bad_option(tmp_path: Path, capsys) -> None:
+    assert main(["simulate", "room", "--out", str(tmp_path), "--fps", "-3"]) == 2
+    assert "--fps" in one_error_line(capsys)
