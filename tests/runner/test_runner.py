@@ -277,3 +277,20 @@ def test_execution_only_params_do_not_invalidate(tmp_path: Path) -> None:
     assert b.record_for(node, {}) == a(node, {})
     c = Runner(load_pipeline(pipe, REGISTRY, ["extract.quad_decimate=1.0"]))
     assert c.record_for(node, {}) != a(node, {})
+
+
+def test_a_second_run_waits_for_the_lock(project) -> None:
+    r = project()
+    cwd = project.pipe_file.parent
+    with r.store.lock():
+        proc = subprocess.Popen(
+            [sys.executable, str(DRIVER), str(project.stages_dir), "run"], cwd=cwd,
+            env={**os.environ, "PYTHONPATH": str(Path(__file__).resolve().parents[2])},
+            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+        )
+        time.sleep(3)
+        assert proc.poll() is None  # blocked while we hold the store
+        assert not (r.store.objects).exists()
+    out, err = proc.communicate(timeout=60)
+    assert proc.returncode == 0 and "waiting for another tagtrail run" in err
+    assert executed(project().run()) == set()
