@@ -1,0 +1,213 @@
+"""``tagtrail stream relocalize | replay | localize``: the live nodes over eclipse-zenoh.
+
+Thin shell: parse → load (files are read before any port is opened) → open the session → run
+the node until SIGINT/SIGTERM, ``--duration`` or ``--count`` → close → exit code. Runs standalone
+too: ``python -m tagtrail.stream.cli relocalize …``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import os
+import sys
+from collections.abc import Sequence
+from pathlib import Path
+
+from tagtrail.errors import TagtrailError
+from tagtrail.geometry.plane import PLANES
+from tagtrail.stream.codec import POSE_TYPES
+from tagtrail.stream.session import add_session_arguments, config_from_args, open_session
+
+EXAMPLES = """examples:
+  tagtrail stream relocalize --reference outputs/reference --alignment reloc/summary.json
+  tagtrail stream relocalize --reference ref/trajetoria_camera.csv --plane xz \\
+      --connect tcp/192.168.1.10:7447          # the robot's zenoh-bridge-ros2dds
+  tagtrail stream replay outputs/query/trajectory.csv --rate 2
+  tagtrail stream replay recording/ --topics /detections /camera_info
+  tagtrail stream localize --map outputs/reference/tag_map.yaml
+"""
+
+
+def _common(p: argparse.ArgumentParser, count_help: str) -> None:
+    add_session_arguments(p)
+    g = p.add_argument_group("run")
+    g.add_argument("--duration", type=float, default=None, metavar="S",
+                   help="stop after S seconds (default: run until SIGINT/SIGTERM)")
+    g.add_argument("--count", type=int, default=None, metavar="N", help=count_help)
+    g.add_argument("--congestion", choices=["block", "drop"], default="block",
+                   help="when the network is congested: block (reliable, default) or drop")
+    g.add_argument("--express", action="store_true",
+                   help="send every sample at once (no batching)")
+    g.add_argument("--stats-period", type=float, default=10.0, metavar="S",
+                   help="log a stats line every S seconds (0: never; default 10)")
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> argparse.ArgumentParser:
+    """Add the ``relocalize``, ``replay`` and ``localize`` sub-commands to ``parser``."""
+    parser.epilog = EXAMPLES
+    parser.formatter_class = argparse.RawDescriptionHelpFormatter
+    sub = parser.add_subparsers(dest="stream_command", metavar="COMMAND")
+    fmt = argparse.RawDescriptionHelpFormatter
+
+    p = sub.add_parser("relocalize", help="live D and phi of incoming poses", epilog=EXAMPLES,
+                       formatter_class=fmt, description="Subscribe to live poses, publish D, "
+                       "phi, poses, the reference path and RViz markers (SPEC Streaming).")
+    p.add_argument("--reference", type=Path, required=True,
+                   help="reference trajectory (folder or file, tagtrail's or the original layout)")
+    p.add_argument("--alignment", type=Path, default=None,
+                   help="summary.json of `tagtrail relocalize`, an align-stage alignment JSON, "
+                   "or JSON with a 4x4 'ref_A_query' (default: poses are in the reference frame)")
+    p.add_argument("--pose-key", default="tag_only_pose", help="input key (default: %(default)s)")
+    p.add_argument("--pose-type", choices=list(POSE_TYPES), default="pose_stamped",
+                   help="input message type (default: %(default)s)")
+    p.add_argument("--prefix", default="relocalization", help="output key prefix (default: "
+                   "%(default)s)")
+    p.add_argument("--plane", choices=list(PLANES), default=None,
+                   help="plane of D and phi (default: the alignment file's, else auto)")
+    p.add_argument("--frame-id", default="map", help="frame of the outputs (default: map)")
+    p.add_argument("--path-period", type=float, default=1.0, metavar="S",
+                   help="republish the reference path every S seconds (0: once; default 1)")
+    p.add_argument("--path-max-points", type=int, default=10_000, metavar="N",
+                   help="decimate the published path to N poses (0: all; default 10000)")
+    _common(p, "stop after N input messages")
+
+    p = sub.add_parser("replay", help="publish a trajectory's poses (or bag topics)",
+                       epilog=EXAMPLES, formatter_class=fmt,
+                       description="Publish the poses of a trajectory file or a bag's pose topic "
+                       "as CDR PoseStamped, at the recorded rate.")
+    p.add_argument("source", type=Path, help="trajectory CSV/TUM/folder, or a bag")
+    p.add_argument("--rate", type=float, default=1.0,
+                   help="speed factor (0: as fast as possible; default 1)")
+    p.add_argument("--key", default="tag_only_pose", help="output key (default: %(default)s)")
+    p.add_argument("--topic", default=None, help="the bag's pose topic (default: the only one)")
+    p.add_argument("--topics", nargs="+", default=None, metavar="TOPIC",
+                   help="publish these bag topics unchanged, key = topic without '/'")
+    p.add_argument("--frame-id", default=None, help="frame of the poses (default: the bag's, "
+                   "map for trajectory files)")
+    p.add_argument("--wait", type=float, default=10.0, metavar="S",
+                   help="wait up to S seconds for a subscriber (default 10)")
+    _common(p, "publish at most N messages")
+
+    p = sub.add_parser("localize", help="live world_T_cam from detections or images",
+                       epilog=EXAMPLES, formatter_class=fmt,
+                       description="Camera pose from apriltag detections (or compressed images) "
+                       "and the tag map, published as PoseStamped.")
+    p.add_argument("--map", type=Path, required=True, help="tag_map.yaml / tag_map.csv / folder")
+    p.add_argument("--detections-key", default="detections", help="default: %(default)s")
+    p.add_argument("--camera-info-key", default="camera_info", help="default: %(default)s")
+    p.add_argument("--image-key", default=None,
+                   help="detect tags in images on this key instead of using detections")
+    p.add_argument("--image-type", choices=["compressed", "raw"], default="compressed")
+    p.add_argument("--pose-key", default="tag_only_pose", help="output key (default: "
+                   "%(default)s)")
+    p.add_argument("--frame-id", default="map", help="frame of the poses (default: map)")
+    p.add_argument("--tag-size", type=float, default=0.16,
+                   help="edge (m) of tags whose size the map does not give (default 0.16)")
+    p.add_argument("--method", choices=["auto", "avg", "lsq", "pnp"], default="auto",
+                   help="multi-tag method of the trajectory stage (default: auto = pnp)")
+    p.add_argument("--min-decision-margin", type=float, default=20.0)
+    p.add_argument("--max-hamming", type=int, default=0)
+    _common(p, "stop after N input messages")
+    return parser
+
+
+def build_parser() -> argparse.ArgumentParser:
+    return add_arguments(argparse.ArgumentParser(prog="tagtrail stream",
+                                                 description="Live nodes over eclipse-zenoh."))
+
+
+def main(args: argparse.Namespace | Sequence[str] | None = None) -> int:
+    """Run a stream command from parsed arguments (or an argv list); 0 on success."""
+    ns = args if isinstance(args, argparse.Namespace) else build_parser().parse_args(args)
+    cmd = getattr(ns, "stream_command", None)
+    if cmd is None:
+        build_parser().print_help()
+        return 2
+    try:
+        return {"relocalize": _relocalize, "replay": _replay, "localize": _localize}[cmd](ns)
+    except TagtrailError as err:
+        print(f"error: {err}", file=sys.stderr)
+        return err.exit_code
+
+
+def _relocalize(ns: argparse.Namespace) -> int:
+    from tagtrail.io.layouts import read_trajectory
+    from tagtrail.stream.relocalize import Relocalizer, load_alignment, serve
+    from tagtrail.stream.session import stop_on_signals
+
+    ref = read_trajectory(ns.reference)
+    alignment, plane = None, ns.plane
+    if ns.alignment is not None:
+        A, R, file_plane = load_alignment(ns.alignment, ref, ns.plane)
+        alignment, plane = (A, R), ns.plane or file_plane
+    reloc = Relocalizer(ref, plane or "auto", alignment, ns.frame_id, ns.prefix, ns.pose_type,
+                        ns.path_max_points)  # fmt: skip
+    session = open_session(config_from_args(ns, "listen"))
+    with stop_on_signals() as stop:
+        serve(reloc, session, ns.pose_key, congestion=ns.congestion, express=ns.express,
+              path_period_s=ns.path_period, duration_s=ns.duration, count=ns.count,
+              stats_period_s=ns.stats_period, stop=stop)  # fmt: skip
+    return 0
+
+
+def _replay(ns: argparse.Namespace) -> int:
+    from tagtrail.stream.replay import bag_messages, load_poses, pose_messages, replay
+    from tagtrail.stream.session import stop_on_signals
+
+    if ns.topics:
+        messages = bag_messages(ns.source, ns.topics)
+    else:
+        messages = pose_messages(load_poses(ns.source, ns.topic, ns.frame_id), ns.key)
+    session = open_session(config_from_args(ns, "connect"))
+    try:
+        with stop_on_signals() as stop:
+            replay(session, messages, rate=ns.rate, count=ns.count, wait_s=ns.wait,
+                   congestion=ns.congestion, express=ns.express, stop=stop)  # fmt: skip
+    finally:
+        session.close()
+    return 0
+
+
+def _localize(ns: argparse.Namespace) -> int:
+    from tagtrail.io.detector import DetectorConfig
+    from tagtrail.io.layouts import read_tag_map
+    from tagtrail.stages.trajectory import Params
+    from tagtrail.stream.localize import Localizer, cv2_threads
+    from tagtrail.stream.node import Node
+    from tagtrail.stream.session import stop_on_signals
+    from tagtrail.stream.stats import Stats
+
+    tags, _ = read_tag_map(ns.map)
+    stats = Stats("localize")
+    cfg = DetectorConfig(max_hamming=ns.max_hamming, min_decision_margin=ns.min_decision_margin)
+    loc = Localizer(tags, ns.tag_size, ns.pose_key, ns.frame_id, Params(method=ns.method), cfg,
+                    stats)  # fmt: skip
+    cv2_threads()
+    node = Node(open_session(config_from_args(ns, "connect")), stats, ns.congestion, ns.express)
+    node.count = ns.count
+    try:
+        node.publisher(ns.pose_key)
+        node.subscribe(ns.camera_info_key, loc.on_camera_info)
+        if ns.image_key:
+            node.subscribe(ns.image_key, lambda b: loc.on_image(b, ns.image_type),
+                           latest_only=True)  # fmt: skip
+        else:
+            node.subscribe(ns.detections_key, loc.on_detections)
+    except BaseException:
+        node.close()
+        raise
+    with stop_on_signals() as stop:
+        node.run(ns.duration, ns.stats_period, stop)
+    if ns.image_key:
+        # pupil-apriltags may segfault in its destructor at interpreter exit (NOTES; upstream
+        # pupil-labs/apriltags#46): the session is closed and output flushed, so leave at once
+        sys.stdout.flush()
+        sys.stderr.flush()
+        os._exit(0)
+    return 0
+
+
+if __name__ == "__main__":
+    logging.basicConfig(level=logging.INFO, format="%(levelname)s %(name)s: %(message)s")
+    sys.exit(main())

@@ -1,0 +1,200 @@
+"""Live localization: ``world_T_cam`` from AprilTag detections (or images) and the tag map.
+
+Inputs on zenoh (CDR, as zenoh-bridge-ros2dds forwards ROS 2 topics): ``sensor_msgs/msg/CameraInfo``
+and either ``apriltag_msgs/msg/AprilTagDetectionArray`` (the apriltag_ros node's output; its
+corners sit +0.5 px from OpenCV's convention and are shifted back, as the extract stage does) or
+``sensor_msgs/msg/CompressedImage`` / ``Image`` (detected here with pupil-apriltags, the
+extract stage's detector). Output: ``geometry_msgs/msg/PoseStamped`` (world_T_cam, the
+detection's stamp) — the input of ``tagtrail stream relocalize``.
+
+Per frame the offline pipeline's functions are called (one implementation, two drivers):
+IPPE per tag (:func:`tagtrail.stages.pnp.solve_ippe`), then the trajectory stage's fusion
+(:mod:`tagtrail.geometry.fusion`, Eq. 3.8) with its ``Params`` — ``pnp`` (default via ``auto``):
+one RANSAC PnP over every corner of every mapped tag when ≥ 2 are seen, else the robust fusion
+(``lsq``) of the per-tag estimates. :func:`frame_pose` is that per-frame glue (the trajectory
+stage works on whole tables).
+"""
+
+from __future__ import annotations
+
+import logging
+from typing import Any
+
+import cv2
+import numpy as np
+import pandas as pd
+from numpy.typing import NDArray
+
+from tagtrail.errors import DataError
+from tagtrail.geometry.fusion import (
+    camera_estimates,
+    fuse_mean,
+    fuse_robust,
+    multi_tag_pnp,
+    tag_corners,
+)
+from tagtrail.geometry.se3 import T_from_xyz_quat, transform_points, xyz_quat_from_T
+from tagtrail.io import msgs
+from tagtrail.io.camera import CameraModel
+from tagtrail.io.detector import C_LIBRARY_PIXEL_OFFSET, DetectorConfig
+from tagtrail.io.layouts import POSE_COLS
+from tagtrail.stages import trajectory as trajectory_stage
+from tagtrail.stream import codec
+from tagtrail.stream.stats import DropError, Stats
+
+log = logging.getLogger("tagtrail.stream")
+F64 = NDArray[np.float64]
+IMAGE_TYPES = {"compressed": msgs.COMPRESSED_IMAGE, "raw": msgs.IMAGE}
+
+
+def frame_pose(
+    corners_px: F64,
+    tag_ids: NDArray[np.integer],
+    camera: CameraModel,
+    world_T_tag: dict[int, F64],
+    sizes: dict[int, float],
+    params: trajectory_stage.Params,
+) -> tuple[F64 | None, int]:
+    """``world_T_cam (4, 4)`` of one frame and the number of mapped tags used (None, 0 if none).
+
+    ``corners_px (n, 4, 2)``: distorted pixels, OpenCV convention, SPEC corner order;
+    ``tag_ids (n,)``; ``world_T_tag``/``sizes`` (m) per mapped id. Tags seen twice are ignored
+    (as in the trajectory stage). Methods as :mod:`tagtrail.stages.trajectory`.
+    """
+    from tagtrail.stages.pnp import solve_ippe
+
+    ids = np.asarray(tag_ids, dtype=np.int64).reshape(-1)
+    uniq, counts = np.unique(ids, return_counts=True)
+    once = set(uniq[counts == 1].tolist())
+    keep = np.array([i in once and i in world_T_tag for i in ids.tolist()], dtype=bool)
+    if not keep.any():
+        return None, 0
+    px = np.asarray(corners_px, dtype=np.float64).reshape(-1, 4, 2)[keep]
+    ids = ids[keep]
+    size = np.array([sizes[i] for i in ids.tolist()])
+    T, err = solve_ippe(px, size, camera)
+    good = np.isfinite(err[:, 0])
+    if not good.any():
+        return None, 0
+    px, size, T = px[good], size[good], T[good, 0]
+    W = np.stack([world_T_tag[i] for i in ids[good].tolist()])
+    est = camera_estimates(W, T)
+    group = np.zeros(len(est), dtype=np.int64)
+    method = "pnp" if params.method == "auto" else params.method
+    if method == "pnp" and len(est) >= 2:
+        norm = camera.undistort(px)
+        pts_w = transform_points(W[:, None], tag_corners(size))
+        thresh = params.ransac_px / (0.5 * (camera.K[0, 0] + camera.K[1, 1]))
+        pose, _ = multi_tag_pnp(pts_w.reshape(-1, 3), norm.reshape(-1, 2), ransac_thresh=thresh)
+        if pose is not None:
+            return pose, len(est)
+    if method == "avg":
+        return fuse_mean(est, group, 1)[0], len(est)
+    pose = fuse_robust(est, group, 1, loss=params.loss, f_scale=params.f_scale,
+                       rot_weight_m=params.rot_weight_m)[0]  # fmt: skip
+    return pose, len(est)
+
+
+class Localizer:
+    """Per-message handlers of the localize node (bytes in, ``[(key, bytes)]`` out).
+
+    ``tag_map``: ``tag_id, x_m … qw[, size_m]`` (world_T_tag); ``tag_size`` (m) for tags without
+    a size; ``detector``: filters (``max_hamming``, ``min_decision_margin``, ``tag_ids``) and, for
+    images, the detector settings.
+    """
+
+    def __init__(
+        self,
+        tag_map: pd.DataFrame,
+        tag_size: float = 0.16,
+        pose_key: str = "tag_only_pose",
+        frame_id: str = "map",
+        params: trajectory_stage.Params | None = None,
+        detector: DetectorConfig | None = None,
+        stats: Stats | None = None,
+    ) -> None:
+        if len(tag_map) == 0:
+            raise DataError("localize: the tag map is empty")
+        ids = tag_map["tag_id"].to_numpy(np.int64)
+        W = T_from_xyz_quat(tag_map[POSE_COLS[:3]].to_numpy(), tag_map[POSE_COLS[3:]].to_numpy())
+        size = (tag_map["size_m"].to_numpy(np.float64) if "size_m" in tag_map.columns
+                else np.full(len(ids), np.nan))  # fmt: skip
+        self.world_T_tag = {int(i): w for i, w in zip(ids, W, strict=True)}
+        self.sizes = {int(i): float(s) if np.isfinite(s) and s > 0 else tag_size
+                      for i, s in zip(ids, size, strict=True)}  # fmt: skip
+        self.params = params or trajectory_stage.Params()
+        self.detector = detector or DetectorConfig(min_decision_margin=20.0)
+        self.camera: CameraModel | None = None
+        self.pose_key = pose_key
+        self.stats = stats
+        self._enc = codec.PoseStampedEncoder(frame_id)
+
+    def on_camera_info(self, data: bytes) -> list[tuple[str, bytes]]:
+        try:
+            msg = codec.deserialize(data, msgs.CAMERA_INFO)
+        except codec.CodecError as err:
+            raise DropError("malformed", str(err)) from err
+        try:
+            cam = CameraModel.from_camera_info(msg)
+        except Exception as err:  # noqa: BLE001 - SourceError, shapes
+            raise DropError("bad_camera_info", str(err)) from err
+        if self.camera is None or not cam.same_as(self.camera):
+            log.info("localize: camera %dx%d %s", cam.width, cam.height, cam.distortion_model)
+            self.camera = cam
+        return []
+
+    def on_detections(self, data: bytes) -> list[tuple[str, bytes]]:
+        msg = self._decode(data, msgs.DETECTIONS)
+        dets = [d for d in msg.detections if not d.family or "36h11" in d.family]
+        cfg = self.detector
+        dets = [d for d in dets if d.hamming <= cfg.max_hamming
+                and d.decision_margin >= cfg.min_decision_margin
+                and (cfg.tag_ids is None or d.id in cfg.tag_ids)]  # fmt: skip
+        ids = np.array([d.id for d in dets], dtype=np.int64)
+        px = np.array([[(c.x, c.y) for c in d.corners] for d in dets], dtype=np.float64)
+        return self._publish(msg.header.stamp, px.reshape(-1, 4, 2) - C_LIBRARY_PIXEL_OFFSET, ids)
+
+    def on_image(self, data: bytes, kind: str = "compressed") -> list[tuple[str, bytes]]:
+        from tagtrail.io.detector import detect  # pupil-apriltags only where images are used
+        from tagtrail.io.images import RawImage
+
+        msg = self._decode(data, IMAGE_TYPES[kind])
+        if kind == "compressed":
+            raw = RawImage("compressed", bytes(msg.data), encoding=str(msg.format))
+        else:
+            raw = RawImage("raw", bytes(msg.data), encoding=str(msg.encoding), width=int(msg.width),
+                           height=int(msg.height), step=int(msg.step),
+                           bigendian=bool(msg.is_bigendian))  # fmt: skip
+        try:
+            img = raw.decode()
+        except Exception as err:  # noqa: BLE001 - SourceError, cv2.error
+            raise DropError("bad_image", str(err)) from err
+        ints, floats = detect(np.ascontiguousarray(img), self.detector)
+        return self._publish(msg.header.stamp, floats[:, 1:].reshape(-1, 4, 2), ints[:, 0])
+
+    def _decode(self, data: bytes, msgtype: str) -> Any:
+        if self.camera is None:
+            raise DropError("no_camera_info", "no CameraInfo received yet")
+        try:
+            msg = codec.deserialize(data, msgtype)
+        except codec.CodecError as err:
+            raise DropError("malformed", str(err)) from err
+        if self.stats is not None:
+            self.stats.stamp(int(msg.header.stamp.sec), int(msg.header.stamp.nanosec))
+        return msg
+
+    def _publish(self, stamp: Any, px: F64, ids: NDArray[np.int64]) -> list[tuple[str, bytes]]:
+        if not np.isfinite(px).all():
+            raise DropError("non_finite", "detection corners are not finite")
+        assert self.camera is not None
+        T, n = frame_pose(px, ids, self.camera, self.world_T_tag, self.sizes, self.params)
+        if T is None or not np.isfinite(T).all():
+            raise DropError("no_pose", "no mapped tag in the frame")
+        xyz, q = xyz_quat_from_T(T)
+        return [(self.pose_key, self._enc(int(stamp.sec), int(stamp.nanosec), *xyz.tolist(),
+                                          *q.tolist()))]  # fmt: skip
+
+
+def cv2_threads() -> None:
+    """One OpenCV thread: the node shares the machine with the relocalize node."""
+    cv2.setNumThreads(1)

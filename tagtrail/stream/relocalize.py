@@ -1,0 +1,260 @@
+"""Live relocalization (paper §3.2.2): D and phi of each incoming pose against the reference.
+
+:class:`Relocalizer` holds what the node computes once — the reference as a
+:class:`~tagtrail.geometry.plane.ReferencePath` (the object the offline ``report`` stage uses), the
+alignment transform, the reference ``Path``/markers CDR, the encoders — and
+:meth:`Relocalizer.process` does the per-pose work: apply the alignment, ``k*``, D, phi
+(``ReferencePath.query_one``, Eqs. 3.12–3.15, ``trajectory`` mode), so live values equal the
+offline report's; its k-d tree (used beyond its brute-force limit of 8,192 samples) is replaced
+by :class:`~tagtrail.stream.pathindex.PathIndex`, exact too and fast inside loops.
+:meth:`Relocalizer.handle` is bytes in → ``[(key, CDR bytes)]`` out; the zenoh driver is
+:func:`serve`.
+
+Alignment files (``--alignment``), all JSON:
+
+- ``summary.json`` of ``tagtrail relocalize`` (its ``"alignment"`` block and ``"plane"``);
+- the ``align`` stage's ``alignment`` artifact (the block itself: ``model, scale, rotation_deg,
+  translation, …``); planar models (``similarity``, ``rigid``) act in the plane named by the
+  file's ``"plane"`` (else ``--plane``), ``model: none`` is the identity;
+- any of these with ``"ref_A_query"``: a 4×4 ``[sR | t]`` matrix (query world → reference world),
+  the only form for the 3-D models ``sim3``/``se3`` (their block holds no rotation axis).
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from collections.abc import Iterator
+from pathlib import Path
+from typing import Any, NamedTuple
+
+import numpy as np
+import pandas as pd
+
+from tagtrail.errors import SourceError
+from tagtrail.geometry import se3
+from tagtrail.geometry.align2d import Alignment
+from tagtrail.geometry.plane import PLANES, ReferencePath
+from tagtrail.stages.align import poses, reference_plane, world_transform
+from tagtrail.stream import codec
+from tagtrail.stream.markers import PoseMarkers, path_markers
+from tagtrail.stream.pathindex import PathIndex
+from tagtrail.stream.stats import DropError, Stats
+
+F64 = np.ndarray
+OUTPUTS = ("distance_m", "heading_error_deg", "state", "current_pose", "nearest_pose", "markers")
+REFERENCE_PATH = "reference_path"
+
+
+class Outputs(NamedTuple):
+    """One pose's result: stamp, D (m), phi, k*, planar (u, v) of the pose and of ``ref[k*]``,
+    and the 3-D poses ``(x, y, z, qx, qy, qz, qw)`` of the (aligned) query and of ``ref[k*]``."""
+
+    sec: int
+    nanosec: int
+    distance_m: float
+    heading_error_rad: float
+    heading_error_deg: float
+    nearest_ref_idx: int
+    u: float
+    v: float
+    ref_u: float
+    ref_v: float
+    current: tuple[float, ...]
+    nearest: tuple[float, ...]
+
+
+def load_alignment(
+    path: Path, ref_traj: pd.DataFrame, plane: str | None = None
+) -> tuple[F64, F64, str | None]:
+    """``(ref_A_query (4, 4), ref_R_query (3, 3), the file's plane or None)`` from an alignment
+    file (module docstring); ``plane``: for a planar block of a file that names none."""
+    try:
+        doc = json.loads(Path(path).read_text(encoding="utf-8"))
+        block = doc.get("alignment", doc) if isinstance(doc, dict) else None
+        if not isinstance(block, dict):
+            raise ValueError("not a JSON object")
+        file_plane = doc.get("plane")
+        if file_plane is not None and file_plane not in PLANES:
+            raise ValueError(f"unknown plane {file_plane!r}")
+        matrix = doc.get("ref_A_query", block.get("ref_A_query"))
+        if matrix is not None:
+            A = np.asarray(matrix, dtype=np.float64).reshape(4, 4)
+            s = np.cbrt(np.linalg.det(A[:3, :3]))
+            if not np.isfinite(A).all() or s <= 0:
+                raise ValueError("ref_A_query is not a similarity transform")
+            return A, A[:3, :3] / s, file_plane
+        model = block.get("model")
+        if model in (None, "none"):
+            if model is None:
+                raise ValueError("no 'model' (expected summary.json or an alignment block)")
+            return np.eye(4), np.eye(3), file_plane
+        if model not in ("similarity", "rigid"):
+            raise ValueError(f"a {model} alignment needs its 'ref_A_query' matrix")
+        a = math.radians(float(block["rotation_deg"]))
+        R2 = np.array([[math.cos(a), -math.sin(a)], [math.sin(a), math.cos(a)]])
+        t = np.asarray(block["translation"], dtype=np.float64).reshape(2)
+        al = Alignment(model, float(block["scale"]), R2, t, np.ones(2, bool), 0.0)
+    except (OSError, ValueError, KeyError, TypeError) as err:
+        raise SourceError(f"{path}: not an alignment file: {err}") from err
+    A, R = world_transform(al, reference_plane(file_plane or plane or "auto", ref_traj))
+    return A, R, file_plane
+
+
+def _quat_mul(a: tuple[float, ...], b: tuple[float, ...]) -> tuple[float, float, float, float]:
+    ax, ay, az, aw = a
+    bx, by, bz, bw = b
+    return (
+        aw * bx + ax * bw + ay * bz - az * by,
+        aw * by - ax * bz + ay * bw + az * bx,
+        aw * bz + ax * by - ay * bx + az * bw,
+        aw * bw - ax * bx - ay * by - az * bz,
+    )
+
+
+def _rot(qx: float, qy: float, qz: float, qw: float) -> tuple[tuple[float, ...], ...]:
+    """Rotation matrix of a unit quaternion (rows)."""
+    xx, yy, zz = qx * qx, qy * qy, qz * qz
+    xy, xz, yz, wx, wy, wz = qx * qy, qx * qz, qy * qz, qw * qx, qw * qy, qw * qz
+    return ((1 - 2 * (yy + zz), 2 * (xy - wz), 2 * (xz + wy)),
+            (2 * (xy + wz), 1 - 2 * (xx + zz), 2 * (yz - wx)),
+            (2 * (xz - wy), 2 * (yz + wx), 1 - 2 * (xx + yy)))  # fmt: skip
+
+
+class Relocalizer:
+    """The live node's state and per-pose function (see the module docstring).
+
+    ``ref_traj``: the reference trajectory (``t_ns, x_m … qw``, world_T_cam); ``plane``: SPEC
+    plane name; ``alignment``: ``(A, R)`` from :func:`load_alignment` or None; ``frame_id`` of the
+    outputs; ``path_max_points``: the published Path/markers are decimated to at most this many
+    poses (0: all) — D and phi always use every sample.
+    """
+
+    def __init__(self, ref_traj: pd.DataFrame, plane: str = "auto",
+                 alignment: tuple[F64, F64] | None = None, frame_id: str = "map",
+                 prefix: str = "relocalization", pose_type: str = "pose_stamped",
+                 path_max_points: int = 10_000) -> None:  # fmt: skip
+        P, R = poses(ref_traj)
+        self.path = ReferencePath(P, reference_plane(plane, ref_traj))
+        # long references: query_one's k-d tree → PathIndex (exact, same argmin; see its doc)
+        self.path.tree = PathIndex(self.path.uv)
+        self.pose_type = pose_type
+        self.key = {k: f"{prefix}/{k}" for k in (*OUTPUTS, REFERENCE_PATH)}
+        self._ref7 = ref_traj[["x_m", "y_m", "z_m", "qx", "qy", "qz", "qw"]].to_numpy(np.float64)
+        self._A: tuple[tuple[float, ...], ...] | None = None
+        self._q_al = (0.0, 0.0, 0.0, 1.0)
+        if alignment is not None and not np.allclose(alignment[0], np.eye(4), atol=0, rtol=0):
+            A, Ra = alignment
+            self._A = tuple(tuple(map(float, row)) for row in A[:3])
+            self._q_al = tuple(map(float, se3.quat_xyzw_from_R(Ra)))
+        n = self.path.plane.n
+        up = -n if float(n @ R[:, :, 1].mean(axis=0)) > 0 else n  # camera y is "down"
+        self._pose_enc = codec.PoseStampedEncoder(frame_id)
+        self._markers = PoseMarkers(frame_id, up)
+        keep = np.arange(len(P))
+        if 0 < path_max_points < len(P):
+            keep = np.unique(np.linspace(0, len(P) - 1, path_max_points).round().astype(int))
+        ref = self._ref7[keep]
+        self.path_cdr = codec.encode_path(ref[:, :3], ref[:, 3:], 0, 0, frame_id)
+        self.path_markers_cdr = path_markers(ref[:, :3], frame_id)
+
+    def process(self, p: codec.PoseIn) -> Outputs:
+        """D, phi, k* of one pose (Eqs. 3.12–3.15 via ``ReferencePath.query_one``).
+
+        Raises :class:`DropError` for a non-finite pose or a zero quaternion.
+        """
+        vals = (p.x, p.y, p.z, p.qx, p.qy, p.qz, p.qw)
+        if not all(map(math.isfinite, vals)):
+            raise DropError("non_finite", f"pose {vals}")
+        n2 = p.qx * p.qx + p.qy * p.qy + p.qz * p.qz + p.qw * p.qw
+        if n2 < 1e-12:
+            raise DropError("bad_quaternion", f"quaternion {vals[3:]} has no direction")
+        s = 1.0 / math.sqrt(n2)
+        q = (p.qx * s, p.qy * s, p.qz * s, p.qw * s)
+        x, y, z = p.x, p.y, p.z
+        if self._A is not None:
+            (a, b, c, tx), (d, e, f, ty), (g, h, i, tz) = self._A
+            x, y, z = (a * x + b * y + c * z + tx, d * x + e * y + f * z + ty,
+                       g * x + h * y + i * z + tz)  # fmt: skip
+            q = _quat_mul(self._q_al, q)
+        m = self.path.query_one((x, y, z), _rot(*q))
+        if not math.isfinite(m.distance_m):  # finite but huge coordinates
+            raise DropError("non_finite", f"pose {vals} gives D = {m.distance_m}")
+        k = m.index
+        return Outputs(p.sec, p.nanosec, m.distance_m, m.phi_rad, math.degrees(m.phi_rad), k,
+                       m.u, m.v, m.ref_u, m.ref_v, (x, y, z, *q),
+                       tuple(self._ref7[k].tolist()))  # fmt: skip
+
+    def encode(self, o: Outputs) -> list[tuple[str, bytes]]:
+        """The CDR/JSON payloads of one result, keyed, in publication order."""
+        return list(self.iter_encode(o))
+
+    def iter_encode(self, o: Outputs) -> Iterator[tuple[str, bytes]]:
+        """:meth:`encode` lazily: the distance is sent before the markers are even built."""
+        key, enc = self.key, self._pose_enc
+        yield key["distance_m"], codec.encode_float64(o.distance_m)
+        yield key["heading_error_deg"], codec.encode_float64(o.heading_error_deg)
+        # = json.dumps of the SPEC state dict (floats are finite; json uses float.__repr__)
+        yield key["state"], (
+            f'{{"stamp_sec": {o.sec}, "stamp_nanosec": {o.nanosec}, "distance_m": '
+            f'{o.distance_m!r}, "heading_error_deg": {o.heading_error_deg!r}, '
+            f'"heading_error_rad": {o.heading_error_rad!r}, "nearest_ref_idx": '
+            f'{o.nearest_ref_idx}, "u": {o.u!r}, "v": {o.v!r}}}'
+        ).encode()
+        yield key["current_pose"], enc(o.sec, o.nanosec, *o.current)
+        yield key["nearest_pose"], enc(o.sec, o.nanosec, *o.nearest)
+        yield key["markers"], self._markers(o.sec, o.nanosec, o.current[:3], o.nearest[:3],
+                                            o.distance_m, o.heading_error_deg)  # fmt: skip
+
+    def handle(self, data: bytes, stats: Stats | None = None) -> Iterator[tuple[str, bytes]]:
+        """Payload in (CDR pose of ``pose_type``), keyed outputs out (an iterator, to publish as
+        they are encoded). Bad input raises :class:`DropError` here, before any output."""
+        try:
+            p = codec.decode_pose(data, self.pose_type)
+        except codec.CodecError as err:
+            raise DropError("malformed", str(err)) from err
+        out = self.process(p)
+        if stats is not None:
+            stats.stamp(p.sec, p.nanosec)
+        return self.iter_encode(out)
+
+    def reference_outputs(self) -> list[tuple[str, bytes]]:
+        """The reference path and its marker, for start-up and periodic republishing."""
+        return [(self.key[REFERENCE_PATH], self.path_cdr), (self.key["markers"],
+                                                            self.path_markers_cdr)]  # fmt: skip
+
+
+def serve(
+    reloc: Relocalizer,
+    session: Any,
+    pose_key: str,
+    *,
+    congestion: str = "block",
+    express: bool = False,
+    path_period_s: float = 1.0,
+    duration_s: float | None = None,
+    count: int | None = None,
+    stats_period_s: float = 10.0,
+    stop: Any = None,
+) -> dict[str, Any]:
+    """Run the node on an open zenoh ``session`` until stopped; returns the stats summary.
+
+    Subscribes to ``pose_key``, publishes every output under the prefix, republishes the
+    reference path (and its marker) every ``path_period_s`` (0: once) at low priority and answers
+    ``get`` on ``<prefix>/reference_path``. Closes the session on the way out.
+    """
+    from tagtrail.stream.node import Node  # zenoh only where a session is used
+
+    stats = Stats("relocalize")
+    node = Node(session, stats, congestion, express)
+    node.count = count
+    try:
+        for k in OUTPUTS:
+            node.publisher(reloc.key[k])
+        node.queryable(reloc.key[REFERENCE_PATH], lambda: reloc.path_cdr)
+        node.subscribe(pose_key, lambda data: reloc.handle(data, stats))
+        node.every(path_period_s, lambda: node.publish(reloc.reference_outputs(), background=True))
+    except BaseException:
+        node.close()
+        raise
+    return node.run(duration_s, stats_period_s, stop)

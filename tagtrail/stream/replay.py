@@ -1,0 +1,216 @@
+"""``tagtrail stream replay``: publish recorded poses (or bag topics) at the recorded rate.
+
+Sources: a trajectory file or folder in tagtrail's or the original tool's layouts (read with
+:func:`tagtrail.io.layouts.read_trajectory`: ``trajectory.csv``, ``trajetoria_camera.csv``, TUM),
+or a bag (rosbag2 folder / ``.mcap`` / ``.db3``, ROS 1 ``.bag``) with a pose topic of type
+``geometry_msgs/msg/PoseStamped`` (also ``PoseWithCovarianceStamped``, ``nav_msgs/msg/Odometry``:
+their pose is sent). Stamps are the recorded ones; the pause between two poses is their stamp
+difference divided by ``rate`` (``0``: as fast as possible; a stamp going back: no pause).
+
+With ``topics``, a bag's messages of those topics are published unchanged instead, each on the
+key zenoh-bridge-ros2dds would use (the topic without its leading ``/``), CDR with its
+encapsulation header (ROS 1 messages are converted), paced by the bag's log times: e.g. the
+``/detections`` + ``/camera_info`` of a recording, to feed ``tagtrail stream localize``.
+"""
+
+from __future__ import annotations
+
+import logging
+import threading
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+
+from tagtrail.errors import SourceError
+from tagtrail.io import msgs
+from tagtrail.io.layouts import POSE_COLS, TRAJECTORY_NAMES, read_trajectory
+from tagtrail.stream import codec
+
+log = logging.getLogger("tagtrail.stream")
+POSE_MSGTYPES = tuple(codec.POSE_TYPES.values())
+
+
+@dataclass(frozen=True)
+class Poses:
+    """Recorded poses: ``t_ns (N,)`` int64, ``values (N, 7)`` (x, y, z, qx, qy, qz, qw),
+    ``frames`` one frame id per pose."""
+
+    t_ns: NDArray[np.int64]
+    values: NDArray[np.float64]
+    frames: list[str]
+
+    def __len__(self) -> int:
+        return len(self.t_ns)
+
+
+def _is_trajectory(path: Path) -> bool:
+    if path.is_file():
+        return path.suffix in (".csv", ".tum", ".txt")
+    return path.is_dir() and any((path / n).is_file() for n in TRAJECTORY_NAMES)
+
+
+def load_poses(source: Path, topic: str | None = None, frame_id: str | None = None) -> Poses:
+    """The poses of a trajectory file/folder or of a bag's pose topic (module docstring).
+
+    ``frame_id`` overrides the frame (trajectory files have none: default ``map``).
+    """
+    source = Path(source)
+    if not source.exists():
+        raise SourceError(f"{source}: no such file or folder")
+    if _is_trajectory(source):
+        traj = read_trajectory(source)
+        return Poses(traj["t_ns"].to_numpy(np.int64), traj[POSE_COLS].to_numpy(np.float64),
+                     [frame_id or "map"] * len(traj))  # fmt: skip
+    t, vals, frames = _read_bag(source, topic)
+    if frame_id is not None:
+        frames = [frame_id] * len(frames)
+    return Poses(np.asarray(t, dtype=np.int64), np.asarray(vals, dtype=np.float64).reshape(-1, 7),
+                 frames)  # fmt: skip
+
+
+def _read_bag(path: Path, topic: str | None) -> tuple[list[int], list[list[float]], list[str]]:
+    from rosbags.highlevel import AnyReader
+
+    bag = path.parent if path.suffix in (".mcap", ".db3") else path
+    try:
+        reader = AnyReader([bag], default_typestore=msgs.typestore())
+        reader.open()
+    except Exception as err:  # rosbags raises many types (ReaderError, sqlite3, mcap, yaml)
+        raise SourceError(f"{bag}: not a trajectory file or a readable bag: {err}") from err
+    try:
+        types = {c.topic: c.msgtype for c in reader.connections}
+        listing = ", ".join(f"{t} ({m})" for t, m in sorted(types.items())) or "none"
+        if topic is None:
+            cands = sorted(t for t, m in types.items() if m in POSE_MSGTYPES)
+            if len(cands) != 1:
+                raise SourceError(f"{bag}: {'several' if cands else 'no'} pose topics; name one "
+                                  f"with --topic (topics: {listing})")  # fmt: skip
+            topic = cands[0]
+        if types.get(topic) not in POSE_MSGTYPES:
+            raise SourceError(f"{bag}: topic {topic} is not a pose topic (topics: {listing})")
+        conns = [c for c in reader.connections if c.topic == topic]
+        t_ns, vals, frames = [], [], []
+        for conn, t_recv, raw in reader.messages(connections=conns):
+            msg = reader.deserialize(raw, conn.msgtype)
+            p = msg.pose if conn.msgtype == msgs.POSE_STAMPED else msg.pose.pose
+            st = msg.header.stamp
+            stamp = int(st.sec) * 1_000_000_000 + int(st.nanosec)
+            t_ns.append(stamp or int(t_recv))
+            vals.append([p.position.x, p.position.y, p.position.z, p.orientation.x,
+                         p.orientation.y, p.orientation.z, p.orientation.w])  # fmt: skip
+            frames.append(str(msg.header.frame_id))
+    except SourceError:
+        raise
+    except Exception as err:
+        raise SourceError(f"{bag}: cannot read topic {topic}: {err}") from err
+    finally:
+        reader.close()
+    if not t_ns:
+        raise SourceError(f"{bag}: topic {topic} has no messages")
+    return t_ns, vals, frames
+
+
+@dataclass(frozen=True)
+class Messages:
+    """What to publish, in order: ``t_ns (N,)`` pacing times, ``keys`` and ``payloads``."""
+
+    t_ns: NDArray[np.int64]
+    keys: list[str]
+    payloads: list[bytes]
+
+
+def pose_messages(poses: Poses, key: str) -> Messages:
+    """CDR ``PoseStamped`` of every pose on ``key`` (encoded before publishing starts)."""
+    encoders: dict[str, codec.PoseStampedEncoder] = {}
+    sec, nsec = np.divmod(poses.t_ns, 1_000_000_000)
+    out = []
+    for s, n, v, f in zip(sec.tolist(), nsec.tolist(), poses.values.tolist(), poses.frames,
+                          strict=True):  # fmt: skip
+        enc = encoders.get(f) or encoders.setdefault(f, codec.PoseStampedEncoder(f))
+        out.append(enc(s, n, *v))
+    return Messages(poses.t_ns, [key] * len(out), out)
+
+
+def bag_messages(source: Path, topics: list[str]) -> Messages:
+    """The messages of ``topics`` in a bag, unchanged CDR, keyed by topic without ``/``."""
+    from rosbags.highlevel import AnyReader
+
+    source = Path(source)
+    bag = source.parent if source.suffix in (".mcap", ".db3") else source
+    try:
+        reader = AnyReader([bag], default_typestore=msgs.typestore())
+        reader.open()
+    except Exception as err:  # noqa: BLE001 - rosbags raises many types
+        raise SourceError(f"{bag}: cannot read bag: {err}") from err
+    try:
+        have = {c.topic for c in reader.connections}
+        missing = [t for t in topics if t not in have]
+        if missing:
+            raise SourceError(f"{bag}: no topic {', '.join(missing)} (topics: "
+                              f"{', '.join(sorted(have)) or 'none'})")  # fmt: skip
+        conns = [c for c in reader.connections if c.topic in topics]
+        ros1 = bag.suffix == ".bag"
+        t_ns, keys, data = [], [], []
+        for conn, t, raw in reader.messages(connections=conns):
+            t_ns.append(int(t))
+            keys.append(conn.topic.lstrip("/"))
+            cdr = msgs.typestore().ros1_to_cdr(raw, conn.msgtype) if ros1 else raw
+            data.append(bytes(cdr))
+    finally:
+        reader.close()
+    if not data:
+        raise SourceError(f"{bag}: topics {', '.join(topics)} have no messages")
+    return Messages(np.asarray(t_ns, dtype=np.int64), keys, data)
+
+
+def schedule_s(t_ns: NDArray[np.int64], rate: float) -> NDArray[np.float64]:
+    """Send times (s from the first message) at ``rate`` × the recorded speed; all 0 for 0."""
+    if rate <= 0 or len(t_ns) == 0:
+        return np.zeros(len(t_ns))
+    t = np.maximum.accumulate(t_ns.astype(np.int64))  # a stamp going back: no pause
+    return (t - t[0]) * 1e-9 / rate
+
+
+def replay(session: Any, messages: Messages, *, rate: float = 1.0, count: int | None = None,
+           wait_s: float = 10.0, congestion: str = "block", express: bool = False,
+           stop: threading.Event | None = None) -> int:  # fmt: skip
+    """Publish ``messages``; returns how many were published. Waits up to ``wait_s`` for a
+    subscriber on every key first (then publishes anyway, with a warning)."""
+    from tagtrail.stream.node import CONGESTION
+    from tagtrail.stream.session import close_all, wait_matching
+
+    stop = stop or threading.Event()
+    n = len(messages.payloads) if count is None else min(count, len(messages.payloads))
+    when = schedule_s(messages.t_ns[:n], rate).tolist()
+    pubs = {k: session.declare_publisher(k, congestion_control=CONGESTION[congestion],
+                                         express=express)
+            for k in dict.fromkeys(messages.keys[:n])}  # fmt: skip
+    sent = 0
+    try:
+        deadline = time.monotonic() + wait_s
+        for k, pub in pubs.items():
+            if not wait_matching(pub, max(deadline - time.monotonic(), 0.0), stop):
+                if stop.is_set():
+                    break
+                log.warning("replay: no subscriber on %s after %.1f s; publishing anyway", k,
+                            wait_s)  # fmt: skip
+        t0 = time.perf_counter()
+        for i in range(n):
+            if stop.is_set():
+                break
+            delay = t0 + when[i] - time.perf_counter()
+            if delay > 0 and stop.wait(delay):
+                break
+            pubs[messages.keys[i]].put(messages.payloads[i])
+            sent += 1
+        dt = time.perf_counter() - t0
+        print(f"replay: published {sent} messages on {', '.join(pubs)} in {dt:.2f} s "
+              f"({sent / max(dt, 1e-9):.0f}/s)", flush=True)  # fmt: skip
+        time.sleep(0.05)  # let the last samples leave before the session closes
+    finally:
+        close_all(None, list(pubs.values()))
+    return sent

@@ -1,0 +1,145 @@
+"""zenoh sessions for the live nodes: explicit endpoints, no scouting, clean shutdown.
+
+Every session tagtrail opens is configured here. Scouting (multicast and gossip) is off unless
+asked for, so a node only talks to the endpoints it is given (``--listen`` / ``--connect``); the
+defaults keep everything on the loopback interface: a node that is given no endpoint at all
+listens on (relocalize) or connects to (replay, localize) ``tcp/127.0.0.1:7447``. To reach a
+robot running zenoh-bridge-ros2dds: ``--connect tcp/<robot-ip>:7447``.
+
+Publishing follows NOTES "zenoh 1.10": payloads are ``bytes``, keys have no leading ``/``,
+publishers wait for their matching status before the first sample, and shutdown undeclares
+every entity before closing the session.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+import signal
+import threading
+import time
+from collections.abc import Iterator, Sequence
+from contextlib import contextmanager
+from types import FrameType
+from typing import Any
+
+import zenoh
+
+from tagtrail.errors import SpecError
+
+log = logging.getLogger("tagtrail.stream")
+DEFAULT_ENDPOINT = "tcp/127.0.0.1:7447"
+MODES = ("peer", "client")
+
+
+def endpoint(text: str) -> str:
+    """``host:port`` → ``tcp/host:port``; a locator with a protocol is kept as it is."""
+    text = text.strip()
+    if not text:
+        raise SpecError("empty zenoh endpoint")
+    return text if "/" in text else f"tcp/{text}"
+
+
+def make_config(
+    mode: str = "peer",
+    listen: Sequence[str] = (),
+    connect: Sequence[str] = (),
+    scouting: bool = False,
+) -> zenoh.Config:
+    """A zenoh config: ``mode`` (peer | client), explicit endpoints, scouting off by default.
+
+    zenoh's own defaults listen on every interface and scout by multicast; both are replaced:
+    with ``listen`` empty the session listens nowhere (it only connects out).
+    """
+    if mode not in MODES:
+        raise SpecError(f"zenoh mode {mode!r}: use one of {', '.join(MODES)}")
+    if mode == "client" and not connect:
+        raise SpecError("a zenoh client needs --connect ENDPOINT (a router or peer to join)")
+    cfg = zenoh.Config()
+    cfg.insert_json5("mode", json.dumps(mode))
+    cfg.insert_json5("scouting/multicast/enabled", json.dumps(bool(scouting)))
+    cfg.insert_json5("scouting/gossip/enabled", json.dumps(bool(scouting)))
+    if mode == "peer":
+        cfg.insert_json5("listen/endpoints", json.dumps([endpoint(e) for e in listen]))
+    cfg.insert_json5("connect/endpoints", json.dumps([endpoint(e) for e in connect]))
+    return cfg
+
+
+def add_session_arguments(parser: argparse.ArgumentParser) -> None:
+    """``--mode``, ``--listen``, ``--connect``, ``--scouting`` (shared by every stream command)."""
+    g = parser.add_argument_group("zenoh session")
+    g.add_argument("--mode", choices=MODES, default="peer", help="zenoh mode (default: peer)")
+    g.add_argument("--listen", action="append", default=[], metavar="ENDPOINT",
+                   help="endpoint to listen on, e.g. tcp/127.0.0.1:7447 (repeatable)")
+    g.add_argument("--connect", action="append", default=[], metavar="ENDPOINT",
+                   help="endpoint to connect to, e.g. tcp/192.168.1.10:7447 (repeatable)")
+    g.add_argument("--scouting", action="store_true",
+                   help="enable multicast/gossip scouting (off by default: explicit endpoints)")
+
+
+def config_from_args(ns: argparse.Namespace, default_role: str) -> zenoh.Config:
+    """The session config of a command; ``default_role`` (listen | connect) applies the default
+    endpoint when neither ``--listen`` nor ``--connect`` is given."""
+    listen, connect = list(ns.listen), list(ns.connect)
+    if not listen and not connect and not ns.scouting:
+        (listen if default_role == "listen" and ns.mode == "peer" else connect).append(
+            DEFAULT_ENDPOINT
+        )
+    return make_config(ns.mode, listen, connect, ns.scouting)
+
+
+def open_session(cfg: zenoh.Config) -> zenoh.Session:
+    """Open a session; a failure (port in use, bad locator) becomes one clear :class:`SpecError`."""
+    try:
+        return zenoh.open(cfg)
+    except zenoh.ZError as err:
+        ends = {k: cfg.get_json(f"{k}/endpoints") for k in ("listen", "connect")}
+        raise SpecError(f"cannot open the zenoh session ({ends}): {err}") from err
+
+
+def close_all(session: zenoh.Session | None, entities: Sequence[Any]) -> None:
+    """Undeclare publishers/subscribers/queryables (never raising), then close the session."""
+    for e in reversed(entities):
+        try:
+            e.undeclare()
+        except Exception as err:  # noqa: BLE001 - shutdown must go on
+            log.debug("undeclare %r: %s", e, err)
+    if session is not None and not session.is_closed():
+        try:
+            session.close()
+        except Exception as err:  # noqa: BLE001
+            log.debug("session close: %s", err)
+
+
+def wait_matching(publisher: zenoh.Publisher, timeout_s: float, stop: threading.Event) -> bool:
+    """Wait until ``publisher`` has a matching subscriber (or timeout/stop); True if matched."""
+    deadline = time.monotonic() + timeout_s
+    while not publisher.matching_status:
+        if stop.is_set() or time.monotonic() >= deadline:
+            return False
+        time.sleep(0.01)
+    return True
+
+
+@contextmanager
+def stop_on_signals() -> Iterator[threading.Event]:
+    """An event set by SIGINT/SIGTERM while the block runs (handlers restored after).
+
+    Off the main thread (signals cannot be handled there) the event is only set by the caller.
+    """
+    stop = threading.Event()
+    if threading.current_thread() is not threading.main_thread():
+        yield stop
+        return
+
+    def handler(signum: int, _frame: FrameType | None) -> None:
+        log.info("%s: shutting down", signal.Signals(signum).name)
+        stop.set()
+
+    old = {s: signal.signal(s, handler) for s in (signal.SIGINT, signal.SIGTERM)}
+    try:
+        yield stop
+    finally:
+        for s, h in old.items():
+            signal.signal(s, h)
