@@ -22,6 +22,7 @@ from numpy.typing import ArrayLike, NDArray
 from scipy.spatial import cKDTree
 
 from tagtrail.errors import DataError
+from tagtrail.geometry.pathindex import PathIndex
 
 F64 = NDArray[np.float64]
 PlaneName = Literal["auto", "xz", "xy", "yz"]
@@ -188,6 +189,7 @@ class ReferencePath:
         self._e1, self._e2 = plane.e1.tolist(), plane.e2.tolist()
         self._u, self._v = self.uv[:, 0].copy(), self.uv[:, 1].copy()
         self._h = self.heading_rad.tolist()
+        self._index: PathIndex | None = None  # built on the first long single-pose query
 
     def __len__(self) -> int:
         return len(self.uv)
@@ -228,8 +230,10 @@ class ReferencePath:
             d2 += dv * dv
             k = int(d2.argmin())
             dist = math.sqrt(float(d2[k]))
-        else:
-            dist_, k_ = self.tree.query((u, v))
+        else:  # a k-d tree is slow inside a loop; PathIndex uses the path's order (exact)
+            if self._index is None:
+                self._index = PathIndex(self.uv)
+            dist_, k_ = self._index.query((u, v))
             k, dist = int(k_), float(dist_)
         href = self._h[k]
         phi = math.pi - (math.pi - (hq - href)) % (2.0 * math.pi)

@@ -5,8 +5,7 @@
 alignment transform, the reference ``Path``/markers CDR, the encoders — and
 :meth:`Relocalizer.process` does the per-pose work: apply the alignment, ``k*``, D, phi
 (``ReferencePath.query_one``, Eqs. 3.12–3.15, ``trajectory`` mode), so live values equal the
-offline report's; its k-d tree (used beyond its brute-force limit of 8,192 samples) is replaced
-by :class:`~tagtrail.stream.pathindex.PathIndex`, exact too and fast inside loops.
+offline report's (long references use :class:`~tagtrail.geometry.pathindex.PathIndex`, exact).
 :meth:`Relocalizer.handle` is bytes in → ``[(key, CDR bytes)]`` out; the zenoh driver is
 :func:`serve`.
 
@@ -38,7 +37,6 @@ from tagtrail.geometry.plane import PLANES, ReferencePath
 from tagtrail.stages.align import poses, reference_plane, world_transform
 from tagtrail.stream import codec
 from tagtrail.stream.markers import PoseMarkers, path_markers
-from tagtrail.stream.pathindex import PathIndex
 from tagtrail.stream.stats import DropError, Stats
 
 F64 = np.ndarray
@@ -136,8 +134,6 @@ class Relocalizer:
                  path_max_points: int = 10_000) -> None:  # fmt: skip
         P, R = poses(ref_traj)
         self.path = ReferencePath(P, reference_plane(plane, ref_traj))
-        # long references: query_one's k-d tree → PathIndex (exact, same argmin; see its doc)
-        self.path.tree = PathIndex(self.path.uv)
         self.pose_type = pose_type
         self.key = {k: f"{prefix}/{k}" for k in (*OUTPUTS, REFERENCE_PATH)}
         self._ref7 = ref_traj[["x_m", "y_m", "z_m", "qx", "qy", "qz", "qw"]].to_numpy(np.float64)

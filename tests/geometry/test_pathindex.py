@@ -8,7 +8,7 @@ import math
 import numpy as np
 import pytest
 
-from tagtrail.stream.pathindex import PathIndex
+from tagtrail.geometry.pathindex import PathIndex
 
 
 def _brute(uv: np.ndarray, q: np.ndarray) -> tuple[float, int]:
