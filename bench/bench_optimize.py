@@ -8,21 +8,26 @@ and prints the median of ``--repeats`` runs, the ratio to the target and the map
 Run: ``.venv/bin/python bench/bench_optimize.py [--repeats 5] [--tags 50] [--edges 20000]``.
 
 Most of the time is LSMR's sparse products and vector norms; on a busy machine OpenBLAS's threads
-slow those short BLAS-1 calls down ~2x, so also try ``OPENBLAS_NUM_THREADS=1`` (printed below).
+slow those short BLAS-1 calls down ~2x. Like the ``tagtrail`` command, the benchmark runs with one
+BLAS thread unless ``OPENBLAS_NUM_THREADS`` is set (printed below).
 """
 
 from __future__ import annotations
 
-import argparse
 import os
-import statistics
-import time
 
-import numpy as np
-import pandas as pd
+for _var in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS"):
+    os.environ.setdefault(_var, "1")  # as tagtrail.cli.main_entry does, before numpy loads
 
-from tagtrail.geometry.se3 import R_from_rotvec, make_T, pose_error, quat_xyzw_from_R
-from tagtrail.stages import optimize
+import argparse  # noqa: E402
+import statistics  # noqa: E402
+import time  # noqa: E402
+
+import numpy as np  # noqa: E402
+import pandas as pd  # noqa: E402
+
+from tagtrail.geometry.se3 import R_from_rotvec, make_T, pose_error, quat_xyzw_from_R  # noqa: E402
+from tagtrail.stages import optimize  # noqa: E402
 
 POSE = ["x_m", "y_m", "z_m", "qx", "qy", "qz", "qw"]
 TARGET_S = 2.0
