@@ -174,7 +174,8 @@ def _stamp_ns(stamp: Any) -> int:
     return int(sec) * 1_000_000_000 + int(nsec)
 
 
-def _detections_from_msg(msg: Any) -> list[TagDetection]:
+def detections_from_msg(msg: Any) -> list[TagDetection]:
+    """An ``AprilTagDetectionArray`` as :class:`TagDetection` s, corners in OpenCV's convention."""
     out = []
     for d in msg.detections:
         corners = np.array([[c.x, c.y] for c in d.corners], dtype=np.float64)
@@ -359,7 +360,7 @@ class BagSource(Source):
                         continue
                     t_ns = _stamp_ns(msg.header.stamp) or int(t_recv)
                     if conn.msgtype == msgs.DETECTIONS:
-                        yield idx, t_ns, _detections_from_msg(msg)
+                        yield idx, t_ns, detections_from_msg(msg)
                     else:
                         yield idx, t_ns, _raw_image_from_msg(msg, conn.msgtype)
                     idx += 1

@@ -131,7 +131,7 @@ def _from_detection_msgs(src: Source, cfg: DetectorConfig) -> tuple[Any, Any, An
     for idx, t, dets in tqdm(src.iter_raw(), total=len(src), unit="frame", disable=None,
                              desc="extract", leave=False):
         kept = 0
-        for d in _filter_msgs(dets, cfg, dropped):
+        for d in filter_detections(dets, cfg, dropped):
             ints.append((t, idx, d.tag_id, d.hamming))
             floats.append((d.decision_margin, *d.corners.reshape(8)))
             kept += 1
@@ -146,7 +146,7 @@ def _from_detection_msgs(src: Source, cfg: DetectorConfig) -> tuple[Any, Any, An
     return t_ns, frame_idx, n_det, det
 
 
-def _filter_msgs(
+def filter_detections(
     dets: list[TagDetection], cfg: DetectorConfig, dropped: Counter[str]
 ) -> Iterator[TagDetection]:
     """The image path's filters, applied to detection messages; counts what it drops."""

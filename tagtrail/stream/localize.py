@@ -18,6 +18,7 @@ stage works on whole tables).
 from __future__ import annotations
 
 import logging
+from collections import Counter
 from typing import Any
 
 import cv2
@@ -36,9 +37,11 @@ from tagtrail.geometry.fusion import (
 from tagtrail.geometry.se3 import T_from_xyz_quat, transform_points, xyz_quat_from_T
 from tagtrail.io import msgs
 from tagtrail.io.camera import CameraModel
-from tagtrail.io.detector import C_LIBRARY_PIXEL_OFFSET, DetectorConfig
+from tagtrail.io.detector import DetectorConfig
 from tagtrail.io.layouts import POSE_COLS
+from tagtrail.io.sources import detections_from_msg
 from tagtrail.stages import trajectory as trajectory_stage
+from tagtrail.stages.extract import filter_detections
 from tagtrail.stream import codec
 from tagtrail.stream.stats import DropError, Stats
 
@@ -145,14 +148,11 @@ class Localizer:
 
     def on_detections(self, data: bytes) -> list[tuple[str, bytes]]:
         msg = self._decode(data, msgs.DETECTIONS)
-        dets = [d for d in msg.detections if not d.family or "36h11" in d.family]
-        cfg = self.detector
-        dets = [d for d in dets if d.hamming <= cfg.max_hamming
-                and d.decision_margin >= cfg.min_decision_margin
-                and (cfg.tag_ids is None or d.id in cfg.tag_ids)]  # fmt: skip
-        ids = np.array([d.id for d in dets], dtype=np.int64)
-        px = np.array([[(c.x, c.y) for c in d.corners] for d in dets], dtype=np.float64)
-        return self._publish(msg.header.stamp, px.reshape(-1, 4, 2) - C_LIBRARY_PIXEL_OFFSET, ids)
+        # the extract stage's conversion (−0.5 px) and filters, so live = offline
+        dets = list(filter_detections(detections_from_msg(msg), self.detector, Counter()))
+        ids = np.array([d.tag_id for d in dets], dtype=np.int64)
+        px = np.array([d.corners for d in dets], dtype=np.float64)
+        return self._publish(msg.header.stamp, px.reshape(-1, 4, 2), ids)
 
     def on_image(self, data: bytes, kind: str = "compressed") -> list[tuple[str, bytes]]:
         from tagtrail.io.detector import detect  # pupil-apriltags only where images are used
