@@ -28,6 +28,7 @@ from tagtrail.sim.scene import (
     Wall,
     box_walls,
     circle_poly,
+    ease_curvature,
     resample_path,
     rounded_rect,
     scene_T_cam_planar,
@@ -45,6 +46,9 @@ RECORDINGS = {
 # Parked test poses of the room: (fraction of the loop, offset to the left m, turn deg).
 ROOM_QUERIES = ((0.08, 0.30, 12.0), (0.45, 0.30, -20.0), (0.70, 0.45, 30.0))
 QUERY_EPOCH_STEP_NS = 3600 * 1_000_000_000  # queries are "later sessions", an hour apart
+# The room loop's straight-arc junctions are eased over this arc length (the robot's yaw rate
+# ramps up in ~0.7 s at 0.3 m/s instead of jumping): see scene.ease_curvature.
+ROOM_CURVATURE_RAMP_M = 0.2
 
 
 @dataclass(frozen=True)
@@ -163,11 +167,12 @@ def _room_tags(width: float, depth: float) -> list[F64]:
 
 
 def room(opts: SimOptions) -> list[Scene]:
-    """A 5 x 4 m room, 18 wall tags, a rounded-rectangle loop (``reference``, ~9.1 m) and three
-    parked test poses off the loop (``query_1..3``)."""
+    """A 5 x 4 m room, 18 wall tags, a rounded-rectangle loop (``reference``, ~9.1 m; corners of
+    radius 0.5 m entered and left along 0.2 m clothoids) and three parked test poses off the loop
+    (``query_1..3``)."""
     tags, anchor = _tags(_room_tags(5.0, 4.0), opts)
     walls = box_walls(0.0, 0.0, 5.0, 4.0, height_m=2.5)
-    poly = rounded_rect(1.0, 1.0, 4.0, 3.0, 0.5)
+    poly = ease_curvature(rounded_rect(1.0, 1.0, 4.0, 3.0, 0.5), True, ROOM_CURVATURE_RAMP_M)
     info = {"scenario": "room", "room_m": [5.0, 4.0]}
     scenes = [_moving("reference", poly, True, tags, walls, anchor, opts, info)]
     xy, yaw, _ = resample_path(poly, 2000, True)

@@ -168,6 +168,52 @@ def rounded_rect(x0: float, y0: float, x1: float, y1: float, r: float, k: int = 
     return np.vstack(out)
 
 
+def ease_curvature(poly: F64, closed: bool, ramp_m: float, step_m: float = 1e-3) -> F64:
+    """The path of a robot that drives ``poly`` ``(K, 2)`` with a finite angular acceleration.
+
+    A path made of straights and arcs (:func:`rounded_rect`) asks the robot to switch its yaw rate
+    instantly where they meet; the camera, mounted ahead of the base, would then swing sideways
+    and its path get a heading kink of ~10 degrees within a centimetre (at 0.5 m radius) -- which a
+    real robot cannot do, and which makes a reference heading there ill-defined. Here the
+    curvature (as a function of arc length) is averaged over ``ramp_m``: every straight-arc
+    junction becomes a clothoid of length ``ramp_m`` (the yaw rate ramps linearly), the heading
+    turns by the same total, and the path is integrated again from its first point. Returns a
+    dense polyline ``(M, 2)`` with ``step_m`` spacing (a closed path is made to close exactly by
+    spreading its tiny closure error linearly along the loop).
+    """
+    pts = np.vstack([poly, poly[:1]]) if closed else poly
+    length = float(np.linalg.norm(np.diff(pts, axis=0), axis=1).sum())
+    n = max(int(round(length / step_m)), 8)
+    xy, yaw, length = resample_path(poly, n, closed)
+    ds = length / n if closed else length / (n - 1)
+    heading = np.unwrap(yaw)
+    kappa = np.diff(heading) / ds  # (n-1,) curvature of each step
+    if closed:
+        kappa = np.r_[kappa, wrap_to_pi(heading[0] + 2 * np.pi * round((heading[-1] - heading[0])
+                                                                        / (2 * np.pi))
+                                        - heading[-1]) / ds]
+    w = max(int(round(ramp_m / ds)), 1)
+    box = np.ones(w) / w
+    if closed:
+        padded = np.r_[kappa[-w:], kappa, kappa[:w]]
+        kappa = np.convolve(padded, box, mode="same")[w:-w]
+    else:
+        kappa = np.convolve(np.r_[np.full(w, kappa[0]), kappa, np.full(w, kappa[-1])], box,
+                            mode="same")[w:-w]
+    theta = heading[0] + np.r_[0.0, np.cumsum(kappa)] * ds  # heading at each step's start
+    mid = 0.5 * (theta[:-1] + theta[1:])  # midpoint rule: exact on arcs to O(ds^2)
+    steps = ds * np.stack([np.cos(mid), np.sin(mid)], -1)
+    out = xy[0] + np.vstack([np.zeros((1, 2)), np.cumsum(steps, axis=0)])
+    if closed:
+        gap = out[-1] - xy[0]  # the loop's end should meet its start
+        out = out[:-1] - np.linspace(0.0, 1.0, len(out))[:-1, None] * gap
+    return out
+
+
+def wrap_to_pi(a: float) -> float:
+    return float((a + np.pi) % (2 * np.pi) - np.pi)
+
+
 def circle_poly(radius: float, k: int = 720) -> F64:
     """Dense counter-clockwise circle ``(K, 2)`` about the origin, starting at ``(radius, 0)``."""
     a = np.linspace(0.0, 2 * np.pi, k, endpoint=False)

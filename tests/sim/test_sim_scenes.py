@@ -9,7 +9,15 @@ from tagtrail.geometry.se3 import inv, make_T
 from tagtrail.sim.camera import CameraModel, tag_visibility
 from tagtrail.sim.render import Realism, Renderer, clip_near
 from tagtrail.sim.scenarios import ROOM_QUERIES, SimOptions, build
-from tagtrail.sim.scene import Scene, Tag, resample_path, rounded_rect, stamps_ns, upright_pose
+from tagtrail.sim.scene import (
+    Scene,
+    Tag,
+    ease_curvature,
+    resample_path,
+    rounded_rect,
+    stamps_ns,
+    upright_pose,
+)
 from tests.sim.helpers import detector
 
 OPTS = SimOptions()
@@ -42,6 +50,26 @@ def test_room_reference_and_parked_queries() -> None:
         assert 3 <= abs(turn) <= 30
         assert _visible(q)[0].sum() >= 2
         assert q.t_ns[0] > ref.t_ns[-1]
+
+
+def test_room_loop_has_no_heading_kinks() -> None:
+    """The robot's yaw rate ramps in and out of the corners (finite angular acceleration), so
+    the camera, mounted ahead of the base, does not swing sideways: its path heading changes by
+    at most its turn rate (0.6 rad/s at 0.3 m/s on 0.5 m corners, ~1.15 deg per frame) plus a
+    little, never the ~5 deg per frame of a straight-arc junction taken instantly."""
+    ref = build("room", OPTS)[0]
+    p = ref.world_T_cam()[:, [0, 2], 3]
+    step = np.diff(np.vstack([p, p[:1]]), axis=0)
+    heading = np.degrees(np.arctan2(step[:, 1], step[:, 0]))
+    turn = (np.diff(np.r_[heading, heading[:1]]) + 180.0) % 360.0 - 180.0
+    assert np.abs(turn).max() < 1.6 and abs(turn.sum()) == pytest.approx(360.0, abs=1e-6)
+    raw = rounded_rect(1.0, 1.0, 4.0, 3.0, 0.5)
+    dense, _, length = resample_path(raw, 5000, True)
+    eased = ease_curvature(raw, True, 0.2)
+    _, _, eased_length = resample_path(eased, 20000, True)
+    assert np.linalg.norm(eased[::20, None] - dense[None], axis=2).min(axis=1).max() < 0.01
+    assert np.linalg.norm(eased[-1] - eased[0]) < 2e-3 and eased_length == pytest.approx(
+        length, abs=0.01)
 
 
 def test_corridor_sees_one_or_two_tags_and_stays_connected() -> None:

@@ -94,3 +94,24 @@ def test_no_matching_stamps_and_unknown_anchor(world) -> None:
     foreign = tag_map_frame(np.eye(4)[None], np.array([42]))
     with pytest.raises(DataError, match="anchor tag 42 is not in the ground-truth"):
         evaluate(gt, traj_frame(t_ns, cams), foreign)
+
+
+def test_gauge_free_errors_remove_the_anchor_pose_error(world) -> None:
+    """A map and trajectory that are exact but for a 0.5 deg turn and 1 cm shift of the whole
+    (the anchor's own pose error): large anchored errors, zero once rigidly aligned; a real
+    distortion (one tag 2 cm off) survives the alignment."""
+    gt, t_ns, cams, tags = world
+    turn = make_T(Rotation.from_euler("y", 0.5, degrees=True).as_matrix(), [0.01, 0.0, 0.0])
+    ev = evaluate(gt, traj_frame(t_ns, turn @ cams), tag_map_frame(turn @ tags))
+    assert ev["tags"]["position_m"]["mean"] > 0.02
+    gf = ev["gauge_free"]
+    assert gf["rotation_deg"] == pytest.approx(0.5) and gf["translation_m"] > 0.005
+    for key in ("trajectory", "tags"):
+        assert gf[key]["position_m"]["max"] < 1e-9 and gf[key]["angle_deg"]["max"] < 1e-6
+    assert gf["tags"]["n"] == 11 and gf["trajectory"]["n"] == 40
+    bent = tags.copy()
+    bent[4, 0, 3] += 0.02
+    gf = evaluate(gt, traj_frame(t_ns, cams), tag_map_frame(bent))["gauge_free"]
+    assert 0.01 < gf["tags"]["position_m"]["max"] < 0.02
+    few = evaluate(gt, traj_frame(t_ns, cams), tag_map_frame(tags[:2]))
+    assert few["gauge_free"] is None

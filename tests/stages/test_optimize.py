@@ -11,11 +11,20 @@ from scipy.spatial.transform import Rotation
 from tagtrail.errors import DataError
 from tagtrail.geometry.se3 import T_from_xyz_quat, make_T, pose_error
 from tagtrail.runner.stage import stage_spec
-from tagtrail.stages import edges, optimize, smooth, trajectory
-from tests.stages.mapping_scene import POSE, Scene, observations, ring_scene
+from tagtrail.stages import edges, optimize, pnp, smooth, trajectory
+from tests.stages.mapping_scene import (
+    CAMERA,
+    POSE,
+    Scene,
+    detections,
+    observations,
+    ring_scene,
+)
 
 TAG_MAP_COLS = ["tag_id", *POSE, "n_obs", "size_m", "res_t_rms_m", "res_r_rms_deg"]
-REPORT_KEYS = {"anchor_id", "loss", "f_scale", "cost", "nfev", "status", "rms_t_m", "rms_r_deg"}
+CORNERS = [f"c{k}{a}" for k in range(4) for a in "xy"]
+REPORT_KEYS = {"anchor_id", "loss", "f_scale", "cost", "nfev", "status", "rms_t_m", "rms_r_deg",
+               "refine", "bundle"}
 
 
 def paper_scene() -> Scene:
@@ -134,3 +143,33 @@ def test_anchor_only_map() -> None:
     tm = out["tag_map"]
     assert tm["tag_id"].tolist() == [3] and np.allclose(tm[POSE].to_numpy(), [[0] * 6 + [1]])
     assert out["report"]["nfev"] == 0 and np.isnan(tm["res_t_rms_m"].iloc[0])
+
+
+def test_corner_refinement_beats_the_pose_graph() -> None:
+    """0.3 px corner noise, poses from the pnp stage: the bundle adjustment on the corners maps
+    the tags several times better than the pose graph of pairwise relative poses alone."""
+    scene = paper_scene()
+    det = detections(scene)
+    corners = det[CORNERS].to_numpy()
+    det[CORNERS] = corners + np.random.default_rng(7).normal(scale=0.3, size=corners.shape)
+    none = pd.DataFrame({c: np.zeros(0) for c in ["t_ns", "frame_idx", "tag_id", *POSE]})
+    obs = pnp.run(det, CAMERA, none, pnp.Params())["observations"]
+    e = edges.run(obs, edges.Params())
+    anchor = e["graph"]["anchor_id"]
+    err, reports = {}, {}
+    for refine in ("none", "corners"):
+        o = optimize.run(e["edges"], e["graph"], obs, optimize.Params(refine=refine),
+                         detections=det, camera=CAMERA)
+        err[refine] = tag_errors(scene, o["tag_map"], anchor)[0].mean()
+        reports[refine] = o["report"]
+    assert err["corners"] < 0.35 * err["none"] and err["corners"] < 0.025
+    assert reports["none"]["refine"] == "none" and reports["none"]["bundle"] is None
+    ba = reports["corners"]["bundle"]
+    assert reports["corners"]["refine"] == "corners" and ba["converged"]
+    # rms_px: RMS corner distance, sqrt(2) * 0.3 px less what the fit absorbs
+    assert ba["observations"] == len(obs) and 0.3 < ba["rms_px"] < 0.42
+    # Without detections (an observations dataset) the pose graph is the map.
+    o = optimize.run(e["edges"], e["graph"], obs, optimize.Params(refine="corners"),
+                     detections=det.iloc[:0],
+                     camera={})
+    assert o["report"]["refine"] == "none"
