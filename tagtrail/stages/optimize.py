@@ -18,7 +18,7 @@ out -- and the pose graph inherits it. Measured against the simulator's ground t
 11.2 / 9.1 mm; room demo (jpeg) 14.3 / 14.9 -> 8.0 / 6.5 mm. What remains is mostly the anchor
 tag's own orientation, which world inherits (``eval``'s ``gauge_free`` block: 0.9-1.5 mm for the
 tags). ``f_scale`` no longer matters then (0.03 or 0.1: same maps to 0.1 mm). The edge residuals
-and per-tag RMS are those of the final map. ``"none"`` (default): the pose graph alone, as the paper.
+and per-tag RMS are those of the final map. ``"none"`` (default): the paper's pose graph alone.
 
 The refinement needs redundancy: its gain is averaging many frames, each camera pose shared by
 its tags; from a handful of frames it averages nothing, and the shared pose couples the tags'
