@@ -50,10 +50,11 @@ from tagtrail.geometry.posegraph import (
     relative_residuals,
     solve,
 )
-from tagtrail.geometry.se3 import R_from_quat_xyzw, T_from_xyz_quat, inv, make_T, quat_xyzw_from_R
+from tagtrail.geometry.se3 import R_from_quat_xyzw, inv, make_T, quat_xyzw_from_R
 from tagtrail.io.camera import CameraModel
 from tagtrail.io.layouts import POSE_COLS
 from tagtrail.stages.base import StageParams
+from tagtrail.stages.pnp import best_pose
 
 log = logging.getLogger(__name__)
 
@@ -92,6 +93,7 @@ INPUTS = {
 OUTPUTS = ("tag_map", "edge_residuals", "report")
 SCOPE = "all"
 DEPENDS = (
+    "tagtrail.stages.pnp",
     "tagtrail.geometry.fusion",
     "tagtrail.geometry.posegraph",
     "tagtrail.geometry.robust",
@@ -100,7 +102,6 @@ DEPENDS = (
     "tagtrail.io.camera",
 )
 CORNER_COLS = [f"c{k}{a}" for k in range(4) for a in "xy"]
-ALT_COLS = [f"alt_{c}" for c in POSE_COLS]
 
 
 def _per_tag_rms(idx_i: np.ndarray, idx_j: np.ndarray, sq: np.ndarray, n: int) -> np.ndarray:
@@ -108,16 +109,6 @@ def _per_tag_rms(idx_i: np.ndarray, idx_j: np.ndarray, sq: np.ndarray, n: int) -
     s = np.bincount(idx_i, sq, n) + np.bincount(idx_j, sq, n)
     c = np.bincount(idx_i, minlength=n) + np.bincount(idx_j, minlength=n)
     return np.where(c > 0, np.sqrt(s / np.maximum(c, 1)), np.nan)
-
-
-def _best_pose(obs: pd.DataFrame) -> np.ndarray:
-    """``cam_T_tag`` ``(N, 4, 4)``: of the two IPPE solutions, the lower reprojection error."""
-    vals = obs[POSE_COLS].to_numpy(np.float64)
-    if all(c in obs.columns for c in [*ALT_COLS, "reproj_px", "alt_reproj_px"]):
-        alt = obs[ALT_COLS].to_numpy(np.float64)
-        use_alt = (obs["alt_reproj_px"] < obs["reproj_px"]).to_numpy() & np.isfinite(alt).all(1)
-        vals = np.where(use_alt[:, None], alt, vals)
-    return T_from_xyz_quat(vals[:, :3], vals[:, 3:])
 
 
 def refine_on_corners(
@@ -147,7 +138,7 @@ def refine_on_corners(
     frames, f = np.unique(m["frame_idx"].to_numpy(np.int64), return_inverse=True)
     world_T_tag = make_T(R, t)
     # Start: each frame's camera pose fused from its tags' IPPE poses in the pose-graph map.
-    world_T_cam = fuse_robust(camera_estimates(world_T_tag[k], _best_pose(m)), f, len(frames))
+    world_T_cam = fuse_robust(camera_estimates(world_T_tag[k], best_pose(m)), f, len(frames))
     cam_T_world = inv(world_T_cam)
     ob = CornerObservations(frame=f, tag=k, pts_tag=tag_corners(m["size_m"].to_numpy(np.float64)),
                             uv=cam.undistort(px))

@@ -187,3 +187,14 @@ def _typed(df: pd.DataFrame) -> pd.DataFrame:
     for c in COLUMNS[3:]:
         out[c] = out[c].astype(np.float64)
     return out
+
+
+def best_pose(obs: pd.DataFrame) -> NDArray[np.float64]:
+    """``cam_T_tag`` ``(N, 4, 4)`` of ``pnp.observations`` rows: of the two IPPE solutions, the one
+    with the lower reprojection error (source-given observations: their only pose)."""
+    vals = obs[POSE_COLS].to_numpy(np.float64)
+    if all(c in obs.columns for c in [*ALT_COLS, "reproj_px", "alt_reproj_px"]):
+        alt = obs[ALT_COLS].to_numpy(np.float64)
+        use_alt = (obs["alt_reproj_px"] < obs["reproj_px"]).to_numpy() & np.isfinite(alt).all(1)
+        vals = np.where(use_alt[:, None], alt, vals)
+    return se3.T_from_xyz_quat(vals[:, :3], vals[:, 3:])

@@ -37,10 +37,10 @@ from tagtrail.geometry.se3 import T_from_xyz_quat, transform_points, xyz_quat_fr
 from tagtrail.io.camera import CameraModel
 from tagtrail.io.layouts import POSE_COLS
 from tagtrail.stages.base import StageParams
+from tagtrail.stages.pnp import best_pose
 
 log = logging.getLogger(__name__)
 
-ALT_COLS = [f"alt_{c}" for c in POSE_COLS]
 CORNER_COLS = [f"c{k}{a}" for k in range(4) for a in "xy"]
 TRAJ_COLS = ["t_ns", *POSE_COLS, "n_tags"]
 
@@ -65,6 +65,7 @@ INPUTS = {
 OUTPUTS = ("trajectory",)
 SCOPE = "all"
 DEPENDS = (
+    "tagtrail.stages.pnp",
     "tagtrail.geometry.fusion",
     "tagtrail.geometry.robust",
     "tagtrail.geometry.rotations",
@@ -79,16 +80,6 @@ def _empty() -> pd.DataFrame:
         out[c] = np.zeros(0)
     out["n_tags"] = np.zeros(0, np.int32)
     return out
-
-
-def _pick_pose(obs: pd.DataFrame) -> np.ndarray:
-    """``cam_T_tag`` ``(N, 4, 4)``: of the two IPPE solutions, the lower reprojection error."""
-    vals = obs[POSE_COLS].to_numpy(np.float64)
-    if all(c in obs.columns for c in [*ALT_COLS, "reproj_px", "alt_reproj_px"]):
-        alt = obs[ALT_COLS].to_numpy(np.float64)
-        use_alt = (obs["alt_reproj_px"] < obs["reproj_px"]).to_numpy() & np.isfinite(alt).all(1)
-        vals = np.where(use_alt[:, None], alt, vals)
-    return T_from_xyz_quat(vals[:, :3], vals[:, 3:])
 
 
 def _pnp_frames(
@@ -148,7 +139,7 @@ def run(
     t_ns = obs.groupby("frame_idx")["t_ns"].first().reindex(uframe).to_numpy(np.int64)
     k = np.searchsorted(ids, obs["tag_id"].to_numpy(np.int64))
     W = W_map[k]
-    est = camera_estimates(W, _pick_pose(obs))
+    est = camera_estimates(W, best_pose(obs))
     n = len(uframe)
 
     method = params.method
