@@ -154,6 +154,22 @@ class CameraModel:
         except (KeyError, TypeError, ValueError) as err:
             raise SourceError(f"invalid camera description {d!r}: {err!r}") from err
 
+    def scaled(self, width: int, height: int) -> CameraModel:
+        """The same lens on a ``width x height`` sensor: ``K`` scaled per axis, ``D`` unchanged.
+
+        Scaling is about the image's outer corner, ``(-0.5, -0.5)`` in OpenCV pixels, so a
+        principal point ``c`` becomes ``(c + 0.5) s - 0.5``.
+        """
+        if width <= 0 or height <= 0:
+            raise SourceError(f"cannot scale a camera to {width}x{height} pixels")
+        sx, sy = width / self.width, height / self.height
+        K = self.K.copy()
+        K[0, :2] *= sx  # fx, skew
+        K[1, 1] *= sy
+        K[0, 2] = (K[0, 2] + 0.5) * sx - 0.5
+        K[1, 2] = (K[1, 2] + 0.5) * sy - 0.5
+        return CameraModel(int(width), int(height), K, self.D, self.distortion_model)
+
     def same_as(self, other: CameraModel, rtol: float = 1e-9) -> bool:
         """Equal size, model and (to ``rtol``) coefficients."""
         return (

@@ -20,7 +20,7 @@ from tqdm import tqdm
 from tagtrail.geometry.se3 import F64, R_from_rotvec, make_T, xyz_quat_from_T
 from tagtrail.io import msgs
 from tagtrail.io.layouts import atomic_write_text, tag_name
-from tagtrail.sim.camera import Visibility, tag_visibility
+from tagtrail.sim.camera import FRAME_ID, Visibility, tag_visibility
 from tagtrail.sim.render import Renderer
 from tagtrail.sim.scenarios import SimOptions
 from tagtrail.sim.scene import Scene
@@ -50,8 +50,8 @@ def camera_info_msg(scene: Scene, t_ns: int) -> Any:
     P = np.hstack([c.K, np.zeros((3, 1))])
     roi = _t("sensor_msgs/msg/RegionOfInterest")(0, 0, 0, 0, False)
     return _t(msgs.CAMERA_INFO)(
-        header=_header(t_ns, c.frame_id), height=c.height, width=c.width,
-        distortion_model="plumb_bob", d=c.D, k=c.K.reshape(-1), r=np.eye(3).reshape(-1),
+        header=_header(t_ns, FRAME_ID), height=c.height, width=c.width,
+        distortion_model=c.distortion_model, d=c.D, k=c.K.reshape(-1), r=np.eye(3).reshape(-1),
         p=P.reshape(-1), binning_x=0, binning_y=0, roi=roi,
     )
 
@@ -122,7 +122,7 @@ class _Bag:
 def write_bag(folder: Path, scene: Scene, opts: SimOptions, rng: np.random.Generator) -> None:
     """Render (or synthesise detections for) every frame of ``scene`` into the bag ``folder``."""
     world_T_cam = scene.world_T_cam()
-    fid = scene.camera.frame_id
+    fid = FRAME_ID
     frames = tqdm(range(len(scene.t_ns)), desc=scene.name, unit="frame", leave=False,
                   disable=not opts.progress)
     with _Bag(folder, opts.storage) as bag:

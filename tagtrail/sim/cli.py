@@ -9,7 +9,7 @@ from pathlib import Path
 from typing import Any
 
 from tagtrail.errors import SpecError, TagtrailError
-from tagtrail.sim.camera import CameraModel
+from tagtrail.sim.camera import limo_camera
 from tagtrail.sim.render import Realism
 from tagtrail.sim.scenarios import SCENARIOS
 from tagtrail.sim.simulate import simulate
@@ -102,12 +102,15 @@ def _sizes(text: str) -> dict[int, float]:
 
 def options_from_args(args: argparse.Namespace) -> dict[str, Any]:
     """Keyword options for :func:`simulate` from parsed arguments."""
-    camera = CameraModel()
+    camera = limo_camera()
     if args.size:
         m = re.fullmatch(r"(\d+)[xX](\d+)", args.size)
         if m is None:
             raise SpecError(f"--size: cannot parse {args.size!r} (use e.g. 640x480)")
-        camera = camera.scaled(int(m.group(1)), int(m.group(2)))
+        width, height = int(m.group(1)), int(m.group(2))
+        if width < 16 or height < 16:
+            raise SpecError(f"--size: {args.size} is too small (at least 16x16)")
+        camera = camera.scaled(width, height)
     return {
         "storage": args.storage, "compressed": args.compressed, "jpeg_quality": args.jpeg_quality,
         "detections": args.detections, "seed": args.seed, "force": args.force,

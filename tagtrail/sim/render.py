@@ -22,7 +22,8 @@ import numpy as np
 
 from tagtrail.errors import SpecError
 from tagtrail.geometry.se3 import F64, inv
-from tagtrail.sim.camera import CameraModel, undistort_grid
+from tagtrail.io.camera import CameraModel
+from tagtrail.sim.camera import undistort_grid
 from tagtrail.sim.scene import Scene, Wall
 
 NEAR_M = 0.05
@@ -87,8 +88,9 @@ class Renderer:
         self.camera: CameraModel = scene.camera
         self.realism = realism
         cam = self.camera
-        grid = undistort_grid(cam)
-        ideal = np.stack([cam.fx * grid[..., 0] + cam.cx, cam.fy * grid[..., 1] + cam.cy], -1)
+        gx, gy = np.moveaxis(undistort_grid(cam), -1, 0)
+        K = cam.K
+        ideal = np.stack([K[0, 0] * gx + K[0, 1] * gy + K[0, 2], K[1, 1] * gy + K[1, 2]], -1)
         lo = np.floor(ideal.reshape(-1, 2).min(0)) - 2
         hi = np.ceil(ideal.reshape(-1, 2).max(0)) + 2
         self.offset = -lo  # ideal canvas pixel = ideal pixel + offset

@@ -18,7 +18,8 @@ import numpy as np
 
 from tagtrail.errors import SpecError
 from tagtrail.geometry.se3 import F64
-from tagtrail.sim.camera import CameraModel
+from tagtrail.io.camera import CameraModel
+from tagtrail.sim.camera import limo_camera
 from tagtrail.sim.render import Realism, tag_bits
 from tagtrail.sim.scene import (
     EPOCH_NS,
@@ -63,7 +64,7 @@ class SimOptions:
     tag_sizes_m: Mapping[int, float] = field(default_factory=dict)
     tag_ids: tuple[int, ...] | None = None  # relabel the scenario's tags, in layout order
     anchor_id: int | None = None  # default: the first tag
-    camera: CameraModel = CameraModel()
+    camera: CameraModel = field(default_factory=limo_camera)
     mount: Mount = Mount()
     storage: str = "mcap"
     compressed: bool = False

@@ -25,7 +25,7 @@ from tagtrail.errors import SpecError
 from tagtrail.geometry.se3 import F64, xyz_quat_from_T
 from tagtrail.io.layouts import POSE_COLS, atomic_write_text, write_tag_map, write_trajectory_csv
 from tagtrail.sim import bagwrite
-from tagtrail.sim.camera import tag_visibility
+from tagtrail.sim.camera import FRAME_ID, tag_visibility
 from tagtrail.sim.scenarios import RECORDINGS, SCENARIOS, SimOptions, build
 from tagtrail.sim.scene import Scene
 
@@ -70,7 +70,7 @@ def write_ground_truth(folder: Path, scene: Scene, scenario: str, opts: SimOptio
         "world_frame": f"anchor tag frame (tag36h11:{scene.anchor_id}); floor = its x-z plane",
         "anchor_id": scene.anchor_id,
         "seed": opts.seed,
-        "camera": scene.camera.to_dict(),
+        "camera": {**scene.camera.to_dict(), "frame_id": FRAME_ID},
         "tags": [{"id": int(t.tag_id), "size_m": float(t.size_m)} for t in scene.tags],
         "tag_family": "tag36h11",
         "n_frames": len(scene.t_ns),

@@ -52,6 +52,21 @@ def test_project_matches_opencv(model: str) -> None:
     assert not np.allclose(cam.project(p), CameraModel(640, 480, K, [], "none").project(p))
 
 
+@pytest.mark.parametrize("model", list(MODELS))
+def test_scaled_maps_pixels_about_the_image_corner(model: str) -> None:
+    cam = CameraModel(640, 480, K, MODELS[model], model)
+    big = cam.scaled(1280, 720)
+    assert (big.width, big.height, big.distortion_model) == (1280, 720, model)
+    np.testing.assert_array_equal(big.D, cam.D)
+    p = points_cam()
+    # The image's outer corner (-0.5, -0.5) stays put; pixel sizes scale by 2 and 1.5.
+    np.testing.assert_allclose(big.project(p) + 0.5, (cam.project(p) + 0.5) * [2.0, 1.5],
+                               atol=1e-9)
+    assert big.scaled(640, 480).same_as(cam)
+    with pytest.raises(SourceError, match="0x480"):
+        cam.scaled(0, 480)
+
+
 def test_none_model_is_k_inverse() -> None:
     cam = CameraModel(640, 480, K, [], "none")
     np.testing.assert_allclose(cam.undistort([[320.0, 240.0], [820.0, 745.0]]), [[0, 0], [1, 1]])

@@ -15,8 +15,10 @@ from mcap_ros2.decoder import DecoderFactory
 
 from tagtrail.errors import SpecError
 from tagtrail.geometry.se3 import T_from_xyz_quat
+from tagtrail.io.camera import CameraModel
 from tagtrail.io.layouts import POSE_COLS, read_tag_map, read_trajectory
 from tagtrail.sim import cli, simulate
+from tagtrail.sim.camera import FRAME_ID, limo_camera
 from tagtrail.sim.render import Renderer
 from tests.sim.helpers import SMALL, image_of, read_topic
 
@@ -37,8 +39,8 @@ def test_room_layout_and_ground_truth(room_mcap: dict[str, Path]) -> None:
         row = tags.set_index("tag_id").loc[0, POSE_COLS].to_numpy(float)
         np.testing.assert_allclose(row, [0, 0, 0, 0, 0, 0, 1], atol=1e-12)
         scene = yaml.safe_load((gt / "scene.yaml").read_text())
-        assert scene["camera"]["width"] == 640
-        assert scene["camera"]["distortion_model"] == "plumb_bob"
+        assert CameraModel.from_dict(scene["camera"]).same_as(limo_camera(), rtol=0)
+        assert scene["camera"]["frame_id"] == FRAME_ID
         assert scene["anchor_id"] == 0 and scene["seed"] == SMALL["seed"]
         assert len(scene["tags"]) == 18
         assert (gt / "test_poses.csv").is_file() == name.startswith("query")
@@ -192,6 +194,8 @@ def test_cli(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     assert "--force" in capsys.readouterr().err
     assert cli.main(_parse(["room", "--out", str(tmp_path), "--size", "big"])) == 2
     assert "error: --size" in capsys.readouterr().err
+    assert cli.main(_parse(["room", "--out", str(tmp_path), "--size", "8x8"])) == 2
+    assert "error: --size: 8x8 is too small" in capsys.readouterr().err
     help_text = argparse.ArgumentParser()
     cli.add_arguments(help_text)
     assert "examples:" in help_text.format_help()

@@ -6,7 +6,8 @@ import numpy as np
 import pytest
 
 from tagtrail.geometry.se3 import inv, make_T
-from tagtrail.sim.camera import CameraModel, tag_visibility
+from tagtrail.io.camera import CameraModel
+from tagtrail.sim.camera import limo_camera, tag_visibility
 from tagtrail.sim.render import Realism, Renderer, clip_near
 from tagtrail.sim.scenarios import ROOM_QUERIES, SimOptions, build
 from tagtrail.sim.scene import (
@@ -106,7 +107,7 @@ def test_near_plane_clipping() -> None:
     assert clipped[:, 2].min() == pytest.approx(0.05) and len(clipped) == 4
     # A 1 m tag beside the camera, half behind it: only the half in front may be drawn, on the
     # right of the image; rays of the left half would hit the plane behind the camera.
-    cam = CameraModel()
+    cam = limo_camera()
     scene_T_cam = make_T(np.eye(3), np.zeros(3))  # the scene frame is the optical frame here
     R_tag = np.column_stack([[0, 0, -1.0], [0, -1.0, 0], [-1.0, 0, 0]])  # faces -x: us
     tag = Tag(0, 0.8, make_T(R_tag, [0.3, 0.0, 0.05]))
@@ -116,12 +117,13 @@ def test_near_plane_clipping() -> None:
                            scene_T_cam[None], stamps_ns(1, 30)), Realism(0, 0, 1, 1, 0))
     diff = r.render_ideal(scene_T_cam) != empty.render_ideal(scene_T_cam)
     cols = np.flatnonzero(diff.any(axis=0)) - r.offset[0]
-    assert diff.any() and cols.min() > cam.cx + cam.fx * 0.3 / 0.6  # front part: z < 0.55
+    fx, cx = cam.K[0, 0], cam.K[0, 2]
+    assert diff.any() and cols.min() > cx + fx * 0.3 / 0.6  # front part: z < 0.55
 
 
 def test_texture_orientation_and_corner_order() -> None:
     """A frontal tag: detector corner 0 is bottom-left, 1 bottom-right (SPEC tag frame)."""
-    cam = CameraModel()
+    cam = limo_camera()
     R_tag = np.diag([1.0, -1.0, -1.0])  # tag x = camera x, tag y = up, tag z towards camera
     tag = Tag(7, 0.16, make_T(R_tag, [0.0, 0.0, 0.8]))
     scene = Scene("one", cam, (tag,), (), 7, np.eye(4)[None], stamps_ns(1, 30))
@@ -133,6 +135,31 @@ def test_texture_orientation_and_corner_order() -> None:
     expect = tag_visibility(cam, inv(np.eye(4))[None, None] @ tag.scene_T_tag[None, None],
                             np.array([0.16])).corners_px[0, 0]
     np.testing.assert_allclose(c - 0.5, expect, atol=0.3)
+
+
+LENSES = {
+    "rational_polynomial": [0.3, -0.1, 0.002, -0.001, 0.02, 0.1, 0.01, 0.0],
+    "equidistant": [0.3, 0.05, -0.02, 0.0],
+}
+
+
+@pytest.mark.parametrize("model", ["plumb_bob", *LENSES])
+def test_rendered_corners_follow_the_camera_model(model: str) -> None:
+    """Off-centre tag: detected corners are where ``tag_visibility`` projects them, whatever
+    the distortion model (and not where a distortion-free camera would)."""
+    limo = limo_camera()
+    cam = limo if model == "plumb_bob" else CameraModel(640, 480, limo.K, LENSES[model], model)
+    R_tag = np.diag([1.0, -1.0, -1.0])
+    tag = Tag(3, 0.16, make_T(R_tag, [0.32, 0.2, 0.7]))
+    scene = Scene("one", cam, (tag,), (), 3, np.eye(4)[None], stamps_ns(1, 30))
+    img = Renderer(scene, Realism(0, 0, 1, 1, 0)).render(np.eye(4))
+    (d,) = detector(1.0).detect(np.ascontiguousarray(img[..., 0]))
+    vis = tag_visibility(cam, tag.scene_T_tag[None, None], np.array([0.16]))
+    assert vis.visible[0, 0] and d.tag_id == 3
+    np.testing.assert_allclose(d.corners - 0.5, vis.corners_px[0, 0], atol=0.3)
+    pinhole = CameraModel(640, 480, limo.K, [], "none")
+    assert np.abs(tag_visibility(pinhole, tag.scene_T_tag[None, None], np.array([0.16]))
+                  .corners_px[0, 0] - vis.corners_px[0, 0]).max() > 2.0
 
 
 def test_upright_pose_axes() -> None:
