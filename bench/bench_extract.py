@@ -6,7 +6,9 @@ rosbag2 (MCAP) in a temp dir — once as CompressedImage (JPEG), once as rgb8 Im
 - bare: one process, frames decoded beforehand (not timed), ``detector.detect`` in a loop with
   the same settings as extract (quad_decimate 2, …);
 - extract: ``tagtrail.stages.extract.run`` end to end (open bag, read, ship chunks to worker
-  processes, decode there, detect, build tables), with workers = 1 and = all cores. Worker
+  processes, decode there, detect, re-fit corners, build tables), with workers = 1 and = all
+  cores, and with all cores without the corner re-fit (``refit_corners: false``, what the bare
+  loop does). Worker
   processes are kept for reuse between runs (as in a pipeline), so their start-up (~0.3 s) is
   paid by the first repeat only; ``--cold`` starts them afresh every time.
 
@@ -110,14 +112,17 @@ def bare_fps(
     return len(frames) / statistics.median(times), 1e3 * statistics.median(cpus) / len(frames)
 
 
-def extract_fps(bag: Path, workers: int, repeats: int, cold: bool) -> tuple[float, float]:
+def extract_fps(
+    bag: Path, workers: int, repeats: int, cold: bool, refit: bool = True
+) -> tuple[float, float]:
     """(frames/s, CPU ms/frame incl. workers) of stage extract end to end."""
     times, cpus = [], []
     for _ in range(repeats):
         if cold:
             workers_mod._close_idle()
         t, c = time.perf_counter(), cpu_s()
-        out = extract.run(DatasetConfig(source=bag), extract.Params(workers=workers))
+        params = extract.Params(workers=workers, refit_corners=refit)
+        out = extract.run(DatasetConfig(source=bag), params)
         times.append(time.perf_counter() - t)
         cpus.append(cpu_s() - c)
     n = len(out["frames"])
@@ -157,6 +162,7 @@ def main() -> None:
                                           lambda b: cv2.cvtColor(b, cv2.COLOR_RGB2GRAY))
             (one, one_cpu) = extract_fps(bag, 1, args.repeats, args.cold)
             (many, many_cpu) = extract_fps(bag, 0, args.repeats, args.cold)
+            (plain, plain_cpu) = extract_fps(bag, 0, args.repeats, args.cold, refit=False)
             print(f"{kind}:\n"
                   f"  bare loop (1 process, pre-decoded) {bare:6.1f} frames/s  "
                   f"CPU {bare_cpu:.2f} ms/frame\n"
@@ -165,7 +171,9 @@ def main() -> None:
                   f"  extract workers=1 {one:6.1f} frames/s ({one / bare:.2f}x)  "
                   f"CPU {one_cpu:.2f} ms/frame\n"
                   f"  extract workers={cores} {many:6.1f} frames/s ({many / bare:.2f}x)  "
-                  f"CPU {many_cpu:.2f} ms/frame")
+                  f"CPU {many_cpu:.2f} ms/frame\n"
+                  f"  extract workers={cores}, no re-fit {plain:6.1f} frames/s "
+                  f"({plain / bare:.2f}x)  CPU {plain_cpu:.2f} ms/frame")
 
 
 if __name__ == "__main__":

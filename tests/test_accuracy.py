@@ -21,15 +21,12 @@ achieved, with the reason. Measured when this file was written (default seed 0, 
 - circle, detections (unbiased 0.3 px corner noise): gauge-free trajectory 1.6 / tags 0.9 mm;
   anchored 3.1 / 3.3 mm -- but 4.7 / 6.1 and 23.1 / 27.8 mm with seeds 1 and 2: the anchor's yaw
   is off by 0.07 / 0.15 / 0.54 deg, pure noise (the pose graph alone: 30.9 / 33.4 mm).
-- circle, images: gauge-free 1.9 / 1.4 mm; anchored 9.0 / 11.2 mm (seeds 1, 2: 8.6 / 10.6,
-  8.6 / 10.5), the anchor pitched by 0.25 deg with the same sign at every seed: a bias of the
-  detector's corners -- pupil-apriltags' edge refinement is off by ~0.07 px (mean) and ~0.07 px
-  (corner to corner) on near-frontal tags even on an exact, supersampled render. A prototype
-  sub-pixel re-fit of the four edges (for ``extract``) brings the corners to 0.04 px RMS and this
-  scene to 3.0 / 3.3 mm anchored, though not yet a clear gain on the jpeg room (final report of
-  the accuracy work); until ``extract`` has such a fix, the anchored tag bound below is the
-  achieved one, not the issue's.
-- room demo (jpeg images, full loop): map 6.5 / 8.0 mm anchored (2.1 / 1.5 gauge-free); parked
+- circle, images: the detector's own corners are ~0.06-0.1 px off (a bias of pupil-apriltags'
+  edge refinement, measured on an exact render, tests/io/test_corners.py), which pitched the
+  anchor by 0.25 deg and left 9.1 / 11.2 mm anchored. ``extract`` now re-fits the corners to the
+  border's edges (``io.corners``, ~0.015 px): anchored 2.4 (p95 3.8) / 2.6 mm, gauge-free
+  0.7 / 0.5 mm.
+- room demo (jpeg images, full loop): map 5.6 / 6.0 mm anchored (2.1 / 1.2 gauge-free); parked
   queries' D errors 1.1 / 0.3 / 2.0 mm, phi errors 0.00 / 0.16 / 0.06 deg (seeds 1-4: D <= 3.0 mm,
   phi <= 0.45 deg). phi compares the query's heading with the heading of ONE 1-cm segment of the
   smoothed reference path, so it needs the smoother's weights of ``smooth`` (0.81 -> 0.60 deg RMS
@@ -102,11 +99,10 @@ def test_circle_from_images(tmp_path: Path) -> None:
     ev = circle(tmp_path)
     check_issue_4(ev)
     free = ev["gauge_free"]
-    assert mm(free, "trajectory") <= 4.0 and mm(free, "tags") <= 3.0  # measured 1.9 / 1.4
-    # Anchored: the trajectory meets the issue (9.0 mm, p95 15.9); the tags (11.2 mm) do not,
-    # because of the detector's corner bias (module docstring): the bound is the achieved one.
+    assert mm(free, "trajectory") <= 2.0 and mm(free, "tags") <= 1.5  # measured 0.7 / 0.5
+    # Anchored, the issue's targets (measured 2.4, p95 3.8 / 2.6 mm with the corner re-fit)
     assert mm(ev, "trajectory") <= 10.0 and mm(ev, "trajectory", "p95") <= 30.0
-    assert mm(ev, "tags") <= 13.0
+    assert mm(ev, "tags") <= 10.0
 
 
 def test_room_demo_parked_queries(tmp_path: Path) -> None:
@@ -117,8 +113,8 @@ def test_room_demo_parked_queries(tmp_path: Path) -> None:
     free = ev["gauge_free"]
     print(f"\nroom map: trajectory {mm(ev, 'trajectory'):.1f} mm, tags {mm(ev, 'tags'):.1f} mm; "
           f"gauge-free {mm(free, 'trajectory'):.1f} / {mm(free, 'tags'):.1f} mm")
-    assert mm(ev, "trajectory") <= 10.0 and mm(ev, "tags") <= 10.0  # measured 6.5 / 8.0
-    assert mm(free, "trajectory") <= 4.0 and mm(free, "tags") <= 3.0  # measured 2.1 / 1.5
+    assert mm(ev, "trajectory") <= 10.0 and mm(ev, "tags") <= 10.0  # measured 5.6 / 6.0
+    assert mm(free, "trajectory") <= 4.0 and mm(free, "tags") <= 3.0  # measured 2.1 / 1.2
     gt_ref = tmp_path / "data" / "reference" / "ground_truth"
     errors = {}
     for q in ("query_1", "query_2", "query_3"):

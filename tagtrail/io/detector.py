@@ -13,7 +13,8 @@ Two defects of pupil-apriltags 1.0.4.post11 are worked around here:
   binding hard-codes 2).
 
 Corners are returned in the OpenCV pixel convention (pixel centres at integers): the C library
-puts them at +0.5 px (measured +0.49 px against OpenCV).
+puts them at +0.5 px (measured +0.49 px against OpenCV); with ``refit_corners`` they are then
+re-fitted to the image gradient of the tag's border (:mod:`tagtrail.io.corners`).
 """
 
 from __future__ import annotations
@@ -28,6 +29,8 @@ import numpy as np
 from numpy.typing import NDArray
 from pupil_apriltags import Detector
 
+from tagtrail.io.camera import CameraModel
+from tagtrail.io.corners import refine_corners, truncated
 from tagtrail.io.images import RawImage
 
 FAMILY = "tag36h11"
@@ -45,6 +48,8 @@ class DetectorConfig:
     max_hamming: int = 0
     min_decision_margin: float = 0.0
     tag_ids: tuple[int, ...] | None = None
+    refit_corners: bool = True
+    keep_truncated: bool = False
 
 
 class GuardedDetector(Detector):  # type: ignore[misc]
@@ -86,12 +91,16 @@ def get_detector(cfg: DetectorConfig) -> GuardedDetector:
     return det
 
 
-def detect(img: NDArray[np.uint8], cfg: DetectorConfig) -> tuple[NDArray[np.int32], NDArray[Any]]:
-    """Detect tags in a gray image ``(H, W)`` uint8.
+def detect(
+    img: NDArray[np.uint8], cfg: DetectorConfig, camera: CameraModel | None = None
+) -> tuple[NDArray[np.int32], NDArray[Any]]:
+    """Detect tags in a gray image ``(H, W)`` uint8 taken by ``camera`` (its lens distortion
+    for the corner re-fit; None: no distortion).
 
     Returns ``ints`` (m, 2) = (tag_id, hamming) and ``floats`` (m, 9) = (decision_margin,
     c0x, c0y, …, c3x, c3y) — corners in px, detector order, OpenCV convention — after the
-    ``max_hamming``/``min_decision_margin``/``tag_ids`` filters, in detector order.
+    ``max_hamming``/``min_decision_margin``/``tag_ids``/``keep_truncated`` filters, in detector
+    order.
     """
     dets = get_detector(cfg).detect(img)
     ints = np.array([(d.tag_id, d.hamming) for d in dets], dtype=np.int32).reshape(-1, 2)
@@ -103,7 +112,12 @@ def detect(img: NDArray[np.uint8], cfg: DetectorConfig) -> tuple[NDArray[np.int3
     keep = (ints[:, 1] <= cfg.max_hamming) & (floats[:, 0] >= cfg.min_decision_margin)
     if cfg.tag_ids is not None:
         keep &= np.isin(ints[:, 0], np.asarray(cfg.tag_ids, dtype=np.int32))
-    return ints[keep], floats[keep]
+    if not cfg.keep_truncated and keep.any():
+        keep[keep] &= ~truncated(floats[keep, 1:], img.shape[1], img.shape[0])
+    ints, floats = ints[keep], floats[keep]
+    if cfg.refit_corners and len(floats):
+        floats[:, 1:] = refine_corners(img, floats[:, 1:].reshape(-1, 4, 2), camera).reshape(-1, 8)
+    return ints, floats
 
 
 @functools.cache
@@ -112,9 +126,9 @@ def _single_threaded_opencv() -> None:
 
 
 def detect_chunk(
-    chunk: list[tuple[int, int, RawImage]], cfg: DetectorConfig
+    chunk: list[tuple[int, int, RawImage]], cfg: DetectorConfig, camera: CameraModel | None = None
 ) -> dict[str, NDArray[Any]]:
-    """Decode and detect a chunk of frames (runs in a worker process).
+    """Decode and detect a chunk of frames taken by ``camera`` (runs in a worker process).
 
     Returns arrays: ``frame_idx`` (n,), ``n_det`` (n,), ``shape`` (n, 2) image (H, W), and per
     detection ``det_frame`` (m,), ``det_ints`` (m, 2), ``det_floats`` (m, 9) (see :func:`detect`).
@@ -123,7 +137,7 @@ def detect_chunk(
     n_det, shapes, det_frame, ints, floats = [], [], [], [], []
     for idx, _t_ns, raw in chunk:
         img = raw.decode()
-        i, f = detect(img, cfg)
+        i, f = detect(img, cfg, camera)
         n_det.append(len(i))
         shapes.append(img.shape)
         det_frame.append(np.full(len(i), idx, dtype=np.int64))

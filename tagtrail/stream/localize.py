@@ -149,7 +149,9 @@ class Localizer:
     def on_detections(self, data: bytes) -> list[tuple[str, bytes]]:
         msg = self._decode(data, msgs.DETECTIONS)
         # the extract stage's conversion (−0.5 px) and filters, so live = offline
-        dets = list(filter_detections(detections_from_msg(msg), self.detector, Counter()))
+        assert self.camera is not None
+        size = (self.camera.width, self.camera.height)
+        dets = list(filter_detections(detections_from_msg(msg), self.detector, Counter(), size))
         ids = np.array([d.tag_id for d in dets], dtype=np.int64)
         px = np.array([d.corners for d in dets], dtype=np.float64)
         return self._publish(msg.header.stamp, px.reshape(-1, 4, 2), ids)
@@ -169,7 +171,7 @@ class Localizer:
             img = raw.decode()
         except Exception as err:  # noqa: BLE001 - SourceError, cv2.error
             raise DropError("bad_image", str(err)) from err
-        ints, floats = detect(np.ascontiguousarray(img), self.detector)
+        ints, floats = detect(np.ascontiguousarray(img), self.detector, self.camera)
         return self._publish(msg.header.stamp, floats[:, 1:].reshape(-1, 4, 2), ints[:, 0])
 
     def _decode(self, data: bytes, msgtype: str) -> Any:

@@ -1,8 +1,9 @@
 """Rendered tags and synthetic detections agree with the ground truth (SPEC tag frame + corners).
 
 Poses are recovered the way a user would: pupil-apriltags (corners +0.5 px off OpenCV's pixel
-convention), ``cv2.undistortPoints`` and ``SOLVEPNP_IPPE_SQUARE``, then compared with
-``ground_truth/`` files read through the SPEC readers.
+convention) and tagtrail's corner re-fit (``io.corners``), ``cv2.undistortPoints`` and
+``SOLVEPNP_IPPE_SQUARE``, then compared with ``ground_truth/`` files read through the SPEC
+readers.
 """
 
 from __future__ import annotations
@@ -21,6 +22,8 @@ from tagtrail.geometry.se3 import (
     make_T,
     pose_error,
 )
+from tagtrail.io.camera import CameraModel
+from tagtrail.io.corners import refine_corners
 from tagtrail.io.layouts import POSE_COLS, read_tag_map, read_trajectory
 from tagtrail.sim import simulate
 from tests.sim.helpers import detector, image_of, read_topic
@@ -73,25 +76,27 @@ def test_rendered_tags_pnp_matches_ground_truth(room_mcap: dict[str, Path]) -> N
     bag = room_mcap["reference"]
     cams, tags, sizes = ground_truth(bag)
     K, D = camera_of(bag, "/camera/color/camera_info")
+    camera = CameraModel.from_camera_info(read_topic(bag, "/camera/color/camera_info")[0][1])
     det = detector(1.0)
     rows = []
     for t, msg in read_topic(bag, "/camera/color/image_raw"):
         gray = cv2.cvtColor(image_of(msg), cv2.COLOR_RGB2GRAY)
         for d in det.detect(gray):
             assert d.tag_id in tags, f"decoded a tag {d.tag_id} that is not in the scene"
-            cam_T_tag = pnp(d.corners - 0.5, sizes[d.tag_id], K, D)
+            corners = refine_corners(gray, d.corners - 0.5, camera)
+            cam_T_tag = pnp(corners, sizes[d.tag_id], K, D)
             dt, dr = pose_error(cams[t] @ cam_T_tag, tags[d.tag_id])
             rng = np.linalg.norm((inv(cams[t]) @ tags[d.tag_id])[:3, 3])
             rows.append((rng, dt, np.degrees(dr)))
     e = np.array(rows)
     near = e[e[:, 0] < 1.5]
     assert len(e) > 100 and len(near) >= 8
-    # Median within the issue's bounds; every near detection within 10 mm / 1.5 deg. Single
-    # detections cannot all be < 0.5 deg: the detector's corners scatter by ~0.1 px RMS even on
-    # an 8x-supersampled render, which tilts a 0.16 m tag at 1.3 m by ~0.5-1 deg out of plane.
+    # The issue's bound, every detection within 1.5 m: < 5 mm and < 0.5 deg (measured max
+    # 0.6 mm / 0.20 deg; the detector's own corners, ~0.1 px off, give up to 2.7 mm / 0.65 deg).
     # A 180-degree (or mirrored) tag frame would be off by > 90 deg.
-    assert np.median(near[:, 1]) < 0.005 and np.median(near[:, 2]) < 0.5
-    assert near[:, 1].max() < 0.010 and near[:, 2].max() < 1.5
+    print(f"\nwithin 1.5 m: {len(near)} detections, max {1e3 * near[:, 1].max():.2f} mm / "
+          f"{near[:, 2].max():.2f} deg")
+    assert near[:, 1].max() < 0.005 and near[:, 2].max() < 0.5
     far = e[e[:, 0] < 3.0]
     assert np.median(far[:, 1]) < 0.01 and np.median(far[:, 2]) < 1.5
 

@@ -33,15 +33,25 @@ def upenn_dir(realdata: Path) -> Path:
 
 
 @pytest.fixture(scope="module")
-def upenn_bag_out(upenn_dir: Path, tmp_path_factory) -> dict:
+def upenn_bag(upenn_dir: Path, tmp_path_factory) -> Path:
     """All 93 frames as CompressedImage (their JPEG bytes) + CameraInfo, sqlite3."""
     cam = CameraModel.from_yaml(upenn_dir / "frames/camera.yaml")
     files = sorted((upenn_dir / "frames").glob("frame*.jpg"))
     out = [("/cam/camera_info", T0, bags.camera_info_msg(cam))]
     out += [("/cam/image/compressed", T0 + k * DT,
              bags.compressed_msg(f.read_bytes(), "jpeg", T0 + k * DT)) for k, f in enumerate(files)]
-    bag = bags.write_bag(tmp_path_factory.mktemp("upenn") / "bag", out, "sqlite3")
-    return extract.run(DatasetConfig(source=bag), extract.Params())
+    return bags.write_bag(tmp_path_factory.mktemp("upenn") / "bag", out, "sqlite3")
+
+
+@pytest.fixture(scope="module")
+def upenn_bag_out(upenn_bag: Path) -> dict:
+    return extract.run(DatasetConfig(source=upenn_bag), extract.Params())
+
+
+@pytest.fixture(scope="module")
+def upenn_unrefined(upenn_bag: Path) -> dict:
+    """The detector's own corners (``refit_corners: false``)."""
+    return extract.run(DatasetConfig(source=upenn_bag), extract.Params(refit_corners=False))
 
 
 def check_tables(out: dict) -> None:
@@ -55,8 +65,9 @@ def check_tables(out: dict) -> None:
     assert (det.sort_values(["frame_idx", "tag_id"], kind="stable").index == det.index).all()
 
 
-def test_upenn_corners_match_expected_minus_half_pixel(upenn_bag_out: dict, upenn_dir) -> None:
-    out = upenn_bag_out
+def test_upenn_corners_match_expected_minus_half_pixel(upenn_unrefined: dict, upenn_dir) -> None:
+    """The detector's own corners (no re-fit) are a peer detector's minus half a pixel."""
+    out = upenn_unrefined
     check_tables(out)
     det = out["detections"]
     assert len(out["frames"]) == 93 and (out["frames"]["n_det"] == 1).all()
@@ -68,6 +79,23 @@ def test_upenn_corners_match_expected_minus_half_pixel(upenn_bag_out: dict, upen
     np.testing.assert_allclose(np.median(offset.reshape(-1, 2), axis=0), [0.5, 0.5], atol=0.02)
     assert np.abs(offset - 0.5).max() < 0.35
     assert out["camera"] == CameraModel.from_yaml(upenn_dir / "frames/camera.yaml").to_dict()
+
+
+def test_upenn_refit_moves_real_corners_by_a_fraction_of_a_pixel(
+    upenn_bag_out: dict, upenn_unrefined: dict
+) -> None:
+    """On real photos (jpeg, real blur and lens) the re-fit keeps every tag, in the same frames,
+    and moves corners by a fraction of a pixel (accuracy itself: tests/io/test_corners.py)."""
+    refit, raw = upenn_bag_out, upenn_unrefined
+    check_tables(refit)
+    for col in ("t_ns", "frame_idx", "tag_id"):
+        assert refit["detections"][col].tolist() == raw["detections"][col].tolist()
+    shift = np.linalg.norm((refit["detections"][DET_COLS[5:]].to_numpy()
+                            - raw["detections"][DET_COLS[5:]].to_numpy()).reshape(-1, 4, 2), axis=2)
+    print(f"\nupenn re-fit shift: median {np.median(shift):.3f} px, max {shift.max():.3f} px, "
+          f"{np.mean(shift.max(axis=1) > 0):.0%} of tags re-fitted")
+    assert np.mean(shift.max(axis=1) > 0) > 0.9  # re-fitted, not skipped
+    assert np.median(shift) < 0.3 and shift.max() <= 1.0
 
 
 def test_rgb8_mcap_bag_and_folder_agree(upenn_bag_out: dict, upenn_dir, tmp_path) -> None:
