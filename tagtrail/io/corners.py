@@ -41,6 +41,7 @@ _ITERATIONS = 2
 _MIN_SUPPORT = 12  # pixels per edge
 _MAX_TURN_COS = float(np.cos(np.radians(10)))
 _GRID_PX = 4  # spacing of the cached undistortion grid
+_MAX_STEPS = 64  # columns (rows) sampled along an edge
 
 
 _UNIT = np.array([[-1.0, -1.0], [1.0, -1.0], [1.0, 1.0], [-1.0, 1.0]], dtype=np.float32)
@@ -72,26 +73,42 @@ def refine_corners(gray: NDArray[np.uint8], corners: F64, camera: CameraModel | 
 
     ``corners``: ``(m, 4, 2)`` (or one tag's ``(4, 2)``), the detector's corners in OpenCV's
     convention, detector order. ``camera``: the lens (None: no distortion). A tag whose re-fit is
-    not reliable keeps its corners. All edges of all tags are fitted at once (per-edge sums by
-    ``bincount``): numpy's per-call overhead is paid once a frame, not once a tag.
+    not reliable keeps its corners.
     """
     c = np.array(corners, dtype=np.float64)
-    single = c.ndim == 2
-    c = c.reshape(-1, 4, 2)
-    if not len(c):
-        return c
+    out = refine_many([gray], [c.reshape(-1, 4, 2)], camera)[0]
+    return out[0] if c.ndim == 2 else out
+
+
+def refine_many(
+    grays: list[NDArray[np.uint8]], corners: list[F64], camera: CameraModel | None
+) -> list[F64]:
+    """:func:`refine_corners` of several frames (``corners[i]``: ``(m_i, 4, 2)`` in
+    ``grays[i]``) by one camera. All edges of all tags are fitted at once (per-edge sums by one
+    ``reduceat``): numpy's per-call overhead is paid once a batch, not once a tag."""
+    sizes = [len(np.asarray(c).reshape(-1, 4, 2)) for c in corners]
+    c = np.concatenate([np.asarray(x, dtype=np.float64).reshape(-1, 4, 2) for x in corners]
+                       + [np.zeros((0, 4, 2))])
+    out = c.copy()
     side = np.linalg.norm(np.roll(c, -1, axis=1) - c, axis=2).min(axis=1)
-    ok = np.isfinite(c).all(axis=(1, 2)) & (side / CELLS >= MIN_CELL_PX)
-    if not ok.any():
-        return c[0] if single else c
+    with np.errstate(invalid="ignore"):
+        ok = np.isfinite(c).all(axis=(1, 2)) & (side / CELLS >= MIN_CELL_PX)
     # band half-width across an edge: clear of the border's inner edge one cell in (px)
     half = np.clip(side / CELLS - 1.5, 1.5, 2.5)
-    sel = np.flatnonzero(ok)
-    edge, px, g = _border_pixels(gray, c[sel], half[sel])
-    refined, good = _fit(edge, px, g, c[sel], half[sel], camera)
-    out = c.copy()
-    out[sel[good]] = refined[good]
-    return out[0] if single else out
+    frame = np.repeat(np.arange(len(sizes)), sizes)
+    sel = np.flatnonzero(ok)  # grouped by frame, in order
+    parts = []
+    for f in np.unique(frame[sel]):
+        tags = sel[frame[sel] == f]
+        edge, px, g = _border_pixels(grays[f], c[tags], half[tags])
+        parts.append((edge + 4 * np.searchsorted(sel, tags[0]), px, g))
+    if parts:
+        edge, px, g = (np.concatenate(x) for x in zip(*parts, strict=True))
+        if not len(edge):
+            return np.split(out, np.cumsum(sizes)[:-1])
+        refined, good = _fit(edge, px, g, c[sel], half[sel], camera)
+        out[sel[good]] = refined[good]
+    return np.split(out, np.cumsum(sizes)[:-1]) if sizes else []
 
 
 def _fit(
@@ -115,20 +132,24 @@ def _fit(
     t = np.einsum("ij,ij->i", u - a[edge], d[edge])
     inside = (t > h[edge] + 1.5) & (t < length[edge] - h[edge] - 1.5)  # clear of other edges
     good = np.ones(ne, dtype=bool)
+    # per-edge sums by one reduceat over samples grouped by edge (as _border_pixels makes them)
+    count = np.bincount(edge, minlength=ne)
+    start = np.minimum(np.cumsum(count) - count, max(len(edge) - 1, 0))
+    assert np.all(np.diff(edge) >= 0), "samples must be grouped by edge"
+    moments = np.column_stack([u, u * u, u[:, 0] * u[:, 1]])  # x, y, x², y², xy
     for _ in range(_ITERATIONS):
-        band = inside & (np.abs(np.einsum("ij,ij->i", u, n[edge]) - rho[edge]) <= h[edge])
+        ne_ = n[edge]
+        band = inside & (np.abs(np.einsum("ij,ij->i", u, ne_) - rho[edge]) <= h[edge])
         # gradient across the edge, positive lobe only (distortion's local twist of the
         # normal is negligible at this scale)
-        wgt = np.maximum(np.einsum("ij,ij->i", g, n[edge]), 0.0) * band
-        total = np.bincount(edge, weights=wgt, minlength=ne)
-        good &= (np.bincount(edge, weights=band, minlength=ne) >= _MIN_SUPPORT) & (total > 0)
+        wgt = np.maximum(np.einsum("ij,ij->i", g, ne_), 0.0) * band
+        sums = np.add.reduceat(np.column_stack([band, wgt, wgt[:, None] * moments]), start)
+        sums[count == 0] = 0.0
+        support, total = sums[:, 0], sums[:, 1]
+        good &= (support >= _MIN_SUPPORT) & (total > 0)
         total[~good] = 1.0
-        mx = np.bincount(edge, weights=wgt * u[:, 0], minlength=ne) / total
-        my = np.bincount(edge, weights=wgt * u[:, 1], minlength=ne) / total
-        rx, ry = u[:, 0] - mx[edge], u[:, 1] - my[edge]
-        sxx = np.bincount(edge, weights=wgt * rx * rx, minlength=ne)
-        syy = np.bincount(edge, weights=wgt * ry * ry, minlength=ne)
-        sxy = np.bincount(edge, weights=wgt * rx * ry, minlength=ne)
+        mx, my, sxx, syy, sxy = (sums[:, 2:] / total[:, None]).T
+        sxx, syy, sxy = sxx - mx * mx, syy - my * my, sxy - mx * my  # about the centroid
         along = 0.5 * np.arctan2(2 * sxy, sxx - syy)  # direction of the largest spread
         n_new = np.stack([np.sin(along), -np.cos(along)], axis=1)
         turn = np.einsum("ij,ij->i", n_new, n)
@@ -154,33 +175,47 @@ def _fit(
 def _border_pixels(
     gray: NDArray[np.uint8], quads: F64, half: F64
 ) -> tuple[NDArray[np.intp], F64, F64]:
-    """Pixels near the raw edges of ``quads`` ``(m, 4, 2)`` — within the band, the largest shift
-    and the bending by distortion: edge index ``4 j + k`` (n,), ``px`` (n, 2) and the
-    central-difference gradient ``g`` (n, 2)."""
+    """Gradient samples near the raw edges of ``quads`` ``(m, 4, 2)`` — within the band, the
+    largest shift and the bending by distortion: edge index ``4 j + k`` (n,), position ``px``
+    (n, 2) and gradient ``g`` (n, 2), 2x2 differences at pixel corners (x + ½, y + ½).
+
+    Along each edge at most ``_MAX_STEPS`` columns (or rows, whichever the edge is closer to)
+    are taken: the cost of a tag does not grow with its size.
+    """
     h, w = gray.shape
-    edges, xs_all, ys_all = [], [], []
-    for j, (c, hj) in enumerate(zip(quads, half, strict=True)):
-        reach = hj + MAX_SHIFT_PX + 0.5
-        x0, y0 = np.maximum(np.floor(c.min(axis=0) - reach), 1).astype(int)
-        x1, y1 = np.minimum(np.ceil(c.max(axis=0) + reach), (w - 2, h - 2)).astype(int)
-        if x1 < x0 or y1 < y0:
-            continue
-        ys, xs = np.mgrid[y0:y1 + 1, x0:x1 + 1]
-        xs, ys = xs.ravel(), ys.ravel()
-        a = c
-        length = np.linalg.norm(np.roll(c, -1, axis=0) - a, axis=1)
-        d = (np.roll(c, -1, axis=0) - a) / length[:, None]
-        rx, ry = xs[None, :] - a[:, :1], ys[None, :] - a[:, 1:]
-        t = rx * d[:, :1] + ry * d[:, 1:]
-        near = (np.abs(rx * d[:, 1:] - ry * d[:, :1]) <= reach) & (t > hj) & (
-            t < length[:, None] - hj)
-        k, idx = np.nonzero(near)
-        edges.append(4 * j + k)
-        xs_all.append(xs[idx])
-        ys_all.append(ys[idx])
-    if not edges:
-        return np.zeros(0, np.intp), np.zeros((0, 2)), np.zeros((0, 2))
-    xs, ys = np.concatenate(xs_all), np.concatenate(ys_all)
+    a = quads.reshape(-1, 2)
+    d = np.roll(quads, -1, axis=1).reshape(-1, 2) - a
+    length = np.linalg.norm(d, axis=1)
+    u = d / length[:, None]
+    reach = np.repeat(half, 4) + MAX_SHIFT_PX + 0.5
+    major = (np.abs(d[:, 1]) > np.abs(d[:, 0])).astype(np.intp)  # 0: x, 1: y
+    rows = np.arange(len(a))
+    a_major, d_major = a[rows, major], d[rows, major]
+    lo = np.ceil(np.minimum(a_major, a_major + d_major))
+    span = np.floor(np.maximum(a_major, a_major + d_major)) - lo + 1
+    steps = np.clip(span, 1, _MAX_STEPS)
+    i = np.arange(_MAX_STEPS)
+    # one column per stratum of span / steps (>= 1) columns, at a golden-ratio offset within it:
+    # regular strides would alias with the edge's slope and sample few sub-pixel phases
+    jitter = (i * 0.6180339887498949) % 1.0
+    along = lo[:, None] + np.floor((i + jitter) * span[:, None] / steps[:, None])  # (E, S)
+    centre = a[rows, 1 - major][:, None] + (along - a_major[:, None]) * (
+        d[rows, 1 - major] / d_major)[:, None]
+    cos = np.abs(d_major) / length  # >= 1/√2: the edge is within 45° of its axis
+    r = int(np.ceil((reach / cos).max())) + 1
+    across = np.floor(centre)[:, :, None] + np.arange(-r, r + 1)  # (E, S, 2r+1)
+    along = np.broadcast_to(along[:, :, None], across.shape)
+    is_x = (major == 0)[:, None, None]
+    xs, ys = np.where(is_x, along, across), np.where(is_x, across, along)
+    px_, py_ = xs + 0.5 - a[:, 0, None, None], ys + 0.5 - a[:, 1, None, None]
+    t = px_ * u[:, 0, None, None] + py_ * u[:, 1, None, None]
+    off = np.abs(px_ * u[:, 1, None, None] - py_ * u[:, 0, None, None])
+    hh = np.repeat(half, 4)[:, None, None]
+    keep = ((i < steps[:, None])[:, :, None] & (off <= reach[:, None, None]) & (t > hh)
+            & (t < length[:, None, None] - hh)
+            & (xs >= 0) & (xs <= w - 2) & (ys >= 0) & (ys <= h - 2))
+    edge = np.broadcast_to(rows[:, None, None], keep.shape)[keep]
+    xs, ys = xs[keep].astype(np.intp), ys[keep].astype(np.intp)
     i00 = gray[ys, xs].astype(np.float64)
     i01 = gray[ys, xs + 1].astype(np.float64)
     i10 = gray[ys + 1, xs].astype(np.float64)
@@ -188,7 +223,7 @@ def _border_pixels(
     gx = 0.5 * ((i01 - i00) + (i11 - i10))
     gy = 0.5 * ((i10 - i00) + (i11 - i01))
     px = np.stack([xs, ys], axis=1).astype(np.float64) + 0.5
-    return np.concatenate(edges), px, np.stack([gx, gy], axis=1)
+    return edge, px, np.stack([gx, gy], axis=1)
 
 
 def _to_undistorted(px: F64, camera: CameraModel | None) -> F64:
@@ -200,8 +235,8 @@ def _to_undistorted(px: F64, camera: CameraModel | None) -> F64:
 
 def _undistorted_grid(px: F64, camera: CameraModel | None) -> F64:
     """:func:`_to_undistorted` of many pixels: bilinear in a cached grid of ``_GRID_PX``
-    spacing, then two fixed-point steps on the forward model (< 1e-4 px for the LIMO's lens;
-    the grid alone is 0.007 px off at the image corners — the size of the biases that matter)."""
+    spacing, then a fixed-point step on the forward model (< 1e-3 px for the LIMO's lens; the
+    grid alone is 0.007 px off at the image corners — the size of the biases that matter)."""
     if camera is None or camera.distortion_model == "none":
         return px
     grid = _grid(camera)
@@ -213,8 +248,7 @@ def _undistorted_grid(px: F64, camera: CameraModel | None) -> F64:
     top = grid[y0, x0] * (1 - fx) + grid[y0, x0 + 1] * fx
     bottom = grid[y0 + 1, x0] * (1 - fx) + grid[y0 + 1, x0 + 1] * fx
     und = top * (1 - fy) + bottom * fy
-    for _ in range(2):
-        und += px - _to_distorted(und, camera)
+    und += px - _to_distorted(und, camera)
     return und
 
 

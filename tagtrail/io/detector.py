@@ -30,7 +30,7 @@ from numpy.typing import NDArray
 from pupil_apriltags import Detector
 
 from tagtrail.io.camera import CameraModel
-from tagtrail.io.corners import refine_corners, truncated
+from tagtrail.io.corners import refine_many, truncated
 from tagtrail.io.images import RawImage
 
 FAMILY = "tag36h11"
@@ -102,6 +102,16 @@ def detect(
     ``max_hamming``/``min_decision_margin``/``tag_ids``/``keep_truncated`` filters, in detector
     order.
     """
+    ints, floats = _detect_filtered(img, cfg)
+    if cfg.refit_corners and len(floats):
+        floats[:, 1:] = refine_many([img], [floats[:, 1:]], camera)[0].reshape(-1, 8)
+    return ints, floats
+
+
+def _detect_filtered(
+    img: NDArray[np.uint8], cfg: DetectorConfig
+) -> tuple[NDArray[np.int32], NDArray[Any]]:
+    """:func:`detect` without the corner re-fit."""
     dets = get_detector(cfg).detect(img)
     ints = np.array([(d.tag_id, d.hamming) for d in dets], dtype=np.int32).reshape(-1, 2)
     floats = np.array(
@@ -114,10 +124,7 @@ def detect(
         keep &= np.isin(ints[:, 0], np.asarray(cfg.tag_ids, dtype=np.int32))
     if not cfg.keep_truncated and keep.any():
         keep[keep] &= ~truncated(floats[keep, 1:], img.shape[1], img.shape[0])
-    ints, floats = ints[keep], floats[keep]
-    if cfg.refit_corners and len(floats):
-        floats[:, 1:] = refine_corners(img, floats[:, 1:].reshape(-1, 4, 2), camera).reshape(-1, 8)
-    return ints, floats
+    return ints[keep], floats[keep]
 
 
 @functools.cache
@@ -134,15 +141,22 @@ def detect_chunk(
     detection ``det_frame`` (m,), ``det_ints`` (m, 2), ``det_floats`` (m, 9) (see :func:`detect`).
     """
     _single_threaded_opencv()
-    n_det, shapes, det_frame, ints, floats = [], [], [], [], []
+    n_det, shapes, det_frame, ints, floats, imgs = [], [], [], [], [], []
     for idx, _t_ns, raw in chunk:
         img = raw.decode()
-        i, f = detect(img, cfg, camera)
+        i, f = _detect_filtered(img, cfg)
         n_det.append(len(i))
         shapes.append(img.shape)
         det_frame.append(np.full(len(i), idx, dtype=np.int64))
         ints.append(i)
         floats.append(f)
+        imgs.append(img if len(i) else None)
+    if cfg.refit_corners:  # the whole chunk in one fit
+        with_tags = [k for k, f in enumerate(floats) if len(f)]
+        refined = refine_many([imgs[k] for k in with_tags],
+                              [floats[k][:, 1:] for k in with_tags], camera)
+        for k, r in zip(with_tags, refined, strict=True):
+            floats[k][:, 1:] = r.reshape(-1, 8)
     return {
         "frame_idx": np.array([c[0] for c in chunk], dtype=np.int64),
         "n_det": np.array(n_det, dtype=np.int32),

@@ -12,7 +12,7 @@ import pytest
 
 from tagtrail.geometry.se3 import R_from_rotvec, make_T
 from tagtrail.io.camera import CameraModel
-from tagtrail.io.corners import refine_corners, truncated
+from tagtrail.io.corners import refine_corners, refine_many, truncated
 from tagtrail.io.detector import C_LIBRARY_PIXEL_OFFSET
 from tests.io.exact_tag import render_tag, true_corners
 from tests.sim.helpers import detector
@@ -127,3 +127,20 @@ def test_detector_drops_a_tag_cut_by_the_border_unless_asked() -> None:
     assert [d.tag_id for d in detector(2.0).detect(img)] == [5]  # the detector still finds it
     assert len(detect(img, DetectorConfig())[0]) == 0
     assert detect(img, DetectorConfig(keep_truncated=True))[0][:, 0].tolist() == [5]
+
+
+def test_frames_batched_equal_frames_one_at_a_time() -> None:
+    rng = np.random.default_rng(4)
+    grays, raws = [], []
+    for cam_T_tag, tag_id in random_views(3, seed=4):
+        img = render_tag(LIMO, cam_T_tag, SIZE, tag_id, rng, ss=4)
+        grays.append(img)
+        raws.append(np.array([d.corners - C_LIBRARY_PIXEL_OFFSET
+                              for d in detector(2.0).detect(img)]).reshape(-1, 4, 2))
+    grays.insert(1, grays[0])
+    raws.insert(1, np.zeros((0, 4, 2)))  # a frame without tags
+    batch = refine_many(grays, raws, LIMO)
+    assert [b.shape for b in batch] == [r.shape for r in raws]
+    for gray, raw, b in zip(grays, raws, batch, strict=True):
+        np.testing.assert_allclose(b, refine_corners(gray, raw, LIMO), atol=1e-9)
+    assert refine_many([], [], LIMO) == []
