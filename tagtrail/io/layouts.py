@@ -114,28 +114,39 @@ def _resolve(path: Path, names: tuple[str, ...], what: str) -> Path:
 def read_trajectory(path: Path) -> pd.DataFrame:
     """Read a trajectory CSV (tagtrail's or the original tool's) or a TUM file, or a folder."""
     f = _resolve(path, TRAJECTORY_NAMES, "trajectory")
+    if f.suffix not in (".tum", ".txt"):
+        return read_stamped_poses(f, _CSV_TRAJ_HEADER, "trajectory")[0]
     try:
-        if f.suffix == ".tum" or f.suffix == ".txt":
-            arr = np.loadtxt(f, ndmin=2)
-            t_ns = np.round(arr[:, 0] * 1e9).astype(np.int64)
-            out = pd.DataFrame(arr[:, 1:8], columns=POSE_COLS)
-            out.insert(0, "t_ns", t_ns)
-            return out
+        arr = np.loadtxt(f, ndmin=2)
+    except (OSError, ValueError) as err:
+        raise SourceError(f"{f}: cannot read trajectory: {err}") from err
+    out = pd.DataFrame(arr[:, 1:8], columns=POSE_COLS)
+    out.insert(0, "t_ns", np.round(arr[:, 0] * 1e9).astype(np.int64))
+    return out
+
+
+def read_stamped_poses(
+    f: Path, header: list[str], what: str
+) -> tuple[pd.DataFrame, pd.DataFrame]:
+    """A SPEC CSV of ``stamp_sec, stamp_nanosec, …, x, y, z, qx, qy, qz, qw`` (the last seven
+    columns of ``header``) → (``t_ns`` + pose columns, the raw table); clear errors."""
+    try:
         df = pd.read_csv(f)
     except (OSError, ValueError, pd.errors.ParserError) as err:
-        raise SourceError(f"{f}: cannot read trajectory: {err}") from err
-    missing = [c for c in _CSV_TRAJ_HEADER if c not in df.columns]
+        raise SourceError(f"{f}: cannot read {what}: {err}") from err
+    missing = [c for c in header if c not in df.columns]
     if missing:
-        raise SourceError(f"{f}: not a trajectory CSV, missing columns {missing}")
+        raise SourceError(f"{f}: not a{'n' if what[0] in 'aeiou' else ''} {what} CSV, "
+                          f"missing columns {missing}")
     t_ns = df["stamp_sec"].to_numpy(np.int64) * 1_000_000_000 + df["stamp_nanosec"].to_numpy(
         np.int64
     )
     out = pd.DataFrame({"t_ns": t_ns})
-    for src, dst in zip(_CSV_TRAJ_HEADER[2:], POSE_COLS, strict=True):
+    for src, dst in zip(header[-7:], POSE_COLS, strict=True):
         out[dst] = df[src].to_numpy(np.float64)
     if not np.isfinite(out[POSE_COLS].to_numpy()).all():
-        raise SourceError(f"{f}: trajectory has non-finite values")
-    return out
+        raise SourceError(f"{f}: {what} has non-finite values")
+    return out, df
 
 
 # --- tag maps ---------------------------------------------------------------------------------

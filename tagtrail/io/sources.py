@@ -40,7 +40,7 @@ from tagtrail.io import msgs
 from tagtrail.io.camera import CameraModel
 from tagtrail.io.detector import C_LIBRARY_PIXEL_OFFSET  # apriltag_ros uses the C library
 from tagtrail.io.images import RawImage
-from tagtrail.io.layouts import POSE_COLS, parse_tag_name
+from tagtrail.io.layouts import parse_tag_name, read_stamped_poses
 from tagtrail.schemas.pipeline import DatasetConfig
 
 log = logging.getLogger("tagtrail.sources")
@@ -439,22 +439,8 @@ class ObservationsSource(Source):
     def __init__(self, path: Path) -> None:
         self.path = Path(path)
         f = self.path / "observations.csv"
-        try:
-            df = pd.read_csv(f)
-        except (OSError, ValueError, pd.errors.ParserError) as err:
-            raise SourceError(f"{f}: cannot read observations: {err}") from err
-        missing = [c for c in OBS_CSV_HEADER if c not in df.columns]
-        if missing:
-            raise SourceError(f"{f}: not an observations CSV, missing columns {missing}")
-        t_ns = df["stamp_sec"].to_numpy(np.int64) * 1_000_000_000 + df["stamp_nanosec"].to_numpy(
-            np.int64
-        )
-        out = pd.DataFrame({"t_ns": t_ns})
-        out["tag_id"] = np.array([parse_tag_name(t) for t in df["tag"]], dtype=np.int32)
-        for src, dst in zip(OBS_CSV_HEADER[3:], POSE_COLS, strict=True):
-            out[dst] = df[src].to_numpy(np.float64)
-        if not np.isfinite(out[POSE_COLS].to_numpy()).all():
-            raise SourceError(f"{f}: non-finite pose values")
+        out, df = read_stamped_poses(f, OBS_CSV_HEADER, "observations")
+        out.insert(1, "tag_id", np.array([parse_tag_name(t) for t in df["tag"]], dtype=np.int32))
         out = out.sort_values(["t_ns", "tag_id"], kind="stable").reset_index(drop=True)
         frame_idx = np.unique(out["t_ns"].to_numpy(), return_inverse=True)[1]
         out.insert(1, "frame_idx", frame_idx.astype(np.int32))
