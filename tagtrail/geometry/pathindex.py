@@ -9,9 +9,14 @@ samples (compact along a trajectory), each bounded by its chord (first → last 
 farthest any of its samples lies from that chord — a tight bound on a smooth path, unlike a box
 — and sub-blocks of 32 samples bounded by their boxes. A query takes as upper bound the nearer of
 the previous answer's sample (live poses are consecutive) and the middle sample of the block with
-the lowest bound, keeps the blocks — and, when there are many, the sub-blocks — whose bound does
+the nearest chord, keeps the blocks — and, when there are many, the sub-blocks — whose bound does
 not exceed it, and scans their samples in one pass. The result is the brute-force ``argmin``
 over every sample (the same ``du² + dv²``; ties → the lowest index).
+
+A query is ~30 numpy calls on arrays of ~√N elements; the fixed cost of a call (~0.5 µs, a few
+µs when the live node wakes up with cold caches) is a large part of it, so the block test is
+done on squared distances (``dist(q, chord)² ≤ (√ub + e)²``: no per-block square root) and the
+slower calls (``np.clip``, Python-float operands) are avoided.
 
 It answers ``query((u, v)) -> (distance, index)`` like the tree it stands in for
 (:class:`~tagtrail.geometry.plane.ReferencePath` ``.tree``).
@@ -55,24 +60,21 @@ def _chords(u: NDArray[np.float64], v: NDArray[np.float64], n: int, size: int) -
     return a_u, a_v, d_u, d_v, inv, e * (1 + 1e-12) + 1e-12
 
 
-def _chord_bound(ch: tuple[F64, ...], u: float, v: float) -> F64:
-    """Squared lower bound of the distance from ``(u, v)`` to the samples of each block:
-    ``max(dist(q, chord) − e, 0)²`` (every sample is within ``e`` of its block's chord)."""
-    a_u, a_v, d_u, d_v, inv, e = ch
+def _chord_d2(ch: tuple[F64, ...], u: F64, v: F64) -> F64:
+    """Squared distance from ``(u, v)`` (0-d arrays: numpy calls with Python floats are slower)
+    to the chord of each block."""
+    a_u, a_v, d_u, d_v, inv, _ = ch
     qu, qv = u - a_u, v - a_v
     t = qu * d_u
     t += qv * d_v
     t *= inv
-    np.clip(t, 0.0, 1.0, out=t)
+    np.maximum(t, 0.0, out=t)  # = np.clip, which costs several µs more on arrays this small
+    np.minimum(t, 1.0, out=t)
     qu -= t * d_u
     qv -= t * d_v
     qu *= qu
     qv *= qv
     qu += qv
-    np.sqrt(qu, out=qu)
-    qu -= e
-    np.maximum(qu, 0.0, out=qu)
-    qu *= qu
     return qu
 
 
@@ -119,33 +121,43 @@ class PathIndex:
 
     def query_one(self, u: float, v: float) -> tuple[float, int]:
         """``(distance (m), index)`` of the sample nearest ``(u, v)``."""
-        lb1 = _chord_bound(self._chord1, u, v)
+        qu, qv = np.array(u), np.array(v)
+        c2 = _chord_d2(self._chord1, qu, qv)
         # an upper bound of the answer: the nearer of the previous answer's sample (consecutive
-        # poses are close) and the middle sample of the block with the lowest bound
+        # poses are close) and the middle sample of the block with the nearest chord
         ub = math.inf
-        for h in (self._hint, min(int(lb1.argmin()) * self.block + self.block // 2, self.n - 1)):
+        for h in (self._hint, min(int(c2.argmin()) * self.block + self.block // 2, self.n - 1)):
             du, dv = float(self._u[h]) - u, float(self._v[h]) - v
             ub = min(ub, du * du + dv * dv)
         ub += ub * 1e-9 + 1e-300  # slack: the bounds' rounding must never exclude the answer
-        blocks = np.flatnonzero(lb1 <= ub)
+        # a block may hold a sample within √ub if its chord is within √ub + e (squared: no sqrt
+        # per block)
+        lim = self._chord1[5] + math.sqrt(ub)
+        lim *= lim
+        blocks = (c2 <= lim).nonzero()[0]
         if len(blocks) <= DIRECT:  # few candidate blocks: scan all their samples at once
-            pu, pv = self._U[blocks] - u, self._V[blocks] - v  # (b, block), ascending indices
-            d2 = pu * pu
-            d2 += pv * pv
+            d2, pv = self._U[blocks], self._V[blocks]  # (b, block) copies, ascending indices
+            d2 -= qu
+            pv -= qv
+            d2 *= d2
+            pv *= pv
+            d2 += pv
             j = int(d2.argmin())  # first minimum: ties → lowest index
             k = int(blocks[j // self.block]) * self.block + j % self.block
-            d = float(d2.flat[j])
         else:
             subs = self._subs_of[blocks].ravel()
             subs = subs[_lower_bound(tuple(b[subs] for b in self._box2), u, v) <= ub]
             idx = (subs[:, None] * SUB + self._in_sub).ravel()  # ascending
-            pu, pv = self._u[idx] - u, self._v[idx] - v
-            d2 = pu * pu
-            d2 += pv * pv
+            d2, pv = self._u[idx], self._v[idx]
+            d2 -= qu
+            pv -= qv
+            d2 *= d2
+            pv *= pv
+            d2 += pv
             j = int(d2.argmin())
-            k, d = int(idx[j]), float(d2[j])
+            k = int(idx[j])
         self._hint = k
-        return math.sqrt(d), k
+        return math.sqrt(float(d2.flat[j])), k
 
     def query(self, x: ArrayLike) -> tuple[float | NDArray[np.float64], int | NDArray[np.int64]]:
         """``cKDTree.query`` for one point ``(2,)`` or a batch ``(M, 2)``."""

@@ -221,20 +221,27 @@ class ReferencePath:
         """:meth:`query` for one pose ``(3,)`` (m), ``(3, 3)``, in microseconds (live node)."""
         x, y, z = np.asarray(position_world, dtype=np.float64).tolist()
         (_, _, fx), (_, _, fy), (_, _, fz) = np.asarray(world_R_cam, dtype=np.float64).tolist()
+        return self.query_point(x, y, z, fx, fy, fz)
+
+    def query_point(self, x: float, y: float, z: float, fx: float, fy: float,
+                    fz: float) -> PoseMatch:  # fmt: skip
+        """:meth:`query_one` of plain floats: position ``(x, y, z)`` (m) and optical axis
+        ``f = world_R_cam[:, 2]`` — the live node's per-pose call, with no array conversions."""
         (a1, b1, c1), (a2, b2, c2) = self._e1, self._e2
         u, v = a1 * x + b1 * y + c1 * z, a2 * x + b2 * y + c2 * z
         hq = math.atan2(a2 * fx + b2 * fy + c2 * fz, a1 * fx + b1 * fy + c1 * fz)
         if len(self._h) <= _BRUTE_MAX:
-            du, dv = self._u - u, self._v - v
-            d2 = du * du
-            d2 += dv * dv
+            d2 = self._u - np.array(u)  # 0-d arrays: numpy calls with Python floats cost more
+            dv = self._v - np.array(v)
+            d2 *= d2
+            dv *= dv
+            d2 += dv
             k = int(d2.argmin())
             dist = math.sqrt(float(d2[k]))
         else:  # a k-d tree is slow inside a loop; PathIndex uses the path's order (exact)
             if self._index is None:
                 self._index = PathIndex(self.uv)
-            dist_, k_ = self._index.query((u, v))
-            k, dist = int(k_), float(dist_)
+            dist, k = self._index.query_one(u, v)
         href = self._h[k]
         phi = math.pi - (math.pi - (hq - href)) % (2.0 * math.pi)
         return PoseMatch(k, dist, phi, hq, href, u, v, float(self._u[k]), float(self._v[k]))

@@ -25,6 +25,7 @@ from tagtrail.stream.stats import DropError, Stats
 
 log = logging.getLogger("tagtrail.stream")
 Handler = Callable[[bytes], Iterable[tuple[str, bytes]]]
+Payload = bytes | zenoh.ZBytes
 CONGESTION = {"block": zenoh.CongestionControl.BLOCK, "drop": zenoh.CongestionControl.DROP}
 
 
@@ -61,7 +62,7 @@ class Node:
             pubs[key] = pub
         return pubs[key]
 
-    def publish(self, outputs: Iterable[tuple[str, bytes]], background: bool = False) -> None:
+    def publish(self, outputs: Iterable[tuple[str, Payload]], background: bool = False) -> None:
         pubs = self._bg if background else self._pubs
         for key, payload in outputs:
             pub = pubs.get(key) or self.publisher(key, background)
@@ -122,7 +123,7 @@ class Node:
             if self.count is not None and stats.received >= self.count:
                 self.stop.set()
 
-    def queryable(self, key: str, payload: Callable[[], bytes]) -> None:
+    def queryable(self, key: str, payload: Callable[[], Payload]) -> None:
         """Answer ``get`` on ``key`` with ``payload()`` (late joiners fetch the reference path)."""
 
         def on_query(query: zenoh.Query) -> None:

@@ -4,7 +4,7 @@
 :class:`~tagtrail.geometry.plane.ReferencePath` (the object the offline ``report`` stage uses), the
 alignment transform, the reference ``Path``/markers CDR, the encoders — and
 :meth:`Relocalizer.process` does the per-pose work: apply the alignment, ``k*``, D, phi
-(``ReferencePath.query_one``, Eqs. 3.12–3.15, ``trajectory`` mode), so live values equal the
+(``ReferencePath.query_point``, Eqs. 3.12–3.15, ``trajectory`` mode), so live values equal the
 offline report's (long references use :class:`~tagtrail.geometry.pathindex.PathIndex`, exact).
 :meth:`Relocalizer.handle` is bytes in → ``[(key, CDR bytes)]`` out; the zenoh driver is
 :func:`serve`.
@@ -110,13 +110,9 @@ def _quat_mul(a: tuple[float, ...], b: tuple[float, ...]) -> tuple[float, float,
     )
 
 
-def _rot(qx: float, qy: float, qz: float, qw: float) -> tuple[tuple[float, ...], ...]:
-    """Rotation matrix of a unit quaternion (rows)."""
-    xx, yy, zz = qx * qx, qy * qy, qz * qz
-    xy, xz, yz, wx, wy, wz = qx * qy, qx * qz, qy * qz, qw * qx, qw * qy, qw * qz
-    return ((1 - 2 * (yy + zz), 2 * (xy - wz), 2 * (xz + wy)),
-            (2 * (xy + wz), 1 - 2 * (xx + zz), 2 * (yz - wx)),
-            (2 * (xz - wy), 2 * (yz + wx), 1 - 2 * (xx + yy)))  # fmt: skip
+def _optical_axis(qx: float, qy: float, qz: float, qw: float) -> tuple[float, float, float]:
+    """``R[:, 2]`` (the camera's z axis in world) of a unit quaternion: all a heading needs."""
+    return 2 * (qx * qz + qw * qy), 2 * (qy * qz - qw * qx), 1 - 2 * (qx * qx + qy * qy)
 
 
 class Relocalizer:
@@ -155,7 +151,7 @@ class Relocalizer:
         self.path_markers_cdr = path_markers(ref[:, :3], frame_id)
 
     def process(self, p: codec.PoseIn) -> Outputs:
-        """D, phi, k* of one pose (Eqs. 3.12–3.15 via ``ReferencePath.query_one``).
+        """D, phi, k* of one pose (Eqs. 3.12–3.15 via ``ReferencePath.query_point``).
 
         Raises :class:`DropError` for a non-finite pose or a zero quaternion.
         """
@@ -173,7 +169,7 @@ class Relocalizer:
             x, y, z = (a * x + b * y + c * z + tx, d * x + e * y + f * z + ty,
                        g * x + h * y + i * z + tz)  # fmt: skip
             q = _quat_mul(self._q_al, q)
-        m = self.path.query_one((x, y, z), _rot(*q))
+        m = self.path.query_point(x, y, z, *_optical_axis(*q))
         if not math.isfinite(m.distance_m):  # finite but huge coordinates
             raise DropError("non_finite", f"pose {vals} gives D = {m.distance_m}")
         k = m.index
@@ -239,17 +235,23 @@ def serve(
     reference path (and its marker) every ``path_period_s`` (0: once) at low priority and answers
     ``get`` on ``<prefix>/reference_path``. Closes the session on the way out.
     """
-    from tagtrail.stream.node import Node  # zenoh only where a session is used
+    import zenoh  # only where a session is used
+
+    from tagtrail.stream.node import Node
 
     stats = Stats("relocalize")
     node = Node(session, stats, congestion, express)
     node.count = count
     try:
+        # the reference outputs never change: made zenoh payloads once, so that a republish
+        # does not copy ~1 MB (10,000 path poses) again while holding the GIL
+        reference = [(k, zenoh.ZBytes(v)) for k, v in reloc.reference_outputs()]
+        path_payload = dict(reference)[reloc.key[REFERENCE_PATH]]
         for k in OUTPUTS:
             node.publisher(reloc.key[k])
-        node.queryable(reloc.key[REFERENCE_PATH], lambda: reloc.path_cdr)
+        node.queryable(reloc.key[REFERENCE_PATH], lambda: path_payload)
         node.subscribe(pose_key, lambda data: reloc.handle(data, stats))
-        node.every(path_period_s, lambda: node.publish(reloc.reference_outputs(), background=True))
+        node.every(path_period_s, lambda: node.publish(reference, background=True))
     except BaseException:
         node.close()
         raise

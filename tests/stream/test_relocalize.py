@@ -17,7 +17,7 @@ from tagtrail.stages.align import reference_plane, transform_trajectory, world_t
 from tagtrail.stream import codec
 from tagtrail.stream.relocalize import OUTPUTS, Relocalizer, load_alignment
 from tagtrail.stream.stats import DropError, Stats
-from tests.stream.cases import query_frame, reference_frame
+from tests.stream.cases import frame, planar_poses, query_frame, reference_frame
 
 BLOCK = {"model": "similarity", "scale": 0.98, "rotation_deg": -20.0, "translation": [0.3, 0.1],
          "inliers": 3, "common_tags": 3, "rms_m": 0.002}
@@ -56,6 +56,27 @@ def test_process_equals_report_stage(tmp_path: Path, n_ref: int, plane: str) -> 
     assert [k for k, _ in keyed] == [f"relocalization/{k}" for k in OUTPUTS]
     path = codec.deserialize(node.path_cdr, codec.PATH)
     assert len(path.poses) == min(n_ref, 500)
+
+
+def test_drive_along_long_reference_equals_batch_query() -> None:
+    """Consecutive poses (the long-path index starts from its previous answer) drifting ±0.3 m
+    to both sides of a 200,000-sample loop, the concave side included: k* and D of each pose
+    equal the batch k-d tree query over every sample."""
+    ref = reference_frame(200_000)
+    node = Relocalizer(ref, "xz")
+    s = np.linspace(0.0, 4 * np.pi, 1500)  # two laps
+    off = 0.3 * np.sin(np.linspace(0.0, 14 * np.pi, len(s)))
+    tu, tv = -1.5 * np.sin(s), np.cos(s)
+    nu, nv = tv / np.hypot(tu, tv), -tu / np.hypot(tu, tv)
+    T = planar_poses(1.5 * np.cos(s) + off * nu, np.sin(s) + off * nv, np.arctan2(tv, tu) + 0.3,
+                     np.full(len(s), -0.13))  # fmt: skip
+    query = frame(T, np.arange(len(s), dtype=np.int64))
+    outs = [node.process(codec.decode_pose(p)) for p in _payloads(query)]
+    want = node.path.query(T[:, :3, 3], T[:, :3, :3])
+    assert [o.nearest_ref_idx for o in outs] == want.index.tolist()
+    np.testing.assert_allclose([o.distance_m for o in outs], want.distance_m, atol=1e-12, rtol=0)
+    np.testing.assert_allclose([o.heading_error_rad for o in outs], want.phi_rad, atol=1e-12,
+                               rtol=0)  # fmt: skip
 
 
 def test_alignment_files(tmp_path: Path) -> None:
