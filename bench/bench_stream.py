@@ -167,7 +167,7 @@ def bench_size(n_ref: int, args: argparse.Namespace, tmp: Path) -> dict[str, lis
     port = free_port()
     cmd = [sys.executable, "-m", "tagtrail.stream.cli", "relocalize", "--reference", str(ref),
            "--plane", "xz", "--listen", f"tcp/127.0.0.1:{port}", "--stats-period", "0",
-           "--path-period", "1"] + (["--express"] if args.express else [])  # fmt: skip
+           "--path-period", "1"] + (["--no-express"] if args.node_batching else [])  # fmt: skip
     node = subprocess.Popen(cmd, cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
                             text=True, env={**os.environ, "PYTHONUNBUFFERED": "1"})  # fmt: skip
     results: dict[str, list[dict]] = {"ping-pong": [], "paced": [], "flood": []}
@@ -207,7 +207,10 @@ def main() -> None:
     ap.add_argument("--poses", type=int, default=10_000)
     ap.add_argument("--repeats", type=int, default=3)
     ap.add_argument("--rate", type=float, default=GOAL_RATE, help="paced mode rate (poses/s)")
-    ap.add_argument("--express", action="store_true", help="zenoh express on both sides")
+    ap.add_argument("--express", action="store_true",
+                    help="zenoh express on this (the robot's) side too (the node's default: on)")
+    ap.add_argument("--node-batching", action="store_true",
+                    help="run the node with --no-express (zenoh batches its outputs)")
     ap.add_argument("--random-poses", action="store_true",
                     help="query poses anywhere near the loop (default: a drive along it)")
     args = ap.parse_args()

@@ -29,7 +29,7 @@ EXAMPLES = """examples:
 """
 
 
-def _common(p: argparse.ArgumentParser, count_help: str) -> None:
+def _common(p: argparse.ArgumentParser, count_help: str, express: bool) -> None:
     add_session_arguments(p)
     g = p.add_argument_group("run")
     g.add_argument("--duration", type=float, default=None, metavar="S",
@@ -37,8 +37,9 @@ def _common(p: argparse.ArgumentParser, count_help: str) -> None:
     g.add_argument("--count", type=int, default=None, metavar="N", help=count_help)
     g.add_argument("--congestion", choices=["block", "drop"], default="block",
                    help="when the network is congested: block (reliable, default) or drop")
-    g.add_argument("--express", action="store_true",
-                   help="send every sample at once (no batching)")
+    g.add_argument("--express", action=argparse.BooleanOptionalAction, default=express,
+                   help="send every sample at once, no batching (default: "
+                   f"{'on: lowest latency for a controller' if express else 'off'})")
     g.add_argument("--stats-period", type=float, default=10.0, metavar="S",
                    help="log a stats line every S seconds (0: never; default 10)")
 
@@ -70,7 +71,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> argparse.ArgumentParser:
                    help="republish the reference path every S seconds (0: once; default 1)")
     p.add_argument("--path-max-points", type=int, default=10_000, metavar="N",
                    help="decimate the published path to N poses (0: all; default 10000)")
-    _common(p, "stop after N input messages")
+    _common(p, "stop after N input messages", express=True)
 
     p = sub.add_parser("replay", help="publish a trajectory's poses (or bag topics)",
                        epilog=EXAMPLES, formatter_class=fmt,
@@ -87,7 +88,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> argparse.ArgumentParser:
                    "map for trajectory files)")
     p.add_argument("--wait", type=float, default=10.0, metavar="S",
                    help="wait up to S seconds for a subscriber (default 10)")
-    _common(p, "publish at most N messages")
+    _common(p, "publish at most N messages", express=False)
 
     p = sub.add_parser("localize", help="live world_T_cam from detections or images",
                        epilog=EXAMPLES, formatter_class=fmt,
@@ -108,7 +109,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> argparse.ArgumentParser:
                    help="multi-tag method of the trajectory stage (default: auto = pnp)")
     p.add_argument("--min-decision-margin", type=float, default=20.0)
     p.add_argument("--max-hamming", type=int, default=0)
-    _common(p, "stop after N input messages")
+    _common(p, "stop after N input messages", express=True)
     return parser
 
 
