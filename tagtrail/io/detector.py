@@ -102,7 +102,7 @@ def detect(
     ``max_hamming``/``min_decision_margin``/``tag_ids``/``keep_truncated`` filters, in detector
     order.
     """
-    ints, floats = _detect_filtered(img, cfg)
+    ints, floats, _ = _detect_filtered(img, cfg)
     if cfg.refit_corners and len(floats):
         floats[:, 1:] = refine_many([img], [floats[:, 1:]], camera)[0].reshape(-1, 8)
     return ints, floats
@@ -110,8 +110,9 @@ def detect(
 
 def _detect_filtered(
     img: NDArray[np.uint8], cfg: DetectorConfig
-) -> tuple[NDArray[np.int32], NDArray[Any]]:
-    """:func:`detect` without the corner re-fit."""
+) -> tuple[NDArray[np.int32], NDArray[Any], int]:
+    """:func:`detect` without the corner re-fit; also the number of tags dropped as cut by the
+    image border."""
     dets = get_detector(cfg).detect(img)
     ints = np.array([(d.tag_id, d.hamming) for d in dets], dtype=np.int32).reshape(-1, 2)
     floats = np.array(
@@ -122,9 +123,12 @@ def _detect_filtered(
     keep = (ints[:, 1] <= cfg.max_hamming) & (floats[:, 0] >= cfg.min_decision_margin)
     if cfg.tag_ids is not None:
         keep &= np.isin(ints[:, 0], np.asarray(cfg.tag_ids, dtype=np.int32))
+    n_cut = 0
     if not cfg.keep_truncated and keep.any():
-        keep[keep] &= ~truncated(floats[keep, 1:], img.shape[1], img.shape[0])
-    return ints[keep], floats[keep]
+        cut = truncated(floats[keep, 1:], img.shape[1], img.shape[0])
+        n_cut = int(cut.sum())
+        keep[keep] &= ~cut
+    return ints[keep], floats[keep], n_cut
 
 
 @functools.cache
@@ -137,14 +141,17 @@ def detect_chunk(
 ) -> dict[str, NDArray[Any]]:
     """Decode and detect a chunk of frames taken by ``camera`` (runs in a worker process).
 
-    Returns arrays: ``frame_idx`` (n,), ``n_det`` (n,), ``shape`` (n, 2) image (H, W), and per
-    detection ``det_frame`` (m,), ``det_ints`` (m, 2), ``det_floats`` (m, 9) (see :func:`detect`).
+    Returns arrays: ``frame_idx`` (n,), ``n_det`` (n,), ``shape`` (n, 2) image (H, W), per
+    detection ``det_frame`` (m,), ``det_ints`` (m, 2), ``det_floats`` (m, 9) (see :func:`detect`),
+    and ``n_truncated`` (): tags dropped as cut by the image border.
     """
     _single_threaded_opencv()
     n_det, shapes, det_frame, ints, floats, imgs = [], [], [], [], [], []
+    n_cut = 0
     for idx, _t_ns, raw in chunk:
         img = raw.decode()
-        i, f = _detect_filtered(img, cfg)
+        i, f, cut = _detect_filtered(img, cfg)
+        n_cut += cut
         n_det.append(len(i))
         shapes.append(img.shape)
         det_frame.append(np.full(len(i), idx, dtype=np.int64))
@@ -164,4 +171,5 @@ def detect_chunk(
         "det_frame": np.concatenate(det_frame) if det_frame else np.zeros(0, np.int64),
         "det_ints": np.concatenate(ints) if ints else np.zeros((0, 2), np.int32),
         "det_floats": np.concatenate(floats) if floats else np.zeros((0, 9)),
+        "n_truncated": np.array(n_cut, dtype=np.int64),
     }

@@ -219,6 +219,10 @@ def _detect_images(src: Source, params: Params, camera: CameraModel) -> tuple[An
     if bad.any():
         log.warning("%s: %d frame(s) are %dx%d, the camera model says %dx%d", src.describe(),
                     int(bad.sum()), shapes[bad][0][1], shapes[bad][0][0], shape[1], shape[0])
+    n_cut = int(sum(int(p["n_truncated"]) for p in parts))
+    if n_cut:
+        log.info("%s: %d detection(s) of tags cut by the image border dropped "
+                 "(keep_truncated: true keeps them)", src.describe(), n_cut)
     t_ns = np.array([t_of[int(i)] for i in frame_idx], dtype=np.int64)
     det_frame = np.concatenate([p["det_frame"] for p in parts]) if parts else np.zeros(0, int)
     det_t = np.array([t_of[int(i)] for i in det_frame], dtype=np.int64)

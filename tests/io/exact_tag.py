@@ -62,3 +62,12 @@ def render_tag(
     if noise > 0:
         img = img + rng.normal(0.0, noise, img.shape)
     return np.clip(np.round(img), 0, 255).astype(np.uint8)
+
+
+def compose(images: list[NDArray[np.uint8]], background: float = 90.0) -> NDArray[np.uint8]:
+    """One image of tags rendered apart (same background, far enough not to overlap)."""
+    out = images[0].copy()
+    for img in images[1:]:
+        mask = img != np.uint8(round(background))
+        out[mask] = img[mask]
+    return out

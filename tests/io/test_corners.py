@@ -14,7 +14,7 @@ from tagtrail.geometry.se3 import R_from_rotvec, make_T
 from tagtrail.io.camera import CameraModel
 from tagtrail.io.corners import refine_corners, refine_many, truncated
 from tagtrail.io.detector import C_LIBRARY_PIXEL_OFFSET
-from tests.io.exact_tag import render_tag, true_corners
+from tests.io.exact_tag import compose, render_tag, true_corners
 from tests.sim.helpers import detector
 
 SIZE = 0.16
@@ -95,7 +95,7 @@ def test_batch_equals_one_at_a_time() -> None:
     rng = np.random.default_rng(3)
     (T1, id1), (T2, id2) = random_views(2, seed=3)
     T1[:3, 3], T2[:3, 3] = [-0.35, 0.0, 1.2], [0.35, 0.05, 1.4]  # side by side
-    img = np.minimum(render_tag(LIMO, T1, SIZE, id1, rng), render_tag(LIMO, T2, SIZE, id2, rng))
+    img = compose([render_tag(LIMO, T1, SIZE, id1, rng), render_tag(LIMO, T2, SIZE, id2, rng)])
     dets = [d for d in detector(2.0).detect(img) if d.tag_id in (id1, id2)]
     assert len(dets) == 2
     raw = np.array([d.corners - C_LIBRARY_PIXEL_OFFSET for d in dets])
@@ -144,3 +144,35 @@ def test_frames_batched_equal_frames_one_at_a_time() -> None:
     for gray, raw, b in zip(grays, raws, batch, strict=True):
         np.testing.assert_allclose(b, refine_corners(gray, raw, LIMO), atol=1e-9)
     assert refine_many([], [], LIMO) == []
+
+
+def test_extract_drops_cut_tags_says_so_and_refits_the_rest(
+    tmp_path, caplog: pytest.LogCaptureFixture
+) -> None:
+    """Stage extract on an image folder: a whole tag (re-fitted, ~0.01 px) and a cut one."""
+    import logging
+
+    import cv2
+    import yaml
+
+    from tagtrail.schemas.pipeline import DatasetConfig
+    from tagtrail.stages import extract
+
+    rng = np.random.default_rng(5)
+    whole = make_T(R_from_rotvec([np.pi, 0.2, 0.0]), np.array([-0.2, 0.05, 1.1]))
+    cut = make_T(R_from_rotvec([np.pi, 0.0, 0.0]), np.array([0.62, 0.0, 1.0]))
+    img = compose([render_tag(LIMO, whole, SIZE, 3, rng), render_tag(LIMO, cut, SIZE, 5, rng)])
+    cv2.imwrite(str(tmp_path / "frame0.png"), img)
+    K = LIMO.K
+    (tmp_path / "camera.yaml").write_text(yaml.safe_dump({"camera": {
+        "width": 640, "height": 480, "fx": float(K[0, 0]), "fy": float(K[1, 1]),
+        "cx": float(K[0, 2]), "cy": float(K[1, 2]), "distortion": LIMO.D.tolist()}}))
+    src = DatasetConfig(source=tmp_path)
+    with caplog.at_level(logging.INFO, logger="tagtrail.extract"):
+        det = extract.run(src, extract.Params(workers=1))["detections"]
+    assert det["tag_id"].tolist() == [3]
+    assert "1 detection(s) of tags cut by the image border dropped" in caplog.text
+    corners = det[[f"c{k}{a}" for k in range(4) for a in "xy"]].to_numpy().reshape(4, 2)
+    assert np.abs(corners - true_corners(LIMO, whole, SIZE)).max() < 0.03
+    kept = extract.run(src, extract.Params(workers=1, keep_truncated=True))["detections"]
+    assert sorted(kept["tag_id"].tolist()) == [3, 5]
