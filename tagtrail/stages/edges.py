@@ -16,6 +16,10 @@ uniform 3.3 / 5.2 / 12.9 cm.
 
 Only the anchor's connected component is mapped; other tags are dropped with a warning
 (``on_disconnected="drop"``) or fail the stage (``"fail"``: :class:`DisconnectedTagGraph`).
+Weak links are reported too (warning + ``graph["weak_links"]``): tag pairs that are the only
+connection between two parts of the map (bridges of the tag graph) and are seen together in fewer
+than ``WEAK_LINK_OBS`` frames -- one bad frame there moves a whole part of the map, and no
+optimizer can tell.
 """
 
 from __future__ import annotations
@@ -37,6 +41,7 @@ from tagtrail.stages.base import StageParams
 log = logging.getLogger(__name__)
 
 EDGE_COLS = ["t_ns", "tag_i", "tag_j", *POSE_COLS, "weight"]
+WEAK_LINK_OBS = 3
 
 
 class Params(StageParams):
@@ -94,11 +99,60 @@ def pair_indices(frame: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return a, b
 
 
+def bridges(pairs: np.ndarray, n: int) -> set[tuple[int, int]]:
+    """Bridges ``(u, v)``, ``u < v``, of the undirected graph on nodes ``0..n-1`` with edges
+    ``pairs`` (k, 2) (no repeats): Tarjan's low-link, iterative."""
+    adj: list[list[int]] = [[] for _ in range(n)]
+    for u, v in pairs.tolist():
+        adj[u].append(v)
+        adj[v].append(u)
+    order = [-1] * n
+    low = [0] * n
+    out: set[tuple[int, int]] = set()
+    counter = 0
+    for root in range(n):
+        if order[root] >= 0:
+            continue
+        order[root] = low[root] = counter
+        counter += 1
+        stack = [(root, -1, iter(adj[root]))]
+        while stack:
+            node, parent, it = stack[-1]
+            child = next(it, None)
+            if child is None:
+                stack.pop()
+                if parent >= 0:
+                    low[parent] = min(low[parent], low[node])
+                    if low[node] > order[parent]:
+                        out.add((min(parent, node), max(parent, node)))
+            elif order[child] < 0:
+                order[child] = low[child] = counter
+                counter += 1
+                stack.append((child, node, iter(adj[child])))
+            elif child != parent:
+                low[node] = min(low[node], order[child])
+    return out
+
+
 def edge_weights(d_i: np.ndarray, d_j: np.ndarray, s_i: np.ndarray, s_j: np.ndarray) -> np.ndarray:
     """Distance weights (module docstring); ``d`` ranges (m), ``s`` tag sizes (m)."""
     var = (d_i**2 / s_i) ** 2 + (d_j**2 / s_j) ** 2
     w = 1.0 / np.maximum(var, 1e-18)
     return np.clip(w / np.median(w), 0.01, 100.0) if len(w) else w
+
+
+def _weak_links(
+    keys: np.ndarray, counts: np.ndarray, ids: np.ndarray, in_map: np.ndarray
+) -> list[dict[str, int]]:
+    """Bridges among the mapped tags seen together in < ``WEAK_LINK_OBS`` frames; ``keys``:
+    ``i * len(ids) + j`` of the tag pairs (indices into ``ids``) with their frame ``counts``."""
+    i, j = keys // len(ids), keys % len(ids)
+    m = in_map[i] & in_map[j]
+    pairs = np.stack([i[m], j[m]], axis=1)
+    n_of = {(u, v): c for (u, v), c in zip(pairs.tolist(), counts[m].tolist(), strict=True)}
+    found = bridges(pairs, len(ids))
+    return [{"tag_i": int(ids[u]), "tag_j": int(ids[v]), "n_frames": int(n_of[(u, v)])}
+            for u, v in sorted(found) if n_of[(u, v)] < WEAK_LINK_OBS]
 
 
 def run(observations: pd.DataFrame, params: Params) -> dict[str, Any]:
@@ -162,10 +216,18 @@ def run(observations: pd.DataFrame, params: Params) -> dict[str, Any]:
     )
     edges[POSE_COLS] = np.concatenate([xyz, q], axis=1)
     edges["weight"] = w
+    weak = _weak_links(ukey[cnt >= params.min_edge_obs], cnt[cnt >= params.min_edge_obs], ids,
+                       in_map)
+    if weak:
+        log.warning("edges: weak links in the tag graph (the only connection between two parts "
+                    "of the map, seen together in < %d frames): %s", WEAK_LINK_OBS,
+                    ", ".join(f"{w['tag_i']}-{w['tag_j']} ({w['n_frames']} frame"
+                              f"{'s' if w['n_frames'] > 1 else ''})" for w in weak))
     graph = {
         "anchor_id": anchor,
         "tags": [int(t) for t in ids[in_map]],
         "dropped": dropped,
         "n_components": int(n_comp),
+        "weak_links": weak,
     }
     return {"edges": edges.reset_index(drop=True), "graph": graph}

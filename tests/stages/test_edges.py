@@ -120,3 +120,33 @@ def test_distance_weights_favour_close_tags() -> None:
     w = edges.edge_weights(np.array([1.0, 1.0, 3.0]), np.array([1.0, 2.0, 3.0]),
                            np.full(3, 0.16), np.full(3, 0.16))
     assert w[1] == 1.0 and w[0] > w[1] > w[2]
+
+
+def test_bridges_match_brute_force() -> None:
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components
+
+    def n_comp(pairs: np.ndarray, n: int) -> int:
+        adj = coo_matrix((np.ones(len(pairs)), (pairs[:, 0], pairs[:, 1])), shape=(n, n))
+        return connected_components(adj, directed=False)[0]
+
+    rng = np.random.default_rng(0)
+    for _ in range(60):
+        n = int(rng.integers(2, 14))
+        all_pairs = np.array([(u, v) for u in range(n) for v in range(u + 1, n)])
+        pairs = all_pairs[rng.random(len(all_pairs)) < rng.uniform(0.1, 0.5)].reshape(-1, 2)
+        base = n_comp(pairs, n)
+        want = {(int(u), int(v)) for k, (u, v) in enumerate(pairs)
+                if n_comp(np.delete(pairs, k, axis=0), n) > base}
+        assert edges.bridges(pairs, n) == want
+
+
+def test_weak_links_reported(caplog: pytest.LogCaptureFixture) -> None:
+    with caplog.at_level(logging.WARNING, logger="tagtrail.stages.edges"):
+        out = edges.run(_two_islands(), edges.Params(anchor_id=7))
+    assert out["graph"]["weak_links"] == [{"tag_i": 7, "tag_j": 8, "n_frames": 2}]
+    assert "weak links in the tag graph" in caplog.text and "7-8 (2 frames)" in caplog.text
+    # seen together in 3 frames: a bridge, but not weak
+    assert edges.run(_two_islands(), edges.Params(anchor_id=0))["graph"]["weak_links"] == []
+    # the ring: every tag pair lies on a cycle
+    assert edges.run(observations(ring_scene()), edges.Params())["graph"]["weak_links"] == []
