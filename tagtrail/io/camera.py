@@ -170,6 +170,12 @@ class CameraModel:
         K[1, 2] = (K[1, 2] + 0.5) * sy - 0.5
         return CameraModel(int(width), int(height), K, self.D, self.distortion_model)
 
+    def value_key(self) -> tuple[object, ...]:
+        """A hashable key of the calibration's values (instances compare by identity): for caches
+        of per-camera tables."""
+        return (self.width, self.height, self.distortion_model, self.K.tobytes(),
+                self.D.tobytes())
+
     def same_as(self, other: CameraModel, rtol: float = 1e-9) -> bool:
         """Equal size, model and (to ``rtol``) coefficients."""
         return (

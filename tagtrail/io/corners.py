@@ -104,10 +104,9 @@ def refine_many(
         parts.append((edge + 4 * np.searchsorted(sel, tags[0]), px, g))
     if parts:
         edge, px, g = (np.concatenate(x) for x in zip(*parts, strict=True))
-        if not len(edge):
-            return np.split(out, np.cumsum(sizes)[:-1])
-        refined, good = _fit(edge, px, g, c[sel], half[sel], camera)
-        out[sel[good]] = refined[good]
+        if len(edge):
+            refined, good = _fit(edge, px, g, c[sel], half[sel], camera)
+            out[sel[good]] = refined[good]
     return np.split(out, np.cumsum(sizes)[:-1]) if sizes else []
 
 
@@ -256,8 +255,7 @@ _GRIDS: dict[tuple[object, ...], F64] = {}
 
 
 def _grid(camera: CameraModel) -> F64:
-    key = (camera.width, camera.height, camera.distortion_model, camera.K.tobytes(),
-           camera.D.tobytes())
+    key = camera.value_key()
     grid = _GRIDS.get(key)
     if grid is None:
         nx, ny = -(-(camera.width - 1) // _GRID_PX) + 1, -(-(camera.height - 1) // _GRID_PX) + 1

@@ -80,14 +80,17 @@ class GuardedDetector(Detector):  # type: ignore[misc]
         super().__del__()
 
 
-_DETECTORS: dict[DetectorConfig, GuardedDetector] = {}
+_DETECTORS: dict[tuple[object, ...], GuardedDetector] = {}
 
 
 def get_detector(cfg: DetectorConfig) -> GuardedDetector:
-    """A detector for ``cfg``, created once and kept for the life of the process."""
-    det = _DETECTORS.get(cfg)
+    """A detector for ``cfg``'s detector settings (not its output filters or re-fit), created
+    once and kept for the life of the process."""
+    key = (cfg.quad_decimate, cfg.quad_sigma, cfg.refine_edges, cfg.decode_sharpening,
+           cfg.max_hamming)
+    det = _DETECTORS.get(key)
     if det is None:
-        det = _DETECTORS[cfg] = GuardedDetector(cfg)
+        det = _DETECTORS[key] = GuardedDetector(cfg)
     return det
 
 

@@ -34,8 +34,7 @@ def limo_camera() -> CameraModel:
 
 def _undistortion(camera: CameraModel) -> tuple[F64, tuple[float, float, float, float]]:
     # Cached by value: CameraModel compares by identity, and callers build their own.
-    key = (camera.width, camera.height, camera.distortion_model, camera.K.tobytes(),
-           camera.D.tobytes())
+    key = camera.value_key()
     hit = _GRIDS.get(key)
     if hit is not None:
         return hit

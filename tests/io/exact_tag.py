@@ -13,17 +13,15 @@ import cv2
 import numpy as np
 from numpy.typing import NDArray
 
+from tagtrail.geometry.fusion import tag_corners
 from tagtrail.geometry.se3 import F64
 from tagtrail.io.camera import CameraModel
 from tagtrail.sim.render import INK, PAPER, tag_bits
 
-# Detector corners 0..3 in the SPEC tag frame (units of the tag size).
-CORNERS = np.array([[-1, -1, 0], [1, -1, 0], [1, 1, 0], [-1, 1, 0]], dtype=np.float64) / 2
-
 
 def true_corners(camera: CameraModel, cam_T_tag: F64, size: float) -> F64:
     """The four corners ``(4, 2)`` of the black square in raw pixels (OpenCV convention)."""
-    return camera.project((CORNERS * size) @ cam_T_tag[:3, :3].T + cam_T_tag[:3, 3])
+    return camera.project(tag_corners([size])[0] @ cam_T_tag[:3, :3].T + cam_T_tag[:3, 3])
 
 
 def render_tag(
@@ -35,7 +33,7 @@ def render_tag(
     cell = size / 8
     half = 5 * cell  # 8 cells + the quiet zone each side
     R, t = cam_T_tag[:3, :3], cam_T_tag[:3, 3]
-    outline = camera.project((CORNERS * 2 * half) @ R.T + t)
+    outline = camera.project(tag_corners([2 * half])[0] @ R.T + t)
     w, h = camera.width, camera.height
     x0, y0 = np.maximum(np.floor(outline.min(0)) - 4, 0).astype(int)
     x1, y1 = np.minimum(np.ceil(outline.max(0)) + 4, (w - 1, h - 1)).astype(int)
