@@ -13,7 +13,7 @@ import traceback
 from collections.abc import Sequence
 from pathlib import Path
 
-from tagtrail.errors import StageError, TagtrailError
+from tagtrail.errors import TagtrailError, one_line, report
 
 EXAMPLES = {
     "run": "examples:\n  tagtrail run\n  tagtrail run optimize -S optimize.f_scale=0.05\n"
@@ -179,13 +179,8 @@ def main(argv: Sequence[str] | None = None) -> int:
         return 2
     try:
         return int(args.func(args))
-    except StageError as err:
-        where = getattr(err, "log_path", None)
-        print(f"error: {err}" + (f" (traceback in {where})" if where else ""), file=sys.stderr)
-        return err.exit_code
     except TagtrailError as err:
-        print(f"error: {err}", file=sys.stderr)
-        return err.exit_code
+        return report(err)
     except KeyboardInterrupt:
         print("interrupted", file=sys.stderr)
         return 130
@@ -193,7 +188,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         fd, path = tempfile.mkstemp(prefix="tagtrail-error-", suffix=".log")
         with open(fd, "w") as f:
             f.write("".join(traceback.format_exception(err)))
-        print(f"error: unexpected {type(err).__name__}: {err} (traceback in {path})",
+        print(f"error: unexpected {type(err).__name__}: {one_line(err)} (traceback in {path})",
               file=sys.stderr)
         return 1
 

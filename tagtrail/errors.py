@@ -2,6 +2,9 @@
 
 from __future__ import annotations
 
+import sys
+from typing import TextIO
+
 
 class TagtrailError(Exception):
     """Base of every error tagtrail raises on purpose."""
@@ -35,3 +38,16 @@ class StageError(TagtrailError):
         self.stage = stage
         self.dataset = dataset
         self.cause = cause
+
+
+def one_line(text: object) -> str:
+    """A message folded onto one line: users and scripts read exactly one ``error:`` line."""
+    return " ".join(str(text).split())
+
+
+def report(err: TagtrailError, file: TextIO | None = None) -> int:
+    """Print ``error: <one line>`` on stderr and return the error's exit code."""
+    where = getattr(err, "log_path", None)
+    tail = f" (traceback in {where})" if where else ""
+    print(f"error: {one_line(err)}{tail}", file=file or sys.stderr)
+    return err.exit_code

@@ -11,7 +11,6 @@ from __future__ import annotations
 
 import argparse
 import logging
-import sys
 from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
@@ -19,7 +18,7 @@ from typing import Any
 import numpy as np
 import pandas as pd
 
-from tagtrail.errors import DataError, SourceError, TagtrailError
+from tagtrail.errors import DataError, SourceError, TagtrailError, report
 from tagtrail.geometry.plane import PLANES
 from tagtrail.io import reloc_files
 from tagtrail.io.layouts import POSE_COLS, TAG_MAP_NAMES, read_tag_map, read_trajectory
@@ -210,7 +209,6 @@ def main(args: argparse.Namespace | Sequence[str] | None = None) -> int:
             getattr(ns, "allow_scale", False),
         )  # fmt: skip
     except TagtrailError as err:
-        print(f"error: {err}", file=sys.stderr)
-        return err.exit_code
+        return report(err)
     print(summary_text(result["summary"], result["relocalization"], Path(ns.out)))
     return 0

@@ -8,7 +8,7 @@ import sys
 from pathlib import Path
 from typing import Any
 
-from tagtrail.errors import SpecError, TagtrailError
+from tagtrail.errors import SpecError, TagtrailError, report
 from tagtrail.sim.camera import limo_camera
 from tagtrail.sim.render import Realism
 from tagtrail.sim.scenarios import SCENARIOS
@@ -132,8 +132,7 @@ def main(args: argparse.Namespace) -> int:
     try:
         written = simulate(args.scenario, args.out, **options_from_args(args))
     except TagtrailError as err:
-        print(f"error: {err}", file=sys.stderr)
-        return err.exit_code
+        return report(err)
     for name, folder in written.items():
         print(f"{name}: {folder}  (ground truth: {folder / 'ground_truth'})")
     return 0

@@ -14,7 +14,7 @@ import sys
 from collections.abc import Sequence
 from pathlib import Path
 
-from tagtrail.errors import TagtrailError
+from tagtrail.errors import TagtrailError, report
 from tagtrail.geometry.plane import PLANES
 from tagtrail.stream.codec import POSE_TYPES
 from tagtrail.stream.session import add_session_arguments, config_from_args, open_session
@@ -128,8 +128,7 @@ def main(args: argparse.Namespace | Sequence[str] | None = None) -> int:
     try:
         return {"relocalize": _relocalize, "replay": _replay, "localize": _localize}[cmd](ns)
     except TagtrailError as err:
-        print(f"error: {err}", file=sys.stderr)
-        return err.exit_code
+        return report(err)
 
 
 def _relocalize(ns: argparse.Namespace) -> int:
