@@ -13,7 +13,7 @@ import traceback
 from collections.abc import Sequence
 from pathlib import Path
 
-from tagtrail.errors import TagtrailError, one_line, report
+from tagtrail.errors import TagtrailError, one_line, report, storage_error
 
 EXAMPLES = {
     "run": "examples:\n  tagtrail run\n  tagtrail run optimize -S optimize.f_scale=0.05\n"
@@ -50,7 +50,7 @@ def cmd_run(args: argparse.Namespace) -> int:
         return 0
     t0 = time.perf_counter()
     states = runner.run(args.stages, force=args.force)
-    written = export_outputs(runner)
+    written = export_outputs(runner, force=args.force)
     ran = sum(s.status == "ran" for s in states)
     print(f"{ran} ran, {len(states) - ran} cached in {time.perf_counter() - t0:.2f}s")
     for ds, folder in written.items():
@@ -181,16 +181,29 @@ def main(argv: Sequence[str] | None = None) -> int:
         return int(args.func(args))
     except TagtrailError as err:
         return report(err)
+    except OSError as err:
+        refused = storage_error(err)
+        if refused is None:
+            return _unexpected(err)
+        return report(refused)
     except KeyboardInterrupt:
         print("interrupted", file=sys.stderr)
         return 130
     except Exception as err:  # noqa: BLE001 - unexpected: full traceback to a file, one line out
+        return _unexpected(err)
+
+
+def _unexpected(err: BaseException) -> int:
+    """A bug: one line on stderr, the traceback in a file of the system's temp folder."""
+    try:
         fd, path = tempfile.mkstemp(prefix="tagtrail-error-", suffix=".log")
         with open(fd, "w") as f:
             f.write("".join(traceback.format_exception(err)))
-        print(f"error: unexpected {type(err).__name__}: {one_line(err)} (traceback in {path})",
-              file=sys.stderr)
-        return 1
+        where = f" (traceback in {path})"
+    except OSError:
+        where = ""
+    print(f"error: unexpected {type(err).__name__}: {one_line(err)}{where}", file=sys.stderr)
+    return 1
 
 
 def main_entry() -> None:

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import errno
 import sys
 from typing import TextIO
 
@@ -28,6 +29,10 @@ class DisconnectedTagGraph(DataError):
     """Some tags are not connected to the anchor and the pipeline was told to fail on it."""
 
 
+class StorageError(TagtrailError):
+    """The file system refused a write (full disk, read-only project, no permission)."""
+
+
 class StageError(TagtrailError):
     """An unexpected failure inside a stage; names the stage and dataset."""
 
@@ -38,6 +43,20 @@ class StageError(TagtrailError):
         self.stage = stage
         self.dataset = dataset
         self.cause = cause
+
+
+STORAGE_ERRNOS = frozenset({errno.ENOSPC, errno.EDQUOT, errno.EROFS, errno.EACCES, errno.EPERM,
+                            errno.EFBIG})
+
+
+def storage_error(err: OSError, what: str = "") -> StorageError | None:
+    """The one-line :class:`StorageError` for a refused write, or None for other OS errors."""
+    if err.errno not in STORAGE_ERRNOS:
+        return None
+    where = f"{what}: " if what else ""
+    return StorageError(f"{where}cannot write {err.filename or 'a file'}: {err.strerror} "
+                        "(free space or make the folder writable, then rerun; nothing partial "
+                        "was kept)")
 
 
 def one_line(text: object) -> str:

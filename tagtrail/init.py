@@ -29,7 +29,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--camera", type=Path, default=None, metavar="FILE",
                         help="camera_info YAML (image folders, or to override the bag's)")
     parser.add_argument("--tag-size", type=float, default=None, metavar="M",
-                        help="edge of the tags' black square in metres (default 0.16)")
+                        help="edge of the tags' black square in metres (default: pnp's, 0.16)")
     parser.add_argument("--anchor", type=int, default=None, metavar="ID",
                         help="anchor (world) tag id (default: the most observed tag)")
     parser.add_argument("-o", "--output", type=Path, default=Path("pipeline.yaml"),
@@ -63,10 +63,28 @@ def _rel(path: Path, base: Path) -> str:
         return str(path)
 
 
+def _stage_params(tag_size: float | None) -> dict[str, Any]:
+    """The ``stages:`` block, validated by the stages' own models (a file ``run`` accepts)."""
+    from pydantic import ValidationError
+
+    from tagtrail.stages import pnp
+
+    size = pnp.Params().tag_size if tag_size is None else tag_size
+    try:
+        pnp.Params(tag_size=size)
+    except ValidationError as err:
+        msg = err.errors()[0]["msg"]
+        raise SpecError(
+            f"--tag-size {size}: {msg} (the edge of the black square, in metres)"
+        ) from err
+    return {"pnp": {"tag_size": size}}
+
+
 def main(args: argparse.Namespace) -> int:
     out: Path = args.output
     if out.exists() and not args.force:
         raise SpecError(f"{out} exists already; use --force to overwrite it")
+    stages = _stage_params(args.tag_size)
     base = out.resolve().parent
     names = ["reference"] + [f"query{'' if i == 0 else f'_{i + 1}'}"
                              for i in range(len(args.query))]
@@ -81,7 +99,6 @@ def main(args: argparse.Namespace) -> int:
             entry["camera"] = _rel(cfg.camera, base)
         datasets[name] = entry
         print(f"{name}: {desc}")
-    stages: dict[str, Any] = {"pnp": {"tag_size": args.tag_size or 0.16}}
     if args.anchor is not None:  # the reference's gauge; queries may never see that tag
         datasets["reference"]["params"] = {"edges": {"anchor_id": args.anchor}}
     doc = {"reference": "reference", "datasets": datasets, "stages": stages}

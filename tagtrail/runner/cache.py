@@ -17,7 +17,6 @@ import os
 import shutil
 import sys
 import tempfile
-import time
 from collections.abc import Iterator
 from contextlib import contextmanager
 from pathlib import Path
@@ -28,6 +27,7 @@ import pandas as pd
 import pyarrow.parquet as pq
 
 from tagtrail.errors import SourceError, SpecError
+from tagtrail.runner.paths import clean_temp_files, inside
 from tagtrail.schemas.artifacts import conform
 
 
@@ -97,12 +97,29 @@ class SourceHasher:
     def save(self) -> None:
         if not self._dirty:
             return
-        self.cache_file.parent.mkdir(parents=True, exist_ok=True)
-        fd, tmp = tempfile.mkstemp(dir=self.cache_file.parent, prefix=".sources.")
-        with os.fdopen(fd, "w") as f:
-            json.dump(self._cache, f)
-        os.replace(tmp, self.cache_file)
+        atomic_write_text(self.cache_file, json.dumps(self._cache))
         self._dirty = False
+
+    def try_save(self) -> None:
+        """Save if the store is writable: a read-only project only forgets the hashes."""
+        try:
+            self.save()
+        except OSError:
+            pass
+
+
+def atomic_write_text(path: Path, text: str) -> None:
+    """Write ``text`` to a temporary sibling of ``path`` and rename it into place; a failed
+    write (a full disk) removes its temporary file and leaves ``path`` as it was."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.")
+    try:
+        with os.fdopen(fd, "w") as f:
+            f.write(text)
+        os.replace(tmp, path)
+    except BaseException:
+        Path(tmp).unlink(missing_ok=True)
+        raise
 
 
 def _rows(value: Any) -> int | None:
@@ -207,17 +224,17 @@ class Store:
         if self.tmp.is_dir():
             for p in self.tmp.iterdir():
                 shutil.rmtree(p, ignore_errors=True)
+        clean_temp_files(self.root)
+        runs = self.root / "runs"
+        if runs.is_dir():
+            for folder in (runs, *(p for p in runs.iterdir() if p.is_dir())):
+                clean_temp_files(folder)
 
     def record_path(self, dataset: str, stage: str) -> Path:
-        return self.root / "runs" / dataset / f"{stage}.json"
+        return inside(self.root / "runs", dataset, f"{stage}.json")
 
     def save_record(self, dataset: str, stage: str, record: dict[str, Any]) -> None:
-        p = self.record_path(dataset, stage)
-        p.parent.mkdir(parents=True, exist_ok=True)
-        fd, tmp = tempfile.mkstemp(dir=p.parent, prefix=".rec.")
-        with os.fdopen(fd, "w") as f:
-            f.write(pretty_json(record))
-        os.replace(tmp, p)
+        atomic_write_text(self.record_path(dataset, stage), pretty_json(record))
 
     def last_record(self, dataset: str, stage: str) -> dict[str, Any] | None:
         try:
@@ -226,6 +243,3 @@ class Store:
         except (OSError, ValueError):
             return None
 
-
-def now() -> float:
-    return time.perf_counter()

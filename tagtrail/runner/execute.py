@@ -8,12 +8,19 @@ import time
 import traceback
 from collections.abc import Callable
 from dataclasses import asdict, dataclass
-from pathlib import Path
 from typing import Any
 
-from tagtrail.errors import StageError, TagtrailError
-from tagtrail.runner.cache import SourceHasher, Store, canonical_json, pretty_json, sha256_text
+from tagtrail.errors import StageError, TagtrailError, storage_error
+from tagtrail.runner.cache import (
+    SourceHasher,
+    Store,
+    atomic_write_text,
+    canonical_json,
+    pretty_json,
+    sha256_text,
+)
 from tagtrail.runner.dag import Graph, Node, build_graph, select
+from tagtrail.runner.paths import inside
 from tagtrail.runner.spec import Pipeline
 from tagtrail.schemas.artifacts import VERSION as ARTIFACT_SCHEMA_VERSION
 
@@ -141,7 +148,7 @@ class Runner:
             else:
                 why = "forced" if force else self.why_stale(node, record)
                 states.append(NodeState(node.stage, node.dataset, "stale", why, key))
-        self.hasher.save()
+        self.hasher.try_save()  # `status` needs no write access
         return states
 
     # --- run --------------------------------------------------------------------------------
@@ -226,18 +233,22 @@ class Runner:
             new = type(err)(f"{node}: {err}")
             new.__cause__ = err
             return new
+        if isinstance(err, OSError) and (refused := storage_error(err, str(node))) is not None:
+            refused.__cause__ = err
+            return refused
         wrapped = StageError(node.stage, node.dataset, err)
-        logdir = self.pipe.artifacts / "logs"
-        logdir.mkdir(parents=True, exist_ok=True)
-        path = logdir / f"error-{time.strftime('%Y%m%d-%H%M%S')}-{node.stage}-{node.dataset}.log"
-        path.write_text("".join(traceback.format_exception(err)))
-        wrapped.log_path = path  # type: ignore[attr-defined]
+        name = f"error-{time.strftime('%Y%m%d-%H%M%S')}-{node.stage}-{node.dataset}.log"
+        try:
+            path = inside(self.pipe.artifacts / "logs", name)
+            atomic_write_text(path, "".join(traceback.format_exception(err)))
+            wrapped.log_path = path  # type: ignore[attr-defined]
+        except OSError:
+            pass  # the failure itself is still reported, without its log
         return wrapped
 
     def _save_run_log(self, states: list[NodeState]) -> None:
-        p = self.pipe.artifacts / "runs" / "last_run.json"
-        p.parent.mkdir(parents=True, exist_ok=True)
-        p.write_text(pretty_json([asdict(s) for s in states]))
+        atomic_write_text(self.pipe.artifacts / "runs" / "last_run.json",
+                          pretty_json([asdict(s) for s in states]))
 
     def key_of(self, stage: str, dataset: str) -> str | None:
         """The key of the up-to-date artifact of a node, if there is one (for ``show``)."""
@@ -249,6 +260,3 @@ class Runner:
                 return st.key if st.status == "cached" else None
         return None
 
-
-def last_run_path(artifacts: Path) -> Path:
-    return artifacts / "runs" / "last_run.json"

@@ -3,7 +3,9 @@
 Exporters live in ``tagtrail.io.exports`` (I/O at the edge). Each is called per dataset with a
 getter ``get(stage, output, reference=False)`` that returns the up-to-date artifact (of this
 dataset or of the reference) or ``None``, and writes the files whose artifacts exist, atomically.
-A dataset whose artifacts and exporter code are unchanged since its last export is skipped.
+A dataset whose artifacts and exporter code are unchanged since its last export, and whose
+files still hash to what that export wrote (recorded in ``.tagtrail-export.json``), is skipped;
+any missing or altered file makes the whole folder be written again (``force`` always does).
 """
 
 from __future__ import annotations
@@ -12,25 +14,41 @@ import json
 from pathlib import Path
 from typing import Any
 
-from tagtrail.io.layouts import atomic_write_text
-from tagtrail.runner.cache import canonical_json, sha256_text
+from tagtrail.runner.cache import atomic_write_text, canonical_json, file_sha256, sha256_text
 from tagtrail.runner.execute import Runner
+from tagtrail.runner.paths import clean_temp_files, inside
 from tagtrail.runner.stage import code_fingerprint
 
 STAMP = ".tagtrail-export.json"
 
 
+def _hashes(folder: Path) -> dict[str, str]:
+    return {p.name: file_sha256(p) for p in sorted(folder.iterdir())
+            if p.is_file() and not p.name.startswith(".")}
+
+
 def _unchanged(folder: Path, stamp: str) -> bool:
-    """True when ``folder`` was exported from the same artifacts and code and is intact."""
+    """True when ``folder`` was exported from the same artifacts and code and every file it
+    wrote is still there, byte for byte."""
     try:
         doc = json.loads((folder / STAMP).read_text())
-    except (OSError, ValueError):
+        files = doc["files"]
+        return bool(doc["stamp"] == stamp and isinstance(files, dict) and all(
+            file_sha256(folder / name) == digest for name, digest in files.items()))
+    except (OSError, ValueError, KeyError, TypeError):
         return False
-    return doc.get("stamp") == stamp and all((folder / f).is_file() for f in doc.get("files", []))
 
 
-def export_outputs(runner: Runner) -> dict[str, Path]:
-    """Write every dataset's files from the up-to-date artifacts; returns dataset → folder."""
+def export_outputs(runner: Runner, force: bool = False) -> dict[str, Path]:
+    """Write every dataset's files from the up-to-date artifacts; returns dataset → folder.
+
+    Runs under the store's lock, like the stages: leftovers of a killed export are removed.
+    """
+    with runner.store.lock():
+        return _export(runner, force)
+
+
+def _export(runner: Runner, force: bool) -> dict[str, Path]:
     from tagtrail.io import exports
     from tagtrail.io.exports import EXPORTERS
 
@@ -41,8 +59,9 @@ def export_outputs(runner: Runner) -> dict[str, Path]:
         used = sorted(f"{st}/{ds}/{k}" for (st, ds), k in keys.items()
                       if ds in (dataset, runner.pipe.reference))
         stamp = sha256_text(canonical_json({"code": code, "artifacts": used}))
-        folder = runner.pipe.outputs / dataset
-        if _unchanged(folder, stamp):
+        folder = inside(runner.pipe.outputs, dataset)
+        clean_temp_files(folder)
+        if not force and _unchanged(folder, stamp):
             written[dataset] = folder
             continue
         cache: dict[tuple[str, str], Any] = {}
@@ -67,6 +86,6 @@ def export_outputs(runner: Runner) -> dict[str, Path]:
             wrote |= bool(exporter(get, folder, dataset))
         if wrote:
             written[dataset] = folder
-            names = sorted(p.name for p in folder.iterdir() if p.is_file() and p.name != STAMP)
-            atomic_write_text(folder / STAMP, json.dumps({"stamp": stamp, "files": names}))
+            doc = {"stamp": stamp, "files": _hashes(folder)}
+            atomic_write_text(folder / STAMP, json.dumps(doc, indent=1, sort_keys=True))
     return written

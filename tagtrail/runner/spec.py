@@ -34,7 +34,10 @@ def _fmt_validation(where: str, err: ValidationError, fields: Iterable[str] = ()
         key = str(e["loc"][-1])
         return f"{where}: unknown key {loc!r}{did_you_mean(key, fields)}"
     got = f" (got {e['input']!r})" if "input" in e and not isinstance(e["input"], dict) else ""
-    return f"{where}.{loc}: {e['msg']}{got}" if loc else f"{where}: {e['msg']}"
+    msg = str(e["msg"]).removeprefix("Value error, ")
+    if e["type"] == "value_error":
+        got = ""
+    return f"{where}.{loc}: {msg}{got}" if loc else f"{where}: {msg}"
 
 
 @dataclass(frozen=True)
@@ -69,6 +72,45 @@ class Pipeline:
         return self.root / "outputs"
 
 
+class _UniqueKeyLoader(yaml.SafeLoader):
+    """SafeLoader that refuses a key written twice in one mapping (YAML says "last one wins")."""
+
+
+def _unique_mapping(loader: _UniqueKeyLoader, node: yaml.MappingNode, deep: bool = False) -> Any:
+    seen: dict[Any, int] = {}
+    for key_node, _ in node.value:
+        if key_node.tag == "tag:yaml.org,2002:merge":  # `<<: *defaults` may be overridden
+            continue
+        key = loader.construct_object(key_node, deep=True)  # type: ignore[no-untyped-call]
+        try:
+            first = seen.setdefault(key, key_node.start_mark.line + 1)
+        except TypeError:  # an unhashable key: the base constructor reports it
+            continue
+        if first != key_node.start_mark.line + 1:
+            raise yaml.constructor.ConstructorError(
+                None, None,
+                f"key {key!r} written twice (lines {first} and {key_node.start_mark.line + 1})",
+                key_node.start_mark,
+            )
+    return loader.construct_mapping(node, deep=deep)
+
+
+_UniqueKeyLoader.add_constructor(
+    yaml.resolver.BaseResolver.DEFAULT_MAPPING_TAG, _unique_mapping  # type: ignore[arg-type]
+)
+
+
+def load_yaml(text: str, where: str) -> Any:
+    """Parse YAML (duplicate keys refused); errors are one :class:`SpecError` line."""
+    try:
+        return yaml.load(text, Loader=_UniqueKeyLoader)  # noqa: S506 - a SafeLoader subclass
+    except yaml.YAMLError as err:
+        mark = getattr(err, "problem_mark", None)
+        line = f" line {mark.line + 1}:" if mark is not None else ""
+        problem = getattr(err, "problem", None) or str(err).splitlines()[0]
+        raise SpecError(f"{where}:{line} invalid YAML: {problem}") from err
+
+
 def parse_override(text: str) -> tuple[str, list[str], Any]:
     """``stage.param[.key]=value`` → (stage, key path, YAML-parsed value)."""
     if "=" not in text:
@@ -77,10 +119,7 @@ def parse_override(text: str) -> tuple[str, list[str], Any]:
     parts = lhs.strip().split(".")
     if len(parts) < 2 or not all(parts):
         raise SpecError(f"bad override {text!r}: expected stage.param=value")
-    try:
-        value = yaml.safe_load(rhs) if rhs.strip() else None
-    except yaml.YAMLError as err:
-        raise SpecError(f"bad override {text!r}: value is not valid YAML ({err})") from err
+    value = load_yaml(rhs, f"bad override -S {text!r}") if rhs.strip() else None
     return parts[0], parts[1:], value
 
 
@@ -113,12 +152,10 @@ def load_pipeline(
     if not path.is_file():
         raise SpecError(f"{path}: pipeline file not found (create one with `tagtrail init`)")
     try:
-        doc = yaml.safe_load(path.read_text(encoding="utf-8"))
-    except yaml.YAMLError as err:
-        mark = getattr(err, "problem_mark", None)
-        where = f" line {mark.line + 1}" if mark is not None else ""
-        problem = getattr(err, "problem", None) or str(err).splitlines()[0]
-        raise SpecError(f"{path}:{where}: invalid YAML: {problem}") from err
+        text = path.read_text(encoding="utf-8")
+    except (OSError, UnicodeDecodeError) as err:
+        raise SpecError(f"{path}: cannot read the pipeline file ({err})") from err
+    doc = load_yaml(text, str(path))
     if not isinstance(doc, dict):
         raise SpecError(f"{path}: expected a mapping with 'datasets:' and 'stages:'")
     try:

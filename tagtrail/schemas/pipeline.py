@@ -2,10 +2,24 @@
 
 from __future__ import annotations
 
+import re
 from pathlib import Path
 from typing import Any
 
-from pydantic import BaseModel, ConfigDict, Field
+from pydantic import BaseModel, ConfigDict, Field, field_validator
+
+_DATASET_NAME = re.compile(r"[A-Za-z0-9_.-]+")
+
+
+def check_dataset_name(name: object) -> str:
+    """A dataset name names a folder under ``outputs/``, never a path (SPEC): letters, digits,
+    ``_``, ``-``, ``.``; not ``.`` or ``..``. Returns the name; raises ``ValueError``."""
+    if not isinstance(name, str) or not _DATASET_NAME.fullmatch(name) or name in (".", ".."):
+        raise ValueError(
+            f"dataset name {name!r} is not allowed: use letters, digits, '_', '-' and '.' "
+            "(not '.' or '..'); a dataset name names a folder under outputs/, never a path"
+        )
+    return name
 
 
 class Topics(BaseModel):
@@ -45,3 +59,10 @@ class PipelineConfig(BaseModel):
     datasets: dict[str, DatasetConfig]
     reference: str = "reference"
     stages: dict[str, dict[str, Any]] = Field(default_factory=dict)
+
+    @field_validator("datasets")
+    @classmethod
+    def _names(cls, datasets: dict[str, DatasetConfig]) -> dict[str, DatasetConfig]:
+        for name in datasets:
+            check_dataset_name(name)
+        return datasets

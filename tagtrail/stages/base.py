@@ -19,20 +19,42 @@ A stage module defines, at module level:
 
 from __future__ import annotations
 
-from typing import ClassVar
+import types
+import typing
+from typing import Any, ClassVar
 
-from pydantic import BaseModel, ConfigDict
+from pydantic import BaseModel, ConfigDict, model_validator
+
+
+def _is_tuple(annotation: Any) -> bool:
+    if typing.get_origin(annotation) is tuple:
+        return True
+    if typing.get_origin(annotation) in (typing.Union, types.UnionType):
+        return any(_is_tuple(a) for a in typing.get_args(annotation))
+    return False
 
 
 class StageParams(BaseModel):
     """Base of every stage's parameters: strict, immutable, hashable as canonical JSON.
 
+    Strict types: a number field takes a number (``true`` or ``"0.16"`` is refused, an int is
+    fine for a float), finite only (``.inf``, ``1e400`` and ``.nan`` are refused); a bool field
+    takes a bool. YAML lists are accepted for tuple fields.
     ``EXECUTION_ONLY`` names fields that change how a stage runs but not what it computes
     (e.g. worker counts); they are left out of the cache key.
     """
 
-    model_config = ConfigDict(extra="forbid", frozen=True)
+    model_config = ConfigDict(extra="forbid", frozen=True, strict=True, allow_inf_nan=False)
     EXECUTION_ONLY: ClassVar[frozenset[str]] = frozenset()
+
+    @model_validator(mode="before")
+    @classmethod
+    def _yaml_lists_as_tuples(cls, data: Any) -> Any:
+        if not isinstance(data, dict):
+            return data
+        fields = cls.model_fields
+        return {k: tuple(v) if isinstance(v, list) and k in fields
+                and _is_tuple(fields[k].annotation) else v for k, v in data.items()}
 
     def key_dump(self) -> dict[str, object]:
         """The parameters that enter the cache key, as JSON-able values."""
