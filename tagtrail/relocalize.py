@@ -18,7 +18,7 @@ from typing import Any
 import numpy as np
 import pandas as pd
 
-from tagtrail.errors import DataError, SourceError, TagtrailError, report
+from tagtrail.errors import DataError, SourceError, SpecError, TagtrailError, report
 from tagtrail.geometry.plane import PLANES
 from tagtrail.io import reloc_files
 from tagtrail.io.layouts import POSE_COLS, TAG_MAP_NAMES, read_tag_map, read_trajectory
@@ -82,6 +82,7 @@ def _relocalize(
     plane: str,
     allow_scale: bool,
 ) -> dict[str, Any]:
+    check_out(Path(out))
     ref_traj, ref_tags = load_dataset(reference)
     q_traj, q_tags = load_dataset(query)
     if ref_tags is None or q_tags is None:
@@ -102,8 +103,22 @@ def _relocalize(
     r_params = report_stage.Params(mode=mode, plane=plane)
     result = report_stage.run(aligned["trajectory"], ref_traj, aligned["alignment"], r_params)
     reloc, summary = result["relocalization"], result["summary"]
-    write_outputs(Path(out), reloc, summary, aligned["trajectory"], ref_traj, ref_tags, plane)
+    try:
+        write_outputs(Path(out), reloc, summary, aligned["trajectory"], ref_traj, ref_tags, plane)
+    except OSError as err:
+        raise SourceError(f"{out}: cannot write the outputs: {err.strerror or err}") from err
     return result
+
+
+def check_out(out: Path) -> None:
+    """Refuse an output folder that is a file (or lies under one) before any work is done."""
+    for p in (out, *out.parents):
+        if p.exists():
+            if not p.is_dir():
+                where = "is" if p == out else f"lies under {p}, which is"
+                raise SpecError(f"-o {out}: {where} a file, not a folder; name a folder for the "
+                                "outputs (it is created if missing)")  # fmt: skip
+            return
 
 
 def write_outputs(

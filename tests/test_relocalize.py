@@ -195,3 +195,158 @@ def test_files_round_trip(limo: Path, tmp_path: Path) -> None:
     pd.testing.assert_frame_equal(back, out["relocalization"], check_exact=True)
     write_summary_json(tmp_path / "s.json", {"rms_m": float("nan"), "n": np.int64(3)})
     assert json.loads((tmp_path / "s.json").read_text()) == {"rms_m": None, "n": 3}
+
+
+# --- bad input files and options: one `error:` line naming the file, row and column, exit 2 ---
+
+
+def write_run(folder: Path, shift: float = 0.0) -> Path:
+    """A small run in the original tool's layout: ``trajetoria_camera.csv`` + ``mapa_tags.csv``."""
+    folder.mkdir()
+    n = 20
+    t = np.arange(n)
+    traj = pd.DataFrame({"t_ns": 1_700_000_000_000_000_000 + t * 100_000_000,
+                         "x_m": 0.1 * t + shift, "y_m": 0.0, "z_m": 1.0 + 0.02 * t,
+                         "qx": 0.0, "qy": 0.0, "qz": 0.0, "qw": 1.0})  # fmt: skip
+    write_trajectory_csv(folder / "trajetoria_camera.csv", traj)
+    (folder / "mapa_tags.csv").write_text(
+        "tag,x,y,z,qx,qy,qz,qw,n_obs\n"
+        "tag36h11:0,0.0,0.0,0.0,0.0,0.0,0.0,1.0,20\n"
+        "tag36h11:1,1.0,0.0,0.0,0.0,0.0,0.0,1.0,20\n"
+        "tag36h11:2,1.0,0.0,2.0,0.0,0.0,0.0,1.0,20\n"
+    )
+    return folder
+
+
+def edit_cell(f: Path, row: int, col: str, value: str) -> None:
+    """Set data row ``row`` (1-based, header not counted), column ``col`` of a CSV to ``value``."""
+    lines = f.read_text().splitlines()
+    cols = lines[0].split(",")
+    cells = lines[row].split(",")
+    cells[cols.index(col)] = value
+    lines[row] = ",".join(cells)
+    f.write_text("\n".join(lines) + "\n")
+
+
+def cli_error(capsys: pytest.CaptureFixture[str], *argv: str) -> str:
+    """Run ``tagtrail relocalize …`` (the console script's entry); assert exit 2, one line."""
+    from tagtrail.cli import main as tagtrail_main
+
+    assert tagtrail_main(["relocalize", *argv]) == 2
+    cap = capsys.readouterr()
+    err = cap.err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith("error: ") and "unexpected" not in err[0], cap.err
+    return err[0]
+
+
+def test_synthetic_runs_relocalize(tmp_path: Path) -> None:  # the files the cases below break
+    ref, qry = write_run(tmp_path / "ref"), write_run(tmp_path / "qry", shift=0.03)
+    assert main([str(ref), str(qry), "-o", str(tmp_path / "o"), "--mode", "trajectory"]) == 0
+    assert result(tmp_path / "o")[0] == pytest.approx(0.03, abs=1e-6)
+
+
+TRAJ = "trajetoria_camera.csv"
+BAD_TRAJECTORIES = {
+    "text cell": (lambda f: edit_cell(f, 3, "x", "abc"),
+                  "data row 3, column x: 'abc' is not a number"),
+    "empty cell": (lambda f: edit_cell(f, 5, "qw", ""), "data row 5, column qw: empty cell"),
+    "nan": (lambda f: edit_cell(f, 2, "y", "nan"), "data row 2, column y: empty cell (or NaN)"),
+    "inf": (lambda f: edit_cell(f, 4, "z", "inf"), "data row 4, column z: 'inf' is not finite"),
+    "-inf": (lambda f: edit_cell(f, 1, "x", "-inf"), "data row 1, column x: '-inf' is not finite"),
+    "text stamp": (lambda f: edit_cell(f, 7, "stamp_sec", "soon"),
+                   "data row 7, column stamp_sec: 'soon' is not a number"),
+    "fractional stamp": (lambda f: edit_cell(f, 2, "stamp_nanosec", "1.5"),
+                         "data row 2, column stamp_nanosec: '1.5' is not an integer"),
+    "nanosec range": (lambda f: edit_cell(f, 2, "stamp_nanosec", "1000000000"),
+                      "data row 2, column stamp_nanosec: '1000000000' is not an integer in"),
+    "zero quaternion": (
+        lambda f: [edit_cell(f, 6, c, "0") for c in ("qx", "qy", "qz", "qw")],
+        "data row 6: quaternion (qx, qy, qz, qw) = (0.0, 0.0, 0.0, 0.0) has zero length",
+    ),
+    "stamps go back": (lambda f: edit_cell(f, 9, "stamp_sec", "1699999999"),
+                       "data row 9: stamp 1699999999.800000000 s is earlier than the one before"),
+    "missing column": (lambda f: f.write_text(f.read_text().replace(",qw", ",w")),
+                       "not a trajectory CSV, missing columns qw"),
+    "empty file": (lambda f: f.write_text(""), "empty file (expected a trajectory CSV"),
+    "ragged row": (lambda f: f.write_text(f.read_text() + "1,2,3,4,5,6,7,8,9,10\n"),
+                   "cannot read trajectory CSV: Error tokenizing data"),
+}
+
+
+@pytest.mark.parametrize("case", sorted(BAD_TRAJECTORIES))
+def test_bad_trajectory_csv_one_line(tmp_path: Path, capsys, case: str) -> None:
+    ref, qry = write_run(tmp_path / "ref"), write_run(tmp_path / "qry")
+    edit, message = BAD_TRAJECTORIES[case]
+    edit(qry / TRAJ)
+    line = cli_error(capsys, str(ref), str(qry), "-o", str(tmp_path / "o"))
+    assert f"error: {qry / TRAJ}: " in line and message in line, line
+    assert not (tmp_path / "o").exists()
+
+
+def test_equal_stamps_are_accepted(tmp_path: Path) -> None:
+    ref, qry = write_run(tmp_path / "ref"), write_run(tmp_path / "qry")
+    edit_cell(qry / TRAJ, 4, "stamp_nanosec", "200000000")  # row 4 = row 3's stamp
+    assert main([str(ref), str(qry), "-o", str(tmp_path / "o")]) == 0
+
+
+BAD_TAG_CSV = {
+    "text cell": (lambda f: edit_cell(f, 2, "z", "x"), "data row 2, column z: 'x' is not a number"),
+    "bad tag name": (lambda f: edit_cell(f, 3, "tag", "tagX"),
+                     "data row 3, column tag: 'tagX' is not a tag name"),
+    "zero quaternion": (lambda f: [edit_cell(f, 1, c, "0.0") for c in ("qx", "qy", "qz", "qw")],
+                        "data row 1: quaternion"),
+    "duplicate tag": (lambda f: edit_cell(f, 3, "tag", "tag36h11:1"),
+                      "tag tag36h11:1 is listed twice (data row 2 and data row 3)"),
+    "missing column": (lambda f: f.write_text(f.read_text().replace(",qx,", ",q,")),
+                       "not a tag map CSV, missing columns qx"),
+    "n_obs": (lambda f: edit_cell(f, 1, "n_obs", "many"), "data row 1, column n_obs: 'many'"),
+}
+
+
+@pytest.mark.parametrize("case", sorted(BAD_TAG_CSV))
+def test_bad_tag_map_csv_one_line(tmp_path: Path, capsys, case: str) -> None:
+    ref, qry = write_run(tmp_path / "ref"), write_run(tmp_path / "qry")
+    edit, message = BAD_TAG_CSV[case]
+    edit(ref / "mapa_tags.csv")
+    line = cli_error(capsys, str(ref), str(qry), "-o", str(tmp_path / "o"))
+    assert f"error: {ref / 'mapa_tags.csv'}: " in line and message in line, line
+
+
+GOOD_TAG = "  position: {x: 1.0, y: 0.0, z: 0.0}\n  orientation: {x: 0.0, y: 0.0, z: 0.0, w: 1.0}\n"
+BAD_TAG_YAML = {
+    "not YAML": ("tags: {tag36h11:0: [\n", "not valid YAML (tag map): line 2, column 1:"),
+    "no tags": ("world_frame: map\n", "not a tag map YAML (needs a 'tags:' mapping"),
+    "no orientation": ("tags:\n tag36h11:0:\n  position: {x: 1, y: 0, z: 0}\n",
+                       "tag tag36h11:0: missing 'orientation:' mapping"),
+    "missing key": ("tags:\n tag36h11:0:\n" + GOOD_TAG.replace(", z: 0.0}", "}", 1),
+                    "tag tag36h11:0: position.z is missing"),
+    "text value": ("tags:\n tag36h11:0:\n" + GOOD_TAG.replace("x: 1.0", "x: one"),
+                   "tag tag36h11:0: position.x is 'one', not a finite number"),
+    "nan value": ("tags:\n tag36h11:0:\n" + GOOD_TAG.replace("x: 1.0", "x: .nan"),
+                  "tag tag36h11:0: position.x is nan, not a finite number"),
+    "zero quaternion": ("tags:\n tag36h11:0:\n" + GOOD_TAG.replace("w: 1.0", "w: 0"),
+                        "tag tag36h11:0: quaternion (qx, qy, qz, qw) = (0.0, 0.0, 0.0, 0.0)"),
+    "bad name": ("tags:\n tagX:\n" + GOOD_TAG, "tags: key 'tagX' is not a tag name"),
+    "bad anchor": ("anchor_tag: zero\ntags:\n tag36h11:0:\n" + GOOD_TAG,
+                   "anchor_tag 'zero' is not a tag name"),
+}
+
+
+@pytest.mark.parametrize("case", sorted(BAD_TAG_YAML))
+def test_bad_tag_map_yaml_one_line(tmp_path: Path, capsys, case: str) -> None:
+    ref, qry = write_run(tmp_path / "ref"), write_run(tmp_path / "qry")
+    (qry / "mapa_tags.csv").unlink()
+    text, message = BAD_TAG_YAML[case]
+    (qry / "tag_map.yaml").write_text(text)
+    line = cli_error(capsys, str(ref), str(qry), "-o", str(tmp_path / "o"))
+    assert f"error: {qry / 'tag_map.yaml'}: " in line and message in line, line
+
+
+def test_out_is_a_file(tmp_path: Path, capsys) -> None:
+    ref, qry = write_run(tmp_path / "ref"), write_run(tmp_path / "qry")
+    (tmp_path / "taken").write_text("keep me\n")
+    line = cli_error(capsys, str(ref), str(qry), "-o", str(tmp_path / "taken"))
+    assert f"-o {tmp_path / 'taken'}: is a file, not a folder" in line
+    line = cli_error(capsys, str(ref), str(qry), "-o", str(tmp_path / "taken" / "sub"))
+    assert f"lies under {tmp_path / 'taken'}, which is a file" in line
+    assert (tmp_path / "taken").read_text() == "keep me\n"

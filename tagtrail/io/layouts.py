@@ -20,8 +20,9 @@ from typing import Any
 import numpy as np
 import pandas as pd
 import yaml
+from numpy.typing import NDArray
 
-from tagtrail.errors import SourceError
+from tagtrail.errors import SourceError, one_line
 
 POSE_COLS = ["x_m", "y_m", "z_m", "qx", "qy", "qz", "qw"]
 TRAJ_COLS = ["t_ns", *POSE_COLS]
@@ -112,41 +113,163 @@ def _resolve(path: Path, names: tuple[str, ...], what: str) -> Path:
 
 
 def read_trajectory(path: Path) -> pd.DataFrame:
-    """Read a trajectory CSV (tagtrail's or the original tool's) or a TUM file, or a folder."""
+    """Read a trajectory CSV (tagtrail's or the original tool's) or a TUM file, or a folder.
+
+    Rows must be in time order (equal stamps allowed) with finite values and non-zero
+    quaternions; anything else is a :class:`SourceError` naming the file, row and column.
+    """
     f = _resolve(path, TRAJECTORY_NAMES, "trajectory")
     if f.suffix not in (".tum", ".txt"):
         return read_stamped_poses(f, _CSV_TRAJ_HEADER, "trajectory")[0]
+    return _read_tum(f)
+
+
+def _read_tum(f: Path) -> pd.DataFrame:
+    """``stamp x y z qx qy qz qw`` lines ('#' comments); errors name the line and field."""
     try:
-        arr = np.loadtxt(f, ndmin=2)
-    except (OSError, ValueError) as err:
-        raise SourceError(f"{f}: cannot read trajectory: {err}") from err
+        text = f.read_text(encoding="utf-8")
+    except (OSError, UnicodeDecodeError) as err:
+        raise SourceError(f"{f}: cannot read trajectory: {one_line(err)}") from err
+    rows = [(n, line.split("#")[0].split()) for n, line in enumerate(text.splitlines(), 1)]
+    lines = [(n, fields) for n, fields in rows if fields]
+    names = ["stamp", *_CSV_TRAJ_HEADER[2:]]
+    for n, fields in lines:
+        if len(fields) != 8:
+            raise SourceError(f"{f}: line {n}: {len(fields)} fields, a TUM trajectory line has 8 "
+                              "(stamp x y z qx qy qz qw)")  # fmt: skip
+        for name, cell in zip(names, fields, strict=True):
+            try:
+                ok = np.isfinite(float(cell))
+            except ValueError:
+                ok = False
+            if not ok:
+                raise SourceError(f"{f}: line {n}, field {name}: {cell!r} is not a finite number")
+    if not lines:
+        return pd.DataFrame({c: pd.Series(dtype=np.int64 if c == "t_ns" else np.float64)
+                             for c in TRAJ_COLS})  # fmt: skip
+    arr = np.loadtxt(f, ndmin=2)
     out = pd.DataFrame(arr[:, 1:8], columns=POSE_COLS)
     out.insert(0, "t_ns", np.round(arr[:, 0] * 1e9).astype(np.int64))
+    line_of = [n for n, _ in lines]
+    _check_quaternions(f, arr[:, 4:8], lambda i: f"line {line_of[i]}")
+    _check_order(f, out["t_ns"].to_numpy(), lambda i: f"line {line_of[i]}")
     return out
 
 
 def read_stamped_poses(
-    f: Path, header: list[str], what: str
+    f: Path, header: list[str], what: str, ordered: bool = True
 ) -> tuple[pd.DataFrame, pd.DataFrame]:
     """A SPEC CSV of ``stamp_sec, stamp_nanosec, …, x, y, z, qx, qy, qz, qw`` (the last seven
-    columns of ``header``) → (``t_ns`` + pose columns, the raw table); clear errors."""
+    columns of ``header``) → (``t_ns`` + pose columns, the raw table).
+
+    Every problem is a one-line :class:`SourceError` naming the file, the 1-based data row (the
+    header not counted) and the column: a missing column, an empty file, a text or empty cell,
+    a non-finite value, a zero quaternion, and (``ordered``) a stamp earlier than the row before.
+    """
+    df = _read_csv(f, what)
+    _require(f, df, header, what)
+    sec = _integers(f, df, "stamp_sec", -(2**31), 2**32 - 1)
+    nsec = _integers(f, df, "stamp_nanosec", 0, 999_999_999)
+    out = pd.DataFrame({"t_ns": sec * 1_000_000_000 + nsec})
+    for src, dst in zip(header[-7:], POSE_COLS, strict=True):
+        out[dst] = _floats(f, df, src)
+    _check_quaternions(f, out[POSE_COLS[3:]].to_numpy(), _data_row)
+    if ordered:
+        _check_order(f, out["t_ns"].to_numpy(), _data_row)
+    return out, df
+
+
+def _read_csv(f: Path, what: str) -> pd.DataFrame:
+    """``pd.read_csv`` with one-line :class:`SourceError` s (an empty file, a ragged row, …)."""
     try:
-        df = pd.read_csv(f)
-    except (OSError, ValueError, pd.errors.ParserError) as err:
-        raise SourceError(f"{f}: cannot read {what}: {err}") from err
+        return pd.read_csv(f)
+    except pd.errors.EmptyDataError as err:
+        raise SourceError(f"{f}: empty file (expected a {what} CSV with a header line)") from err
+    except (OSError, UnicodeDecodeError, ValueError) as err:  # ParserError is a ValueError
+        raise SourceError(f"{f}: cannot read {what} CSV: {one_line(err)}") from err
+
+
+def _require(f: Path, df: pd.DataFrame, header: list[str], what: str) -> None:
     missing = [c for c in header if c not in df.columns]
     if missing:
-        raise SourceError(f"{f}: not a{'n' if what[0] in 'aeiou' else ''} {what} CSV, "
-                          f"missing columns {missing}")
-    t_ns = df["stamp_sec"].to_numpy(np.int64) * 1_000_000_000 + df["stamp_nanosec"].to_numpy(
-        np.int64
-    )
-    out = pd.DataFrame({"t_ns": t_ns})
-    for src, dst in zip(header[-7:], POSE_COLS, strict=True):
-        out[dst] = df[src].to_numpy(np.float64)
-    if not np.isfinite(out[POSE_COLS].to_numpy()).all():
-        raise SourceError(f"{f}: {what} has non-finite values")
-    return out, df
+        raise SourceError(
+            f"{f}: not a{'n' if what[0] in 'aeiou' else ''} {what} CSV, missing columns "
+            f"{', '.join(missing)} (header needed: {','.join(header)})"
+        )
+
+
+def _bad_cell(f: Path, row: int, col: str, problem: str) -> SourceError:
+    """An error naming ``f``, the 1-based data row (the header is not counted) and the column."""
+    return SourceError(f"{f}: {_data_row(row)}, column {col}: {problem}")
+
+
+def _data_row(i: int) -> str:
+    return f"data row {i + 1}"
+
+
+def _cell_text(value: object) -> str:
+    return "empty cell" if pd.isna(value) else repr(str(value).strip())
+
+
+def _floats(f: Path, df: pd.DataFrame, col: str) -> NDArray[np.float64]:
+    """Column ``col`` as finite floats; else an error naming the first bad cell."""
+    s = df[col]
+    numeric = pd.api.types.is_numeric_dtype(s) and not pd.api.types.is_bool_dtype(s)
+    v = (s if numeric else pd.to_numeric(s, errors="coerce")).to_numpy(np.float64)
+    bad = ~np.isfinite(v)
+    if bad.any():
+        i = int(np.argmax(bad))
+        raw = s.iloc[i]
+        if pd.isna(raw):
+            problem = "empty cell (or NaN); every cell needs a number"
+        elif np.isnan(v[i]) or not numeric:
+            problem = f"{_cell_text(raw)} is not a number"
+        else:
+            problem = f"{_cell_text(raw)} is not finite"
+        raise _bad_cell(f, i, col, problem)
+    return v
+
+
+def _integers(f: Path, df: pd.DataFrame, col: str, lo: int, hi: int) -> NDArray[np.int64]:
+    """Column ``col`` as integers in ``[lo, hi]``; else an error naming the first bad cell."""
+    s = df[col]
+    if pd.api.types.is_integer_dtype(s):
+        v = s.to_numpy(np.int64)
+        bad = (v < lo) | (v > hi)
+    else:
+        x = _floats(f, df, col)
+        bad = (x != np.round(x)) | (x < lo) | (x > hi)
+        v = np.where(bad, 0, x).astype(np.int64)
+    if bad.any():
+        i = int(np.argmax(bad))
+        raise _bad_cell(f, i, col, f"{_cell_text(s.iloc[i])} is not an integer in [{lo}, {hi}]")
+    return v
+
+
+def _check_quaternions(f: Path, q: NDArray[np.float64], where: Callable[[int], str]) -> None:
+    """Refuse a zero quaternion; ``where(i)`` names row ``i`` (0-based) for the message."""
+    zero = np.flatnonzero(np.linalg.norm(q, axis=1) < 1e-9)
+    if zero.size:
+        i = int(zero[0])
+        raise SourceError(
+            f"{f}: {where(i)}: quaternion (qx, qy, qz, qw) = {tuple(q[i].tolist())} has zero "
+            "length; write the orientation as a unit quaternion"
+        )
+
+
+def _check_order(f: Path, t_ns: NDArray[np.int64], where: Callable[[int], str]) -> None:
+    """Refuse a stamp earlier than the one before it (equal stamps are kept)."""
+    back = np.flatnonzero(np.diff(t_ns) < 0)
+    if back.size:
+        i = int(back[0]) + 1
+        raise SourceError(
+            f"{f}: {where(i)}: stamp {_stamp_text(t_ns[i])} is earlier than the one before "
+            f"({_stamp_text(t_ns[i - 1])}); rows must be in time order (sort them by stamp)"
+        )
+
+
+def _stamp_text(t_ns: int) -> str:
+    return f"{int(t_ns) // 1_000_000_000}.{int(t_ns) % 1_000_000_000:09d} s"
 
 
 # --- tag maps ---------------------------------------------------------------------------------
@@ -186,46 +309,116 @@ def write_tag_map(folder: Path, tags: pd.DataFrame, anchor_id: int) -> None:
 def read_tag_map(path: Path) -> tuple[pd.DataFrame, int | None]:
     """Read a tag map (YAML or CSV, or a folder holding one); returns (tags, anchor id or None).
 
-    For a CSV the anchor is the tag at the identity pose, if any.
+    For a CSV the anchor is the tag at the identity pose, if any. Bad content (a missing column
+    or key, a text cell, a non-finite value, a zero quaternion, a tag listed twice) is a one-line
+    :class:`SourceError` naming the file and the row (CSV: 1-based data row) or tag.
     """
     f = _resolve(path, TAG_MAP_NAMES, "tag map")
-    try:
-        if f.suffix in (".yaml", ".yml"):
-            return _read_tag_map_yaml(f)
-        df = pd.read_csv(f)
-    except (OSError, ValueError, yaml.YAMLError, pd.errors.ParserError) as err:
-        raise SourceError(f"{f}: cannot read tag map: {err}") from err
-    missing = [c for c in _CSV_TAG_HEADER[:8] if c not in df.columns]
-    if missing:
-        raise SourceError(f"{f}: not a tag map CSV, missing columns {missing}")
-    out = pd.DataFrame({"tag_id": [parse_tag_name(t) for t in df["tag"]]})
+    if f.suffix in (".yaml", ".yml"):
+        return _read_tag_map_yaml(f)
+    df = _read_csv(f, "tag map")
+    _require(f, df, _CSV_TAG_HEADER[:8], "tag map")
+    out = pd.DataFrame({"tag_id": tag_ids(f, df["tag"])})
     for src, dst in zip(_CSV_TAG_HEADER[1:8], POSE_COLS, strict=True):
-        out[dst] = df[src].to_numpy(np.float64)
-    out["n_obs"] = df["n_obs"].to_numpy(np.int64) if "n_obs" in df.columns else 0
+        out[dst] = _floats(f, df, src)
+    out["n_obs"] = _integers(f, df, "n_obs", 0, 2**62) if "n_obs" in df.columns else 0
+    _check_quaternions(f, out[POSE_COLS[3:]].to_numpy(), _data_row)
+    _check_unique(f, out["tag_id"].to_numpy(), _data_row)
     ident = np.isclose(out[POSE_COLS].to_numpy(), [0, 0, 0, 0, 0, 0, 1], atol=1e-12).all(axis=1)
     anchor = int(out.loc[ident, "tag_id"].iloc[0]) if ident.any() else None
     return out, anchor
 
 
-def _read_tag_map_yaml(f: Path) -> tuple[pd.DataFrame, int | None]:
-    doc = yaml.safe_load(f.read_text(encoding="utf-8"))
-    if not isinstance(doc, dict) or not isinstance(doc.get("tags"), dict):
-        raise SourceError(f"{f}: not a tag map YAML (needs a 'tags:' mapping)")
-    rows = []
-    for name, e in doc["tags"].items():
+def tag_ids(f: Path, names: pd.Series) -> NDArray[np.int64]:
+    """A CSV column of tag names (``tag36h11:<id>``) → ids; errors name the data row."""
+    out = np.zeros(len(names), dtype=np.int64)
+    for i, name in enumerate(names):
         try:
-            p, q = e["position"], e["orientation"]
-            rows.append(
-                {
-                    "tag_id": parse_tag_name(name),
-                    "x_m": float(p["x"]), "y_m": float(p["y"]), "z_m": float(p["z"]),
-                    "qx": float(q["x"]), "qy": float(q["y"]), "qz": float(q["z"]),
-                    "qw": float(q["w"]),
-                    "n_obs": int(e.get("n_obs", 0)),
-                    "size_m": float(e["size"]) if "size" in e else np.nan,
-                }
-            )
-        except (KeyError, TypeError, ValueError) as err:
-            raise SourceError(f"{f}: tag {name!r} is malformed ({err})") from err
+            out[i] = parse_tag_name("" if pd.isna(name) else name)
+        except SourceError:
+            raise _bad_cell(f, i, str(names.name), f"{_cell_text(name)} is not a tag name "
+                            "(expected 'tag36h11:<id>')") from None  # fmt: skip
+    return out
+
+
+def _check_unique(f: Path, ids: NDArray[np.int64], where: Callable[[int], str]) -> None:
+    seen: dict[int, int] = {}
+    for i, k in enumerate(ids.tolist()):
+        if k in seen:
+            raise SourceError(f"{f}: tag {tag_name(k)} is listed twice ({where(seen[k])} and "
+                              f"{where(i)}); keep one entry per tag")  # fmt: skip
+        seen[k] = i
+
+
+def yaml_error_text(err: yaml.YAMLError) -> str:
+    """A YAML parse error on one line: ``line L, column C: <problem>``."""
+    mark = getattr(err, "problem_mark", None)
+    problem = getattr(err, "problem", None) or str(err)
+    where = f"line {mark.line + 1}, column {mark.column + 1}: " if mark is not None else ""
+    return one_line(f"{where}{problem}")
+
+
+def load_yaml(f: Path, what: str) -> Any:
+    """``yaml.safe_load`` of a file; a one-line :class:`SourceError` if it cannot be parsed."""
+    try:
+        return yaml.safe_load(Path(f).read_text(encoding="utf-8"))
+    except (OSError, UnicodeDecodeError) as err:
+        raise SourceError(f"{f}: cannot read {what}: {one_line(err)}") from err
+    except yaml.YAMLError as err:
+        raise SourceError(f"{f}: not valid YAML ({what}): {yaml_error_text(err)}") from err
+
+
+def _yaml_number(f: Path, where: str, value: Any) -> float:
+    try:
+        x = float(value)
+    except (TypeError, ValueError):
+        x = float("nan")
+    if isinstance(value, bool) or not np.isfinite(x):
+        raise SourceError(f"{f}: {where} is {value!r}, not a finite number")
+    return x
+
+
+def _read_tag_map_yaml(f: Path) -> tuple[pd.DataFrame, int | None]:
+    doc = load_yaml(f, "tag map")
+    tags = doc.get("tags") if isinstance(doc, dict) else None
+    if not isinstance(tags, dict):
+        raise SourceError(
+            f"{f}: not a tag map YAML (needs a 'tags:' mapping of 'tag36h11:<id>': "
+            "{position: {x, y, z}, orientation: {x, y, z, w}})"
+        )
+    rows = []
+    for name, e in tags.items():
+        try:
+            tag_id = parse_tag_name(name)
+        except SourceError:
+            raise SourceError(f"{f}: tags: key {name!r} is not a tag name "
+                              "(expected 'tag36h11:<id>')") from None  # fmt: skip
+        row: dict[str, Any] = {"tag_id": tag_id}
+        for key, axes, cols in (("position", "xyz", POSE_COLS[:3]),
+                                ("orientation", "xyzw", POSE_COLS[3:])):  # fmt: skip
+            sub = e.get(key) if isinstance(e, dict) else None
+            if not isinstance(sub, dict):
+                raise SourceError(f"{f}: tag {name}: missing '{key}:' mapping "
+                                  f"({', '.join(axes)})")  # fmt: skip
+            for axis, col in zip(axes, cols, strict=True):
+                if axis not in sub:
+                    raise SourceError(f"{f}: tag {name}: {key}.{axis} is missing")
+                row[col] = _yaml_number(f, f"tag {name}: {key}.{axis}", sub[axis])
+        n_obs = _yaml_number(f, f"tag {name}: n_obs", e.get("n_obs", 0))
+        if n_obs < 0 or n_obs != int(n_obs):
+            raise SourceError(f"{f}: tag {name}: n_obs is {e['n_obs']!r}, not a count")
+        row["n_obs"] = int(n_obs)
+        row["size_m"] = _yaml_number(f, f"tag {name}: size", e["size"]) if "size" in e else np.nan
+        rows.append(row)
+    names = list(tags)
+    out = pd.DataFrame(rows, columns=[*TAG_COLS, "size_m"])
+    _check_quaternions(f, out[POSE_COLS[3:]].to_numpy(np.float64), lambda i: f"tag {names[i]}")
+    _check_unique(f, out["tag_id"].to_numpy(np.int64), lambda i: f"tag {names[i]}")
     anchor = doc.get("anchor_tag")
-    return pd.DataFrame(rows), (parse_tag_name(anchor) if anchor is not None else None)
+    if anchor is None:
+        return out, None
+    try:
+        return out, parse_tag_name(anchor)
+    except SourceError:
+        raise SourceError(f"{f}: anchor_tag {anchor!r} is not a tag name "
+                          "(expected 'tag36h11:<id>')") from None  # fmt: skip

@@ -40,7 +40,7 @@ from tagtrail.io import msgs
 from tagtrail.io.camera import CameraModel
 from tagtrail.io.detector import C_LIBRARY_PIXEL_OFFSET  # apriltag_ros uses the C library
 from tagtrail.io.images import RawImage
-from tagtrail.io.layouts import parse_tag_name, read_stamped_poses
+from tagtrail.io.layouts import read_stamped_poses, tag_ids
 from tagtrail.schemas.pipeline import DatasetConfig
 
 log = logging.getLogger("tagtrail.sources")
@@ -439,8 +439,8 @@ class ObservationsSource(Source):
     def __init__(self, path: Path) -> None:
         self.path = Path(path)
         f = self.path / "observations.csv"
-        out, df = read_stamped_poses(f, OBS_CSV_HEADER, "observations")
-        out.insert(1, "tag_id", np.array([parse_tag_name(t) for t in df["tag"]], dtype=np.int32))
+        out, df = read_stamped_poses(f, OBS_CSV_HEADER, "observations", ordered=False)
+        out.insert(1, "tag_id", tag_ids(f, df["tag"]).astype(np.int32))
         out = out.sort_values(["t_ns", "tag_id"], kind="stable").reset_index(drop=True)
         frame_idx = np.unique(out["t_ns"].to_numpy(), return_inverse=True)[1]
         out.insert(1, "frame_idx", frame_idx.astype(np.int32))

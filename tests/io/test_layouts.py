@@ -71,3 +71,42 @@ def test_bad_files_raise_source_errors(tmp_path: Path) -> None:
         layouts.read_trajectory(tmp_path)
     with pytest.raises(SourceError, match="no such file"):
         layouts.read_tag_map(tmp_path / "nope.yaml")
+
+
+def test_tum_bad_lines_name_the_line(tmp_path: Path) -> None:
+    f = tmp_path / "run.tum"
+    good = "# stamp x y z qx qy qz qw\n\n1.0 0 0 0 0 0 0 1\n1.5 1 0 0 0 0 0 1  # comment\n"
+    f.write_text(good)
+    assert layouts.read_trajectory(f)["t_ns"].tolist() == [1_000_000_000, 1_500_000_000]
+    cases = {
+        good + "2.0 1 abc 0 0 0 0 1\n": "run.tum: line 5, field y: 'abc' is not a finite number",
+        good + "2.0 1 0 0 0 0 1\n": "run.tum: line 5: 7 fields, a TUM trajectory line has 8",
+        good + "2.0 inf 0 0 0 0 0 1\n": "line 5, field x: 'inf' is not a finite number",
+        good + "2.0 1 0 0 0 0 0 0\n": "line 5: quaternion (qx, qy, qz, qw) = (0.0, 0.0, 0.0, 0.0)",
+        good + "1.2 1 0 0 0 0 0 1\n": "line 5: stamp 1.200000000 s is earlier than the one before",
+    }
+    for text, message in cases.items():
+        f.write_text(text)
+        with pytest.raises(SourceError) as info:
+            layouts.read_trajectory(f)
+        assert message in str(info.value) and "\n" not in str(info.value), (text, info.value)
+    f.write_text("# nothing yet\n")
+    empty = layouts.read_trajectory(f)
+    assert len(empty) == 0 and list(empty.columns) == layouts.TRAJ_COLS
+
+
+def test_header_only_csv_is_an_empty_trajectory(tmp_path: Path) -> None:
+    (tmp_path / "trajectory.csv").write_text("stamp_sec,stamp_nanosec,x,y,z,qx,qy,qz,qw\n")
+    assert len(layouts.read_trajectory(tmp_path)) == 0
+
+
+def test_observations_csv_bad_tag_cell_names_the_row(tmp_path: Path) -> None:
+    f = tmp_path / "observations.csv"
+    f.write_text("stamp_sec,stamp_nanosec,tag,x,y,z,qx,qy,qz,qw\n"
+                 "2,0,tag36h11:5,0.1,0.2,1.0,0,0,0,1\n"
+                 "1,500,,0.0,0.0,2.0,1,0,0,0\n")  # fmt: skip
+    from tagtrail.io.sources import ObservationsSource
+
+    with pytest.raises(SourceError, match=r"observations.csv: data row 2, column tag: empty cell "
+                       r"is not a tag name"):  # fmt: skip
+        ObservationsSource(tmp_path)
