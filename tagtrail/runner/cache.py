@@ -26,6 +26,7 @@ import numpy as np
 import pandas as pd
 import pyarrow.parquet as pq
 
+from tagtrail import faults
 from tagtrail.errors import SourceError, SpecError
 from tagtrail.runner.paths import clean_temp_files, inside
 from tagtrail.schemas.artifacts import conform
@@ -175,6 +176,7 @@ class Store:
                         "a stage returns DataFrames or dicts"
                     )
                 f = tmp / fname
+                faults.point(f"store:{stage}")
                 files[name] = {
                     "file": fname,
                     "sha256": file_sha256(f),

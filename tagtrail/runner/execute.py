@@ -10,6 +10,7 @@ from collections.abc import Callable
 from dataclasses import asdict, dataclass
 from typing import Any
 
+from tagtrail import faults
 from tagtrail.errors import StageError, TagtrailError, storage_error
 from tagtrail.runner.cache import (
     SourceHasher,
@@ -166,6 +167,7 @@ class Runner:
                 assert ref.output is not None
                 kwargs[arg] = self.store.load(up.stage, keys[up], ref.output)
         outputs = spec.run(self.pipe.params_for(node.stage, node.dataset), **kwargs)
+        faults.point(f"stage:{node.stage}")
         if not isinstance(outputs, dict) or set(outputs) != set(spec.outputs):
             got = sorted(outputs) if isinstance(outputs, dict) else type(outputs).__name__
             raise TypeError(f"run() returned {got}, expected outputs {list(spec.outputs)}")

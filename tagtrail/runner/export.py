@@ -14,6 +14,7 @@ import json
 from pathlib import Path
 from typing import Any
 
+from tagtrail import faults
 from tagtrail.runner.cache import atomic_write_text, canonical_json, file_sha256, sha256_text
 from tagtrail.runner.execute import Runner
 from tagtrail.runner.paths import clean_temp_files, inside
@@ -84,6 +85,7 @@ def _export(runner: Runner, force: bool) -> dict[str, Path]:
         wrote = False
         for exporter in EXPORTERS:
             wrote |= bool(exporter(get, folder, dataset))
+            faults.point(f"export:{exporter.__name__}")
         if wrote:
             written[dataset] = folder
             doc = {"stamp": stamp, "files": _hashes(folder)}

@@ -7,6 +7,7 @@ did-you-mean for misspelt stage, dataset and parameter names.
 from __future__ import annotations
 
 import difflib
+import re
 from collections.abc import Iterable, Mapping
 from dataclasses import dataclass
 from pathlib import Path
@@ -82,19 +83,25 @@ def _unique_mapping(loader: _UniqueKeyLoader, node: yaml.MappingNode, deep: bool
         if key_node.tag == "tag:yaml.org,2002:merge":  # `<<: *defaults` may be overridden
             continue
         key = loader.construct_object(key_node, deep=True)  # type: ignore[no-untyped-call]
+        line = key_node.start_mark.line + 1
         try:
-            first = seen.setdefault(key, key_node.start_mark.line + 1)
+            first = seen.get(key)
+            seen[key] = line
         except TypeError:  # an unhashable key: the base constructor reports it
             continue
-        if first != key_node.start_mark.line + 1:
+        if first is not None:
             raise yaml.constructor.ConstructorError(
-                None, None,
-                f"key {key!r} written twice (lines {first} and {key_node.start_mark.line + 1})",
+                None, None, f"key {key!r} written twice (lines {first} and {line})",
                 key_node.start_mark,
             )
     return loader.construct_mapping(node, deep=deep)
 
 
+# YAML 1.2 reads `1e-3` as a number; PyYAML (YAML 1.1) would read it as the string "1e-3".
+_UniqueKeyLoader.add_implicit_resolver(
+    "tag:yaml.org,2002:float", re.compile(r"^[-+]?[0-9][0-9_]*(?:\.[0-9_]*)?[eE][-+]?[0-9]+$"),
+    list("-+0123456789"),
+)
 _UniqueKeyLoader.add_constructor(
     yaml.resolver.BaseResolver.DEFAULT_MAPPING_TAG, _unique_mapping  # type: ignore[arg-type]
 )
