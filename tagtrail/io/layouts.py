@@ -22,6 +22,7 @@ import pandas as pd
 import yaml
 from numpy.typing import NDArray
 
+from tagtrail import faults
 from tagtrail.errors import SourceError, one_line
 
 POSE_COLS = ["x_m", "y_m", "z_m", "qx", "qy", "qz", "qw"]
@@ -42,6 +43,7 @@ def atomic_write(path: Path, write: Callable[[Path], None]) -> None:
     fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", dir=path.parent)
     os.close(fd)
     try:
+        faults.point(f"write:{path.name}")
         write(Path(tmp))
         umask = os.umask(0)
         os.umask(umask)
