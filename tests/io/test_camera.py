@@ -100,11 +100,72 @@ def test_from_yaml_simple_meta_form(realdata: Path) -> None:
 def test_bad_camera_input_raises_source_error(tmp_path: Path) -> None:
     with pytest.raises(SourceError, match="unsupported distortion model 'kannala'"):
         CameraModel(640, 480, K, [0.1], "kannala")
-    with pytest.raises(SourceError, match="fx, fy must be > 0"):
+    with pytest.raises(SourceError, match=r"fx = 0, fy = 0 \(both must be > 0\)"):
         CameraModel(640, 480, [0.0] * 9, [], "none")
     f = tmp_path / "cam.yaml"
     f.write_text("image_width: 640\n")
     with pytest.raises(SourceError, match=r"cam\.yaml: not a camera_info YAML"):
         CameraModel.from_yaml(f)
-    with pytest.raises(SourceError, match="cannot read camera YAML"):
+    with pytest.raises(SourceError, match="missing.yaml: cannot read camera file"):
         CameraModel.from_yaml(tmp_path / "missing.yaml")
+
+
+GOOD_CAMERA = """image_width: 640
+image_height: 480
+camera_matrix:
+  rows: 3
+  cols: 3
+  data: [500.0, 0.0, 320.0, 0.0, 505.0, 240.0, 0.0, 0.0, 1.0]
+distortion_model: plumb_bob
+distortion_coefficients:
+  rows: 1
+  cols: 5
+  data: [0.1, -0.2, 0.001, 0.002, 0.05]
+"""
+BAD_CAMERAS = {  # edit of GOOD_CAMERA → what the one error line must say after the file name
+    "missing K": (lambda t: t.replace("camera_matrix:", "camera_matrixx:"),
+                  "not a camera_info YAML: no camera_matrix; a camera_info YAML needs"),
+    "K too short": (lambda t: t.replace(", 0.0, 0.0, 1.0]", "]"),
+                    "camera_matrix.data has 6 numbers, needs 9"),
+    "K not numeric": (lambda t: t.replace("505.0", "abc"),
+                      "camera_matrix.data[4] is 'abc', not a number"),
+    "D not numeric": (lambda t: t.replace("-0.2", "x"),
+                      "distortion_coefficients.data[1] is 'x', not a number"),
+    "width": (lambda t: t.replace("640", "wide"), "image_width is 'wide', not a positive integer"),
+    "fx zero": (lambda t: t.replace("500.0", "0.0"),
+                "camera matrix K is not a calibration: fx = 0, fy = 505 (both must be > 0)"),
+    "K infinite": (lambda t: t.replace("500.0", ".inf"), "camera matrix K has non-finite values"),
+    "not YAML": (lambda t: t.replace("data: [500.0,", "data: [500.0,: ,"),
+                 "not valid YAML (camera file): line 6, column 16: expected the node content"),
+    "not a mapping": (lambda t: "- 1\n- 2\n", "not a camera_info YAML (it holds list"),
+    "empty": (lambda t: "", "empty file; a camera_info YAML needs"),
+    "model": (lambda t: t.replace("plumb_bob", "kannala"), "unsupported distortion model"),
+}
+
+
+def image_folder(folder: Path, camera_text: str) -> Path:
+    folder.mkdir()
+    cv2.imwrite(str(folder / "f0.png"), np.full((480, 640), 128, np.uint8))
+    (folder / "camera.yaml").write_text(camera_text)
+    return folder
+
+
+def test_good_camera_yaml_loads(tmp_path: Path) -> None:  # the file the cases below break
+    cam = CameraModel.from_yaml(image_folder(tmp_path / "imgs", GOOD_CAMERA) / "camera.yaml")
+    assert (cam.width, cam.height, cam.K[1, 1], cam.D[1]) == (640, 480, 505.0, -0.2)
+
+
+@pytest.mark.parametrize("case", sorted(BAD_CAMERAS))
+def test_bad_camera_yaml_is_one_line(tmp_path: Path, capsys, case: str) -> None:
+    from tagtrail.cli import main
+
+    edit, message = BAD_CAMERAS[case]
+    folder = image_folder(tmp_path / "imgs", edit(GOOD_CAMERA))
+    with pytest.raises(SourceError) as info:  # one line at the source, not only once folded
+        CameraModel.from_yaml(folder / "camera.yaml")
+    assert "\n" not in str(info.value)
+    assert main(["init", "--reference", str(folder), "-o", str(tmp_path / "p.yaml")]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1, err
+    assert err[0].startswith(f"error: {folder / 'camera.yaml'}: ") and message in err[0], err[0]
+    assert not (tmp_path / "p.yaml").exists()
