@@ -71,6 +71,7 @@ class Source:
 
     kind: Kind
     path: Path
+    camera_origin: str = "the camera model"  # where camera() comes from, for messages
 
     def camera(self) -> CameraModel | None:
         """The camera model (None for observations sources)."""
@@ -105,6 +106,10 @@ class Source:
 
     def describe(self) -> str:
         return f"{self.kind} source {self.path}"
+
+    def frame_name(self, frame_idx: int, t_ns: int) -> str:
+        """How messages name a frame (a file name for image folders)."""
+        return f"frame {frame_idx} at {t_ns // 1_000_000_000}.{t_ns % 1_000_000_000:09d} s"
 
     def close(self) -> None:
         """Release open files (sources reopen them when iterated again)."""
@@ -143,7 +148,7 @@ def open_source(cfg: DatasetConfig) -> Source:
     if (path / "observations.csv").is_file():
         return ObservationsSource(path)
     if _image_files(path):
-        return ImageFolderSource(path, camera)
+        return ImageFolderSource(path, camera, cfg.camera)
     if any(path.glob("*.mcap")) or any(path.glob("*.db3")):
         raise SourceError(
             f"{path}: bag files without metadata.yaml (`ros2 bag reindex {path}` recreates it)"
@@ -220,10 +225,12 @@ class BagSource(Source):
             self.kind, self.topic = self._choose_topic(cfg)
             self.camera_info_topic: str | None = None
             self._camera = camera
+            self.camera_origin = str(cfg.camera)
             if camera is None:
                 self.camera_info_topic = self._choose_camera_info(cfg)
                 if self.camera_info_topic is not None:
                     self._camera = self._first_camera_info(reader)
+                    self.camera_origin = f"CameraInfo of {self.camera_info_topic}"
         if self._counts[self.topic] == 0:
             raise SourceError(f"{self.path}: topic {self.topic} has no messages (empty bag?)")
 
@@ -389,12 +396,16 @@ class ImageFolderSource(Source):
 
     kind: Kind = "images"
 
-    def __init__(self, path: Path, camera: CameraModel | None) -> None:
+    def __init__(
+        self, path: Path, camera: CameraModel | None, camera_file: Path | None = None
+    ) -> None:
         self.path = Path(path)
         self.files = _image_files(self.path)
         if camera is None and (self.path / "camera.yaml").is_file():
-            camera = CameraModel.from_yaml(self.path / "camera.yaml")
+            camera_file = self.path / "camera.yaml"
+            camera = CameraModel.from_yaml(camera_file)
         self._camera = camera
+        self.camera_origin = str(camera_file)
         self.stamps_ns = self._stamps()
 
     def _stamps(self) -> NDArray[np.int64]:
@@ -422,6 +433,9 @@ class ImageFolderSource(Source):
 
     def describe(self) -> str:
         return f"image folder {self.path} ({len(self)} images)"
+
+    def frame_name(self, frame_idx: int, t_ns: int) -> str:
+        return self.files[frame_idx].name
 
     def iter_raw(self) -> Iterator[Frame]:
         for idx, (p, t_ns) in enumerate(zip(self.files, self.stamps_ns, strict=True)):

@@ -11,12 +11,15 @@ Tags whose white quiet zone runs off the image are dropped (``keep_truncated``):
 puts one of their edges on the border. Detection sources (``apriltag_msgs``: no image to re-fit
 with) are filtered with the same ``max_hamming`` / ``min_decision_margin`` / ``tag_ids`` /
 ``keep_truncated`` rules; observation sources fill ``observations`` and leave ``detections``
-empty.
+empty. Image frames whose decoded size is not the camera's (``width``/``height`` of camera.yaml
+or CameraInfo) are left out — their poses would be wrong — with a warning naming them; a
+:class:`SourceError` when that leaves no frame.
 
-Outputs (columns as docs/ARCHITECTURE.md): ``frames`` (every frame, with or without tags),
-``detections`` (corners in px, detector order, OpenCV convention — pixel centres at integers —,
-in the raw, distorted image), ``camera`` (:meth:`CameraModel.to_dict`, ``{}`` for observation
-sources), ``observations`` (cam_T_tag given by the source). Rows sorted by (frame_idx, tag_id).
+Outputs (columns as docs/ARCHITECTURE.md): ``frames`` (every frame of the camera's size, with or
+without tags), ``detections`` (corners in px, detector order, OpenCV convention — pixel centres
+at integers —, in the raw, distorted image), ``camera`` (:meth:`CameraModel.to_dict`, ``{}``
+for observation sources), ``observations`` (cam_T_tag given by the source). Rows sorted by
+(frame_idx, tag_id).
 """
 
 from __future__ import annotations
@@ -213,12 +216,7 @@ def _detect_images(src: Source, params: Params, camera: CameraModel) -> tuple[An
     order = np.argsort(frame_idx, kind="stable")
     frame_idx = frame_idx[order]
     n_det = np.concatenate([p["n_det"] for p in parts])[order] if parts else np.zeros(0, int)
-    shapes = np.concatenate([p["shape"] for p in parts]) if parts else np.zeros((0, 2), int)
-    shape = (camera.height, camera.width)
-    bad = np.any(shapes != np.asarray(shape), axis=1)
-    if bad.any():
-        log.warning("%s: %d frame(s) are %dx%d, the camera model says %dx%d", src.describe(),
-                    int(bad.sum()), shapes[bad][0][1], shapes[bad][0][0], shape[1], shape[0])
+    shapes = np.concatenate([p["shape"] for p in parts])[order] if parts else np.zeros((0, 2))
     n_cut = int(sum(int(p["n_truncated"]) for p in parts))
     if n_cut:
         log.info("%s: %d detection(s) of tags cut by the image border dropped "
@@ -228,7 +226,35 @@ def _detect_images(src: Source, params: Params, camera: CameraModel) -> tuple[An
     det_t = np.array([t_of[int(i)] for i in det_frame], dtype=np.int64)
     ints = np.concatenate([p["det_ints"] for p in parts]) if parts else np.zeros((0, 2), int)
     floats = np.concatenate([p["det_floats"] for p in parts]) if parts else np.zeros((0, 9))
+    wrong = np.any(shapes != [camera.height, camera.width], axis=1)
+    if wrong.any():  # another size than the intrinsics': their poses would be wrong
+        _report_wrong_size(src, camera, frame_idx[wrong], t_ns[wrong], shapes[wrong])
+        keep = ~np.isin(det_frame, frame_idx[wrong])
+        det_t, det_frame, ints, floats = det_t[keep], det_frame[keep], ints[keep], floats[keep]
+        t_ns, frame_idx, n_det = t_ns[~wrong], frame_idx[~wrong], n_det[~wrong]
     return t_ns, frame_idx, n_det, (det_t, det_frame, ints, floats)
+
+
+def _report_wrong_size(
+    src: Source, camera: CameraModel, frame_idx: NDArray[Any], t_ns: NDArray[Any],
+    shapes: NDArray[Any],
+) -> None:
+    """Warn about frames whose decoded size is not the camera's (they are left out); a
+    :class:`SourceError` when no frame is left."""
+    size = [f"{w}x{h}" for h, w in shapes.tolist()]
+    found = ", ".join(f"{k} ({n} frame{'s' * (n > 1)})" for k, n in Counter(size).most_common())
+    cam = f"{camera.width}x{camera.height}"
+    if len(frame_idx) == len(src):
+        raise SourceError(
+            f"{src.path}: no frame has the size {cam} of the camera ({src.camera_origin}), they "
+            f"are {found}; give the camera calibration for their resolution (or images of {cam})"
+        )
+    names = [f"{src.frame_name(int(i), int(t))} ({k})"
+             for i, t, k in zip(frame_idx, t_ns, size, strict=True)]  # fmt: skip
+    more = f" and {len(names) - 5} more" if len(names) > 5 else ""
+    log.warning("%s: %d of %d frames left out, their size is not the camera's %s (%s): %s%s",
+                src.describe(), len(names), len(src), cam, src.camera_origin,
+                ", ".join(names[:5]), more)  # fmt: skip
 
 
 def _map_chunks(

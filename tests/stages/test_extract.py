@@ -240,3 +240,84 @@ def test_repeated_runs_in_subprocesses_always_exit_0(upenn_dir: Path, tmp_path: 
             outs.append(out.strip() or err[-500:])
     assert codes == [0] * 20, outs
     assert set(outs) == {"2 1"}
+
+
+# --- frames of another size than the camera's: left out (a warning naming them), or an error ---
+
+
+def upenn_folder(upenn_dir: Path, folder: Path, resize: tuple[int, ...]) -> Path:
+    """The first 10 upenn frames (640x480) + camera.yaml; frames ``resize`` scaled to 1280x960."""
+    folder.mkdir()
+    shutil.copy(upenn_dir / "frames/camera.yaml", folder)
+    for k, f in enumerate(sorted((upenn_dir / "frames").glob("frame*.jpg"))[:10]):
+        img = cv2.imread(str(f))
+        cv2.imwrite(str(folder / f.name), cv2.resize(img, (1280, 960)) if k in resize else img)
+    return folder
+
+
+def test_folder_frames_of_another_size_are_left_out(upenn_dir, tmp_path, monkeypatch, caplog,
+                                                    capsys) -> None:  # fmt: skip
+    from tagtrail.cli import main
+
+    monkeypatch.chdir(tmp_path)
+    folder = upenn_folder(upenn_dir, tmp_path / "imgs", resize=(5,))
+    assert main(["init", "--reference", "imgs", "--tag-size", "0.14"]) == 0
+    with caplog.at_level("WARNING"):
+        assert main(["run"]) == 0
+    warned = [r.getMessage() for r in caplog.records if "left out" in r.getMessage()]
+    assert warned == [f"image folder {folder} (10 images): 1 of 10 frames left out, their size "
+                      f"is not the camera's 640x480 ({folder / 'camera.yaml'}): "
+                      "frame0005.jpg (1280x960)"]  # fmt: skip
+    raw = pd.read_csv(tmp_path / "outputs/reference/trajectory_raw.csv")
+    assert raw["stamp_nanosec"].tolist() == [k * 100_000_000 for k in range(10) if k != 5]
+    xyz = raw[["x", "y", "z"]].to_numpy()  # a hand-held camera barely moving: no outlier
+    assert np.linalg.norm(xyz - np.median(xyz, axis=0), axis=1).max() < 0.005
+
+
+def test_folder_of_wrong_size_frames_stops_with_one_line(upenn_dir, tmp_path, monkeypatch,
+                                                         capsys) -> None:  # fmt: skip
+    from tagtrail.cli import main
+
+    monkeypatch.chdir(tmp_path)
+    folder = upenn_folder(upenn_dir, tmp_path / "imgs", resize=tuple(range(10)))
+    assert main(["init", "--reference", "imgs", "--tag-size", "0.14"]) == 0
+    capsys.readouterr()
+    assert main(["run"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith("error: "), err
+    assert (f"{folder}: no frame has the size 640x480 of the camera ({folder / 'camera.yaml'}), "
+            "they are 1280x960 (10 frames); give the camera calibration") in err[0]
+    assert not (tmp_path / "outputs/reference/trajectory_raw.csv").exists()
+
+
+@pytest.mark.parametrize("compressed", [False, True])
+def test_bag_frames_of_another_size_are_left_out(upenn_dir, tmp_path, caplog,
+                                                 compressed: bool) -> None:  # fmt: skip
+    """Image / CompressedImage messages whose decoded size is not CameraInfo's: the same rule."""
+    files = sorted((upenn_dir / "frames").glob("frame*.jpg"))[:4]
+    cam = CameraModel.from_yaml(upenn_dir / "frames/camera.yaml")
+
+    def bag(name: str, small: set[int]) -> Path:
+        out = [("/camera/camera_info", T0, bags.camera_info_msg(cam))]
+        for k, f in enumerate(files):
+            img = cv2.imread(str(f))
+            img = cv2.resize(img, (320, 240)) if k in small else img
+            t = T0 + k * DT
+            rgb = np.ascontiguousarray(img[..., ::-1])
+            msg = (bags.compressed_msg(cv2.imencode(".png", img)[1].tobytes(), "png", t)
+                   if compressed else bags.image_msg(rgb, "rgb8", t))
+            out.append(("/camera/image" + "/compressed" * compressed, t, msg))
+        return bags.write_bag(tmp_path / name, out)
+
+    with caplog.at_level("WARNING"):
+        got = extract.run(DatasetConfig(source=bag("some", {2})), extract.Params(chunk_size=2))
+    assert got["frames"]["frame_idx"].tolist() == [0, 1, 3]
+    assert got["detections"]["frame_idx"].tolist() == [0, 1, 3]
+    msg = [r.getMessage() for r in caplog.records if "left out" in r.getMessage()]
+    assert len(msg) == 1 and msg[0].endswith(
+        f"1 of 4 frames left out, their size is not the camera's 640x480 (CameraInfo of "
+        f"/camera/camera_info): frame 2 at {(T0 + 2 * DT) // 10**9}.{(T0 + 2 * DT) % 10**9:09d} s "
+        "(320x240)")
+    with pytest.raises(SourceError, match=r"no frame has the size 640x480 of the camera "
+                       r"\(CameraInfo of /camera/camera_info\), they are 320x240 \(4 frames\)"):
+        extract.run(DatasetConfig(source=bag("all", {0, 1, 2, 3})), extract.Params())
