@@ -105,6 +105,7 @@ class Runner:
         return {
             "stage": node.stage,
             "code": spec.code_fingerprint,
+            "code_modules": spec.code_modules,
             "schema": [spec.schema_version, ARTIFACT_SCHEMA_VERSION],
             "params": self.pipe.params_for(node.stage, node.dataset).key_dump(),
             "inputs": inputs,
@@ -116,7 +117,11 @@ class Runner:
             return "never run"
         reasons = []
         if last.get("code") != record["code"]:
-            reasons.append("code changed")
+            old, new = last.get("code_modules") or {}, record["code_modules"]
+            names = sorted(m for m in set(old) | set(new) if old.get(m) != new.get(m))
+            stage_module = self.pipe.stages[node.stage].module.__name__
+            shown = ", ".join(stage_module if m == "." else m for m in names)
+            reasons.append(f"code changed: {shown}" if old and shown else "code changed")
         if last.get("params") != record["params"]:
             reasons.append("params changed: " + _param_diff(last["params"], record["params"]))
         old_inputs = last.get("inputs", {})

@@ -54,7 +54,7 @@ def _export(runner: Runner, force: bool) -> dict[str, Path]:
     from tagtrail.io.exports import EXPORTERS
 
     keys = {(s.stage, s.dataset): s.key for s in runner.plan() if s.status == "cached"}
-    code = code_fingerprint(exports, exports.DEPENDS)
+    code = code_fingerprint(exports)
     written: dict[str, Path] = {}
     for dataset in runner.pipe.datasets:
         used = sorted(f"{st}/{ds}/{k}" for (st, ds), k in keys.items()

@@ -2,9 +2,12 @@
 
 from __future__ import annotations
 
+import ast
+import functools
 import hashlib
-import importlib
+import importlib.util
 import inspect
+import os
 import re
 from dataclasses import dataclass
 from types import ModuleType
@@ -57,27 +60,104 @@ class StageSpec:
     outputs: tuple[str, ...]
     scope: str
     schema_version: int
-    code_fingerprint: str
+    code_modules: dict[str, str]
+
+    @property
+    def code_fingerprint(self) -> str:
+        return fingerprint(self.code_modules)
 
     def run(self, params: StageParams, **inputs: Any) -> dict[str, Any]:
         return self.module.run(**inputs, params=params)  # type: ignore[no-any-return]
 
 
-def _source_bytes(mod: ModuleType) -> bytes:
-    path = inspect.getsourcefile(mod)
-    if path is None:
-        raise SpecError(f"stage module {mod.__name__} has no source file to fingerprint")
+def _strip_docstrings(tree: ast.AST) -> ast.AST:
+    """Drop module, class and function docstrings (comments are not in the AST at all)."""
+    for node in ast.walk(tree):
+        if isinstance(node, (ast.Module, ast.ClassDef, ast.FunctionDef, ast.AsyncFunctionDef)):
+            body = node.body
+            if body and isinstance(body[0], ast.Expr) and isinstance(body[0].value, ast.Constant) \
+                    and isinstance(body[0].value.value, str):
+                node.body = body[1:] or [ast.Pass()]
+    return tree
+
+
+@functools.lru_cache(maxsize=512)
+def _parse(path: str, mtime_ns: int, size: int) -> tuple[str, tuple[tuple[str, str | None], ...]]:
+    """(hash of the code, its imports as (module, name taken from it or None)) of one source
+    file; cached per file version. Relative modules keep their leading dots."""
     with open(path, "rb") as f:
-        return f.read()
+        tree = ast.parse(f.read(), filename=path)
+    digest = hashlib.sha256(ast.dump(_strip_docstrings(tree)).encode()).hexdigest()
+    imports: list[tuple[str, str | None]] = []
+    for node in ast.walk(tree):
+        if isinstance(node, ast.Import):
+            imports += [(a.name, None) for a in node.names]
+        elif isinstance(node, ast.ImportFrom):
+            module = "." * node.level + (node.module or "")
+            imports += [(module, a.name) for a in node.names]
+    return digest, tuple(imports)
 
 
-def code_fingerprint(module: ModuleType, depends: tuple[str, ...] = ()) -> str:
-    """sha256 of the stage module's source plus the sources of the modules it declares."""
-    h = hashlib.sha256(_source_bytes(module))
-    for name in sorted(depends):
-        h.update(name.encode())
-        h.update(_source_bytes(importlib.import_module(name)))
-    return h.hexdigest()
+def _origin(name: str) -> str | None:
+    """The source file of an importable module, or None (not a module, or no source)."""
+    try:
+        spec = importlib.util.find_spec(name)
+    except (ImportError, ValueError):
+        return None
+    origin = spec.origin if spec is not None else None
+    return origin if origin is not None and origin.endswith(".py") else None
+
+
+def _absolute(name: str, importer: str, is_package: bool) -> str:
+    if not name.startswith("."):
+        return name
+    level = len(name) - len(name.lstrip("."))
+    parts = importer.split(".")
+    base = parts if is_package else parts[:-1]
+    base = base[: len(base) - (level - 1)]
+    return ".".join([*base, *([name.lstrip(".")] if name.lstrip(".") else [])])
+
+
+def code_closure(module: ModuleType) -> dict[str, str]:
+    """Hash of every first-party module ``module`` imports, directly or not (lazy imports in
+    functions included), by module name; the module itself is ``"."``. A module's hash covers
+    its code, not its docstrings, comments or layout. First party = ``tagtrail`` and the
+    module's own top-level package. ``from pkg import sub`` follows the submodule ``pkg.sub``;
+    a package's ``__init__`` counts only where a name is taken from it."""
+    first_party = {"tagtrail", module.__name__.split(".")[0]}
+    path = inspect.getsourcefile(module)
+    if path is None:
+        raise SpecError(f"module {module.__name__} has no source file to fingerprint")
+    out: dict[str, str] = {}
+    todo: list[tuple[str, str]] = [(module.__name__, path)]
+    seen = {module.__name__}
+    while todo:
+        name, file = todo.pop()
+        st = os.stat(file)
+        digest, imports = _parse(file, st.st_mtime_ns, st.st_size)
+        out["." if name == module.__name__ else name] = digest
+        is_package = os.path.basename(file) == "__init__.py"
+        for mod, attr in imports:
+            target = _absolute(mod, name, is_package)
+            if target.split(".")[0] not in first_party:
+                continue
+            if attr is not None and _origin(f"{target}.{attr}") is not None:
+                target = f"{target}.{attr}"  # a submodule, not a name of the package
+            if target in seen or (origin := _origin(target)) is None:
+                continue
+            seen.add(target)
+            todo.append((target, origin))
+    return dict(sorted(out.items()))
+
+
+def fingerprint(closure: dict[str, str]) -> str:
+    """sha256 over a :func:`code_closure`: changes exactly when code the module runs changes."""
+    text = "".join(f"{name}\0{digest}\n" for name, digest in sorted(closure.items()))
+    return hashlib.sha256(text.encode()).hexdigest()
+
+
+def code_fingerprint(module: ModuleType) -> str:
+    return fingerprint(code_closure(module))
 
 
 def stage_spec(name: str, module: ModuleType) -> StageSpec:
@@ -112,5 +192,5 @@ def stage_spec(name: str, module: ModuleType) -> StageSpec:
         outputs=tuple(outputs),
         scope=scope,
         schema_version=int(getattr(module, "SCHEMA_VERSION", 1)),
-        code_fingerprint=code_fingerprint(module, tuple(getattr(module, "DEPENDS", ()))),
+        code_modules=code_closure(module),
     )
