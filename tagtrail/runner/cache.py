@@ -118,8 +118,10 @@ def atomic_write_text(path: Path, text: str) -> None:
         with os.fdopen(fd, "w") as f:
             f.write(text)
         os.replace(tmp, path)
-    except BaseException:
+    except BaseException as err:
         Path(tmp).unlink(missing_ok=True)
+        if isinstance(err, OSError) and err.filename is None:
+            err.filename = str(path)  # a failed write() names no file; say which
         raise
 
 
@@ -190,8 +192,10 @@ class Store:
             if final.exists():  # a corrupt entry under the same key: move it aside first
                 shutil.rmtree(final)
             os.replace(tmp, final)
-        except BaseException:
+        except BaseException as err:
             shutil.rmtree(tmp, ignore_errors=True)
+            if isinstance(err, OSError) and err.filename is None:
+                err.filename = str(self.entry(stage, key))
             raise
         self._verified[final] = manifest
         return manifest
