@@ -40,9 +40,6 @@ class Graph:
                 todo.extend(self.deps(n))
         return out
 
-    def descendants(self, node: Node) -> set[Node]:
-        return {n for n in self.order if node in self.ancestors_and_self({n}) and n != node}
-
 
 def inputs_for(pipe: Pipeline, stage: str, dataset: str) -> dict[str, InputRef]:
     """The stage's declared inputs with the dataset's rewiring applied."""

@@ -21,6 +21,7 @@ from tagtrail.runner.cache import (
     sha256_text,
 )
 from tagtrail.runner.dag import Graph, Node, build_graph, select
+from tagtrail.runner.executors import make_executor
 from tagtrail.runner.paths import inside
 from tagtrail.runner.spec import Pipeline
 from tagtrail.schemas.artifacts import VERSION as ARTIFACT_SCHEMA_VERSION
@@ -188,7 +189,7 @@ class Runner:
         keys: dict[Node, str] = {}
         states: dict[Node, NodeState] = {}
         failure: BaseException | None = None
-        with self.store.lock(), cf.ThreadPoolExecutor(self.jobs) as pool:
+        with self.store.lock(), make_executor("local", self.jobs) as pool:
             running: dict[cf.Future[int | None], tuple[Node, NodeState, float]] = {}
             pending = list(order)
             while pending or running:
