@@ -9,10 +9,11 @@ from __future__ import annotations
 
 import argparse
 import logging
-import os
+import math
 import sys
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from pathlib import Path
+from typing import Any
 
 from tagtrail.errors import TagtrailError, report
 from tagtrail.geometry.plane import PLANES
@@ -29,18 +30,41 @@ EXAMPLES = """examples:
 """
 
 
+def _number(kind: type, low: float, strict: bool = False) -> Callable[[str], Any]:
+    """An argparse ``type=``: a finite ``kind`` (int or float) ≥ ``low`` (> ``low`` if
+    ``strict``); anything else is one argparse error line (exit 2)."""
+    bound = f"{'>' if strict else '>='} {low:g}"
+    what = "an integer" if kind is int else "a number"
+    must = "an integer" if kind is int else "a finite number"
+
+    def parse(text: str) -> Any:
+        try:
+            value = kind(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"{text!r} is not {what}") from None
+        if not math.isfinite(value) or value < low or (strict and value == low):
+            raise argparse.ArgumentTypeError(f"must be {must} {bound}, got {text!r}")
+        return value
+    return parse
+
+
+NON_NEGATIVE = _number(float, 0.0)  # durations, periods, rates, margins
+COUNT = _number(int, 0)
+POSITIVE = _number(float, 0.0, strict=True)
+
+
 def _common(p: argparse.ArgumentParser, count_help: str, express: bool) -> None:
     add_session_arguments(p)
     g = p.add_argument_group("run")
-    g.add_argument("--duration", type=float, default=None, metavar="S",
+    g.add_argument("--duration", type=NON_NEGATIVE, default=None, metavar="S",
                    help="stop after S seconds (default: run until SIGINT/SIGTERM)")
-    g.add_argument("--count", type=int, default=None, metavar="N", help=count_help)
+    g.add_argument("--count", type=COUNT, default=None, metavar="N", help=count_help)
     g.add_argument("--congestion", choices=["block", "drop"], default="block",
                    help="when the network is congested: block (reliable, default) or drop")
     g.add_argument("--express", action=argparse.BooleanOptionalAction, default=express,
                    help="send every sample at once, no batching (default: "
                    f"{'on: lowest latency for a controller' if express else 'off'})")
-    g.add_argument("--stats-period", type=float, default=10.0, metavar="S",
+    g.add_argument("--stats-period", type=NON_NEGATIVE, default=10.0, metavar="S",
                    help="log a stats line every S seconds (0: never; default 10)")
 
 
@@ -67,9 +91,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> argparse.ArgumentParser:
     p.add_argument("--plane", choices=list(PLANES), default=None,
                    help="plane of D and phi (default: the alignment file's, else auto)")
     p.add_argument("--frame-id", default="map", help="frame of the outputs (default: map)")
-    p.add_argument("--path-period", type=float, default=1.0, metavar="S",
+    p.add_argument("--path-period", type=NON_NEGATIVE, default=1.0, metavar="S",
                    help="republish the reference path every S seconds (0: once; default 1)")
-    p.add_argument("--path-max-points", type=int, default=10_000, metavar="N",
+    p.add_argument("--path-max-points", type=COUNT, default=10_000, metavar="N",
                    help="decimate the published path to N poses (0: all; default 10000)")
     _common(p, "stop after N input messages", express=True)
 
@@ -78,16 +102,19 @@ def add_arguments(parser: argparse.ArgumentParser) -> argparse.ArgumentParser:
                        description="Publish the poses of a trajectory file or a bag's pose topic "
                        "as CDR PoseStamped, at the recorded rate.")
     p.add_argument("source", type=Path, help="trajectory CSV/TUM/folder, or a bag")
-    p.add_argument("--rate", type=float, default=1.0,
-                   help="speed factor (0: as fast as possible; default 1)")
+    p.add_argument("--rate", type=NON_NEGATIVE, default=1.0,
+                   help="speed factor, >= 0 (0: as fast as possible; default 1)")
     p.add_argument("--key", default="tag_only_pose", help="output key (default: %(default)s)")
     p.add_argument("--topic", default=None, help="the bag's pose topic (default: the only one)")
     p.add_argument("--topics", nargs="+", default=None, metavar="TOPIC",
                    help="publish these bag topics unchanged, key = topic without '/'")
     p.add_argument("--frame-id", default=None, help="frame of the poses (default: the bag's, "
                    "map for trajectory files)")
-    p.add_argument("--wait", type=float, default=10.0, metavar="S",
-                   help="wait up to S seconds for a subscriber (default 10)")
+    p.add_argument("--wait", type=NON_NEGATIVE, default=10.0, metavar="S",
+                   help="wait up to S seconds for a subscriber on every key (default 10); "
+                   "if a key has none by then: exit 2, nothing published")
+    p.add_argument("--publish-anyway", action="store_true",
+                   help="publish even if a key has no subscriber after --wait (a warning)")
     _common(p, "publish at most N messages", express=False)
 
     p = sub.add_parser("localize", help="live world_T_cam from detections or images",
@@ -103,12 +130,14 @@ def add_arguments(parser: argparse.ArgumentParser) -> argparse.ArgumentParser:
     p.add_argument("--pose-key", default="tag_only_pose", help="output key (default: "
                    "%(default)s)")
     p.add_argument("--frame-id", default="map", help="frame of the poses (default: map)")
-    p.add_argument("--tag-size", type=float, default=0.16,
+    p.add_argument("--tag-size", type=POSITIVE, default=0.16,
                    help="edge (m) of tags whose size the map does not give (default 0.16)")
     p.add_argument("--method", choices=["auto", "avg", "lsq", "pnp"], default="auto",
                    help="multi-tag method of the trajectory stage (default: auto = pnp)")
-    p.add_argument("--min-decision-margin", type=float, default=20.0)
-    p.add_argument("--max-hamming", type=int, default=0)
+    p.add_argument("--min-decision-margin", type=NON_NEGATIVE, default=20.0, metavar="M",
+                   help="drop detections with a lower decision margin (default 20)")
+    p.add_argument("--max-hamming", type=COUNT, default=0, metavar="N",
+                   help="drop detections with more corrected bits (default 0)")
     _common(p, "stop after N input messages", express=True)
     return parser
 
@@ -134,7 +163,7 @@ def main(args: argparse.Namespace | Sequence[str] | None = None) -> int:
 def _relocalize(ns: argparse.Namespace) -> int:
     from tagtrail.io.layouts import read_trajectory
     from tagtrail.stream.relocalize import Relocalizer, load_alignment, serve
-    from tagtrail.stream.session import stop_on_signals
+    from tagtrail.stream.session import leave_now, stop_on_signals
 
     ref = read_trajectory(ns.reference)
     alignment, plane = None, ns.plane
@@ -145,27 +174,34 @@ def _relocalize(ns: argparse.Namespace) -> int:
                         ns.path_max_points)  # fmt: skip
     session = open_session(config_from_args(ns, "listen"))
     with stop_on_signals() as stop:
-        serve(reloc, session, ns.pose_key, congestion=ns.congestion, express=ns.express,
-              path_period_s=ns.path_period, duration_s=ns.duration, count=ns.count,
-              stats_period_s=ns.stats_period, stop=stop)  # fmt: skip
+        summary = serve(reloc, session, ns.pose_key, congestion=ns.congestion,
+                        express=ns.express, path_period_s=ns.path_period,
+                        duration_s=ns.duration, count=ns.count,
+                        stats_period_s=ns.stats_period, stop=stop)  # fmt: skip
+    if not summary["shutdown_clean"]:
+        leave_now(0)  # a zenoh callback thread blocked in a put would hold the exit for 5 s
     return 0
 
 
 def _replay(ns: argparse.Namespace) -> int:
-    from tagtrail.stream.replay import bag_messages, load_poses, pose_messages, replay
-    from tagtrail.stream.session import stop_on_signals
+    from tagtrail.stream.replay import Replayed, bag_messages, load_poses, pose_messages, replay
+    from tagtrail.stream.session import close_all, leave_now, stop_on_signals
 
     if ns.topics:
         messages = bag_messages(ns.source, ns.topics)
     else:
         messages = pose_messages(load_poses(ns.source, ns.topic, ns.frame_id), ns.key)
     session = open_session(config_from_args(ns, "connect"))
+    done = Replayed(0)
     try:
         with stop_on_signals() as stop:
-            replay(session, messages, rate=ns.rate, count=ns.count, wait_s=ns.wait,
-                   congestion=ns.congestion, express=ns.express, stop=stop)  # fmt: skip
+            done = replay(session, messages, rate=ns.rate, count=ns.count, wait_s=ns.wait,
+                          publish_anyway=ns.publish_anyway, congestion=ns.congestion,
+                          express=ns.express, stop=stop)  # fmt: skip
     finally:
-        session.close()
+        closed = close_all(session, [], timeout_s=0.5 if done.clean else 0.1)
+    if not (done.clean and closed):
+        leave_now(0)  # the put blocked by a congested link would hold the exit for 5 s
     return 0
 
 
@@ -175,7 +211,7 @@ def _localize(ns: argparse.Namespace) -> int:
     from tagtrail.stages.trajectory import Params
     from tagtrail.stream.localize import Localizer, cv2_threads
     from tagtrail.stream.node import Node
-    from tagtrail.stream.session import stop_on_signals
+    from tagtrail.stream.session import leave_now, stop_on_signals
     from tagtrail.stream.stats import Stats
 
     tags, _ = read_tag_map(ns.map)
@@ -199,12 +235,11 @@ def _localize(ns: argparse.Namespace) -> int:
         raise
     with stop_on_signals() as stop:
         node.run(ns.duration, ns.stats_period, stop)
-    if ns.image_key:
+    if ns.image_key or not node.clean:
         # pupil-apriltags may segfault in its destructor at interpreter exit (NOTES; upstream
-        # pupil-labs/apriltags#46): the session is closed and output flushed, so leave at once
-        sys.stdout.flush()
-        sys.stderr.flush()
-        os._exit(0)
+        # pupil-labs/apriltags#46), and a zenoh callback blocked in a put would hold the exit
+        # for 5 s: the session is closed (or abandoned) and stats printed, so leave at once
+        leave_now(0)
     return 0
 
 

@@ -18,6 +18,7 @@ stage works on whole tables).
 from __future__ import annotations
 
 import logging
+import struct
 from collections import Counter
 from typing import Any
 
@@ -48,6 +49,7 @@ from tagtrail.stream.stats import DropError, Stats
 log = logging.getLogger("tagtrail.stream")
 F64 = NDArray[np.float64]
 IMAGE_TYPES = {"compressed": msgs.COMPRESSED_IMAGE, "raw": msgs.IMAGE}
+MAX_IMAGE_SIDE = 8192  # px: larger images are dropped before decoding (8192² gray = 64 MiB)
 
 
 def frame_pose(
@@ -141,6 +143,8 @@ class Localizer:
             cam = CameraModel.from_camera_info(msg)
         except Exception as err:  # noqa: BLE001 - SourceError, shapes
             raise DropError("bad_camera_info", str(err)) from err
+        if cam.width <= 0 or cam.height <= 0:  # images are checked against it
+            raise DropError("bad_camera_info", f"image size {cam.width}x{cam.height}")
         if self.camera is None or not cam.same_as(self.camera):
             log.info("localize: camera %dx%d %s", cam.width, cam.height, cam.distortion_model)
             self.camera = cam
@@ -157,22 +161,43 @@ class Localizer:
         return self._publish(msg.header.stamp, px.reshape(-1, 4, 2), ids)
 
     def on_image(self, data: bytes, kind: str = "compressed") -> list[tuple[str, bytes]]:
+        """Detect tags in one image and publish the pose. The image's size is checked before
+        it is decoded (:meth:`check_size`): a bad or oversized image costs no memory."""
         from tagtrail.io.detector import detect  # pupil-apriltags only where images are used
         from tagtrail.io.images import RawImage
 
         msg = self._decode(data, IMAGE_TYPES[kind])
         if kind == "compressed":
-            raw = RawImage("compressed", bytes(msg.data), encoding=str(msg.format))
+            payload, fmt = bytes(msg.data), str(msg.format)
+            size = encoded_size(payload[12:] if "compresseddepth" in fmt.lower() else payload)
+            if size is None:
+                raise DropError("bad_image", f"CompressedImage ({fmt!r}): no PNG/JPEG header")
+            self.check_size(*size)
+            raw = RawImage("compressed", payload, encoding=fmt)
         else:
-            raw = RawImage("raw", bytes(msg.data), encoding=str(msg.encoding), width=int(msg.width),
-                           height=int(msg.height), step=int(msg.step),
-                           bigendian=bool(msg.is_bigendian))  # fmt: skip
+            w, h, step, n = int(msg.width), int(msg.height), int(msg.step), len(msg.data)
+            self.check_size(w, h)
+            if step < w or not step * (h - 1) + w <= n <= step * h:
+                raise DropError("bad_image", f"Image {w}x{h} step {step}: {n} data bytes")
+            raw = RawImage("raw", bytes(msg.data), encoding=str(msg.encoding), width=w,
+                           height=h, step=step, bigendian=bool(msg.is_bigendian))  # fmt: skip
         try:
             img = raw.decode()
         except Exception as err:  # noqa: BLE001 - SourceError, cv2.error
             raise DropError("bad_image", str(err)) from err
         ints, floats = detect(np.ascontiguousarray(img), self.detector, self.camera)
         return self._publish(msg.header.stamp, floats[:, 1:].reshape(-1, 4, 2), ints[:, 0])
+
+    def check_size(self, width: int, height: int) -> None:
+        """Refuse (:class:`DropError`) an image whose size is not the camera's (CameraInfo
+        ``width``/``height``) or that exceeds :data:`MAX_IMAGE_SIDE` (whatever CameraInfo says)."""
+        cam = self.camera
+        if cam is not None and (width, height) != (cam.width, cam.height):
+            raise DropError("image_size", f"a {width}x{height} image from a {cam.width}x"
+                            f"{cam.height} camera (CameraInfo)")  # fmt: skip
+        if not (0 < width <= MAX_IMAGE_SIDE and 0 < height <= MAX_IMAGE_SIDE):
+            raise DropError("image_too_large" if width > 0 and height > 0 else "bad_image",
+                            f"a {width}x{height} image (at most {MAX_IMAGE_SIDE} px a side)")
 
     def _decode(self, data: bytes, msgtype: str) -> Any:
         if self.camera is None:
@@ -195,6 +220,41 @@ class Localizer:
         xyz, q = xyz_quat_from_T(T)
         return [(self.pose_key, self._enc(int(stamp.sec), int(stamp.nanosec), *xyz.tolist(),
                                           *q.tolist()))]  # fmt: skip
+
+
+_PNG = b"\x89PNG\r\n\x1a\n"
+# JPEG start-of-frame markers (C4 DHT, C8 JPG, CC DAC are not frames)
+_SOF = frozenset(range(0xC0, 0xD0)) - {0xC4, 0xC8, 0xCC}
+
+
+def encoded_size(data: bytes) -> tuple[int, int] | None:
+    """``(width, height)`` from a PNG's IHDR or a JPEG's start-of-frame, without decoding;
+    None if ``data`` is neither (or its header is cut)."""
+    if data[:8] == _PNG:
+        if data[12:16] != b"IHDR" or len(data) < 24:
+            return None
+        w, h = struct.unpack_from(">II", data, 16)
+        return w, h
+    if data[:2] != b"\xff\xd8":
+        return None
+    i = 2
+    while i + 9 <= len(data):
+        if data[i] != 0xFF:
+            return None
+        marker = data[i + 1]
+        if marker == 0xFF:  # fill byte
+            i += 1
+            continue
+        if marker in (0xD9, 0xDA):  # end of image, start of scan: no frame header before
+            return None
+        if marker == 0x01 or 0xD0 <= marker <= 0xD8:  # markers without a length
+            i += 2
+            continue
+        if marker in _SOF:  # length (2), precision (1), height (2), width (2)
+            h, w = struct.unpack_from(">HH", data, i + 5)
+            return (w, h) if w and h else None  # height 0: given later by a DNL (unsupported)
+        i += 2 + struct.unpack_from(">H", data, i + 2)[0]
+    return None
 
 
 def cv2_threads() -> None:

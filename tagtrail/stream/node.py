@@ -6,13 +6,15 @@ from the subscriber's callback under a lock (messages are handled one at a time,
 order), publishes what it returns, and turns every failure into a counted, rate-limited drop:
 :class:`~tagtrail.stream.stats.DropError` for bad input, anything else as ``error``. The main
 thread only waits (for SIGINT/SIGTERM, ``--duration``, ``--count``), runs periodic tasks and logs
-a stats line; on the way out every entity is undeclared and the session closed.
+a stats line; on the way out every entity is undeclared and the session closed, within a
+bounded time (:meth:`Node.close`) even under a flood or a congested link.
 """
 
 from __future__ import annotations
 
 import json
 import logging
+import sys
 import threading
 import time
 from collections.abc import Callable, Iterable
@@ -27,6 +29,16 @@ log = logging.getLogger("tagtrail.stream")
 Handler = Callable[[bytes], Iterable[tuple[str, bytes]]]
 Payload = bytes | zenoh.ZBytes
 CONGESTION = {"block": zenoh.CongestionControl.BLOCK, "drop": zenoh.CongestionControl.DROP}
+
+
+def peak_rss_mb() -> float | None:
+    """This process's peak resident memory (MiB; None where ``resource`` is missing)."""
+    try:
+        import resource
+    except ImportError:
+        return None
+    kib = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss  # KiB on Linux
+    return round(kib / (1 << 20 if sys.platform == "darwin" else 1024), 1)
 
 
 class Node:
@@ -46,6 +58,7 @@ class Node:
         self._periodic: list[list[Any]] = []  # [period_s, fn, next_due]
         self._lock = threading.Lock()
         self._closed = False
+        self.clean = True  # False once a shutdown left a blocked put or an unclosed session
 
     def publisher(self, key: str, background: bool = False) -> zenoh.Publisher:
         """The publisher of ``key`` (declared once); ``background``: a second, low-priority one
@@ -65,6 +78,8 @@ class Node:
     def publish(self, outputs: Iterable[tuple[str, Payload]], background: bool = False) -> None:
         pubs = self._bg if background else self._pubs
         for key, payload in outputs:
+            if self._closed:  # shutting down: the rest of a result is not worth a blocked put
+                return
             pub = pubs.get(key) or self.publisher(key, background)
             pub.put(payload)
 
@@ -107,6 +122,8 @@ class Node:
 
     def _handle(self, key: str, handler: Handler, sample: zenoh.Sample, t_recv: int) -> None:
         stats = self.stats
+        if self._closed:  # never queue up behind the lock while the node shuts down
+            return
         with self._lock:
             if self._closed:
                 return
@@ -119,7 +136,8 @@ class Node:
             except DropError as err:
                 stats.drop(err.reason, f"{key}: {err}")
             except Exception as err:  # noqa: BLE001 - a bad message must never stop the node
-                stats.drop("error", f"{key}: {type(err).__name__}: {err}")
+                if not self._closed:  # a put on a publisher undeclared by close() is no error
+                    stats.drop("error", f"{key}: {type(err).__name__}: {err}")
             if self.count is not None and stats.received >= self.count:
                 self.stop.set()
 
@@ -144,7 +162,8 @@ class Node:
             stop: threading.Event | None = None) -> dict[str, Any]:  # fmt: skip
         """Serve until ``stop``/``self.stop`` is set or ``duration_s`` passes; then close.
 
-        Returns the stats summary (also printed on stdout as one ``stats {json}`` line).
+        Returns the stats summary (also printed on stdout as one ``stats {json}`` line) with
+        ``shutdown_s`` (time to close), ``shutdown_clean`` (:meth:`close`) and ``peak_rss_mb``.
         """
         t_end = None if duration_s is None else time.monotonic() + duration_s
         t_stats = time.monotonic() + stats_period_s
@@ -166,20 +185,30 @@ class Node:
                     log.info("%s", self.stats.line())
                 self.stop.wait(0.05)
         finally:
+            t_close = time.monotonic()
             self.close()
-        summary = self.stats.summary()
+        summary = {**self.stats.summary(), "shutdown_s": round(time.monotonic() - t_close, 3),
+                   "shutdown_clean": self.clean, "peak_rss_mb": peak_rss_mb()}  # fmt: skip
         print("stats " + json.dumps(summary), flush=True)
         return summary
 
-    def close(self) -> None:
-        """Undeclare everything and close the session (idempotent)."""
-        # wait for a callback half-way through its publishing, but not for ever: a put blocked
-        # by a congested link (congestion "block") must not keep the node from stopping
-        locked = self._lock.acquire(timeout=2.0)
-        try:
-            self._closed = True
-            close_all(self.session, self._entities)
-            self._entities = []
-        finally:
-            if locked:
-                self._lock.release()
+    def close(self, wait_s: float = 0.3) -> bool:
+        """Stop and close, bounded (idempotent); True if nothing was left hanging.
+
+        No new sample is handled; subscribers and queryables are undeclared first; a handler
+        half-way through publishing gets ``wait_s`` to finish; then the publishers are undeclared
+        and the session closed (:func:`close_all`, bounded too). The lock is never held across
+        ``session.close()``: zenoh waits there for a callback that may be waiting for the lock
+        (a 10 s stall under a flood).
+        """
+        self._closed = True
+        inputs = [e for e in self._entities if not isinstance(e, zenoh.Publisher)]
+        close_all(None, inputs)
+        idle = self._lock.acquire(timeout=wait_s)  # False: a put blocked by a congested link
+        if idle:
+            self._lock.release()
+        outputs = [e for e in self._entities if isinstance(e, zenoh.Publisher)]
+        self._entities = []
+        closed = close_all(self.session, outputs, timeout_s=0.5 if idle else 0.1)
+        self.clean = self.clean and idle and closed
+        return self.clean

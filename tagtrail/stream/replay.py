@@ -7,6 +7,10 @@ or a bag (rosbag2 folder / ``.mcap`` / ``.db3``, ROS 1 ``.bag``) with a pose top
 their pose is sent). Stamps are the recorded ones; the pause between two poses is their stamp
 difference divided by ``rate`` (``0``: as fast as possible; a stamp going back: no pause).
 
+Before publishing, replay waits (``--wait``) for a subscriber on every key: zenoh drops samples
+nobody subscribes to, silently. A key still without one is an error (exit 2, nothing published)
+unless ``--publish-anyway``.
+
 With ``topics``, a bag's messages of those topics are published unchanged instead, each on the
 key zenoh-bridge-ros2dds would use (the topic without its leading ``/``), CDR with its
 encapsulation header (ROS 1 messages are converted), paced by the bag's log times: e.g. the
@@ -25,7 +29,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from tagtrail.errors import SourceError
+from tagtrail.errors import SourceError, TagtrailError
 from tagtrail.io import msgs
 from tagtrail.io.layouts import POSE_COLS, TRAJECTORY_NAMES, read_trajectory
 from tagtrail.stream import codec
@@ -63,6 +67,8 @@ def load_poses(source: Path, topic: str | None = None, frame_id: str | None = No
         raise SourceError(f"{source}: no such file or folder")
     if _is_trajectory(source):
         traj = read_trajectory(source)
+        if len(traj) == 0:
+            raise SourceError(f"{source}: no poses to replay (only a header)")
         return Poses(traj["t_ns"].to_numpy(np.int64), traj[POSE_COLS].to_numpy(np.float64),
                      [frame_id or "map"] * len(traj))  # fmt: skip
     t, vals, frames = _read_bag(source, topic)
@@ -175,11 +181,29 @@ def schedule_s(t_ns: NDArray[np.int64], rate: float) -> NDArray[np.float64]:
     return (t - t[0]) * 1e-9 / rate
 
 
+class NoSubscriber(TagtrailError):
+    """Nobody subscribed to a replayed key within ``--wait`` (nothing was published; exit 2)."""
+
+
+@dataclass(frozen=True)
+class Replayed:
+    """What :func:`replay` did: messages ``sent``; ``clean`` False if a put was still blocked
+    (a congested link) when it stopped."""
+
+    sent: int
+    clean: bool = True
+
+
 def replay(session: Any, messages: Messages, *, rate: float = 1.0, count: int | None = None,
-           wait_s: float = 10.0, congestion: str = "block", express: bool = False,
-           stop: threading.Event | None = None) -> int:  # fmt: skip
-    """Publish ``messages``; returns how many were published. Waits up to ``wait_s`` for a
-    subscriber on every key first (then publishes anyway, with a warning)."""
+           wait_s: float = 10.0, publish_anyway: bool = False, congestion: str = "block",
+           express: bool = False, stop: threading.Event | None = None) -> Replayed:  # fmt: skip
+    """Publish ``messages`` at ``rate`` (see :func:`schedule_s`).
+
+    First waits up to ``wait_s`` for a subscriber on every key; raises :class:`NoSubscriber`
+    if a key has none then, unless ``publish_anyway`` (a warning, and publishing goes on).
+    Puts run on a worker thread, so that ``stop`` (SIGINT/SIGTERM) ends the replay within a
+    bounded time even while a put is blocked by a congested subscriber.
+    """
     from tagtrail.stream.node import CONGESTION
     from tagtrail.stream.session import close_all, wait_matching
 
@@ -190,27 +214,51 @@ def replay(session: Any, messages: Messages, *, rate: float = 1.0, count: int | 
                                          express=express)
             for k in dict.fromkeys(messages.keys[:n])}  # fmt: skip
     sent = 0
+    failed: list[BaseException] = []
+    done = threading.Event()
+
+    def publish() -> None:
+        nonlocal sent
+        try:
+            t0 = time.perf_counter()
+            for i in range(n):
+                delay = t0 + when[i] - time.perf_counter()
+                if stop.is_set() or (delay > 0 and stop.wait(delay)):
+                    break
+                pubs[messages.keys[i]].put(messages.payloads[i])
+                sent += 1
+        except BaseException as err:  # noqa: BLE001 - re-raised by the caller's thread
+            failed.append(err)
+        finally:
+            done.set()
+
+    clean = True
     try:
         deadline = time.monotonic() + wait_s
-        for k, pub in pubs.items():
-            if not wait_matching(pub, max(deadline - time.monotonic(), 0.0), stop):
-                if stop.is_set():
-                    break
-                log.warning("replay: no subscriber on %s after %.1f s; publishing anyway", k,
-                            wait_s)  # fmt: skip
+        alone = [k for k, pub in pubs.items()
+                 if not wait_matching(pub, max(deadline - time.monotonic(), 0.0), stop)]
+        if stop.is_set():
+            return Replayed(0)
+        if alone:
+            what = f"no subscriber on {', '.join(alone)} after {wait_s:g} s"
+            if not publish_anyway:
+                raise NoSubscriber(f"replay: {what}; nothing published (--publish-anyway to "
+                                   "publish regardless)")  # fmt: skip
+            log.warning("replay: %s; publishing anyway", what)
         t0 = time.perf_counter()
-        for i in range(n):
+        threading.Thread(target=publish, name="replay", daemon=True).start()
+        while not done.wait(0.05):
             if stop.is_set():
+                clean = done.wait(0.3)  # a put blocked by a congested link cannot hold us
                 break
-            delay = t0 + when[i] - time.perf_counter()
-            if delay > 0 and stop.wait(delay):
-                break
-            pubs[messages.keys[i]].put(messages.payloads[i])
-            sent += 1
+        if failed:
+            raise failed[0]
         dt = time.perf_counter() - t0
         print(f"replay: published {sent} messages on {', '.join(pubs)} in {dt:.2f} s "
               f"({sent / max(dt, 1e-9):.0f}/s)", flush=True)  # fmt: skip
-        time.sleep(0.05)  # let the last samples leave before the session closes
+        if clean:
+            time.sleep(0.05)  # let the last samples leave before the session closes
     finally:
-        close_all(None, list(pubs.values()))
-    return sent
+        if clean:
+            close_all(None, list(pubs.values()))
+    return Replayed(sent, clean)

@@ -16,13 +16,15 @@ from __future__ import annotations
 import argparse
 import json
 import logging
+import os
 import signal
+import sys
 import threading
 import time
 from collections.abc import Iterator, Sequence
 from contextlib import contextmanager
 from types import FrameType
-from typing import Any
+from typing import Any, NoReturn
 
 import zenoh
 
@@ -98,28 +100,67 @@ def open_session(cfg: zenoh.Config) -> zenoh.Session:
         raise SpecError(f"cannot open the zenoh session ({ends}): {err}") from err
 
 
-def close_all(session: zenoh.Session | None, entities: Sequence[Any]) -> None:
-    """Undeclare publishers/subscribers/queryables (never raising), then close the session."""
+def close_all(session: zenoh.Session | None, entities: Sequence[Any],
+              timeout_s: float = 0.5) -> bool:  # fmt: skip
+    """Undeclare publishers/subscribers/queryables (never raising), then close the session,
+    waiting at most ``timeout_s`` for it. True if the session is closed (or there is none).
+
+    ``session.close()`` can take zenoh's full congestion timeout (5 s, a put blocked by a
+    congested link) or its close timeout (10 s); a node must stop in well under a second, so the
+    close goes on in a daemon thread past the deadline.
+    """
     for e in reversed(entities):
         try:
             e.undeclare()
         except Exception as err:  # noqa: BLE001 - shutdown must go on
             log.debug("undeclare %r: %s", e, err)
-    if session is not None and not session.is_closed():
+    if session is None or session.is_closed():
+        return True
+
+    def close() -> None:
         try:
             session.close()
         except Exception as err:  # noqa: BLE001
             log.debug("session close: %s", err)
 
+    worker = threading.Thread(target=close, name="zenoh close", daemon=True)
+    worker.start()
+    worker.join(timeout_s)
+    if worker.is_alive():
+        log.warning("zenoh session still closing after %.1f s (a congested link); not waiting",
+                    timeout_s)  # fmt: skip
+        return False
+    return True
+
+
+def matching(publisher: zenoh.Publisher) -> bool:
+    """Whether ``publisher`` has a matching subscriber now.
+
+    In eclipse-zenoh 1.x ``matching_status`` is a ``MatchingStatus`` object, always truthy: the
+    answer is its ``.matching`` field.
+    """
+    return bool(publisher.matching_status.matching)
+
 
 def wait_matching(publisher: zenoh.Publisher, timeout_s: float, stop: threading.Event) -> bool:
     """Wait until ``publisher`` has a matching subscriber (or timeout/stop); True if matched."""
     deadline = time.monotonic() + timeout_s
-    while not publisher.matching_status:
+    while not matching(publisher):
         if stop.is_set() or time.monotonic() >= deadline:
             return False
-        time.sleep(0.01)
+        stop.wait(min(0.01, max(deadline - time.monotonic(), 0.0)))
     return True
+
+
+def leave_now(code: int) -> NoReturn:
+    """Flush stdout/stderr and end the process at once with ``code``.
+
+    For a node whose shutdown was not clean: zenoh runs callbacks in non-daemon threads, and one
+    blocked in a congested reliable put would hold the interpreter's exit for up to 5 s.
+    """
+    sys.stdout.flush()
+    sys.stderr.flush()
+    os._exit(code)
 
 
 @contextmanager

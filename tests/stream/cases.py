@@ -59,8 +59,9 @@ def reference_frame(n: int) -> pd.DataFrame:
     return frame(T, T0_NS + np.arange(n, dtype=np.int64) * 100_000_000)
 
 
-def query_frame(n: int, seed: int = 0) -> pd.DataFrame:
-    """Poses scattered around the ellipse (±0.3 m, ±40°), 20 Hz, one stamp out of order."""
+def query_frame(n: int, seed: int = 0, out_of_order: bool = True) -> pd.DataFrame:
+    """Poses scattered around the ellipse (±0.3 m, ±40°), 20 Hz, one stamp out of order unless
+    ``out_of_order`` is False (trajectory files must be in time order: the reader refuses them)."""
     rng = np.random.default_rng(seed)
     s = rng.uniform(0, 2 * np.pi, n)
     u = 1.5 * np.cos(s) + rng.uniform(-0.3, 0.3, n)
@@ -68,14 +69,14 @@ def query_frame(n: int, seed: int = 0) -> pd.DataFrame:
     heading = np.arctan2(np.cos(s), -1.5 * np.sin(s)) + np.radians(rng.uniform(-40, 40, n))
     T = planar_poses(u, v, heading, -0.13 + rng.uniform(-0.02, 0.02, n))
     t_ns = T0_NS + 10**9 + np.arange(n, dtype=np.int64) * 50_000_000
-    if n > 11:
+    if out_of_order and n > 11:
         t_ns[[10, 11]] = t_ns[[11, 10]]
     return frame(T, t_ns)
 
 
 def synthetic_case(tmp: Path, n_ref: int = 300, n_query: int = 120) -> Case:
     """Synthetic files in ``tmp``; the live node gets the alignment block as a JSON file."""
-    ref, query = reference_frame(n_ref), query_frame(n_query)
+    ref, query = reference_frame(n_ref), query_frame(n_query, out_of_order=False)
     write_trajectory_csv(tmp / "reference" / "trajectory.csv", ref)
     write_trajectory_csv(tmp / "query" / "trajectory.csv", query)
     block = {"model": "similarity", "scale": 1.02, "rotation_deg": 7.5,

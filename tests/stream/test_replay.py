@@ -25,7 +25,7 @@ def bag(tmp_path_factory: pytest.TempPathFactory) -> Path:
 
 
 def test_trajectory_files_both_layouts(tmp_path: Path) -> None:
-    q = query_frame(20)
+    q = query_frame(20, out_of_order=False)
     write_trajectory_csv(tmp_path / "a" / "trajectory.csv", q)
     write_trajectory_csv(tmp_path / "b" / "trajetoria_camera.csv", q)
     for src in (tmp_path / "a", tmp_path / "b", tmp_path / "b" / "trajetoria_camera.csv"):
