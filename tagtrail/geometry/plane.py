@@ -43,6 +43,8 @@ def wrap_angle(a: ArrayLike) -> F64:
 def circular_mean(angles: ArrayLike) -> float:
     """Circular mean (rad) of angles (rad): ``atan2(mean sin, mean cos)``."""
     a = np.asarray(angles, dtype=np.float64)
+    if a.size == 0:
+        raise DataError("circular mean of no angles")
     return float(np.arctan2(np.sin(a).mean(), np.cos(a).mean()))
 
 
@@ -100,8 +102,12 @@ def resolve_plane(
         raise DataError("plane 'auto' needs the reference trajectory's positions and rotations")
     P = np.asarray(positions_world, dtype=np.float64).reshape(-1, 3)
     R = np.asarray(world_R_cam, dtype=np.float64).reshape(-1, 3, 3)
+    if len(P) == 0 or len(R) == 0:
+        raise DataError("plane 'auto': the reference trajectory has no poses")
+    if not (np.isfinite(P).all() and np.isfinite(R).all()):
+        raise DataError("plane 'auto': the reference trajectory has non-finite poses")
     down = R[:, :, 1].mean(axis=0)
-    if len(P) == 0 or np.linalg.norm(down) < 1e-6:
+    if np.linalg.norm(down) < 1e-6:
         raise DataError("plane 'auto': the reference trajectory has no usable camera orientation")
     n = _unit(down)
     if len(P) >= 3:
@@ -173,6 +179,8 @@ class ReferencePath:
 
     def __init__(self, positions_world: ArrayLike, plane: Plane) -> None:
         P = np.asarray(positions_world, dtype=np.float64).reshape(-1, 3)
+        if not np.isfinite(P).all():
+            raise DataError("the reference trajectory has non-finite positions")
         self.plane = plane
         self._B2 = np.ascontiguousarray(plane.basis[:2].T)  # (3, 2)
         self.uv = P @ self._B2

@@ -49,6 +49,9 @@ UNIT_CORNERS_TAG = np.array(
     [[-0.5, -0.5, 0.0], [0.5, -0.5, 0.0], [0.5, 0.5, 0.0], [-0.5, 0.5, 0.0]]
 )
 _IPPE_ORDER = [3, 2, 1, 0]  # SPEC corners in IPPE_SQUARE's canonical order
+# Undistorted rays beyond this tangent (89.994°) point nowhere a tag can be seen; such corners
+# (garbage in a detection message) would only overflow the reprojection.
+_MAX_NORM = 1e4
 
 
 class Params(StageParams):
@@ -79,7 +82,7 @@ def solve_ippe(
 
     ``corners_px``: (n, 4, 2) distorted pixels, SPEC corner order; ``sizes``: (n,) m.
     Returns ``cam_T_tag`` (n, 2, 4, 4) and ``reproj_px`` (n, 2), best solution first; a tag whose
-    solve fails gets NaN.
+    solve fails (degenerate, non-finite or far out-of-view corners) gets NaN.
     """
     corners_px = np.asarray(corners_px, dtype=np.float64).reshape(-1, 4, 2)
     n = len(corners_px)
@@ -88,7 +91,8 @@ def solve_ippe(
     eye = np.eye(3)
     rv = np.full((n, 2, 3), np.nan)
     tv = np.full((n, 2, 3), np.nan)
-    for i in range(n):
+    usable = np.abs(norm).max(axis=(1, 2), initial=0.0) < _MAX_NORM  # False for NaN too
+    for i in np.flatnonzero(usable):
         try:
             k, rvecs, tvecs, _ = cv2.solvePnPGeneric(
                 obj, norm[i], eye, None, flags=cv2.SOLVEPNP_IPPE_SQUARE
@@ -156,9 +160,15 @@ def _solve_table(det: pd.DataFrame, camera: CameraModel, params: Params) -> pd.D
         for c, v in zip(POSE_COLS, [*xyz.T, *q.T], strict=True):
             cols[prefix + c] = v
         cols[prefix + "reproj_px"] = err[:, k]
-    alt = err[:, 1]
-    cols["ambiguity"] = np.divide(err[:, 0], alt, out=np.ones(len(alt)), where=alt > 0)
+    cols["ambiguity"] = ambiguity(err[:, 0], err[:, 1])
     return pd.DataFrame(cols)[COLUMNS][good].reset_index(drop=True)
+
+
+def ambiguity(reproj_px: NDArray[Any], alt_reproj_px: NDArray[Any]) -> NDArray[np.float64]:
+    """``reproj_px / alt_reproj_px`` (n,); 1 (ambiguous) where the alternative is not > 0 — both
+    solutions exact, or none — instead of a division by zero."""
+    alt = np.asarray(alt_reproj_px, dtype=np.float64)
+    return np.divide(reproj_px, alt, out=np.ones(len(alt)), where=alt > 0)
 
 
 def _xyz_quat(T: NDArray[np.float64]) -> tuple[NDArray[np.float64], NDArray[np.float64]]:

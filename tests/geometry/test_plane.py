@@ -213,3 +213,31 @@ def test_reduce_to_point_and_capture_radius() -> None:
     ring = np.stack([np.cos(np.arange(100)), np.sin(np.arange(100))], axis=1) * 0.15 + 3.0
     assert capture_radius_p95(ring) == pytest.approx(0.15, abs=1e-3)
     assert capture_radius_p95(ring[:1]) == 0.0
+
+
+def test_degenerate_inputs_raise_no_runtime_warning() -> None:
+    """Empty, non-finite, pausing and straight references: a clear DataError or a finite result,
+    never a numpy RuntimeWarning (they reached users' stderr)."""
+    import warnings
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # any warning fails the test
+        with pytest.raises(DataError, match="has no poses"):
+            resolve_plane("auto", np.zeros((0, 3)), np.zeros((0, 3, 3)))
+        with pytest.raises(DataError, match="non-finite poses"):
+            resolve_plane("auto", np.full((4, 3), np.nan), np.stack([cam_R(0)] * 4))
+        with pytest.raises(DataError, match="circular mean of no angles"):
+            circular_mean([])
+        with pytest.raises(DataError, match="non-finite positions"):
+            ReferencePath(xz_points([(0.0, 0.0), (math.nan, 1.0), (1.0, 1.0)]), XZ)
+        still = xz_points([(1.0, 1.0)] * 6)  # a parked run: no plane, no heading
+        assert resolve_plane("auto", still, np.stack([cam_R(30)] * 6)).n @ [0, -1, 0] > 0.9999
+        # a reference that pauses: zero-length segments, repeated samples
+        path = ReferencePath(xz_points([(0, 0), (0, 0), (1, 0), (1, 0), (1, 0), (1, 1)]), XZ)
+        assert np.isfinite(path.heading_rad).all()
+        poly = path.query_polyline([[0.0, 0.0], [1.0, 0.0], [0.5, 0.2]], [0.0, 0.0, 0.0])
+        assert np.isfinite(poly.distance_m).all() and np.isfinite(poly.ref_heading_rad).all()
+        np.testing.assert_allclose(poly.distance_m, [0.0, 0.0, 0.2], atol=1e-12)
+        m = path.query_uv(np.zeros((0, 2)), np.zeros(0))
+        assert len(m.index) == 0
+        assert path_headings(np.zeros((0, 2))).shape == (0,)

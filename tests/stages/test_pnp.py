@@ -164,3 +164,37 @@ def test_spec_tag_frame_end_to_end(tmp_path: Path) -> None:
     dt, dr = se3.pose_error(poses_of(obs["observations"]), np.stack(poses))
     # measured: ≤ 0.07 mm, ≤ 0.08° (a fronto-parallel tag would be the ambiguous case, ~4°)
     assert dt.max() < 0.001 and np.degrees(dr).max() < 0.3
+
+
+def test_degenerate_corners_give_no_pose_and_no_runtime_warning(caplog) -> None:
+    """Corners a detection message may carry (a point, a line, NaN, inf, far outside the image)
+    and an exactly fronto-parallel tag (alternative reprojection error 0): no numpy warning."""
+    import warnings
+
+    T = random_poses(1, seed=3)
+    for model, D in MODELS.items():
+        cam = CameraModel(640, 480, K, D, model)
+        good = cam.project(se3.transform_points(T[:, None], SPEC_CORNERS * 0.16))[0]
+        front = cam.project(SPEC_CORNERS * 0.16 + [0.0, 0.0, 1.0])  # both IPPE solutions fit
+        bad = [
+            np.full((4, 2), 100.0),  # a point
+            np.array([[100.0, 100.0], [200.0, 100.0], [300.0, 100.0], [400.0, 100.0]]),  # line
+            np.full((4, 2), np.nan),
+            np.where([[True, False]] + [[False, False]] * 3, np.inf, good),
+            good * 1e60,  # far outside the image
+        ]
+        corners = np.stack([good, front, *bad])
+        det = detections_table(corners, np.arange(len(corners)))
+        with warnings.catch_warnings():
+            warnings.simplefilter("error")  # any warning fails the test
+            obs = pnp.run(det, cam.to_dict(), empty_obs(), pnp.Params())["observations"]
+        kept = obs["tag_id"].tolist()  # a pixel line is no ray line once undistorted: no check
+        assert kept[:2] == [0, 1] and not {2, 4, 5, 6} & set(kept), (model, kept)
+        assert np.isfinite(obs[["reproj_px", "alt_reproj_px", "ambiguity"]].to_numpy()).all()
+        assert obs["ambiguity"].between(0, 1).all()
+        assert obs.loc[1, "alt_reproj_px"] < 1e-5, model
+    assert "5 of 7 detections gave no pose (degenerate corners)" in caplog.text  # "none"
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        amb = pnp.ambiguity(np.array([0.0, 0.3, 0.2, np.nan]), np.array([0.0, 0.0, 0.4, np.nan]))
+    np.testing.assert_array_equal(amb, [1.0, 1.0, 0.5, 1.0])  # x/0 → 1 (ambiguous)
