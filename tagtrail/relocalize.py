@@ -95,13 +95,16 @@ def _relocalize(
     a_params = align_stage.Params(
         align=align, model=align_model, plane=plane, allow_scale=allow_scale
     )
-    aligned = align_stage.run(
-        q_tags if q_tags is not None else _empty_tags(),
-        ref_tags if ref_tags is not None else _empty_tags(),
-        q_traj, ref_traj, a_params,
-    )  # fmt: skip
     r_params = report_stage.Params(mode=mode, plane=plane)
-    result = report_stage.run(aligned["trajectory"], ref_traj, aligned["alignment"], r_params)
+    try:
+        aligned = align_stage.run(
+            q_tags if q_tags is not None else _empty_tags(),
+            ref_tags if ref_tags is not None else _empty_tags(),
+            q_traj, ref_traj, a_params,
+        )  # fmt: skip
+        result = report_stage.run(aligned["trajectory"], ref_traj, aligned["alignment"], r_params)
+    except DataError as err:  # say which files the problem is about
+        raise DataError(f"reference {reference}, query {query}: {err}") from err
     reloc, summary = result["relocalization"], result["summary"]
     try:
         write_outputs(Path(out), reloc, summary, aligned["trajectory"], ref_traj, ref_tags, plane)

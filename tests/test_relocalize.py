@@ -350,3 +350,13 @@ def test_out_is_a_file(tmp_path: Path, capsys) -> None:
     line = cli_error(capsys, str(ref), str(qry), "-o", str(tmp_path / "taken" / "sub"))
     assert f"lies under {tmp_path / 'taken'}, which is a file" in line
     assert (tmp_path / "taken").read_text() == "keep me\n"
+
+
+def test_data_errors_name_the_datasets(tmp_path: Path, capsys) -> None:
+    ref, qry = write_run(tmp_path / "ref"), write_run(tmp_path / "qry")
+    for row in range(1, 21):  # a reference that never moves
+        edit_cell(ref / TRAJ, row, "x", "0.5")
+        edit_cell(ref / TRAJ, row, "z", "1.0")
+    line = cli_error(capsys, str(ref), str(qry), "-o", str(tmp_path / "o"))
+    assert line == (f"error: reference {ref}, query {qry}: the reference trajectory needs at "
+                    "least 2 distinct planar positions")  # fmt: skip

@@ -19,7 +19,7 @@ from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.figure import Figure
 from numpy.typing import ArrayLike
 
-from tagtrail.errors import SourceError
+from tagtrail.errors import SourceError, one_line
 from tagtrail.io.layouts import atomic_write, atomic_write_text
 
 RELOC_HEADER = [
@@ -52,7 +52,7 @@ def read_relocalization_csv(path: Path) -> pd.DataFrame:
     try:
         df = pd.read_csv(path)
     except (OSError, ValueError) as err:
-        raise SourceError(f"{path}: cannot read relocalization CSV: {err}") from err
+        raise SourceError(f"{path}: cannot read relocalization CSV: {one_line(err)}") from err
     if list(df.columns) != RELOC_HEADER:
         raise SourceError(f"{path}: not a relocalization CSV (header {list(df.columns)})")
     t_ns = df["stamp_sec"].to_numpy(np.int64) * 1_000_000_000 + df["stamp_nanosec"].to_numpy(
