@@ -225,8 +225,9 @@ class BagSource(Source):
             self.kind, self.topic = self._choose_topic(cfg)
             self.camera_info_topic: str | None = None
             self._camera = camera
-            self.camera_origin = str(cfg.camera)
-            if camera is None:
+            if camera is not None:
+                self.camera_origin = str(cfg.camera)
+            else:
                 self.camera_info_topic = self._choose_camera_info(cfg)
                 if self.camera_info_topic is not None:
                     self._camera = self._first_camera_info(reader)
@@ -405,7 +406,8 @@ class ImageFolderSource(Source):
             camera_file = self.path / "camera.yaml"
             camera = CameraModel.from_yaml(camera_file)
         self._camera = camera
-        self.camera_origin = str(camera_file)
+        if camera_file is not None:
+            self.camera_origin = str(camera_file)
         self.stamps_ns = self._stamps()
 
     def _stamps(self) -> NDArray[np.int64]:

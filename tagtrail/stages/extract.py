@@ -228,7 +228,7 @@ def _detect_images(src: Source, params: Params, camera: CameraModel) -> tuple[An
     floats = np.concatenate([p["det_floats"] for p in parts]) if parts else np.zeros((0, 9))
     wrong = np.any(shapes != [camera.height, camera.width], axis=1)
     if wrong.any():  # another size than the intrinsics': their poses would be wrong
-        _report_wrong_size(src, camera, frame_idx[wrong], t_ns[wrong], shapes[wrong])
+        _report_wrong_size(src, camera, frame_idx[wrong], t_ns[wrong], shapes[wrong], len(wrong))
         keep = ~np.isin(det_frame, frame_idx[wrong])
         det_t, det_frame, ints, floats = det_t[keep], det_frame[keep], ints[keep], floats[keep]
         t_ns, frame_idx, n_det = t_ns[~wrong], frame_idx[~wrong], n_det[~wrong]
@@ -237,14 +237,14 @@ def _detect_images(src: Source, params: Params, camera: CameraModel) -> tuple[An
 
 def _report_wrong_size(
     src: Source, camera: CameraModel, frame_idx: NDArray[Any], t_ns: NDArray[Any],
-    shapes: NDArray[Any],
+    shapes: NDArray[Any], n_frames: int,
 ) -> None:
-    """Warn about frames whose decoded size is not the camera's (they are left out); a
-    :class:`SourceError` when no frame is left."""
+    """Warn about the frames (of ``n_frames``) whose decoded size ``shapes (k, 2)`` (H, W) is not
+    the camera's: they are left out; a :class:`SourceError` when no frame is left."""
     size = [f"{w}x{h}" for h, w in shapes.tolist()]
     found = ", ".join(f"{k} ({n} frame{'s' * (n > 1)})" for k, n in Counter(size).most_common())
     cam = f"{camera.width}x{camera.height}"
-    if len(frame_idx) == len(src):
+    if len(frame_idx) == n_frames:
         raise SourceError(
             f"{src.path}: no frame has the size {cam} of the camera ({src.camera_origin}), they "
             f"are {found}; give the camera calibration for their resolution (or images of {cam})"
@@ -253,7 +253,7 @@ def _report_wrong_size(
              for i, t, k in zip(frame_idx, t_ns, size, strict=True)]  # fmt: skip
     more = f" and {len(names) - 5} more" if len(names) > 5 else ""
     log.warning("%s: %d of %d frames left out, their size is not the camera's %s (%s): %s%s",
-                src.describe(), len(names), len(src), cam, src.camera_origin,
+                src.describe(), len(names), n_frames, cam, src.camera_origin,
                 ", ".join(names[:5]), more)  # fmt: skip
 
 
