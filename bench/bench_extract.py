@@ -34,12 +34,14 @@ import cv2
 import numpy as np
 from rosbags.rosbag2 import StoragePlugin, Writer
 
+from tagtrail import pool as workers_mod
+from tagtrail.geometry.camera import CameraModel
 from tagtrail.io import msgs
-from tagtrail.io import workers as workers_mod
-from tagtrail.io.camera import CameraModel
-from tagtrail.io.detector import DetectorConfig, detect, get_detector
+from tagtrail.io.camera_files import read_camera_file
 from tagtrail.schemas.pipeline import DatasetConfig
 from tagtrail.stages import extract
+from tagtrail.vision.apriltag import detect, get_detector
+from tagtrail.vision.detector import DetectorConfig
 
 REALDATA = Path(__file__).resolve().parents[1].parent / "shared" / "realdata"
 T0 = 1_700_000_000_000_000_000
@@ -142,7 +144,7 @@ def main() -> None:
     logging.basicConfig(level=logging.WARNING)
     folder = REALDATA / "upenn_ar_tag36h11_id12_seq" / "frames"
     files = sorted(folder.glob("frame*.jpg")) * args.copies
-    cam = CameraModel.from_yaml(folder / "camera.yaml")
+    cam = read_camera_file(folder / "camera.yaml")
     cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count()
     cfg = extract.Params().detector()
     print(f"{len(files)} frames 640x480 (real photos), {cores} cores, "

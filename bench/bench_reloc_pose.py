@@ -66,7 +66,7 @@ def load_checkout(root: Path) -> tuple[ModuleType, ModuleType]:
     sys.path.insert(0, str(root))
     try:
         mods = (importlib.import_module("tagtrail.stream.codec"),
-                importlib.import_module("tagtrail.stream.relocalize"))  # fmt: skip
+                importlib.import_module("tagtrail.stream.reloc_node"))  # fmt: skip
         if not Path(mods[0].__file__ or "").is_relative_to(root):
             raise SystemExit(f"--baseline {root}: no tagtrail package there")
     finally:

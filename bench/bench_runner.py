@@ -93,7 +93,7 @@ def main() -> None:
 
 def real_pipeline() -> tuple[float, float]:
     """No-op rerun of the real demo pipeline on a small simulated `room` recording."""
-    from tagtrail.demo import template
+    from tagtrail.commands.demo import template
     from tagtrail.sim import simulate
     from tagtrail.stages import REGISTRY
 

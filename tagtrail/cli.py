@@ -146,9 +146,9 @@ def build_parser(command: str | None = None) -> argparse.ArgumentParser:
 
 OPTIONAL = (
     ("simulate", "tagtrail.sim.cli", "render rosbag2 recordings with ground truth"),
-    ("relocalize", "tagtrail.relocalize", "relocalize a query run against a reference"),
-    ("demo", "tagtrail.demo", "simulate the demo recordings and run everything"),
-    ("init", "tagtrail.init", "inspect sources and write a pipeline file"),
+    ("relocalize", "tagtrail.commands.relocalize", "relocalize a query run against a reference"),
+    ("demo", "tagtrail.commands.demo", "simulate the demo recordings and run everything"),
+    ("init", "tagtrail.commands.init", "inspect sources and write a pipeline file"),
     ("stream", "tagtrail.stream.cli", "live relocalization over zenoh"),
 )
 

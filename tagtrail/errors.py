@@ -29,6 +29,21 @@ class DisconnectedTagGraph(DataError):
     """Some tags are not connected to the anchor and the pipeline was told to fail on it."""
 
 
+class CameraModelError(SourceError):
+    """A camera model that cannot be used (e.g. a lens distortion not invertible over the image)."""
+
+
+class SessionError(TagtrailError):
+    """A zenoh session cannot be opened (a port in use, a bad locator, no router)."""
+
+
+class ArtifactError(TagtrailError):
+    """An artifact the store had verified is gone or damaged while in use (another process
+    removed it, the disk failed): rerun, and the store recomputes it."""
+
+    exit_code = 1
+
+
 class StorageError(TagtrailError):
     """The file system refused a write (full disk, read-only project, no permission)."""
 

@@ -4,7 +4,7 @@ Each test simulates into ``tmp_path`` (the simulator's defaults, seed 0), runs t
 pipeline through the runner and compares with ground-truth files the pipeline never read:
 ``eval`` (trajectory / tag-map errors) and, for the room's parked queries, D and phi computed by
 the report function from the ground-truth reference trajectory and test pose
-(:func:`tagtrail.demo.truth_d_phi`).
+(:func:`tagtrail.commands.demo.truth_d_phi`).
 
 Issue 4 targets (circle): mean error <= 10 mm for both the trajectory and the tags, trajectory
 p95 <= 30 mm — from images, from a ``--detections`` bag (MCAP) and from an sqlite3 bag.
@@ -43,7 +43,7 @@ from typing import Any
 
 import pytest
 
-from tagtrail import demo
+from tagtrail.commands import demo
 from tagtrail.runner.execute import Runner
 from tagtrail.runner.spec import load_pipeline
 from tagtrail.sim import simulate

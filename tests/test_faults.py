@@ -17,8 +17,8 @@ from pathlib import Path
 
 import pytest
 
-from tagtrail.demo import template
-from tagtrail.io.exports import EXPORTERS
+from tagtrail.commands.demo import template
+from tagtrail.runner.export import EXPORTERS
 from tagtrail.sim import simulate
 from tagtrail.stages import REGISTRY
 

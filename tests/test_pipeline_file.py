@@ -6,7 +6,7 @@ from pathlib import Path
 
 import yaml
 
-from tagtrail.demo import template
+from tagtrail.commands.demo import template
 
 REPO = Path(__file__).resolve().parents[1]
 

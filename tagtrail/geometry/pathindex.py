@@ -19,7 +19,7 @@ done on squared distances (``dist(q, chord)² ≤ (√ub + e)²``: no per-block 
 slower calls (``np.clip``, Python-float operands) are avoided.
 
 It answers ``query((u, v)) -> (distance, index)`` like the tree it stands in for
-(:class:`~tagtrail.geometry.plane.ReferencePath` ``.tree``).
+(:class:`~tagtrail.geometry.reference_path.ReferencePath` ``.tree``).
 """
 
 from __future__ import annotations

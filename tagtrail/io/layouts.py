@@ -24,8 +24,8 @@ from numpy.typing import NDArray
 
 from tagtrail import faults
 from tagtrail.errors import SourceError, one_line
+from tagtrail.schemas.artifacts import POSE_COLS
 
-POSE_COLS = ["x_m", "y_m", "z_m", "qx", "qy", "qz", "qw"]
 TRAJ_COLS = ["t_ns", *POSE_COLS]
 TAG_COLS = ["tag_id", *POSE_COLS, "n_obs"]
 FAMILY = "tag36h11"

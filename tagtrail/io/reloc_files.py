@@ -20,7 +20,9 @@ from matplotlib.figure import Figure
 from numpy.typing import ArrayLike
 
 from tagtrail.errors import SourceError, one_line
+from tagtrail.geometry.reference_path import reference_plane
 from tagtrail.io.layouts import atomic_write, atomic_write_text
+from tagtrail.schemas.artifacts import poses
 
 RELOC_HEADER = [
     "stamp_sec", "stamp_nanosec", "t_rel_s", "nearest_ref_idx", "distance_m",
@@ -163,3 +165,35 @@ def write_map_png(
     ax.legend(loc="best", fontsize=8)
     ax.set_title(title or "reference path and query (seen from above)")
     _save(fig, path)
+
+
+def write_outputs(
+    out: Path,
+    reloc: pd.DataFrame,
+    summary: dict[str, Any],
+    q_traj: pd.DataFrame,
+    ref_traj: pd.DataFrame,
+    ref_tags: pd.DataFrame | None,
+    plane_name: str,
+) -> None:
+    """Write SPEC's relocalization files into ``out`` (also used by the pipeline's exports)."""
+    plane = reference_plane(plane_name, *poses(ref_traj))
+    ref_P, ref_R = poses(ref_traj)
+    names = {"xz": ("x", "z"), "xy": ("x", "y"), "yz": ("y", "z")}.get(plane_name, ("u", "v"))
+    # v is drawn downwards when the normal points along the cameras' "down" (seen from above)
+    flip_v = bool(plane.n @ ref_R[:, :, 1].mean(axis=0) > 0)
+    d, p = summary["distance_m"], summary["abs_heading_error_deg"]
+    title = f"{summary['mode']} mode, plane {plane_name}: " + (
+        f"D {d['mean']:.4f} m, phi {reloc['heading_error_deg'].iloc[0]:+.2f} deg"
+        if len(reloc) == 1
+        else f"D mean {d['mean']:.3f} m, |phi| mean {p['mean']:.2f} deg"
+    )
+    write_relocalization_csv(out / "relocalization.csv", reloc)
+    write_summary_json(out / "summary.json", summary)
+    write_relocalization_png(out / "relocalization.png", reloc, title)
+    tags_uv = None if ref_tags is None else plane.to_uv(ref_tags[["x_m", "y_m", "z_m"]].to_numpy())
+    write_map_png(
+        out / "map.png", plane.to_uv(ref_P), plane.to_uv(poses(q_traj)[0]), reloc,
+        tags_uv, [] if ref_tags is None else ref_tags["tag_id"].astype(int).tolist(),
+        names, flip_v, title,
+    )  # fmt: skip

@@ -3,7 +3,7 @@
 :func:`open_source` inspects a :class:`~tagtrail.schemas.pipeline.DatasetConfig` and returns a
 source of one of three kinds:
 
-- ``"images"`` — frames are :class:`~tagtrail.io.images.RawImage` (undecoded; ``decode()`` them,
+- ``"images"`` — frames are :class:`~tagtrail.vision.images.RawImage` (undecoded; ``decode()`` them,
   preferably in worker processes — iterating the source itself decodes in-process);
 - ``"detections"`` — frames are lists of :class:`TagDetection` (``apriltag_msgs``);
 - ``"observations"`` — camera→tag poses given directly (``observations.csv``).
@@ -26,7 +26,6 @@ import os
 import re
 from collections.abc import Iterator
 from contextlib import contextmanager
-from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Literal
 
@@ -36,12 +35,16 @@ from numpy.typing import NDArray
 from rosbags.highlevel import AnyReader
 
 from tagtrail.errors import SourceError
+from tagtrail.geometry.camera import CameraModel
 from tagtrail.io import msgs
-from tagtrail.io.camera import CameraModel
-from tagtrail.io.detector import C_LIBRARY_PIXEL_OFFSET  # apriltag_ros uses the C library
-from tagtrail.io.images import RawImage
+from tagtrail.io.camera_files import read_camera_file
 from tagtrail.io.layouts import read_stamped_poses, tag_ids
 from tagtrail.schemas.pipeline import DatasetConfig
+from tagtrail.vision.detector import (  # apriltag_ros: the C library
+    C_LIBRARY_PIXEL_OFFSET,
+    TagDetection,
+)
+from tagtrail.vision.images import RawImage
 
 log = logging.getLogger("tagtrail.sources")
 
@@ -50,17 +53,6 @@ IMAGE_EXTS = (".jpg", ".jpeg", ".png")
 IMAGE_TYPES = (msgs.IMAGE, msgs.COMPRESSED_IMAGE)
 FOLDER_PERIOD_NS = 100_000_000  # image folders without stamps.csv: 10 Hz from t = 0
 OBS_CSV_HEADER = ["stamp_sec", "stamp_nanosec", "tag", "x", "y", "z", "qx", "qy", "qz", "qw"]
-
-
-@dataclass(frozen=True)
-class TagDetection:
-    """One tag in one frame. ``corners``: (4, 2) px, detector order, OpenCV convention."""
-
-    tag_id: int
-    hamming: int
-    decision_margin: float
-    corners: NDArray[np.float64]
-    family: str = "tag36h11"
 
 
 Frame = tuple[int, int, Any]
@@ -167,7 +159,7 @@ def _camera_override(path: Path | None) -> CameraModel | None:
         return None
     if not Path(path).is_file():
         raise SourceError(f"{path}: camera file not found (`camera:` of the dataset)")
-    return CameraModel.from_yaml(path)
+    return read_camera_file(path)
 
 
 # --- bags ------------------------------------------------------------------------------------
@@ -404,7 +396,7 @@ class ImageFolderSource(Source):
         self.files = _image_files(self.path)
         if camera is None and (self.path / "camera.yaml").is_file():
             camera_file = self.path / "camera.yaml"
-            camera = CameraModel.from_yaml(camera_file)
+            camera = read_camera_file(camera_file)
         self._camera = camera
         if camera_file is not None:
             self.camera_origin = str(camera_file)

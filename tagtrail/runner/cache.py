@@ -27,7 +27,7 @@ import pandas as pd
 import pyarrow.parquet as pq
 
 from tagtrail import faults
-from tagtrail.errors import SourceError, SpecError
+from tagtrail.errors import ArtifactError, SourceError
 from tagtrail.runner.paths import clean_temp_files, inside
 from tagtrail.schemas.artifacts import conform
 
@@ -203,7 +203,8 @@ class Store:
     def load(self, stage: str, key: str, output: str) -> Any:
         manifest = self.lookup(stage, key)
         if manifest is None or output not in manifest["outputs"]:
-            raise SpecError(f"artifact {stage}.{output} ({key[:12]}) is missing or corrupt")
+            raise ArtifactError(f"artifact {stage}.{output} ({key[:12]}) is missing or corrupt; "
+                                "rerun to recompute it")
         f = self.entry(stage, key) / manifest["outputs"][output]["file"]
         if f.suffix == ".json":
             return json.loads(f.read_text())

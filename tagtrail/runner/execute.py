@@ -107,7 +107,7 @@ class Runner:
             "stage": node.stage,
             "code": spec.code_fingerprint,
             "code_modules": spec.code_modules,
-            "schema": [spec.schema_version, ARTIFACT_SCHEMA_VERSION],
+            "schema": ARTIFACT_SCHEMA_VERSION,
             "params": self.pipe.params_for(node.stage, node.dataset).key_dump(),
             "inputs": inputs,
         }

@@ -59,7 +59,6 @@ class StageSpec:
     inputs: dict[str, InputRef]
     outputs: tuple[str, ...]
     scope: str
-    schema_version: int
     code_modules: dict[str, str]
 
     @property
@@ -191,6 +190,5 @@ def stage_spec(name: str, module: ModuleType) -> StageSpec:
         inputs=inputs,
         outputs=tuple(outputs),
         scope=scope,
-        schema_version=int(getattr(module, "SCHEMA_VERSION", 1)),
         code_modules=code_closure(module),
     )

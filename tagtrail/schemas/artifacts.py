@@ -8,8 +8,12 @@ every cache key) when a schema changes incompatibly.
 
 from __future__ import annotations
 
+import numpy as np
 import pandas as pd
 import pyarrow as pa
+from numpy.typing import NDArray
+
+from tagtrail.geometry.se3 import R_from_quat_xyzw
 
 VERSION = 1
 
@@ -50,6 +54,36 @@ SCHEMAS: dict[str, pa.Schema] = {
          ("query_u", F64), ("query_v", F64), ("ref_u", F64), ("ref_v", F64)]  # fmt: skip
     ),
 }
+
+
+POSE_COLS = [n for n, _ in POSE]  # a pose: position (m) and quaternion (qx, qy, qz, qw)
+ALT_POSE_COLS = [n for n, _ in ALT_POSE]  # pnp's second IPPE solution
+CORNER_COLS = [n for n, _ in CORNERS]  # c0x, c0y, ..., c3x, c3y (px)
+
+
+def columns(name: str) -> list[str]:
+    """The column names of artifact ``name`` (``stage.output``), in order."""
+    return list(SCHEMAS[name].names)
+
+
+def ippe_solutions(
+    obs: pd.DataFrame,
+) -> tuple[NDArray[np.float64], NDArray[np.float64] | None, NDArray[np.float64] | None,
+           NDArray[np.float64] | None]:
+    """(pose, alt_pose, reproj_px, alt_reproj_px) arrays of ``pnp.observations`` rows, for
+    :func:`tagtrail.geometry.ippe.best_pose`; the alternative is None where it is absent."""
+    pose = obs[POSE_COLS].to_numpy(np.float64)
+    if not all(c in obs.columns for c in [*ALT_POSE_COLS, "reproj_px", "alt_reproj_px"]):
+        return pose, None, None, None
+    return (pose, obs[ALT_POSE_COLS].to_numpy(np.float64), obs["reproj_px"].to_numpy(np.float64),
+            obs["alt_reproj_px"].to_numpy(np.float64))
+
+
+def poses(traj: pd.DataFrame) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    """Positions ``(N, 3)`` (m) and rotations ``(N, 3, 3)`` of a table of poses (a trajectory's
+    world_T_cam, a tag map's world_T_tag)."""
+    P = traj[POSE_COLS[:3]].to_numpy(np.float64)
+    return P, R_from_quat_xyzw(traj[POSE_COLS[3:]].to_numpy(np.float64))
 
 
 def conform(name: str, df: pd.DataFrame) -> pa.Table:

@@ -1,6 +1,6 @@
 """The simulated camera: the LIMO's lens, the renderer's undistortion grid, tag visibility.
 
-The camera is :class:`tagtrail.io.camera.CameraModel`, the one every source reads: pixel
+The camera is :class:`tagtrail.geometry.camera.CameraModel`, the one every source reads: pixel
 convention OpenCV's (pixel centres at integer coordinates), camera frame the optical frame (x right,
 y down, z forward). Tag frame per SPEC: origin at the tag centre, x right, y up, z out of the face;
 detector corner i sits at ``tag_corners(s)[i]`` (:func:`tagtrail.geometry.fusion.tag_corners`).
@@ -12,10 +12,10 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from tagtrail.errors import SpecError
+from tagtrail.errors import CameraModelError
+from tagtrail.geometry.camera import CameraModel
 from tagtrail.geometry.fusion import tag_corners
 from tagtrail.geometry.se3 import F64
-from tagtrail.io.camera import CameraModel
 
 # The LIMO's Orbbec Dabai colour camera (NOTES "The LIMO"), 640x480: (fx, fy, cx, cy) px and
 # plumb_bob (k1, k2, p1, p2, k3).
@@ -45,8 +45,9 @@ def _undistortion(camera: CameraModel) -> tuple[F64, tuple[float, float, float, 
     back = camera.project(np.concatenate([grid, np.ones_like(u)[..., None]], -1))
     err = float(np.abs(back - px).max())
     if not err < 1e-3:
-        raise SpecError(f"camera distortion {camera.distortion_model} {camera.D.tolist()} is not "
-                        f"invertible over the image (residual {err:.3g} px)")
+        raise CameraModelError(
+            f"camera distortion {camera.distortion_model} {camera.D.tolist()} is not "
+            f"invertible over the image (residual {err:.3g} px)")
     grid.setflags(write=False)
     bounds = (float(grid[..., 0].min()), float(grid[..., 0].max()),
               float(grid[..., 1].min()), float(grid[..., 1].max()))

@@ -21,8 +21,8 @@ import cv2
 import numpy as np
 
 from tagtrail.errors import SpecError
+from tagtrail.geometry.camera import CameraModel
 from tagtrail.geometry.se3 import F64, inv
-from tagtrail.io.camera import CameraModel
 from tagtrail.sim.camera import undistort_grid
 from tagtrail.sim.scene import Scene, Wall
 

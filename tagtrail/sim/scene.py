@@ -13,8 +13,8 @@ from typing import Any
 import numpy as np
 
 from tagtrail.errors import SpecError
+from tagtrail.geometry.camera import CameraModel
 from tagtrail.geometry.se3 import F64, compose, inv, make_T
-from tagtrail.io.camera import CameraModel
 
 EPOCH_NS = 1_700_000_000 * 1_000_000_000
 

@@ -23,7 +23,8 @@ import yaml
 
 from tagtrail.errors import SpecError
 from tagtrail.geometry.se3 import F64, xyz_quat_from_T
-from tagtrail.io.layouts import POSE_COLS, atomic_write_text, write_tag_map, write_trajectory_csv
+from tagtrail.io.layouts import atomic_write_text, write_tag_map, write_trajectory_csv
+from tagtrail.schemas.artifacts import POSE_COLS
 from tagtrail.sim import bagwrite
 from tagtrail.sim.camera import FRAME_ID, tag_visibility
 from tagtrail.sim.scenarios import RECORDINGS, SCENARIOS, SimOptions, build

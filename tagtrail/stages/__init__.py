@@ -2,12 +2,10 @@
 
 from __future__ import annotations
 
-from types import ModuleType
-
 from tagtrail.stages import (
     align,
     edges,
-    eval,
+    evaluate,
     extract,
     optimize,
     pnp,
@@ -15,15 +13,16 @@ from tagtrail.stages import (
     smooth,
     trajectory,
 )
+from tagtrail.stages.base import StageModule
 
-REGISTRY: dict[str, ModuleType] = {
+REGISTRY: dict[str, StageModule] = {
     "extract": extract,
     "pnp": pnp,
     "edges": edges,
     "optimize": optimize,
     "trajectory": trajectory,
     "smooth": smooth,
-    "eval": eval,
+    "eval": evaluate,
     "align": align,
     "report": report,
 }

@@ -20,8 +20,9 @@ from pydantic import Field
 
 from tagtrail.errors import DataError
 from tagtrail.geometry import se3
-from tagtrail.geometry.align2d import MODELS, Alignment, ransac_align
-from tagtrail.geometry.plane import Plane, resolve_plane
+from tagtrail.geometry.reference_path import Plane, reference_plane
+from tagtrail.geometry.registration import MODELS, Alignment, ransac_align, world_transform
+from tagtrail.schemas.artifacts import poses
 from tagtrail.stages.base import StageParams
 
 F64 = NDArray[np.float64]
@@ -35,8 +36,6 @@ INPUTS = {
 }
 OUTPUTS = ("alignment", "trajectory")
 SCOPE = "query"
-DEPENDS = ("tagtrail.geometry.align2d", "tagtrail.geometry.plane", "tagtrail.geometry.se3")
-_POSE = ["x_m", "y_m", "z_m", "qx", "qy", "qz", "qw"]
 
 
 class Params(StageParams):
@@ -52,21 +51,6 @@ class Params(StageParams):
     scale_range: tuple[float, float] = (0.9, 1.1)
 
 
-def poses(traj: pd.DataFrame) -> tuple[F64, F64]:
-    """Positions ``(N, 3)`` (m) and rotations ``(N, 3, 3)`` of a trajectory's world_T_cam."""
-    P = traj[["x_m", "y_m", "z_m"]].to_numpy(np.float64)
-    return P, se3.R_from_quat_xyzw(traj[["qx", "qy", "qz", "qw"]].to_numpy(np.float64))
-
-
-def reference_plane(name: str, ref_trajectory: pd.DataFrame) -> Plane:
-    """The plane ``name``; ``auto`` is fitted to the reference trajectory (SPEC Conventions)."""
-    if name != "auto":
-        return resolve_plane(name)
-    if len(ref_trajectory) == 0:
-        raise DataError("plane 'auto': the reference trajectory is empty")
-    return resolve_plane("auto", *poses(ref_trajectory))
-
-
 def common_tags(tag_map: pd.DataFrame, ref_tag_map: pd.DataFrame) -> tuple[F64, F64, list[int]]:
     """World positions ``(n, 3)`` of the tags both maps hold (query, reference) and their ids."""
     q = tag_map.drop_duplicates("tag_id").set_index("tag_id")
@@ -74,26 +58,6 @@ def common_tags(tag_map: pd.DataFrame, ref_tag_map: pd.DataFrame) -> tuple[F64, 
     ids = sorted(set(q.index.astype(int)) & set(r.index.astype(int)))
     cols = ["x_m", "y_m", "z_m"]
     return q.loc[ids, cols].to_numpy(np.float64), r.loc[ids, cols].to_numpy(np.float64), ids
-
-
-def world_transform(al: Alignment, plane: Plane | None) -> tuple[F64, F64]:
-    """``ref_A_query (4, 4)`` acting on positions and ``ref_R_query (3, 3)`` on orientations.
-
-    3-D models: ``A = [sR | t]``, ``R``. Planar models, with ``B`` the rows (e1, e2, n):
-    ``A[:3,:3] = Bᵀ diag(sR₂, 1) B``, ``A[:3,3] = t_u e1 + t_v e2``, ``R = Bᵀ diag(R₂, 1) B``.
-    """
-    A = np.eye(4)
-    if al.dim == 3:
-        A[:3, :3], A[:3, 3] = al.scale * al.R, al.t
-        return A, al.R.copy()
-    if plane is None:
-        raise DataError("a planar alignment needs its plane")
-    B = plane.basis
-    M = np.eye(3)
-    M[:2, :2] = al.scale * al.R
-    A[:3, :3] = B.T @ M @ B
-    A[:3, 3] = B[:2].T @ al.t
-    return A, plane.rotation_about_normal(np.radians(al.rotation_deg))
 
 
 def transform_trajectory(traj: pd.DataFrame, A: F64, R: F64) -> pd.DataFrame:
@@ -167,7 +131,7 @@ def run(
     dim, _ = MODELS[params.model]
     plane = None
     if dim == 2 and params.align != "none":
-        plane = reference_plane(params.plane, ref_trajectory)
+        plane = reference_plane(params.plane, *poses(ref_trajectory))
     al, n_common = estimate(tag_map, ref_tag_map, plane, params)
     if al is None:
         return {"alignment": alignment_block(params.model, None, n_common, dim),

@@ -11,17 +11,20 @@ A stage module defines, at module level:
 - ``OUTPUTS: tuple[str, ...]`` — names of the values ``run`` returns (a dict with exactly these
   keys); a ``pandas.DataFrame`` is stored as Parquet, a ``dict`` as JSON.
 - ``SCOPE`` — ``"all"`` (every dataset, default) or ``"query"`` (datasets other than the reference).
-- ``DEPENDS: tuple[str, ...]`` — modules whose source also enters the code fingerprint.
 - ``PRIMARY`` — the output ``tagtrail show STAGE --csv`` exports (default: the first).
 - ``def run(<inputs...>, params: Params) -> dict[str, DataFrame | dict]`` — a pure function:
   no artifact I/O, no global state; the same inputs and params give the same outputs.
+
+The code fingerprint in the cache key is computed by the runner from the module's first-party
+import closure (``runner.stage.code_closure``): no hand-kept list of dependencies.
 """
 
 from __future__ import annotations
 
 import types
 import typing
-from typing import Any, ClassVar
+from collections.abc import Callable
+from typing import Any, ClassVar, Protocol
 
 from pydantic import BaseModel, ConfigDict, model_validator
 
@@ -59,3 +62,12 @@ class StageParams(BaseModel):
     def key_dump(self) -> dict[str, object]:
         """The parameters that enter the cache key, as JSON-able values."""
         return self.model_dump(mode="json", exclude=set(self.EXECUTION_ONLY))
+
+
+class StageModule(Protocol):
+    """What a stage module exposes (checked at load time by ``runner.stage.stage_spec``)."""
+
+    Params: type[StageParams]
+    INPUTS: dict[str, str]
+    OUTPUTS: tuple[str, ...]
+    run: Callable[..., dict[str, Any]]

@@ -35,12 +35,12 @@ from scipy.sparse.csgraph import connected_components
 
 from tagtrail.errors import DataError, DisconnectedTagGraph
 from tagtrail.geometry.se3 import T_from_xyz_quat, inv, xyz_quat_from_T
-from tagtrail.io.layouts import POSE_COLS
+from tagtrail.schemas.artifacts import POSE_COLS, columns
 from tagtrail.stages.base import StageParams
 
 log = logging.getLogger(__name__)
 
-EDGE_COLS = ["t_ns", "tag_i", "tag_j", *POSE_COLS, "weight"]
+EDGE_COLS = columns("edges.edges")
 WEAK_LINK_OBS = 3
 
 
@@ -58,7 +58,6 @@ class Params(StageParams):
 INPUTS = {"observations": "pnp.observations"}
 OUTPUTS = ("edges", "graph")
 SCOPE = "all"
-DEPENDS = ("tagtrail.geometry.se3",)
 
 
 def choose_anchor(n_obs: pd.Series, anchor_id: int | None) -> int:

@@ -1,11 +1,11 @@
 """Stage ``extract``: a dataset source → frames, tag detections, camera model, given observations.
 
 Image sources are decoded and detected by worker processes over chunks of frames
-(:mod:`tagtrail.io.workers`): the parent only reads the bag (raw message bytes / file paths),
+(:mod:`tagtrail.pool`): the parent only reads the bag (raw message bytes / file paths),
 workers decode and run pupil-apriltags (tag36h11), then re-fit each tag's corners to its border's
-edges (:mod:`tagtrail.io.corners`, ``refit_corners``; ~20 % of the detector's time, corners
+edges (:mod:`tagtrail.vision.corners`, ``refit_corners``; ~20 % of the detector's time, corners
 3-6x closer to the truth). No detector is ever built in the calling
-process, and workers' exit status is not trusted (see :mod:`tagtrail.io.detector` for the
+process, and workers' exit status is not trusted (see :mod:`tagtrail.vision.apriltag` for the
 upstream exit-time segfault this avoids); idle workers are kept for the next extract run.
 Tags whose white quiet zone runs off the image are dropped (``keep_truncated``): the detector
 puts one of their edges on the border. Detection sources (``apriltag_msgs``: no image to re-fit
@@ -38,25 +38,20 @@ from pydantic import Field
 from tqdm import tqdm
 
 from tagtrail.errors import SourceError
-from tagtrail.io.camera import CameraModel
-from tagtrail.io.corners import truncated
-from tagtrail.io.detector import DetectorConfig
-from tagtrail.io.layouts import POSE_COLS
-from tagtrail.io.sources import Frame, Source, TagDetection, open_source
-from tagtrail.io.workers import shared_pool
+from tagtrail.geometry.camera import CameraModel
+from tagtrail.io.sources import Frame, Source, open_source
+from tagtrail.pool import shared_pool
+from tagtrail.schemas.artifacts import CORNER_COLS, POSE_COLS, columns
 from tagtrail.schemas.pipeline import DatasetConfig
 from tagtrail.stages.base import StageParams
+from tagtrail.vision.detector import DetectorConfig, filter_detections
 
 log = logging.getLogger("tagtrail.extract")
 
 INPUTS = {"source": "source"}
 OUTPUTS = ("frames", "detections", "camera", "observations")
 PRIMARY = "detections"  # what `tagtrail show extract --csv` exports
-DEPENDS = ("tagtrail.io.sources", "tagtrail.io.images", "tagtrail.io.detector",
-           "tagtrail.io.corners", "tagtrail.io.camera", "tagtrail.io.workers")
-CORNER_COLS = [f"c{i}{a}" for i in range(4) for a in "xy"]
-DETECTION_COLS = ["t_ns", "frame_idx", "tag_id", "hamming", "decision_margin", *CORNER_COLS]
-OBSERVATION_COLS = ["t_ns", "frame_idx", "tag_id", *POSE_COLS]
+OBSERVATION_COLS = columns("extract.observations")
 
 
 class Params(StageParams):
@@ -165,28 +160,6 @@ def _from_detection_msgs(
     return t_ns, frame_idx, n_det, det
 
 
-def filter_detections(
-    dets: list[TagDetection], cfg: DetectorConfig, dropped: Counter[str],
-    image_size: tuple[int, int] | None = None,
-) -> Iterator[TagDetection]:
-    """The image path's filters, applied to detection messages; counts what it drops.
-    ``image_size`` (width, height): for the quiet-zone test (``keep_truncated``)."""
-    for d in dets:
-        if d.family and "36h11" not in d.family:
-            dropped[f"of family {d.family} (tagtrail reads tag36h11)"] += 1
-        elif d.hamming > cfg.max_hamming:
-            dropped[f"with hamming > max_hamming {cfg.max_hamming}"] += 1
-        elif d.decision_margin < cfg.min_decision_margin:
-            dropped[f"with decision_margin < min_decision_margin {cfg.min_decision_margin}"] += 1
-        elif cfg.tag_ids is not None and d.tag_id not in cfg.tag_ids:
-            dropped["not in tag_ids"] += 1
-        elif (image_size is not None and not cfg.keep_truncated
-              and truncated(d.corners, *image_size)[0]):
-            dropped["cut by the image border (keep_truncated: false)"] += 1
-        else:
-            yield d
-
-
 # --- image sources -----------------------------------------------------------------------------
 
 
@@ -263,7 +236,7 @@ def _map_chunks(
     """``detect_chunk`` over ``chunks`` in worker processes (never in this one)."""
     cfg = params.detector()
     workers = min(_n_workers(params.workers), max(1, -(-n_frames // params.chunk_size)))
-    with shared_pool("tagtrail.io.detector:detect_chunk", workers) as pool:
+    with shared_pool("tagtrail.vision.apriltag:detect_chunk", workers) as pool:
         for part in pool.imap_unordered((chunk, cfg, camera) for chunk in chunks):
             bar.update(len(part["frame_idx"]))
             yield part

@@ -41,7 +41,9 @@ from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
 
 from tagtrail.errors import DataError
+from tagtrail.geometry.camera import CameraModel
 from tagtrail.geometry.fusion import camera_estimates, fuse_robust, tag_corners
+from tagtrail.geometry.ippe import best_pose
 from tagtrail.geometry.posegraph import (
     CornerObservations,
     LossName,
@@ -51,15 +53,13 @@ from tagtrail.geometry.posegraph import (
     solve,
 )
 from tagtrail.geometry.se3 import R_from_quat_xyzw, inv, make_T, quat_xyzw_from_R
-from tagtrail.io.camera import CameraModel
-from tagtrail.io.layouts import POSE_COLS
+from tagtrail.schemas.artifacts import CORNER_COLS, POSE_COLS, columns, ippe_solutions
 from tagtrail.stages.base import StageParams
-from tagtrail.stages.pnp import best_pose
 
 log = logging.getLogger(__name__)
 
-TAG_MAP_COLS = ["tag_id", *POSE_COLS, "n_obs", "size_m", "res_t_rms_m", "res_r_rms_deg"]
-RESIDUAL_COLS = ["tag_i", "tag_j", "t_ns", "res_t_m", "res_r_deg"]
+TAG_MAP_COLS = columns("optimize.tag_map")
+RESIDUAL_COLS = columns("optimize.edge_residuals")
 
 
 class Params(StageParams):
@@ -92,16 +92,6 @@ INPUTS = {
 }
 OUTPUTS = ("tag_map", "edge_residuals", "report")
 SCOPE = "all"
-DEPENDS = (
-    "tagtrail.stages.pnp",
-    "tagtrail.geometry.fusion",
-    "tagtrail.geometry.posegraph",
-    "tagtrail.geometry.robust",
-    "tagtrail.geometry.rotations",
-    "tagtrail.geometry.se3",
-    "tagtrail.io.camera",
-)
-CORNER_COLS = [f"c{k}{a}" for k in range(4) for a in "xy"]
 
 
 def _per_tag_rms(idx_i: np.ndarray, idx_j: np.ndarray, sq: np.ndarray, n: int) -> np.ndarray:
@@ -138,7 +128,8 @@ def refine_on_corners(
     frames, f = np.unique(m["frame_idx"].to_numpy(np.int64), return_inverse=True)
     world_T_tag = make_T(R, t)
     # Start: each frame's camera pose fused from its tags' IPPE poses in the pose-graph map.
-    world_T_cam = fuse_robust(camera_estimates(world_T_tag[k], best_pose(m)), f, len(frames))
+    cam_T_tag = best_pose(*ippe_solutions(m))
+    world_T_cam = fuse_robust(camera_estimates(world_T_tag[k], cam_T_tag), f, len(frames))
     cam_T_world = inv(world_T_cam)
     ob = CornerObservations(frame=f, tag=k, pts_tag=tag_corners(m["size_m"].to_numpy(np.float64)),
                             uv=cam.undistort(px))

@@ -19,7 +19,6 @@ from __future__ import annotations
 import logging
 from typing import Any
 
-import cv2
 import numpy as np
 import pandas as pd
 from numpy.typing import NDArray
@@ -27,8 +26,10 @@ from pydantic import Field, field_validator
 
 from tagtrail.errors import SourceError
 from tagtrail.geometry import se3
-from tagtrail.io.camera import CameraModel
-from tagtrail.io.layouts import POSE_COLS
+from tagtrail.geometry.camera import CameraModel
+from tagtrail.geometry.ippe import ambiguity, solve_ippe
+from tagtrail.schemas.artifacts import ALT_POSE_COLS as ALT_COLS
+from tagtrail.schemas.artifacts import CORNER_COLS, POSE_COLS, columns
 from tagtrail.stages.base import StageParams
 
 log = logging.getLogger("tagtrail.pnp")
@@ -39,19 +40,7 @@ INPUTS = {
     "extracted": "extract.observations",
 }
 OUTPUTS = ("observations",)
-DEPENDS = ("tagtrail.io.camera", "tagtrail.geometry.se3")
-CORNER_COLS = [f"c{i}{a}" for i in range(4) for a in "xy"]
-ALT_COLS = [f"alt_{c}" for c in POSE_COLS]
-COLUMNS = ["t_ns", "frame_idx", "tag_id", "size_m", *POSE_COLS, "reproj_px", *ALT_COLS,
-           "alt_reproj_px", "ambiguity"]
-# SPEC corner order, unit square (x right, y up, z out).
-UNIT_CORNERS_TAG = np.array(
-    [[-0.5, -0.5, 0.0], [0.5, -0.5, 0.0], [0.5, 0.5, 0.0], [-0.5, 0.5, 0.0]]
-)
-_IPPE_ORDER = [3, 2, 1, 0]  # SPEC corners in IPPE_SQUARE's canonical order
-# Undistorted rays beyond this tangent (89.994°) point nowhere a tag can be seen; such corners
-# (garbage in a detection message) would only overflow the reprojection.
-_MAX_NORM = 1e4
+COLUMNS = columns("pnp.observations")
 
 
 class Params(StageParams):
@@ -73,51 +62,6 @@ class Params(StageParams):
         ids, inv = np.unique(np.asarray(tag_ids, dtype=np.int64), return_inverse=True)
         per_id = np.array([self.tag_sizes.get(int(t), self.tag_size) for t in ids], np.float64)
         return per_id[inv.reshape(-1)]
-
-
-def solve_ippe(
-    corners_px: NDArray[Any], sizes: NDArray[Any], camera: CameraModel
-) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
-    """Both IPPE poses of square tags.
-
-    ``corners_px``: (n, 4, 2) distorted pixels, SPEC corner order; ``sizes``: (n,) m.
-    Returns ``cam_T_tag`` (n, 2, 4, 4) and ``reproj_px`` (n, 2), best solution first; a tag whose
-    solve fails (degenerate, non-finite or far out-of-view corners) gets NaN.
-    """
-    corners_px = np.asarray(corners_px, dtype=np.float64).reshape(-1, 4, 2)
-    n = len(corners_px)
-    norm = np.ascontiguousarray(camera.undistort(corners_px)[:, _IPPE_ORDER])
-    obj = np.ascontiguousarray(UNIT_CORNERS_TAG[_IPPE_ORDER])
-    eye = np.eye(3)
-    rv = np.full((n, 2, 3), np.nan)
-    tv = np.full((n, 2, 3), np.nan)
-    usable = np.abs(norm).max(axis=(1, 2), initial=0.0) < _MAX_NORM  # False for NaN too
-    for i in np.flatnonzero(usable):
-        try:
-            k, rvecs, tvecs, _ = cv2.solvePnPGeneric(
-                obj, norm[i], eye, None, flags=cv2.SOLVEPNP_IPPE_SQUARE
-            )
-        except cv2.error:
-            continue
-        for j in range(min(int(k), 2)):
-            rv[i, j] = rvecs[j].reshape(3)
-            tv[i, j] = tvecs[j].reshape(3)
-    ok = np.isfinite(rv).all(axis=-1)
-    R = np.full((n, 2, 3, 3), np.nan)
-    R[ok] = se3.R_from_rotvec(rv[ok])
-    t = tv * np.asarray(sizes, dtype=np.float64)[:, None, None]
-    T = se3.make_T(R, t)
-    pts_tag = UNIT_CORNERS_TAG * np.asarray(sizes, dtype=np.float64)[:, None, None]  # (n, 4, 3)
-    pts_cam = se3.transform_points(T[:, :, None], pts_tag[:, None])  # (n, 2, 4, 3)
-    err = np.full((n, 2), np.nan)
-    if ok.any():
-        proj = camera.project(pts_cam[ok])  # (k, 4, 2)
-        d2 = np.sum((proj - np.broadcast_to(corners_px[:, None], (n, 2, 4, 2))[ok]) ** 2, -1)
-        err[ok] = np.sqrt(d2.mean(-1))
-    swap = np.nan_to_num(err[:, 1], nan=np.inf) < np.nan_to_num(err[:, 0], nan=np.inf)
-    T[swap] = T[swap][:, ::-1]
-    err[swap] = err[swap][:, ::-1]
-    return T, err
 
 
 def run(
@@ -164,13 +108,6 @@ def _solve_table(det: pd.DataFrame, camera: CameraModel, params: Params) -> pd.D
     return pd.DataFrame(cols)[COLUMNS][good].reset_index(drop=True)
 
 
-def ambiguity(reproj_px: NDArray[Any], alt_reproj_px: NDArray[Any]) -> NDArray[np.float64]:
-    """``reproj_px / alt_reproj_px`` (n,); 1 (ambiguous) where the alternative is not > 0 — both
-    solutions exact, or none — instead of a division by zero."""
-    alt = np.asarray(alt_reproj_px, dtype=np.float64)
-    return np.divide(reproj_px, alt, out=np.ones(len(alt)), where=alt > 0)
-
-
 def _xyz_quat(T: NDArray[np.float64]) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
     """(n, 4, 4) possibly NaN → xyz (n, 3), q_xyzw (n, 4), NaN rows kept NaN."""
     xyz = T[:, :3, 3].copy()
@@ -197,14 +134,3 @@ def _typed(df: pd.DataFrame) -> pd.DataFrame:
     for c in COLUMNS[3:]:
         out[c] = out[c].astype(np.float64)
     return out
-
-
-def best_pose(obs: pd.DataFrame) -> NDArray[np.float64]:
-    """``cam_T_tag`` ``(N, 4, 4)`` of ``pnp.observations`` rows: of the two IPPE solutions, the one
-    with the lower reprojection error (source-given observations: their only pose)."""
-    vals = obs[POSE_COLS].to_numpy(np.float64)
-    if all(c in obs.columns for c in [*ALT_COLS, "reproj_px", "alt_reproj_px"]):
-        alt = obs[ALT_COLS].to_numpy(np.float64)
-        use_alt = (obs["alt_reproj_px"] < obs["reproj_px"]).to_numpy() & np.isfinite(alt).all(1)
-        vals = np.where(use_alt[:, None], alt, vals)
-    return se3.T_from_xyz_quat(vals[:, :3], vals[:, 3:])

@@ -23,13 +23,14 @@ from numpy.typing import ArrayLike
 from pydantic import Field
 
 from tagtrail.errors import DataError
-from tagtrail.geometry.plane import (
+from tagtrail.geometry.reference_path import (
     PathMatch,
     ReferencePath,
     capture_radius_p95,
     reduce_to_point,
+    reference_plane,
 )
-from tagtrail.stages.align import poses, reference_plane
+from tagtrail.schemas.artifacts import columns, poses
 from tagtrail.stages.base import StageParams
 
 INPUTS = {
@@ -39,11 +40,7 @@ INPUTS = {
 }
 OUTPUTS = ("relocalization", "summary")
 SCOPE = "query"
-DEPENDS = ("tagtrail.geometry.plane", "tagtrail.stages.align")
-RELOC_COLS = [
-    "t_ns", "t_rel_s", "nearest_ref_idx", "distance_m", "heading_error_deg",
-    "query_heading_deg", "ref_heading_deg", "query_u", "query_v", "ref_u", "ref_v",
-]  # fmt: skip
+RELOC_COLS = columns("report.relocalization")
 ALIGNMENT_KEYS = (
     "model", "scale", "rotation_deg", "translation", "inliers", "common_tags", "rms_m",
 )  # fmt: skip
@@ -116,7 +113,8 @@ def run(
         raise DataError("the query trajectory is empty: nothing to relocalize")
     if len(ref_trajectory) < 2:
         raise DataError("the reference trajectory needs at least 2 poses")
-    path = ReferencePath(poses(ref_trajectory)[0], reference_plane(params.plane, ref_trajectory))
+    ref_P, ref_R = poses(ref_trajectory)
+    path = ReferencePath(ref_P, reference_plane(params.plane, ref_P, ref_R))
     uv, heading = path.planar(*poses(trajectory))
     t_ns = trajectory["t_ns"].to_numpy(np.int64)
     mode = choose_mode(params.mode, uv, params.static_threshold_m)

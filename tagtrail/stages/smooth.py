@@ -28,7 +28,7 @@ from pydantic import Field
 from tagtrail.geometry.robust import LossName
 from tagtrail.geometry.se3 import R_from_quat_xyzw, quat_xyzw_from_R
 from tagtrail.geometry.smoothing import smooth_poses
-from tagtrail.io.layouts import POSE_COLS
+from tagtrail.schemas.artifacts import POSE_COLS
 from tagtrail.stages.base import StageParams
 
 
@@ -52,13 +52,6 @@ class Params(StageParams):
 INPUTS = {"trajectory": "trajectory.trajectory"}
 OUTPUTS = ("trajectory",)
 SCOPE = "all"
-DEPENDS = (
-    "tagtrail.geometry.smoothing",
-    "tagtrail.geometry.posegraph",
-    "tagtrail.geometry.robust",
-    "tagtrail.geometry.rotations",
-    "tagtrail.geometry.se3",
-)
 
 
 def run(trajectory: pd.DataFrame, params: Params) -> dict[str, Any]:

@@ -25,6 +25,7 @@ import pandas as pd
 from pydantic import Field
 
 from tagtrail.errors import DataError
+from tagtrail.geometry.camera import CameraModel
 from tagtrail.geometry.fusion import (
     camera_estimates,
     fuse_mean,
@@ -32,17 +33,15 @@ from tagtrail.geometry.fusion import (
     multi_tag_pnp,
     tag_corners,
 )
+from tagtrail.geometry.ippe import best_pose
 from tagtrail.geometry.robust import LossName
 from tagtrail.geometry.se3 import T_from_xyz_quat, transform_points, xyz_quat_from_T
-from tagtrail.io.camera import CameraModel
-from tagtrail.io.layouts import POSE_COLS
+from tagtrail.schemas.artifacts import CORNER_COLS, POSE_COLS, columns, ippe_solutions
 from tagtrail.stages.base import StageParams
-from tagtrail.stages.pnp import best_pose
 
 log = logging.getLogger(__name__)
 
-CORNER_COLS = [f"c{k}{a}" for k in range(4) for a in "xy"]
-TRAJ_COLS = ["t_ns", *POSE_COLS, "n_tags"]
+TRAJ_COLS = columns("trajectory.trajectory")
 
 
 class Params(StageParams):
@@ -64,14 +63,6 @@ INPUTS = {
 }
 OUTPUTS = ("trajectory",)
 SCOPE = "all"
-DEPENDS = (
-    "tagtrail.stages.pnp",
-    "tagtrail.geometry.fusion",
-    "tagtrail.geometry.robust",
-    "tagtrail.geometry.rotations",
-    "tagtrail.geometry.se3",
-    "tagtrail.io.camera",
-)
 
 
 def _empty() -> pd.DataFrame:
@@ -139,7 +130,7 @@ def run(
     t_ns = obs.groupby("frame_idx")["t_ns"].first().reindex(uframe).to_numpy(np.int64)
     k = np.searchsorted(ids, obs["tag_id"].to_numpy(np.int64))
     W = W_map[k]
-    est = camera_estimates(W, best_pose(obs))
+    est = camera_estimates(W, best_pose(*ippe_solutions(obs)))
     n = len(uframe)
 
     method = params.method

@@ -16,7 +16,7 @@ from pathlib import Path
 from typing import Any
 
 from tagtrail.errors import TagtrailError, report
-from tagtrail.geometry.plane import PLANES
+from tagtrail.geometry.reference_path import PLANES
 from tagtrail.stream.codec import POSE_TYPES
 from tagtrail.stream.session import add_session_arguments, config_from_args, open_session
 
@@ -162,7 +162,7 @@ def main(args: argparse.Namespace | Sequence[str] | None = None) -> int:
 
 def _relocalize(ns: argparse.Namespace) -> int:
     from tagtrail.io.layouts import read_trajectory
-    from tagtrail.stream.relocalize import Relocalizer, load_alignment, serve
+    from tagtrail.stream.reloc_node import Relocalizer, load_alignment, serve
     from tagtrail.stream.session import leave_now, stop_on_signals
 
     ref = read_trajectory(ns.reference)
@@ -206,13 +206,13 @@ def _replay(ns: argparse.Namespace) -> int:
 
 
 def _localize(ns: argparse.Namespace) -> int:
-    from tagtrail.io.detector import DetectorConfig
     from tagtrail.io.layouts import read_tag_map
     from tagtrail.stages.trajectory import Params
     from tagtrail.stream.localize import Localizer, cv2_threads
     from tagtrail.stream.node import Node
     from tagtrail.stream.session import leave_now, stop_on_signals
     from tagtrail.stream.stats import Stats
+    from tagtrail.vision.detector import DetectorConfig
 
     tags, _ = read_tag_map(ns.map)
     stats = Stats("localize")

@@ -28,6 +28,7 @@ import pandas as pd
 from numpy.typing import NDArray
 
 from tagtrail.errors import DataError
+from tagtrail.geometry.camera import CameraModel
 from tagtrail.geometry.fusion import (
     camera_estimates,
     fuse_mean,
@@ -37,14 +38,12 @@ from tagtrail.geometry.fusion import (
 )
 from tagtrail.geometry.se3 import T_from_xyz_quat, transform_points, xyz_quat_from_T
 from tagtrail.io import msgs
-from tagtrail.io.camera import CameraModel
-from tagtrail.io.detector import DetectorConfig
-from tagtrail.io.layouts import POSE_COLS
 from tagtrail.io.sources import detections_from_msg
+from tagtrail.schemas.artifacts import POSE_COLS
 from tagtrail.stages import trajectory as trajectory_stage
-from tagtrail.stages.extract import filter_detections
 from tagtrail.stream import codec
 from tagtrail.stream.stats import DropError, Stats
+from tagtrail.vision.detector import DetectorConfig, filter_detections
 
 log = logging.getLogger("tagtrail.stream")
 F64 = NDArray[np.float64]
@@ -163,8 +162,8 @@ class Localizer:
     def on_image(self, data: bytes, kind: str = "compressed") -> list[tuple[str, bytes]]:
         """Detect tags in one image and publish the pose. The image's size is checked before
         it is decoded (:meth:`check_size`): a bad or oversized image costs no memory."""
-        from tagtrail.io.detector import detect  # pupil-apriltags only where images are used
-        from tagtrail.io.images import RawImage
+        from tagtrail.vision.apriltag import detect  # pupil-apriltags only where images are used
+        from tagtrail.vision.images import RawImage
 
         msg = self._decode(data, IMAGE_TYPES[kind])
         if kind == "compressed":

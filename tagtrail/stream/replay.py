@@ -31,7 +31,8 @@ from numpy.typing import NDArray
 
 from tagtrail.errors import SourceError, TagtrailError
 from tagtrail.io import msgs
-from tagtrail.io.layouts import POSE_COLS, TRAJECTORY_NAMES, read_trajectory
+from tagtrail.io.layouts import TRAJECTORY_NAMES, read_trajectory
+from tagtrail.schemas.artifacts import POSE_COLS
 from tagtrail.stream import codec
 
 log = logging.getLogger("tagtrail.stream")

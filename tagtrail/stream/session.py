@@ -28,7 +28,7 @@ from typing import Any, NoReturn
 
 import zenoh
 
-from tagtrail.errors import SpecError
+from tagtrail.errors import SessionError, SpecError
 
 log = logging.getLogger("tagtrail.stream")
 DEFAULT_ENDPOINT = "tcp/127.0.0.1:7447"
@@ -92,12 +92,12 @@ def config_from_args(ns: argparse.Namespace, default_role: str) -> zenoh.Config:
 
 
 def open_session(cfg: zenoh.Config) -> zenoh.Session:
-    """Open a session; a failure (port in use, bad locator) becomes one clear :class:`SpecError`."""
+    """Open a session; a failure (port in use, bad locator) becomes one :class:`SessionError`."""
     try:
         return zenoh.open(cfg)
     except zenoh.ZError as err:
         ends = {k: cfg.get_json(f"{k}/endpoints") for k in ("listen", "connect")}
-        raise SpecError(f"cannot open the zenoh session ({ends}): {err}") from err
+        raise SessionError(f"cannot open the zenoh session ({ends}): {err}") from err
 
 
 def close_all(session: zenoh.Session | None, entities: Sequence[Any],

@@ -16,8 +16,8 @@ from rosbags.rosbag1 import Writer as Writer1
 from rosbags.rosbag2 import StoragePlugin, Writer
 from rosbags.typesys import Stores, get_typestore
 
+from tagtrail.geometry.camera import CameraModel
 from tagtrail.io import msgs
-from tagtrail.io.camera import CameraModel
 
 T0_NS = 1_700_000_000_000_000_000
 STORAGE = {"mcap": StoragePlugin.MCAP, "sqlite3": StoragePlugin.SQLITE3}

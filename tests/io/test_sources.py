@@ -11,11 +11,12 @@ import numpy as np
 import pytest
 
 from tagtrail.errors import SourceError
+from tagtrail.geometry.camera import CameraModel
 from tagtrail.io import msgs
-from tagtrail.io.camera import CameraModel
-from tagtrail.io.images import RawImage
+from tagtrail.io.camera_files import read_camera_file
 from tagtrail.io.sources import open_source
 from tagtrail.schemas.pipeline import DatasetConfig, Topics
+from tagtrail.vision.images import RawImage
 from tests.io import bags
 
 T0 = bags.T0_NS
@@ -25,7 +26,7 @@ DT = 33_333_333
 @pytest.fixture(scope="module")
 def upenn(realdata: Path) -> tuple[list[Path], CameraModel]:
     folder = realdata / "upenn_ar_tag36h11_id12_seq/frames"
-    return sorted(folder.glob("frame*.jpg"))[:4], CameraModel.from_yaml(folder / "camera.yaml")
+    return sorted(folder.glob("frame*.jpg"))[:4], read_camera_file(folder / "camera.yaml")
 
 
 def cfg(source: Path, **topics: str) -> DatasetConfig:

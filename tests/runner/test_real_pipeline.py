@@ -11,7 +11,7 @@ from pathlib import Path
 
 import pytest
 
-from tagtrail.demo import template
+from tagtrail.commands.demo import template
 from tagtrail.sim import simulate
 
 

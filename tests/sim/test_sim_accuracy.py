@@ -13,6 +13,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
+from tagtrail.geometry.camera import CameraModel
 from tagtrail.geometry.se3 import (
     F64,
     R_from_rotvec,
@@ -22,10 +23,9 @@ from tagtrail.geometry.se3 import (
     make_T,
     pose_error,
 )
-from tagtrail.io.camera import CameraModel
-from tagtrail.io.corners import refine_corners
 from tagtrail.io.layouts import POSE_COLS, read_tag_map, read_trajectory
 from tagtrail.sim import simulate
+from tagtrail.vision.corners import refine_corners
 from tests.sim.helpers import detector, image_of, read_topic
 
 # SPEC corners 0..3 of a tag of edge s: (-,-), (+,-), (+,+), (-,+). IPPE_SQUARE insists on its

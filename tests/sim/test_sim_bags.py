@@ -14,8 +14,8 @@ from mcap.reader import make_reader
 from mcap_ros2.decoder import DecoderFactory
 
 from tagtrail.errors import SpecError
+from tagtrail.geometry.camera import CameraModel
 from tagtrail.geometry.se3 import T_from_xyz_quat
-from tagtrail.io.camera import CameraModel
 from tagtrail.io.layouts import POSE_COLS, read_tag_map, read_trajectory
 from tagtrail.sim import cli, simulate
 from tagtrail.sim.camera import FRAME_ID, limo_camera

@@ -5,8 +5,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from tagtrail.geometry.camera import CameraModel
 from tagtrail.geometry.se3 import inv, make_T
-from tagtrail.io.camera import CameraModel
 from tagtrail.sim.camera import limo_camera, tag_visibility
 from tagtrail.sim.render import Realism, Renderer, clip_near
 from tagtrail.sim.scenarios import ROOM_QUERIES, SimOptions, build

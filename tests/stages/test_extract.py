@@ -14,7 +14,7 @@ import pydantic
 import pytest
 
 from tagtrail.errors import SourceError
-from tagtrail.io.camera import CameraModel
+from tagtrail.io.camera_files import read_camera_file
 from tagtrail.schemas.pipeline import DatasetConfig
 from tagtrail.stages import extract
 from tests.io import bags
@@ -35,7 +35,7 @@ def upenn_dir(realdata: Path) -> Path:
 @pytest.fixture(scope="module")
 def upenn_bag(upenn_dir: Path, tmp_path_factory) -> Path:
     """All 93 frames as CompressedImage (their JPEG bytes) + CameraInfo, sqlite3."""
-    cam = CameraModel.from_yaml(upenn_dir / "frames/camera.yaml")
+    cam = read_camera_file(upenn_dir / "frames/camera.yaml")
     files = sorted((upenn_dir / "frames").glob("frame*.jpg"))
     out = [("/cam/camera_info", T0, bags.camera_info_msg(cam))]
     out += [("/cam/image/compressed", T0 + k * DT,
@@ -78,7 +78,7 @@ def test_upenn_corners_match_expected_minus_half_pixel(upenn_unrefined: dict, up
     # measured: mean (+0.499, +0.503) px, median (+0.498, +0.500) px, max |offset - 0.5| 0.31 px
     np.testing.assert_allclose(np.median(offset.reshape(-1, 2), axis=0), [0.5, 0.5], atol=0.02)
     assert np.abs(offset - 0.5).max() < 0.35
-    assert out["camera"] == CameraModel.from_yaml(upenn_dir / "frames/camera.yaml").to_dict()
+    assert out["camera"] == read_camera_file(upenn_dir / "frames/camera.yaml").to_dict()
 
 
 def test_upenn_refit_moves_real_corners_by_a_fraction_of_a_pixel(
@@ -100,7 +100,7 @@ def test_upenn_refit_moves_real_corners_by_a_fraction_of_a_pixel(
 
 def test_rgb8_mcap_bag_and_folder_agree(upenn_bag_out: dict, upenn_dir, tmp_path) -> None:
     files = sorted((upenn_dir / "frames").glob("frame*.jpg"))[:6]
-    cam = CameraModel.from_yaml(upenn_dir / "frames/camera.yaml")
+    cam = read_camera_file(upenn_dir / "frames/camera.yaml")
     out = [("/camera/camera_info", T0, bags.camera_info_msg(cam))]
     for k, f in enumerate(files):
         rgb = np.ascontiguousarray(cv2.imread(str(f))[..., ::-1])
@@ -142,7 +142,7 @@ def test_swatbotics_ids_vs_groundtruth(realdata: Path) -> None:
 
 
 def test_detection_bag_humble_sqlite3(upenn_dir: Path, tmp_path: Path) -> None:
-    cam = CameraModel.from_yaml(upenn_dir / "frames/camera.yaml")
+    cam = read_camera_file(upenn_dir / "frames/camera.yaml")
     corners = np.load(upenn_dir / "corners.npy")[:5]  # as apriltag_ros would publish them
     out = [("/camera_info", T0, bags.camera_info_msg(cam))]
     for k, c in enumerate(corners):
@@ -210,7 +210,8 @@ def test_undecodable_frame_names_the_file(upenn_dir: Path, tmp_path: Path) -> No
 SCRIPT = """
 import sys
 import cv2
-from tagtrail.io.detector import DetectorConfig, detect
+from tagtrail.vision.apriltag import detect
+from tagtrail.vision.detector import DetectorConfig
 from tagtrail.schemas.pipeline import DatasetConfig
 from tagtrail.stages import extract
 
@@ -295,7 +296,7 @@ def test_bag_frames_of_another_size_are_left_out(upenn_dir, tmp_path, caplog,
                                                  compressed: bool) -> None:  # fmt: skip
     """Image / CompressedImage messages whose decoded size is not CameraInfo's: the same rule."""
     files = sorted((upenn_dir / "frames").glob("frame*.jpg"))[:4]
-    cam = CameraModel.from_yaml(upenn_dir / "frames/camera.yaml")
+    cam = read_camera_file(upenn_dir / "frames/camera.yaml")
 
     def bag(name: str, small: set[int]) -> Path:
         out = [("/camera/camera_info", T0, bags.camera_info_msg(cam))]

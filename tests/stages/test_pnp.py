@@ -14,7 +14,8 @@ from scipy.spatial.transform import Rotation
 
 from tagtrail.errors import SourceError
 from tagtrail.geometry import se3
-from tagtrail.io.camera import CameraModel
+from tagtrail.geometry.camera import CameraModel
+from tagtrail.io.camera_files import read_camera_file
 from tagtrail.schemas.pipeline import DatasetConfig
 from tagtrail.stages import extract, pnp
 
@@ -100,7 +101,7 @@ def test_pass_through_and_empty_inputs() -> None:
 
 def test_real_corners_give_the_expected_distances(realdata: Path) -> None:
     folder = realdata / "upenn_ar_tag36h11_id12_seq"
-    cam = CameraModel.from_yaml(folder / "frames/camera.yaml")
+    cam = read_camera_file(folder / "frames/camera.yaml")
     corners = np.load(folder / "corners.npy") - 0.5  # C library → OpenCV pixel convention
     det = detections_table(corners, np.full(len(corners), 12))
     obs = pnp.run(det, cam.to_dict(), empty_obs(), pnp.Params(tag_size=0.14))["observations"]

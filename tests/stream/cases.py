@@ -13,13 +13,15 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
+from tagtrail.commands.relocalize import relocalize
 from tagtrail.geometry import se3
-from tagtrail.geometry.align2d import Alignment
+from tagtrail.geometry.reference_path import reference_plane
+from tagtrail.geometry.registration import Alignment, world_transform
 from tagtrail.io.layouts import POSE_COLS, read_trajectory, write_trajectory_csv
 from tagtrail.io.reloc_files import read_relocalization_csv
-from tagtrail.relocalize import relocalize
+from tagtrail.schemas.artifacts import poses
 from tagtrail.stages import report as report_stage
-from tagtrail.stages.align import reference_plane, transform_trajectory, world_transform
+from tagtrail.stages.align import transform_trajectory
 
 T0_NS = 1_700_000_000_000_000_000
 
@@ -89,7 +91,7 @@ def synthetic_case(tmp: Path, n_ref: int = 300, n_query: int = 120) -> Case:
     # offline, from the files as written (what a user would run)
     ref_f = read_trajectory(tmp / "reference")
     q_f = read_trajectory(tmp / "query")
-    A, R = world_transform(al, reference_plane("xz", ref_f))
+    A, R = world_transform(al, reference_plane("xz", *poses(ref_f)))
     res = report_stage.run(transform_trajectory(q_f, A, R), ref_f, block,
                            report_stage.Params(mode="trajectory", plane="xz"))  # fmt: skip
     return Case(tmp / "reference", tmp / "query" / "trajectory.csv", tmp / "alignment.json", "xz",

@@ -30,7 +30,7 @@ import cv2
 import numpy as np
 from numpy.typing import NDArray
 
-from tagtrail.io.camera import CameraModel
+from tagtrail.geometry.camera import CameraModel
 
 F64 = NDArray[np.float64]
 

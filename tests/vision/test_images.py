@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 from tagtrail.errors import SourceError
-from tagtrail.io.images import RawImage, decode_compressed, decode_raw
+from tagtrail.vision.images import RawImage, decode_compressed, decode_raw
 
 
 @pytest.fixture(scope="module")

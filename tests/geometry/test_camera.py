@@ -10,7 +10,8 @@ import numpy as np
 import pytest
 
 from tagtrail.errors import SourceError
-from tagtrail.io.camera import CameraModel
+from tagtrail.geometry.camera import CameraModel
+from tagtrail.io.camera_files import read_camera_file
 from tests.io import bags
 
 K = [500.0, 0.0, 320.0, 0.0, 505.0, 240.0, 0.0, 0.0, 1.0]
@@ -84,16 +85,16 @@ def test_from_camera_info_and_json_round_trip(model: str) -> None:
 
 
 def test_from_yaml_camera_calibration_format(realdata: Path) -> None:
-    cam = CameraModel.from_yaml(realdata / "photonvision_frc2024_field/images/camera.yaml")
+    cam = read_camera_file(realdata / "photonvision_frc2024_field/images/camera.yaml")
     assert (cam.width, cam.height, cam.distortion_model) == (1280, 720, "plumb_bob")
     assert cam.K[0, 0] == 1142.3413236140077 and cam.D[4] == 2.502076853514765
 
 
 def test_from_yaml_simple_meta_form(realdata: Path) -> None:
-    cam = CameraModel.from_yaml(realdata / "swatbotics_mapping_feb_2014/meta.yaml")
+    cam = read_camera_file(realdata / "swatbotics_mapping_feb_2014/meta.yaml")
     assert (cam.width, cam.height, cam.distortion_model) == (816, 612, "none")
     np.testing.assert_allclose(cam.K, [[765.0, 0, 393.72], [0, 764.18, 304.66], [0, 0, 1]])
-    cam = CameraModel.from_yaml(realdata / "photonvision_frc2024_field/meta.yaml")
+    cam = read_camera_file(realdata / "photonvision_frc2024_field/meta.yaml")
     assert cam.distortion_model == "plumb_bob" and cam.D.size == 5
 
 
@@ -105,9 +106,9 @@ def test_bad_camera_input_raises_source_error(tmp_path: Path) -> None:
     f = tmp_path / "cam.yaml"
     f.write_text("image_width: 640\n")
     with pytest.raises(SourceError, match=r"cam\.yaml: not a camera_info YAML"):
-        CameraModel.from_yaml(f)
+        read_camera_file(f)
     with pytest.raises(SourceError, match="missing.yaml: cannot read camera file"):
-        CameraModel.from_yaml(tmp_path / "missing.yaml")
+        read_camera_file(tmp_path / "missing.yaml")
 
 
 GOOD_CAMERA = """image_width: 640
@@ -151,7 +152,7 @@ def image_folder(folder: Path, camera_text: str) -> Path:
 
 
 def test_good_camera_yaml_loads(tmp_path: Path) -> None:  # the file the cases below break
-    cam = CameraModel.from_yaml(image_folder(tmp_path / "imgs", GOOD_CAMERA) / "camera.yaml")
+    cam = read_camera_file(image_folder(tmp_path / "imgs", GOOD_CAMERA) / "camera.yaml")
     assert (cam.width, cam.height, cam.K[1, 1], cam.D[1]) == (640, 480, 505.0, -0.2)
 
 
@@ -162,7 +163,7 @@ def test_bad_camera_yaml_is_one_line(tmp_path: Path, capsys, case: str) -> None:
     edit, message = BAD_CAMERAS[case]
     folder = image_folder(tmp_path / "imgs", edit(GOOD_CAMERA))
     with pytest.raises(SourceError) as info:  # one line at the source, not only once folded
-        CameraModel.from_yaml(folder / "camera.yaml")
+        read_camera_file(folder / "camera.yaml")
     assert "\n" not in str(info.value)
     assert main(["init", "--reference", str(folder), "-o", str(tmp_path / "p.yaml")]) == 2
     err = capsys.readouterr().err.strip().splitlines()

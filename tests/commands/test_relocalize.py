@@ -19,12 +19,12 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from tagtrail.geometry.plane import resolve_plane
+from tagtrail.commands.relocalize import main, relocalize
+from tagtrail.geometry.reference_path import resolve_plane
 from tagtrail.io.layouts import read_tag_map, read_trajectory, write_tag_map, write_trajectory_csv
-from tagtrail.relocalize import main, relocalize
+from tagtrail.schemas.artifacts import poses
 from tagtrail.stages import align as align_stage
 from tagtrail.stages import report as report_stage
-from tagtrail.stages.align import poses
 
 TABLE_4_3 = {  # query folder: (case, D [m], phi [deg]) as published
     "query_pontobranco": (1, 0.2998, -31.38),

@@ -13,7 +13,6 @@ Distortion models (ROS names): ``plumb_bob`` (k1 k2 p1 p2 k3), ``rational_polyno
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from pathlib import Path
 from typing import Any
 
 import cv2
@@ -21,16 +20,11 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from tagtrail.errors import SourceError
-from tagtrail.io.layouts import load_yaml
 
 F64 = NDArray[np.float64]
 MODELS = ("plumb_bob", "rational_polynomial", "equidistant", "none")
 _ALIASES = {"": "none", "fisheye": "equidistant", "radtan": "plumb_bob", "pinhole": "none"}
 _OPENCV_NCOEF = (4, 5, 8, 12, 14)
-_ROS_KEYS = ("image_width", "image_height", "camera_matrix", "distortion_model",
-             "distortion_coefficients")  # fmt: skip
-_ROS_NEEDS = ("a camera_info YAML needs image_width, image_height, camera_matrix.data (9 numbers), "
-              "distortion_model and distortion_coefficients.data")  # fmt: skip
 # Tight criteria: OpenCV's default (5 iterations) leaves ~1e-9 rad of error with strong distortion.
 _CRITERIA = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 100, 1e-14)
 
@@ -88,64 +82,6 @@ class CameraModel:
             K=np.asarray(_field(msg, "k"), dtype=np.float64),
             D=np.asarray(_field(msg, "d"), dtype=np.float64),
             distortion_model=str(msg.distortion_model),
-        )
-
-    @classmethod
-    def from_yaml(cls, path: Path | str) -> CameraModel:
-        """From a ROS camera_info YAML (``camera_calibration`` output).
-
-        Also accepts the simpler form ``camera: {width, height, fx, fy, cx, cy,
-        distortion_model, distortion}`` (the realdata ``meta.yaml`` files), with or without the
-        ``camera:`` level. Every problem is one :class:`SourceError` line naming the file.
-        """
-        path = Path(path)
-        doc = load_yaml(path, "camera file")
-        try:
-            return cls._from_doc(doc)
-        except SourceError as err:
-            raise SourceError(f"{path}: {err}") from err
-
-    @classmethod
-    def _from_doc(cls, doc: Any) -> CameraModel:
-        if doc is None:
-            raise SourceError(f"empty file; {_ROS_NEEDS}")
-        if not isinstance(doc, dict):
-            raise SourceError(f"not a camera_info YAML (it holds {type(doc).__name__}, not a "
-                              f"mapping); {_ROS_NEEDS}")  # fmt: skip
-        cam = doc["camera"] if isinstance(doc.get("camera"), dict) else doc
-        if "fx" in cam and not any(k in doc for k in _ROS_KEYS):
-            return cls._from_simple(cam)
-        missing = [k for k in _ROS_KEYS[:3] if k not in doc]
-        if missing:
-            raise SourceError(f"not a camera_info YAML: no {', '.join(missing)}; {_ROS_NEEDS}")
-        K, dist = doc["camera_matrix"], doc.get("distortion_coefficients") or {}
-        if not isinstance(K, dict) or "data" not in K:
-            raise SourceError("camera_matrix needs a 'data:' list of 9 numbers (K, row-major)")
-        if not isinstance(dist, dict):
-            raise SourceError("distortion_coefficients needs a 'data:' list of numbers")
-        return cls(
-            width=_pixels(doc["image_width"], "image_width"),
-            height=_pixels(doc["image_height"], "image_height"),
-            K=_numbers(K["data"], "camera_matrix.data", 9),
-            D=_numbers(dist.get("data") or [], "distortion_coefficients.data"),
-            distortion_model=str(doc.get("distortion_model", "plumb_bob")),
-        )
-
-    @classmethod
-    def _from_simple(cls, cam: dict[str, Any]) -> CameraModel:
-        missing = [k for k in ("width", "height", "fx", "fy", "cx", "cy") if k not in cam]
-        if missing:
-            raise SourceError(f"camera: no {', '.join(missing)} (the short form needs width, "
-                              "height, fx, fy, cx, cy and optionally distortion_model, "
-                              "distortion)")  # fmt: skip
-        f = {k: _number(cam[k], k) for k in ("fx", "fy", "cx", "cy")}
-        D = cam.get("distortion") or cam.get("D") or []
-        return cls(
-            width=_pixels(cam["width"], "width"),
-            height=_pixels(cam["height"], "height"),
-            K=np.array([f["fx"], 0.0, f["cx"], 0.0, f["fy"], f["cy"], 0.0, 0.0, 1.0]),
-            D=_numbers(D, "distortion"),
-            distortion_model=str(cam.get("distortion_model", "plumb_bob" if D else "none")),
         )
 
     def to_dict(self) -> dict[str, Any]:
@@ -270,38 +206,6 @@ class CameraModel:
         uv, _ = cv2.projectPoints(p.reshape(-1, 1, 3), np.zeros(3), np.zeros(3), self.K,
                                   self._cv_D())
         return np.asarray(uv, dtype=np.float64).reshape(p.shape[:-1] + (2,))
-
-
-def _number(value: Any, name: str) -> float:
-    """A YAML number (a numeric string too), else an error naming the key."""
-    try:
-        x = float(value) if not isinstance(value, bool) else np.nan
-    except (TypeError, ValueError):
-        x = np.nan
-    if np.isnan(x):
-        raise SourceError(f"{name} is {value!r}, not a number")
-    return x
-
-
-def _numbers(value: Any, name: str, n: int | None = None) -> F64:
-    """A YAML list of numbers; ``n``: the length it must have."""
-    if not isinstance(value, list | tuple):
-        raise SourceError(f"{name} is {value!r}, not a list of numbers")
-    if n is not None and len(value) != n:
-        raise SourceError(f"{name} has {len(value)} numbers, needs {n}")
-    return np.array([_number(v, f"{name}[{i}]") for i, v in enumerate(value)], dtype=np.float64)
-
-
-def _pixels(value: Any, name: str) -> int:
-    """An image size in pixels: a positive integer."""
-    ok = isinstance(value, int | float | str) and not isinstance(value, bool)
-    try:
-        x = float(value) if ok else np.nan
-    except ValueError:
-        x = np.nan
-    if not (np.isfinite(x) and x >= 1 and x == int(x)):
-        raise SourceError(f"{name} is {value!r}, not a positive integer (pixels)")
-    return int(x)
 
 
 def _field(msg: Any, name: str) -> Any:

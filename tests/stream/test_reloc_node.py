@@ -11,11 +11,13 @@ import pytest
 
 from tagtrail.errors import SourceError
 from tagtrail.geometry import se3
-from tagtrail.geometry.align2d import Alignment
+from tagtrail.geometry.reference_path import reference_plane
+from tagtrail.geometry.registration import Alignment, world_transform
+from tagtrail.schemas.artifacts import poses
 from tagtrail.stages import report as report_stage
-from tagtrail.stages.align import reference_plane, transform_trajectory, world_transform
+from tagtrail.stages.align import transform_trajectory
 from tagtrail.stream import codec
-from tagtrail.stream.relocalize import OUTPUTS, Relocalizer, load_alignment
+from tagtrail.stream.reloc_node import OUTPUTS, Relocalizer, load_alignment
 from tagtrail.stream.stats import DropError, Stats
 from tests.stream.cases import frame, planar_poses, query_frame, reference_frame
 
@@ -42,7 +44,7 @@ def test_process_equals_report_stage(tmp_path: Path, n_ref: int, plane: str) -> 
     al = Alignment("similarity", BLOCK["scale"], np.array([[math.cos(a), -math.sin(a)],
                    [math.sin(a), math.cos(a)]]), np.array(BLOCK["translation"]),
                    np.ones(3, bool), 0.0)  # fmt: skip
-    A2, R2 = world_transform(al, reference_plane(plane, ref))
+    A2, R2 = world_transform(al, reference_plane(plane, *poses(ref)))
     off = report_stage.run(transform_trajectory(query, A2, R2), ref, BLOCK,
                            report_stage.Params(mode="trajectory", plane=plane))["relocalization"]
     stats = Stats("t")

@@ -1,4 +1,4 @@
-"""The AprilTag detector (pupil-apriltags, tag36h11), guarded, and the per-chunk worker function.
+"""The AprilTag C library (pupil-apriltags, tag36h11), guarded, and the per-chunk worker task.
 
 Two defects of pupil-apriltags 1.0.4.post11 are worked around here:
 
@@ -14,14 +14,13 @@ Two defects of pupil-apriltags 1.0.4.post11 are worked around here:
 
 Corners are returned in the OpenCV pixel convention (pixel centres at integers): the C library
 puts them at +0.5 px (measured +0.49 px against OpenCV); with ``refit_corners`` they are then
-re-fitted to the image gradient of the tag's border (:mod:`tagtrail.io.corners`).
+re-fitted to the image gradient of the tag's border (:mod:`tagtrail.vision.corners`).
 """
 
 from __future__ import annotations
 
 import ctypes
 import functools
-from dataclasses import dataclass
 from typing import Any
 
 import cv2
@@ -29,27 +28,10 @@ import numpy as np
 from numpy.typing import NDArray
 from pupil_apriltags import Detector
 
-from tagtrail.io.camera import CameraModel
-from tagtrail.io.corners import refine_many, truncated
-from tagtrail.io.images import RawImage
-
-FAMILY = "tag36h11"
-C_LIBRARY_PIXEL_OFFSET = 0.5
-
-
-@dataclass(frozen=True)
-class DetectorConfig:
-    """Detector settings plus the filters applied to its output (hashable: a cache key)."""
-
-    quad_decimate: float = 2.0
-    quad_sigma: float = 0.0
-    refine_edges: bool = True
-    decode_sharpening: float = 0.25
-    max_hamming: int = 0
-    min_decision_margin: float = 0.0
-    tag_ids: tuple[int, ...] | None = None
-    refit_corners: bool = True
-    keep_truncated: bool = False
+from tagtrail.geometry.camera import CameraModel
+from tagtrail.vision.corners import refine_many, truncated
+from tagtrail.vision.detector import C_LIBRARY_PIXEL_OFFSET, FAMILY, DetectorConfig
+from tagtrail.vision.images import RawImage
 
 
 class GuardedDetector(Detector):  # type: ignore[misc]

@@ -19,9 +19,10 @@ import numpy as np
 import pandas as pd
 
 from tagtrail.errors import DataError, SourceError, SpecError, TagtrailError, report
-from tagtrail.geometry.plane import PLANES
+from tagtrail.geometry.reference_path import PLANES
 from tagtrail.io import reloc_files
-from tagtrail.io.layouts import POSE_COLS, TAG_MAP_NAMES, read_tag_map, read_trajectory
+from tagtrail.io.layouts import TAG_MAP_NAMES, read_tag_map, read_trajectory
+from tagtrail.schemas.artifacts import POSE_COLS
 from tagtrail.stages import align as align_stage
 from tagtrail.stages import report as report_stage
 
@@ -107,7 +108,8 @@ def _relocalize(
         raise DataError(f"reference {reference}, query {query}: {err}") from err
     reloc, summary = result["relocalization"], result["summary"]
     try:
-        write_outputs(Path(out), reloc, summary, aligned["trajectory"], ref_traj, ref_tags, plane)
+        reloc_files.write_outputs(Path(out), reloc, summary, aligned["trajectory"], ref_traj,
+                                  ref_tags, plane)
     except OSError as err:
         raise SourceError(f"{out}: cannot write the outputs: {err.strerror or err}") from err
     return result
@@ -122,38 +124,6 @@ def check_out(out: Path) -> None:
                 raise SpecError(f"-o {out}: {where} a file, not a folder; name a folder for the "
                                 "outputs (it is created if missing)")  # fmt: skip
             return
-
-
-def write_outputs(
-    out: Path,
-    reloc: pd.DataFrame,
-    summary: dict[str, Any],
-    q_traj: pd.DataFrame,
-    ref_traj: pd.DataFrame,
-    ref_tags: pd.DataFrame | None,
-    plane_name: str,
-) -> None:
-    """Write SPEC's relocalization files into ``out`` (also used by the pipeline's exports)."""
-    plane = align_stage.reference_plane(plane_name, ref_traj)
-    ref_P, ref_R = align_stage.poses(ref_traj)
-    names = {"xz": ("x", "z"), "xy": ("x", "y"), "yz": ("y", "z")}.get(plane_name, ("u", "v"))
-    # v is drawn downwards when the normal points along the cameras' "down" (seen from above)
-    flip_v = bool(plane.n @ ref_R[:, :, 1].mean(axis=0) > 0)
-    d, p = summary["distance_m"], summary["abs_heading_error_deg"]
-    title = f"{summary['mode']} mode, plane {plane_name}: " + (
-        f"D {d['mean']:.4f} m, phi {reloc['heading_error_deg'].iloc[0]:+.2f} deg"
-        if len(reloc) == 1
-        else f"D mean {d['mean']:.3f} m, |phi| mean {p['mean']:.2f} deg"
-    )
-    reloc_files.write_relocalization_csv(out / "relocalization.csv", reloc)
-    reloc_files.write_summary_json(out / "summary.json", summary)
-    reloc_files.write_relocalization_png(out / "relocalization.png", reloc, title)
-    tags_uv = None if ref_tags is None else plane.to_uv(ref_tags[["x_m", "y_m", "z_m"]].to_numpy())
-    reloc_files.write_map_png(
-        out / "map.png", plane.to_uv(ref_P), plane.to_uv(align_stage.poses(q_traj)[0]), reloc,
-        tags_uv, [] if ref_tags is None else ref_tags["tag_id"].astype(int).tolist(),
-        names, flip_v, title,
-    )  # fmt: skip
 
 
 def summary_text(summary: dict[str, Any], reloc: pd.DataFrame, out: Path) -> str:

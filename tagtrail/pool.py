@@ -3,7 +3,7 @@
 Why not :mod:`multiprocessing`: ``fork`` is unsafe from the runner's threads (a lock held by
 another thread stays locked in the child), and ``forkserver``/``spawn`` re-import the caller's
 ``__main__`` in every worker (an unguarded user script would run again; the CLI entry point
-would import the whole package). Workers here are plain ``python -m tagtrail.io.workers
+would import the whole package). Workers here are plain ``python -m tagtrail.pool
 MODULE:FUNC`` processes that import only the module they need and exchange pickles over their
 stdin/stdout pipes.
 
@@ -57,7 +57,7 @@ class WorkerPool:
         env["PYTHONPATH"] = os.pathsep.join([root, *filter(None, [env.get("PYTHONPATH")])])
         self.procs = [
             subprocess.Popen(
-                [sys.executable, "-m", "tagtrail.io.workers", func],
+                [sys.executable, "-m", "tagtrail.pool", func],
                 stdin=subprocess.PIPE, stdout=subprocess.PIPE, env=env,
             )
             for _ in range(max(1, workers))

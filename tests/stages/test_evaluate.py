@@ -13,7 +13,7 @@ from tagtrail.errors import DataError
 from tagtrail.geometry.se3 import inv, make_T, quat_xyzw_from_R
 from tagtrail.io.layouts import write_tag_map, write_trajectory_csv
 from tagtrail.runner.stage import stage_spec
-from tagtrail.stages import eval as eval_stage
+from tagtrail.stages import evaluate as eval_stage
 from tests.stages.mapping_scene import POSE, ring_scene, tag_map_frame
 
 STATS = {"mean", "median", "rmse", "p95", "max", "min"}

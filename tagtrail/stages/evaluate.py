@@ -28,9 +28,10 @@ import numpy as np
 import pandas as pd
 
 from tagtrail.errors import DataError
-from tagtrail.geometry.align2d import umeyama
+from tagtrail.geometry.registration import umeyama
 from tagtrail.geometry.se3 import T_from_xyz_quat, inv, make_T, pose_error
-from tagtrail.io.layouts import POSE_COLS, read_tag_map, read_trajectory
+from tagtrail.io.layouts import read_tag_map, read_trajectory
+from tagtrail.schemas.artifacts import POSE_COLS
 from tagtrail.stages.base import StageParams
 
 log = logging.getLogger(__name__)
@@ -48,7 +49,6 @@ INPUTS = {
 }
 OUTPUTS = ("evaluation",)
 SCOPE = "all"
-DEPENDS = ("tagtrail.geometry.align2d", "tagtrail.geometry.se3", "tagtrail.io.layouts")
 
 
 def error_stats(x: np.ndarray) -> dict[str, float | None]:

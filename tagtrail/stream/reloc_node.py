@@ -1,8 +1,8 @@
 """Live relocalization (paper §3.2.2): D and phi of each incoming pose against the reference.
 
 :class:`Relocalizer` holds what the node computes once — the reference as a
-:class:`~tagtrail.geometry.plane.ReferencePath` (the object the offline ``report`` stage uses), the
-alignment transform, the reference ``Path``/markers CDR, the encoders — and
+:class:`~tagtrail.geometry.reference_path.ReferencePath` (the object the offline ``report``
+stage uses), the alignment transform, the reference ``Path``/markers CDR, the encoders — and
 :meth:`Relocalizer.process` does the per-pose work: apply the alignment, ``k*``, D, phi
 (``ReferencePath.query_point``, Eqs. 3.12–3.15, ``trajectory`` mode), so live values equal the
 offline report's (long references use :class:`~tagtrail.geometry.pathindex.PathIndex`, exact).
@@ -32,9 +32,9 @@ import pandas as pd
 
 from tagtrail.errors import SourceError
 from tagtrail.geometry import se3
-from tagtrail.geometry.align2d import Alignment
-from tagtrail.geometry.plane import PLANES, ReferencePath
-from tagtrail.stages.align import poses, reference_plane, world_transform
+from tagtrail.geometry.reference_path import PLANES, ReferencePath, reference_plane
+from tagtrail.geometry.registration import Alignment, world_transform
+from tagtrail.schemas.artifacts import poses
 from tagtrail.stream import codec
 from tagtrail.stream.markers import PoseMarkers, path_markers
 from tagtrail.stream.stats import DropError, Stats
@@ -95,7 +95,7 @@ def load_alignment(
         al = Alignment(model, float(block["scale"]), R2, t, np.ones(2, bool), 0.0)
     except (OSError, ValueError, KeyError, TypeError) as err:
         raise SourceError(f"{path}: not an alignment file: {err}") from err
-    A, R = world_transform(al, reference_plane(file_plane or plane or "auto", ref_traj))
+    A, R = world_transform(al, reference_plane(file_plane or plane or "auto", *poses(ref_traj)))
     return A, R, file_plane
 
 
@@ -129,7 +129,7 @@ class Relocalizer:
                  prefix: str = "relocalization", pose_type: str = "pose_stamped",
                  path_max_points: int = 10_000) -> None:  # fmt: skip
         P, R = poses(ref_traj)
-        self.path = ReferencePath(P, reference_plane(plane, ref_traj))
+        self.path = ReferencePath(P, reference_plane(plane, *poses(ref_traj)))
         self.pose_type = pose_type
         self.key = {k: f"{prefix}/{k}" for k in (*OUTPUTS, REFERENCE_PATH)}
         self._ref7 = ref_traj[["x_m", "y_m", "z_m", "qx", "qy", "qz", "qw"]].to_numpy(np.float64)

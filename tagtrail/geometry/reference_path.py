@@ -298,3 +298,13 @@ def capture_radius_p95(uv: ArrayLike) -> float:
     if len(uv) < 2:
         return 0.0
     return float(np.percentile(np.hypot(*(uv - uv.mean(axis=0)).T), 95))
+
+
+def reference_plane(name: str, P: F64, R: F64) -> Plane:
+    """The plane ``name``; ``auto`` is fitted to the reference poses ``P (N, 3)``, ``R (N, 3, 3)``
+    (SPEC Conventions)."""
+    if name != "auto":
+        return resolve_plane(name)
+    if len(P) == 0:
+        raise DataError("plane 'auto': the reference trajectory is empty")
+    return resolve_plane("auto", P, R)

@@ -9,7 +9,7 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from tagtrail.errors import DataError
-from tagtrail.geometry.align2d import ransac_align, umeyama
+from tagtrail.geometry.registration import ransac_align, umeyama
 
 
 def rot2(deg: float) -> np.ndarray:

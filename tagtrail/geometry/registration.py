@@ -17,6 +17,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from tagtrail.errors import DataError
+from tagtrail.geometry.reference_path import Plane
 
 F64 = NDArray[np.float64]
 MODELS: dict[str, tuple[int, bool]] = {  # model → (dimension, with scale)
@@ -160,3 +161,23 @@ def ransac_align(
     r1 = _residuals(s1, R1, t1, src, dst)
     rms = float(np.sqrt(np.mean(r1[mask] ** 2)))
     return Alignment(model, float(s1), R1, t1, mask, rms)
+
+
+def world_transform(al: Alignment, plane: Plane | None) -> tuple[F64, F64]:
+    """``ref_A_query (4, 4)`` acting on positions and ``ref_R_query (3, 3)`` on orientations.
+
+    3-D models: ``A = [sR | t]``, ``R``. Planar models, with ``B`` the rows (e1, e2, n):
+    ``A[:3,:3] = Bᵀ diag(sR₂, 1) B``, ``A[:3,3] = t_u e1 + t_v e2``, ``R = Bᵀ diag(R₂, 1) B``.
+    """
+    A = np.eye(4)
+    if al.dim == 3:
+        A[:3, :3], A[:3, 3] = al.scale * al.R, al.t
+        return A, al.R.copy()
+    if plane is None:
+        raise DataError("a planar alignment needs its plane")
+    B = plane.basis
+    M = np.eye(3)
+    M[:2, :2] = al.scale * al.R
+    A[:3, :3] = B.T @ M @ B
+    A[:3, 3] = B[:2].T @ al.t
+    return A, plane.rotation_about_normal(np.radians(al.rotation_deg))

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from tagtrail.errors import DataError
-from tagtrail.geometry.plane import (
+from tagtrail.geometry.reference_path import (
     ReferencePath,
     capture_radius_p95,
     circular_mean,

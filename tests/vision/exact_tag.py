@@ -13,9 +13,9 @@ import cv2
 import numpy as np
 from numpy.typing import NDArray
 
+from tagtrail.geometry.camera import CameraModel
 from tagtrail.geometry.fusion import tag_corners
 from tagtrail.geometry.se3 import F64
-from tagtrail.io.camera import CameraModel
 from tagtrail.sim.render import INK, PAPER, tag_bits
 
 

@@ -10,12 +10,12 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from tagtrail.geometry.camera import CameraModel
 from tagtrail.geometry.se3 import R_from_rotvec, make_T
-from tagtrail.io.camera import CameraModel
-from tagtrail.io.corners import refine_corners, refine_many, truncated
-from tagtrail.io.detector import C_LIBRARY_PIXEL_OFFSET
-from tests.io.exact_tag import compose, render_tag, true_corners
+from tagtrail.vision.corners import refine_corners, refine_many, truncated
+from tagtrail.vision.detector import C_LIBRARY_PIXEL_OFFSET
 from tests.sim.helpers import detector
+from tests.vision.exact_tag import compose, render_tag, true_corners
 
 SIZE = 0.16
 K = np.array([[442.17, 0.0, 323.04], [0.0, 443.88, 246.51], [0.0, 0.0, 1.0]])
@@ -118,7 +118,8 @@ def test_truncated_tags_are_the_ones_whose_quiet_zone_leaves_the_image() -> None
 
 
 def test_detector_drops_a_tag_cut_by_the_border_unless_asked() -> None:
-    from tagtrail.io.detector import DetectorConfig, detect
+    from tagtrail.vision.apriltag import detect
+    from tagtrail.vision.detector import DetectorConfig
 
     # a tag whose right quiet zone runs ~3 px off the image (black square 5 px inside)
     cam_T_tag = make_T(R_from_rotvec([np.pi, 0.0, 0.0]), np.array([0.62, 0.0, 1.0]))

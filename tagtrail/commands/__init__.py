@@ -1,0 +1,1 @@
+"""The file-level commands of the CLI: init, demo, relocalize."""

@@ -1,0 +1,1 @@
+"""Image-level AprilTag work: detector settings and filters, the detector, corner re-fit."""
