@@ -38,6 +38,7 @@ from tagtrail import pool as workers_mod
 from tagtrail.geometry.camera import CameraModel
 from tagtrail.io import msgs
 from tagtrail.io.camera_files import read_camera_file
+from tagtrail.io.sources import open_source
 from tagtrail.schemas.pipeline import DatasetConfig
 from tagtrail.stages import extract
 from tagtrail.vision.apriltag import detect, get_detector
@@ -128,7 +129,8 @@ def extract_fps(
             workers_mod._close_idle()
         t, c = time.perf_counter(), cpu_s()
         params = extract.Params(workers=workers, refit_corners=refit)
-        out = extract.run(DatasetConfig(source=bag), params)
+        with open_source(DatasetConfig(source=bag)) as src:
+            out = extract.run(src, params)
         times.append(time.perf_counter() - t)
         cpus.append(cpu_s() - c)
     n = len(out["frames"])

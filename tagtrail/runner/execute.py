@@ -7,6 +7,7 @@ import logging
 import time
 import traceback
 from collections.abc import Callable
+from contextlib import ExitStack
 from dataclasses import asdict, dataclass
 from typing import Any
 
@@ -22,6 +23,7 @@ from tagtrail.runner.cache import (
 )
 from tagtrail.runner.dag import Graph, Node, build_graph, select
 from tagtrail.runner.executors import make_executor
+from tagtrail.runner.inputs import resolve
 from tagtrail.runner.paths import inside
 from tagtrail.runner.spec import Pipeline
 from tagtrail.schemas.artifacts import VERSION as ARTIFACT_SCHEMA_VERSION
@@ -76,7 +78,7 @@ class Runner:
         memo = (dataset, special)
         if memo not in self._source_fp:
             ds = self.pipe.datasets[dataset]
-            if special == "source":
+            if special in ("source", "dataset"):
                 doc = {
                     "source": self.hasher.hash(ds.source),
                     "topics": ds.topics.model_dump(mode="json"),
@@ -165,14 +167,16 @@ class Runner:
     ) -> int | None:
         spec = self.pipe.stages[node.stage]
         kwargs: dict[str, Any] = {}
-        for arg, (ref, up) in self.graph.inputs[node].items():
-            if up is None:
-                ds = self.pipe.datasets[node.dataset]
-                kwargs[arg] = ds if ref.special == "source" else ds.ground_truth
-            else:
-                assert ref.output is not None
-                kwargs[arg] = self.store.load(up.stage, keys[up], ref.output)
-        outputs = spec.run(self.pipe.params_for(node.stage, node.dataset), **kwargs)
+        with ExitStack() as stack:
+            for arg, (ref, up) in self.graph.inputs[node].items():
+                if up is None:
+                    assert ref.special is not None
+                    kwargs[arg] = resolve(ref.special, self.pipe.datasets[node.dataset],
+                                          str(node), stack)
+                else:
+                    assert ref.output is not None
+                    kwargs[arg] = self.store.load(up.stage, keys[up], ref.output)
+            outputs = spec.run(self.pipe.params_for(node.stage, node.dataset), **kwargs)
         faults.point(f"stage:{node.stage}")
         if not isinstance(outputs, dict) or set(outputs) != set(spec.outputs):
             got = sorted(outputs) if isinstance(outputs, dict) else type(outputs).__name__

@@ -18,7 +18,7 @@ from tagtrail.stages.base import StageParams
 
 _NAME = r"[a-z_][a-z0-9_]*"
 _REF = re.compile(rf"^(?:(?P<ds>reference):)?(?P<stage>{_NAME})\.(?P<out>{_NAME})$")
-SPECIAL_INPUTS = ("source", "ground_truth")
+SPECIAL_INPUTS = ("source", "ground_truth", "dataset")
 SCOPES = ("all", "query")
 
 

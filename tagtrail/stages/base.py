@@ -4,8 +4,11 @@ A stage module defines, at module level:
 
 - ``class Params(StageParams)`` — validated parameters (pydantic, unknown keys rejected, frozen).
 - ``INPUTS: dict[str, str]`` — ``run`` argument name → reference:
-    ``"source"``             the dataset's validated ``DatasetConfig`` (schemas.pipeline)
-    ``"ground_truth"``       the dataset's ground-truth folder (the stage is skipped without one)
+    ``"source"``             the dataset's recording, opened (``schemas.inputs.Source``)
+    ``"ground_truth"``       its ground truth, read (``schemas.inputs.GroundTruth``; the stage
+                             is skipped for datasets without one)
+    ``"dataset"``            the validated ``DatasetConfig`` (for stages that read files
+                             themselves, e.g. plugins and tests)
     ``"<stage>.<output>"``   an artifact of the same dataset
     ``"reference:<stage>.<output>"``  an artifact of the reference dataset
 - ``OUTPUTS: tuple[str, ...]`` — names of the values ``run`` returns (a dict with exactly these

@@ -6,7 +6,7 @@ tag's frame, ``tag_map.yaml``/``.csv`` with every tag). The estimate's world is 
 ``a_T_x = (gt_T_a)^-1 gt_T_x``. Trajectory poses are matched by exact stamp; tags by id (the
 anchor itself, exact by construction, is left out of the tag statistics). Errors: position
 ``|p - p_gt|`` (m) and rotation angle of ``R_gt^T R`` (deg); statistics mean, median, rmse, p95,
-max, min. This stage reads files (the ground truth) -- I/O at the edge, by design.
+max, min.
 
 ``gauge_free``: the same errors after one rigid motion (no scale) that best fits the estimated tag
 positions, anchor included, to ground truth (Umeyama 1991), applied to the map and the trajectory
@@ -21,7 +21,6 @@ None with fewer than 3 common tags.
 from __future__ import annotations
 
 import logging
-from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -30,8 +29,8 @@ import pandas as pd
 from tagtrail.errors import DataError
 from tagtrail.geometry.registration import umeyama
 from tagtrail.geometry.se3 import T_from_xyz_quat, inv, make_T, pose_error
-from tagtrail.io.layouts import read_tag_map, read_trajectory
 from tagtrail.schemas.artifacts import POSE_COLS
+from tagtrail.schemas.inputs import GroundTruth
 from tagtrail.stages.base import StageParams
 
 log = logging.getLogger(__name__)
@@ -109,13 +108,13 @@ def run(
     trajectory: pd.DataFrame,
     raw_trajectory: pd.DataFrame,
     tag_map: pd.DataFrame,
-    ground_truth: str | Path,
+    ground_truth: GroundTruth,
     params: Params,
 ) -> dict[str, Any]:
     """Evaluation JSON: anchors, ``trajectory``, ``trajectory_raw``, ``tags`` error blocks."""
-    gt_dir = Path(ground_truth)
-    gt_traj = read_trajectory(gt_dir)
-    gt_tags, gt_anchor = read_tag_map(gt_dir)
+    gt_dir = ground_truth.path
+    gt_traj = ground_truth.trajectory
+    gt_tags, gt_anchor = ground_truth.tag_map, ground_truth.anchor_id
     gt_tags = gt_tags.drop_duplicates("tag_id").set_index("tag_id")
     anchor = estimated_anchor(tag_map)
     if anchor is None:

@@ -35,14 +35,12 @@ import numpy as np
 import pandas as pd
 from numpy.typing import NDArray
 from pydantic import Field
-from tqdm import tqdm
 
 from tagtrail.errors import SourceError
 from tagtrail.geometry.camera import CameraModel
-from tagtrail.io.sources import Frame, Source, open_source
 from tagtrail.pool import shared_pool
 from tagtrail.schemas.artifacts import CORNER_COLS, POSE_COLS, columns
-from tagtrail.schemas.pipeline import DatasetConfig
+from tagtrail.schemas.inputs import Frame, Source
 from tagtrail.stages.base import StageParams
 from tagtrail.vision.detector import DetectorConfig, filter_detections
 
@@ -91,13 +89,9 @@ class Params(StageParams):
         )
 
 
-def run(source: DatasetConfig, params: Params) -> dict[str, Any]:
-    """Read the source and detect tags; see the module docstring for the outputs."""
-    with open_source(source) as src:
-        return _run(src, params)
-
-
-def _run(src: Source, params: Params) -> dict[str, Any]:
+def run(source: Source, params: Params) -> dict[str, Any]:
+    """Read the source (opened by the runner) and detect tags; see the module docstring."""
+    src = source
     if src.kind == "observations":
         obs = src.observations()[OBSERVATION_COLS]
         frames = obs.groupby(["frame_idx", "t_ns"], sort=True).size().reset_index(name="n_det")
@@ -142,8 +136,7 @@ def _from_detection_msgs(
 ) -> tuple[Any, Any, Any, Any]:
     t_ns, frame_idx, n_det, ints, floats = [], [], [], [], []
     dropped: Counter[str] = Counter()
-    for idx, t, dets in tqdm(src.iter_raw(), total=len(src), unit="frame", disable=None,
-                             desc="extract", leave=False):
+    for idx, t, dets in src.iter_raw():
         kept = 0
         for d in filter_detections(dets, cfg, dropped, (camera.width, camera.height)):
             ints.append((t, idx, d.tag_id, d.hamming))
@@ -180,11 +173,7 @@ def _detect_images(src: Source, params: Params, camera: CameraModel) -> tuple[An
             t_of.update((idx, t) for idx, t, _ in chunk)
             yield chunk
 
-    bar = tqdm(total=len(src), unit="frame", disable=None, desc="extract", leave=False)
-    try:
-        parts = list(_map_chunks(chunks(), params, camera, bar, len(src)))
-    finally:
-        bar.close()
+    parts = list(_map_chunks(chunks(), params, camera, len(src)))
     frame_idx = np.concatenate([p["frame_idx"] for p in parts]) if parts else np.zeros(0, int)
     order = np.argsort(frame_idx, kind="stable")
     frame_idx = frame_idx[order]
@@ -231,15 +220,13 @@ def _report_wrong_size(
 
 
 def _map_chunks(
-    chunks: Iterator[list[Frame]], params: Params, camera: CameraModel, bar: Any, n_frames: int
+    chunks: Iterator[list[Frame]], params: Params, camera: CameraModel, n_frames: int
 ) -> Iterator[dict[str, NDArray[Any]]]:
     """``detect_chunk`` over ``chunks`` in worker processes (never in this one)."""
     cfg = params.detector()
     workers = min(_n_workers(params.workers), max(1, -(-n_frames // params.chunk_size)))
     with shared_pool("tagtrail.vision.apriltag:detect_chunk", workers) as pool:
-        for part in pool.imap_unordered((chunk, cfg, camera) for chunk in chunks):
-            bar.update(len(part["frame_idx"]))
-            yield part
+        yield from pool.imap_unordered((chunk, cfg, camera) for chunk in chunks)
 
 
 # --- tables ------------------------------------------------------------------------------------

@@ -23,7 +23,7 @@ import pandas as pd
 from {pkg}.helpers import scaled
 from tagtrail.stages.base import StageParams
 
-INPUTS = {{"source": "source"}}
+INPUTS = {{"source": "dataset"}}
 OUTPUTS = ("table",)
 
 

@@ -11,8 +11,9 @@ from scipy.spatial.transform import Rotation
 
 from tagtrail.errors import DataError
 from tagtrail.geometry.se3 import inv, make_T, quat_xyzw_from_R
-from tagtrail.io.layouts import write_tag_map, write_trajectory_csv
+from tagtrail.io.layouts import read_tag_map, read_trajectory, write_tag_map, write_trajectory_csv
 from tagtrail.runner.stage import stage_spec
+from tagtrail.schemas.inputs import GroundTruth
 from tagtrail.stages import evaluate as eval_stage
 from tests.stages.mapping_scene import POSE, ring_scene, tag_map_frame
 
@@ -39,7 +40,9 @@ def world(tmp_path: Path) -> tuple[Path, np.ndarray, np.ndarray, np.ndarray]:
 
 def evaluate(gt: Path, traj: pd.DataFrame, tags: pd.DataFrame, raw: pd.DataFrame | None = None):
     raw = traj if raw is None else raw
-    return eval_stage.run(traj, raw, tags, gt, eval_stage.Params())["evaluation"]
+    gt_tags, gt_anchor = read_tag_map(gt)
+    truth = GroundTruth(gt, read_trajectory(gt), gt_tags, gt_anchor)
+    return eval_stage.run(traj, raw, tags, truth, eval_stage.Params())["evaluation"]
 
 
 def test_stage_contract() -> None:

@@ -15,8 +15,8 @@ import pytest
 
 from tagtrail.errors import SourceError
 from tagtrail.io.camera_files import read_camera_file
-from tagtrail.schemas.pipeline import DatasetConfig
 from tagtrail.stages import extract
+from tests.extracting import extract_from
 from tests.io import bags
 
 T0 = bags.T0_NS
@@ -45,13 +45,13 @@ def upenn_bag(upenn_dir: Path, tmp_path_factory) -> Path:
 
 @pytest.fixture(scope="module")
 def upenn_bag_out(upenn_bag: Path) -> dict:
-    return extract.run(DatasetConfig(source=upenn_bag), extract.Params())
+    return extract_from(upenn_bag, extract.Params())
 
 
 @pytest.fixture(scope="module")
 def upenn_unrefined(upenn_bag: Path) -> dict:
     """The detector's own corners (``refit_corners: false``)."""
-    return extract.run(DatasetConfig(source=upenn_bag), extract.Params(refit_corners=False))
+    return extract_from(upenn_bag, extract.Params(refit_corners=False))
 
 
 def check_tables(out: dict) -> None:
@@ -105,8 +105,7 @@ def test_rgb8_mcap_bag_and_folder_agree(upenn_bag_out: dict, upenn_dir, tmp_path
     for k, f in enumerate(files):
         rgb = np.ascontiguousarray(cv2.imread(str(f))[..., ::-1])
         out.append(("/camera/image_raw", T0 + k * DT, bags.image_msg(rgb, "rgb8", T0 + k * DT)))
-    raw = extract.run(DatasetConfig(source=bags.write_bag(tmp_path / "bag", out)),
-                      extract.Params(chunk_size=2))
+    raw = extract_from(bags.write_bag(tmp_path / "bag", out), extract.Params(chunk_size=2))
     ref = upenn_bag_out["detections"].iloc[:6].reset_index(drop=True)
     assert raw["detections"]["tag_id"].tolist() == [12] * 6
     # rgb8 → gray (cvtColor) differs slightly from JPEG's own gray decoding
@@ -116,7 +115,7 @@ def test_rgb8_mcap_bag_and_folder_agree(upenn_bag_out: dict, upenn_dir, tmp_path
     for f in [*files, upenn_dir / "frames/camera.yaml"]:
         shutil.copy(f, folder / f.name)
     cv2.imwrite(str(folder / "frame0006.png"), np.full((480, 640), 255, np.uint8))  # no tag
-    got = extract.run(DatasetConfig(source=folder), extract.Params(workers=1, chunk_size=4))
+    got = extract_from(folder, extract.Params(workers=1, chunk_size=4))
     assert got["frames"]["n_det"].tolist() == [1] * 6 + [0]  # frames without tags are kept
     assert got["frames"]["t_ns"].tolist() == [k * 100_000_000 for k in range(7)]
     pd.testing.assert_frame_equal(got["detections"].drop(columns="t_ns"),
@@ -125,7 +124,7 @@ def test_rgb8_mcap_bag_and_folder_agree(upenn_bag_out: dict, upenn_dir, tmp_path
 
 def test_swatbotics_ids_vs_groundtruth(realdata: Path) -> None:
     folder = realdata / "swatbotics_mapping_feb_2014"
-    out = extract.run(DatasetConfig(source=folder / "images"), extract.Params())
+    out = extract_from(folder / "images", extract.Params())
     check_tables(out)
     files = sorted(p.name for p in (folder / "images").glob("*.JPG"))
     truth = {ln.split()[0]: set(map(int, ln.split()[1:]))
@@ -151,15 +150,14 @@ def test_detection_bag_humble_sqlite3(upenn_dir: Path, tmp_path: Path) -> None:
     out.append(("/detections", T0 + 9 * DT, bags.detections_msg(T0 + 9 * DT, [
         (12, 0, 90.0, corners[0])], family="tag25h9")))
     bag = bags.make_humble(bags.write_bag(tmp_path / "bag", out, "sqlite3"))
-    got = extract.run(DatasetConfig(source=bag), extract.Params())
+    got = extract_from(bag, extract.Params())
     check_tables(got)
     det = got["detections"]
     assert got["frames"]["n_det"].tolist() == [1] * 5 + [0]  # hamming 1, margin 10, 25h9 dropped
     np.testing.assert_allclose(det[DET_COLS[5:]].to_numpy().reshape(-1, 4, 2), corners - 0.5)
     assert det["t_ns"].tolist() == [T0 + k * DT for k in range(5)]  # exact int64 ns
     assert got["camera"] == cam.to_dict()
-    loose = extract.run(DatasetConfig(source=bag),
-                        extract.Params(max_hamming=1, min_decision_margin=5, tag_ids=(5, 12)))
+    loose = extract_from(bag, extract.Params(max_hamming=1, min_decision_margin=5, tag_ids=(5, 12)))
     assert loose["detections"]["tag_id"].tolist() == [5, 12] * 5
 
 
@@ -168,7 +166,7 @@ def test_observations_source(tmp_path: Path) -> None:
         "stamp_sec,stamp_nanosec,tag,x,y,z,qx,qy,qz,qw\n"
         "1,0,tag36h11:4,0.1,0.2,1.5,0,0,0,1\n1,0,tag36h11:2,0.0,0.1,2.0,1,0,0,0\n"
         "2,0,tag36h11:4,0.1,0.2,1.4,0,0,0,1\n")
-    out = extract.run(DatasetConfig(source=tmp_path), extract.Params())
+    out = extract_from(tmp_path, extract.Params())
     check_tables(out)
     assert out["camera"] == {} and len(out["detections"]) == 0
     assert out["frames"].values.tolist() == [[10**9, 0, 2], [2 * 10**9, 1, 1]]
@@ -181,11 +179,11 @@ def test_worker_count_and_chunking_do_not_change_output(upenn_dir: Path, tmp_pat
     folder.mkdir()
     for f in sorted((upenn_dir / "frames").glob("*"))[:8]:
         shutil.copy(f, folder / f.name)
-    a = extract.run(DatasetConfig(source=folder), extract.Params(workers=1, chunk_size=8))
-    b = extract.run(DatasetConfig(source=folder), extract.Params(workers=2, chunk_size=1))
+    a = extract_from(folder, extract.Params(workers=1, chunk_size=8))
+    b = extract_from(folder, extract.Params(workers=2, chunk_size=1))
     for k in ("frames", "detections", "observations"):
         pd.testing.assert_frame_equal(a[k], b[k])
-    c = extract.run(DatasetConfig(source=folder), extract.Params(tag_ids=(3,)))
+    c = extract_from(folder, extract.Params(tag_ids=(3,)))
     assert len(c["detections"]) == 0 and len(c["frames"]) == 7
 
 
@@ -196,7 +194,7 @@ def test_params_and_missing_camera(upenn_dir: Path, tmp_path: Path) -> None:
         extract.Params(max_hamming=4)
     shutil.copy(upenn_dir / "frames/frame0000.jpg", tmp_path / "a.jpg")
     with pytest.raises(SourceError, match="no camera intrinsics .* `camera: <camera_info.yaml>`"):
-        extract.run(DatasetConfig(source=tmp_path), extract.Params())
+        extract_from(tmp_path, extract.Params())
 
 
 def test_undecodable_frame_names_the_file(upenn_dir: Path, tmp_path: Path) -> None:
@@ -204,7 +202,7 @@ def test_undecodable_frame_names_the_file(upenn_dir: Path, tmp_path: Path) -> No
         shutil.copy(upenn_dir / "frames" / f, tmp_path / f)
     (tmp_path / "frame0001.jpg").write_bytes(b"truncated")
     with pytest.raises(SourceError, match=r"frame0001.jpg: cannot read image"):
-        extract.run(DatasetConfig(source=tmp_path), extract.Params(workers=1))
+        extract_from(tmp_path, extract.Params(workers=1))
 
 
 SCRIPT = """
@@ -212,11 +210,13 @@ import sys
 import cv2
 from tagtrail.vision.apriltag import detect
 from tagtrail.vision.detector import DetectorConfig
+from tagtrail.io.sources import open_source
 from tagtrail.schemas.pipeline import DatasetConfig
 from tagtrail.stages import extract
 
 def main():
-    out = extract.run(DatasetConfig(source=sys.argv[1]), extract.Params(workers=1))
+    with open_source(DatasetConfig(source=sys.argv[1])) as src:
+        out = extract.run(src, extract.Params(workers=1))
     # and a detector in this very process, alive until exit (the guarded teardown path)
     img = cv2.imread(sys.argv[1] + "/frame0000.jpg", cv2.IMREAD_GRAYSCALE)
     ints, _ = detect(img, DetectorConfig())
@@ -311,7 +311,7 @@ def test_bag_frames_of_another_size_are_left_out(upenn_dir, tmp_path, caplog,
         return bags.write_bag(tmp_path / name, out)
 
     with caplog.at_level("WARNING"):
-        got = extract.run(DatasetConfig(source=bag("some", {2})), extract.Params(chunk_size=2))
+        got = extract_from(bag("some", {2}), extract.Params(chunk_size=2))
     assert got["frames"]["frame_idx"].tolist() == [0, 1, 3]
     assert got["detections"]["frame_idx"].tolist() == [0, 1, 3]
     msg = [r.getMessage() for r in caplog.records if "left out" in r.getMessage()]
@@ -321,4 +321,4 @@ def test_bag_frames_of_another_size_are_left_out(upenn_dir, tmp_path, caplog,
         "(320x240)")
     with pytest.raises(SourceError, match=r"no frame has the size 640x480 of the camera "
                        r"\(CameraInfo of /camera/camera_info\), they are 320x240 \(4 frames\)"):
-        extract.run(DatasetConfig(source=bag("all", {0, 1, 2, 3})), extract.Params())
+        extract_from(bag("all", {0, 1, 2, 3}), extract.Params())

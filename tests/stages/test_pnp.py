@@ -16,8 +16,8 @@ from tagtrail.errors import SourceError
 from tagtrail.geometry import se3
 from tagtrail.geometry.camera import CameraModel
 from tagtrail.io.camera_files import read_camera_file
-from tagtrail.schemas.pipeline import DatasetConfig
 from tagtrail.stages import extract, pnp
+from tests.extracting import extract_from
 
 CORNERS = [f"c{i}{a}" for i in range(4) for a in "xy"]
 POSE = ["x_m", "y_m", "z_m", "qx", "qy", "qz", "qw"]
@@ -152,7 +152,7 @@ def test_spec_tag_frame_end_to_end(tmp_path: Path) -> None:
     (tmp_path / "camera.yaml").write_text(yaml.safe_dump({
         "image_width": 640, "image_height": 480, "camera_matrix": {"data": K},
         "distortion_model": "plumb_bob", "distortion_coefficients": {"data": [0.0] * 5}}))
-    ex = extract.run(DatasetConfig(source=tmp_path), extract.Params(workers=1))
+    ex = extract_from(tmp_path, extract.Params(workers=1))
     det = ex["detections"]
     assert det["tag_id"].tolist() == [7] * 4
     truth_px = np.stack([cam.project(se3.transform_points(T, SPEC_CORNERS * size))

@@ -14,6 +14,7 @@ from tagtrail.geometry.camera import CameraModel
 from tagtrail.geometry.se3 import R_from_rotvec, make_T
 from tagtrail.vision.corners import refine_corners, refine_many, truncated
 from tagtrail.vision.detector import C_LIBRARY_PIXEL_OFFSET
+from tests.extracting import extract_from
 from tests.sim.helpers import detector
 from tests.vision.exact_tag import compose, render_tag, true_corners
 
@@ -170,10 +171,10 @@ def test_extract_drops_cut_tags_says_so_and_refits_the_rest(
         "cx": float(K[0, 2]), "cy": float(K[1, 2]), "distortion": LIMO.D.tolist()}}))
     src = DatasetConfig(source=tmp_path)
     with caplog.at_level(logging.INFO, logger="tagtrail.extract"):
-        det = extract.run(src, extract.Params(workers=1))["detections"]
+        det = extract_from(src, extract.Params(workers=1))["detections"]
     assert det["tag_id"].tolist() == [3]
     assert "1 detection(s) of tags cut by the image border dropped" in caplog.text
     corners = det[[f"c{k}{a}" for k in range(4) for a in "xy"]].to_numpy().reshape(4, 2)
     assert np.abs(corners - true_corners(LIMO, whole, SIZE)).max() < 0.03
-    kept = extract.run(src, extract.Params(workers=1, keep_truncated=True))["detections"]
+    kept = extract_from(src, extract.Params(workers=1, keep_truncated=True))["detections"]
     assert sorted(kept["tag_id"].tolist()) == [3, 5]

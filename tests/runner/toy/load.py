@@ -6,7 +6,7 @@ import pandas as pd
 
 from tagtrail.stages.base import StageParams
 
-INPUTS = {"source": "source"}
+INPUTS = {"source": "dataset"}
 OUTPUTS = ("table",)
 
 
