@@ -8,20 +8,28 @@ observation. A frame seeing several mapped tags fuses them by
   ``min_{R,t} sum_i rho(|[t - t_i ; w_r Log(R_i^T R)]|^2 / f^2)`` (vectorised over frames);
 - ``multi_tag_pnp``: one PnP over every corner of every mapped tag (RANSAC + Levenberg-Marquardt),
   which does not inherit the per-tag IPPE ambiguity (the corners themselves are unambiguous).
+
+``frame_poses`` is the per-frame method choice (``auto`` / ``avg`` / ``lsq`` / ``pnp``) built on
+these, batched over frames: the one implementation behind the trajectory stage and the live
+``stream localize`` node.
 """
 
 from __future__ import annotations
+
+from typing import Literal, NamedTuple
 
 import cv2
 import numpy as np
 from numpy.typing import NDArray
 
+from tagtrail.geometry.camera import CameraModel
 from tagtrail.geometry.robust import LossName, irls_weights
 from tagtrail.geometry.rotations import grouped_chordal_mean, hat, log_so3
-from tagtrail.geometry.se3 import R_from_rotvec, T_from_rotvec_t, inv, make_T
+from tagtrail.geometry.se3 import R_from_rotvec, T_from_rotvec_t, inv, make_T, transform_points
 
 F64 = NDArray[np.float64]
 I64 = NDArray[np.int64]
+Method = Literal["auto", "avg", "lsq", "pnp"]
 
 
 def camera_estimates(world_T_tag: F64, cam_T_tag: F64) -> F64:
@@ -139,3 +147,93 @@ def refine_pnp(cam_T_world: F64, pts_world: F64, pts_norm: F64, iters: int = 3) 
         if np.abs(step).max() < 1e-14:
             break
     return T
+
+
+class FramePoses(NamedTuple):
+    """What :func:`frame_poses` gives, per frame."""
+
+    world_T_cam: F64
+    """``(n_frames, 4, 4)``; NaN for a frame without observations."""
+    n_tags: I64
+    """``(n_frames,)`` observations (mapped tags) of each frame."""
+    by_pnp: NDArray[np.bool_]
+    """``(n_frames,)`` frames posed by multi-tag PnP (the others by the fusion)."""
+    method: Literal["avg", "lsq", "pnp"]
+    """The method applied (``auto`` resolved; ``pnp`` without corners or camera is ``lsq``)."""
+
+
+def frame_poses(
+    world_T_tag: F64,
+    cam_T_tag: F64,
+    group: I64,
+    n_frames: int,
+    *,
+    corners_px: F64 | None = None,
+    size_m: F64 | None = None,
+    camera: CameraModel | None = None,
+    method: Method,
+    loss: LossName,
+    f_scale: float,
+    rot_weight_m: float,
+    ransac_px: float,
+) -> FramePoses:
+    """``world_T_cam`` of each frame from its tag observations (Eq. 3.8), batched over frames.
+
+    One row per observation: ``world_T_tag (N, 4, 4)`` of the observed (mapped) tag, its
+    ``cam_T_tag (N, 4, 4)`` (the best IPPE solution), ``group (N,)`` its frame in
+    ``[0, n_frames)`` (rows of a frame contiguous, in the order PnP sees their corners);
+    ``corners_px (N, 4, 2)`` distorted pixels, SPEC corner order (NaN rows: no corners) and
+    ``size_m (N,)`` (m) for multi-tag PnP with ``camera``.
+
+    ``method``: ``avg`` (:func:`fuse_mean`), ``lsq`` (:func:`fuse_robust` with ``loss``,
+    ``f_scale`` (m), ``rot_weight_m``), ``pnp`` (frames with >= 2 tags having corners and a size
+    > 0: :func:`multi_tag_pnp` over all their corners, RANSAC threshold ``ransac_px`` (px) over the
+    mean focal length; other frames and PnP failures keep ``lsq``), ``auto`` = ``pnp`` when
+    corners and a camera are given, else ``lsq``. The fusion runs over all frames at once.
+    """
+    group = np.asarray(group, dtype=np.int64)
+    est = camera_estimates(world_T_tag, cam_T_tag)
+    has_pix = corners_px is not None and camera is not None
+    if method == "auto":
+        method = "pnp" if has_pix else "lsq"
+    if method == "avg":
+        T = fuse_mean(est, group, n_frames)
+    else:
+        T = fuse_robust(est, group, n_frames, loss=loss, f_scale=f_scale,
+                        rot_weight_m=rot_weight_m)  # fmt: skip
+    used = np.zeros(n_frames, dtype=bool)
+    if method == "pnp" and corners_px is not None and camera is not None:
+        size = np.full(len(group), np.nan) if size_m is None else np.asarray(size_m, np.float64)
+        T, used = _pnp_frames(T, world_T_tag, group, corners_px, size, camera, ransac_px)
+    elif method == "pnp":
+        method = "lsq"
+    n_tags = np.bincount(group, minlength=n_frames)
+    T[n_tags == 0] = np.nan
+    return FramePoses(T, n_tags, used, method)
+
+
+def _pnp_frames(
+    T: F64, world_T_tag: F64, group: I64, corners_px: F64, size: F64, camera: CameraModel,
+    ransac_px: float,
+) -> tuple[F64, NDArray[np.bool_]]:
+    """``T`` with the frames that have >= 2 usable tags replaced by multi-tag PnP poses."""
+    px = np.asarray(corners_px, dtype=np.float64).reshape(-1, 4, 2)
+    ok = np.isfinite(px).all(axis=(1, 2)) & np.isfinite(size) & (size > 0)
+    n_ok = np.bincount(group[ok], minlength=len(T))
+    thresh = ransac_px / (0.5 * (camera.K[0, 0] + camera.K[1, 1]))
+    sel = ok & (n_ok[group] >= 2)
+    out, used = T.copy(), np.zeros(len(T), dtype=bool)
+    if not sel.any():
+        return out, used
+    norm = camera.undistort(px[sel])
+    pts_w = transform_points(world_T_tag[sel][:, None], tag_corners(size[sel]))
+    g = group[sel]
+    starts = np.flatnonzero(np.r_[True, g[1:] != g[:-1]])
+    ends = np.r_[starts[1:], len(g)]
+    for s, e in zip(starts, ends, strict=True):
+        pose, _ = multi_tag_pnp(
+            pts_w[s:e].reshape(-1, 3), norm[s:e].reshape(-1, 2), ransac_thresh=thresh
+        )
+        if pose is not None:
+            out[g[s]], used[g[s]] = pose, True
+    return out, used
