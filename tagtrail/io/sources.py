@@ -27,16 +27,16 @@ import re
 from collections.abc import Iterator
 from contextlib import contextmanager
 from pathlib import Path
-from typing import Any, Literal
+from typing import TYPE_CHECKING, Any, Literal
 
 import numpy as np
 import pandas as pd
 from numpy.typing import NDArray
-from rosbags.highlevel import AnyReader
 
 from tagtrail.errors import SourceError
 from tagtrail.geometry.camera import CameraModel
 from tagtrail.io import msgs
+from tagtrail.io.bags import BAG_FILE_SUFFIXES, open_bag
 from tagtrail.io.camera_files import read_camera_file
 from tagtrail.io.layouts import read_stamped_poses, tag_ids
 from tagtrail.schemas.pipeline import DatasetConfig
@@ -45,6 +45,9 @@ from tagtrail.vision.detector import (  # apriltag_ros: the C library
     TagDetection,
 )
 from tagtrail.vision.images import RawImage
+
+if TYPE_CHECKING:
+    from rosbags.highlevel import AnyReader
 
 log = logging.getLogger("tagtrail.sources")
 
@@ -122,7 +125,7 @@ def open_source(cfg: DatasetConfig) -> Source:
     if path.is_file():
         if path.suffix == ".bag":
             return BagSource(path, cfg, camera)
-        if path.suffix in (".mcap", ".db3"):
+        if path.suffix in BAG_FILE_SUFFIXES:
             if (path.parent / "metadata.yaml").is_file():
                 return BagSource(path.parent, cfg, camera)
             raise SourceError(
@@ -188,7 +191,9 @@ def detections_from_msg(msg: Any) -> list[TagDetection]:
     return out
 
 
-def _raw_image_from_msg(msg: Any, msgtype: str) -> RawImage:
+def raw_image_from_msg(msg: Any, msgtype: str) -> RawImage:
+    """A ``sensor_msgs/Image`` or ``CompressedImage`` (``msgtype``) as an undecoded
+    :class:`RawImage` (its bytes copied out of the message)."""
     if msgtype == msgs.COMPRESSED_IMAGE:
         return RawImage("compressed", bytes(msg.data), encoding=str(msg.format))
     return RawImage(
@@ -233,11 +238,7 @@ class BagSource(Source):
         bag's message definitions, ~0.1–0.2 s)."""
         reader, self._spare = self._spare, None
         if reader is None:
-            try:
-                reader = AnyReader([self.path], default_typestore=msgs.typestore())
-                reader.open()
-            except Exception as err:  # rosbags raises many types (ReaderError, sqlite3, mcap)
-                raise SourceError(f"{self.path}: cannot read bag: {err}") from err
+            reader = open_bag(self.path)
         ok = False
         try:
             yield reader
@@ -362,7 +363,7 @@ class BagSource(Source):
                     if conn.msgtype == msgs.DETECTIONS:
                         yield idx, t_ns, detections_from_msg(msg)
                     else:
-                        yield idx, t_ns, _raw_image_from_msg(msg, conn.msgtype)
+                        yield idx, t_ns, raw_image_from_msg(msg, conn.msgtype)
                     idx += 1
             except SourceError:
                 raise

@@ -31,6 +31,7 @@ from numpy.typing import NDArray
 
 from tagtrail.errors import SourceError, TagtrailError
 from tagtrail.io import msgs
+from tagtrail.io.bags import bag_path, open_bag
 from tagtrail.io.layouts import TRAJECTORY_NAMES, read_trajectory
 from tagtrail.schemas.artifacts import POSE_COLS
 from tagtrail.stream import codec
@@ -80,14 +81,8 @@ def load_poses(source: Path, topic: str | None = None, frame_id: str | None = No
 
 
 def _read_bag(path: Path, topic: str | None) -> tuple[list[int], list[list[float]], list[str]]:
-    from rosbags.highlevel import AnyReader
-
-    bag = path.parent if path.suffix in (".mcap", ".db3") else path
-    try:
-        reader = AnyReader([bag], default_typestore=msgs.typestore())
-        reader.open()
-    except Exception as err:  # rosbags raises many types (ReaderError, sqlite3, mcap, yaml)
-        raise SourceError(f"{bag}: not a trajectory file or a readable bag: {err}") from err
+    bag = bag_path(path)
+    reader = open_bag(bag)
     try:
         types = {c.topic: c.msgtype for c in reader.connections}
         listing = ", ".join(f"{t} ({m})" for t, m in sorted(types.items())) or "none"
@@ -144,15 +139,8 @@ def pose_messages(poses: Poses, key: str) -> Messages:
 
 def bag_messages(source: Path, topics: list[str]) -> Messages:
     """The messages of ``topics`` in a bag, unchanged CDR, keyed by topic without ``/``."""
-    from rosbags.highlevel import AnyReader
-
-    source = Path(source)
-    bag = source.parent if source.suffix in (".mcap", ".db3") else source
-    try:
-        reader = AnyReader([bag], default_typestore=msgs.typestore())
-        reader.open()
-    except Exception as err:  # noqa: BLE001 - rosbags raises many types
-        raise SourceError(f"{bag}: cannot read bag: {err}") from err
+    bag = bag_path(source)
+    reader = open_bag(bag)
     try:
         have = {c.topic for c in reader.connections}
         missing = [t for t in topics if t not in have]
