@@ -23,6 +23,7 @@ from scipy.spatial import cKDTree
 
 from tagtrail.errors import DataError
 from tagtrail.geometry.pathindex import PathIndex
+from tagtrail.geometry.rotations import wrap_angle
 
 F64 = NDArray[np.float64]
 PlaneName = Literal["auto", "xz", "xy", "yz"]
@@ -33,11 +34,6 @@ _FIXED = {"xz": (0, 2), "xy": (0, 1), "yz": (1, 2)}
 MIN_PLANE_SPREAD_M = 0.01
 _TIE_M = 1e-12  # distances closer than this are ties; the earlier segment wins
 _BRUTE_MAX = 8192  # single-pose queries scan references up to this size (faster than the tree)
-
-
-def wrap_angle(a: ArrayLike) -> F64:
-    """Wrap angles (rad) to (−π, π] (the ``wrap`` of Eq. 3.15)."""
-    return np.pi - np.mod(np.pi - np.asarray(a, dtype=np.float64), 2.0 * np.pi)
 
 
 def circular_mean(angles: ArrayLike) -> float:

@@ -129,10 +129,9 @@ def geodesic_angle(R_a: ArrayLike, R_b: ArrayLike) -> F64:
 
 
 def wrap_angle(a: ArrayLike) -> F64:
-    """Wrap angles (rad) to ``(-pi, pi]``."""
-    a = np.asarray(a, dtype=np.float64)
-    w = np.mod(a + np.pi, 2.0 * np.pi) - np.pi
-    return np.where(w == -np.pi, np.pi, w)
+    """Wrap angles (rad) to ``(-pi, pi]`` (the ``wrap`` of Eq. 3.15): ``pi - mod(pi - a, 2 pi)``."""
+    wrapped: F64 = np.pi - np.mod(np.pi - np.asarray(a, dtype=np.float64), 2.0 * np.pi)
+    return wrapped
 
 
 def project_to_so3(M: ArrayLike) -> F64:

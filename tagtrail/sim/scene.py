@@ -14,6 +14,7 @@ import numpy as np
 
 from tagtrail.errors import SpecError
 from tagtrail.geometry.camera import CameraModel
+from tagtrail.geometry.rotations import wrap_angle
 from tagtrail.geometry.se3 import F64, compose, inv, make_T
 
 EPOCH_NS = 1_700_000_000 * 1_000_000_000
@@ -189,7 +190,7 @@ def ease_curvature(poly: F64, closed: bool, ramp_m: float, step_m: float = 1e-3)
     heading = np.unwrap(yaw)
     kappa = np.diff(heading) / ds  # (n-1,) curvature of each step
     if closed:
-        kappa = np.r_[kappa, wrap_to_pi(heading[0] + 2 * np.pi * round((heading[-1] - heading[0])
+        kappa = np.r_[kappa, wrap_angle(heading[0] + 2 * np.pi * round((heading[-1] - heading[0])
                                                                         / (2 * np.pi))
                                         - heading[-1]) / ds]
     w = max(int(round(ramp_m / ds)), 1)
@@ -208,10 +209,6 @@ def ease_curvature(poly: F64, closed: bool, ramp_m: float, step_m: float = 1e-3)
         gap = out[-1] - xy[0]  # the loop's end should meet its start
         out = out[:-1] - np.linspace(0.0, 1.0, len(out))[:-1, None] * gap
     return out
-
-
-def wrap_to_pi(a: float) -> float:
-    return float((a + np.pi) % (2 * np.pi) - np.pi)
 
 
 def circle_poly(radius: float, k: int = 720) -> F64:
