@@ -10,7 +10,7 @@ import sys
 import tempfile
 import time
 import traceback
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from pathlib import Path
 
 from tagtrail.errors import TagtrailError, one_line, report, storage_error
@@ -177,8 +177,16 @@ def main(argv: Sequence[str] | None = None) -> int:
     if not getattr(args, "func", None):
         parser.print_help()
         return 2
+    return run_command(lambda: args.func(args))
+
+
+def run_command(command: Callable[[], int]) -> int:
+    """Run ``command`` and return its exit code; every entry point (``tagtrail …`` and the
+    standalone ``python -m`` modules) goes through here. A :class:`TagtrailError` is one
+    ``error:`` line and its exit code (2 user error, 1 failure), a refused write (full disk,
+    read-only) one line and 2, Ctrl-C 130, anything else one line plus a traceback file, 1."""
     try:
-        return int(args.func(args))
+        return int(command())
     except TagtrailError as err:
         return report(err)
     except OSError as err:

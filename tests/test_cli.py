@@ -77,3 +77,24 @@ def test_missing_source_and_bad_source(tmp_path: Path, monkeypatch, capsys) -> N
 def test_simulate_bad_option(tmp_path: Path, capsys) -> None:
     assert main(["simulate", "room", "--out", str(tmp_path), "--fps", "-3"]) == 2
     assert "--fps" in one_error_line(capsys)
+
+
+@pytest.mark.parametrize("argv", [["tagtrail.cli", "simulate"], ["tagtrail.sim.cli"]])
+def test_every_entry_point_reports_an_unexpected_error_on_one_line(tmp_path: Path,
+                                                                   argv: list[str]) -> None:
+    """``tagtrail simulate`` and the standalone ``python -m tagtrail.sim.cli`` share one error
+    shell: an unexpected failure (here --out under a file) is one line, exit 1, the traceback in
+    a file."""
+    import subprocess
+    import sys
+
+    (tmp_path / "file").write_text("")
+    res = subprocess.run([sys.executable, "-m", *argv, "circle", "--out",
+                          str(tmp_path / "file" / "sim"), "--frames", "4"],
+                         capture_output=True, text=True, timeout=120)  # fmt: skip
+    err = res.stderr.strip().splitlines()
+    assert res.returncode == 1, res.stderr
+    assert len(err) == 1 and err[0].startswith("error: unexpected ") and "Traceback" not in err[0]
+    log = Path(err[0].rsplit("(traceback in ", 1)[1].rstrip(")"))
+    assert "Traceback" in log.read_text()
+    log.unlink()

@@ -9,7 +9,7 @@ from typing import Any
 
 import yaml
 
-from tagtrail.errors import SpecError
+from tagtrail.errors import SourceError, SpecError
 from tagtrail.io.layouts import atomic_write_text
 from tagtrail.schemas.pipeline import DatasetConfig, Topics
 
@@ -29,7 +29,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--camera", type=Path, default=None, metavar="FILE",
                         help="camera_info YAML (image folders, or to override the bag's)")
     parser.add_argument("--tag-size", type=float, default=None, metavar="M",
-                        help="edge of the tags' black square in metres (default: pnp's, 0.16)")
+                        help="edge of the tags' black square in metres (default: pnp.tag_size)")
     parser.add_argument("--anchor", type=int, default=None, metavar="ID",
                         help="anchor (world) tag id (default: the most observed tag)")
     parser.add_argument("-o", "--output", type=Path, default=Path("pipeline.yaml"),
@@ -50,7 +50,7 @@ def inspect(source: Path, camera: Path | None) -> tuple[DatasetConfig, str]:
             if getattr(src, "camera_info_topic", None):
                 topics["camera_info"] = src.camera_info_topic
         if src.kind != "observations" and src.camera() is None:
-            raise SpecError(f"{source}: no camera calibration found; pass --camera FILE "
+            raise SourceError(f"{source}: no camera calibration found; pass --camera FILE "
                             "(a ROS camera_info YAML)")
         desc = src.describe()
     return cfg.model_copy(update={"topics": Topics(**topics)}), desc

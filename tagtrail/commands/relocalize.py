@@ -18,7 +18,7 @@ from typing import Any
 import numpy as np
 import pandas as pd
 
-from tagtrail.errors import DataError, SourceError, SpecError, TagtrailError, report
+from tagtrail.errors import DataError, SourceError, SpecError
 from tagtrail.geometry.reference_path import PLANES
 from tagtrail.io import reloc_files
 from tagtrail.io.layouts import TAG_MAP_NAMES, read_tag_map, read_trajectory
@@ -106,13 +106,13 @@ def _relocalize(
         result = report_stage.run(aligned["trajectory"], ref_traj, aligned["alignment"], r_params)
     except DataError as err:  # say which files the problem is about
         raise DataError(f"reference {reference}, query {query}: {err}") from err
-    reloc, summary = result["relocalization"], result["summary"]
+    reloc, summary = result["relocalization"], result["summary"].model_dump(mode="json")
     try:
         reloc_files.write_outputs(Path(out), reloc, summary, aligned["trajectory"], ref_traj,
                                   ref_tags, plane)
     except OSError as err:
         raise SourceError(f"{out}: cannot write the outputs: {err.strerror or err}") from err
-    return result
+    return {**result, "summary": summary}
 
 
 def check_out(out: Path) -> None:
@@ -190,13 +190,16 @@ def build_parser() -> argparse.ArgumentParser:
 
 def main(args: argparse.Namespace | Sequence[str] | None = None) -> int:
     """Run from parsed arguments (or an argv list); 0 on success, the error's exit code else."""
+    from tagtrail.cli import run_command
+
     ns = args if isinstance(args, argparse.Namespace) else build_parser().parse_args(args)
-    try:
-        result = _relocalize(
-            ns.reference, ns.query, ns.out, ns.mode, ns.align, ns.align_model, ns.plane,
-            getattr(ns, "allow_scale", False),
-        )  # fmt: skip
-    except TagtrailError as err:
-        return report(err)
+    return run_command(lambda: _main(ns))
+
+
+def _main(ns: argparse.Namespace) -> int:
+    result = _relocalize(
+        ns.reference, ns.query, ns.out, ns.mode, ns.align, ns.align_model, ns.plane,
+        getattr(ns, "allow_scale", False),
+    )  # fmt: skip
     print(summary_text(result["summary"], result["relocalization"], Path(ns.out)))
     return 0

@@ -8,10 +8,10 @@ import sys
 from pathlib import Path
 from typing import Any
 
-from tagtrail.errors import SpecError, TagtrailError, report
+from tagtrail.errors import SpecError
 from tagtrail.sim.camera import limo_camera
 from tagtrail.sim.render import Realism
-from tagtrail.sim.scenarios import SCENARIOS
+from tagtrail.sim.scenarios import SCENARIOS, SimOptions
 from tagtrail.sim.simulate import simulate
 
 EXAMPLES = """\
@@ -36,40 +36,45 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.epilog = EXAMPLES
     parser.formatter_class = argparse.RawDescriptionHelpFormatter
     a = parser.add_argument
+    o = SimOptions  # one default per option: SimOptions'
     a("scenario", metavar="SCENARIO", choices=SCENARIOS, help=" | ".join(SCENARIOS))
     a("--out", "-o", type=Path, required=True, metavar="DIR", help="output folder")
-    a("--storage", choices=("mcap", "sqlite3"), default="mcap", help="bag storage (mcap)")
+    a("--storage", choices=("mcap", "sqlite3"), default=o.storage,
+      help="bag storage (%(default)s)")
     a("--compressed", action="store_true", help="jpeg CompressedImage instead of raw rgb8")
-    a("--jpeg-quality", type=int, default=90, metavar="Q", help="jpeg quality (90)")
+    a("--jpeg-quality", type=int, default=o.jpeg_quality, metavar="Q",
+      help="jpeg quality (%(default)s)")
     a("--detections", action="store_true",
       help="write /detections (apriltag_msgs) + /camera_info instead of images")
-    a("--seed", type=int, default=0, help="random seed: same seed, same recordings (0)")
+    a("--seed", type=int, default=o.seed,
+      help="random seed: same seed, same recordings (%(default)s)")
     a("--force", action="store_true", help="overwrite existing recordings")
     a("--no-progress", action="store_true", help="no progress bar")
     g = parser.add_argument_group("path and timing")
     g.add_argument("--frames", type=int, metavar="N",
                    help="frames of a moving recording (default: path length / speed * fps)")
-    g.add_argument("--fps", type=float, default=30.0, help="frame rate (30)")
-    g.add_argument("--speed", type=float, default=0.3, metavar="M_S", help="speed, m/s (0.3)")
-    g.add_argument("--query-frames", type=int, default=30, metavar="N",
-                   help="frames of each parked query recording (30)")
+    g.add_argument("--fps", type=float, default=o.fps, help="frame rate (%(default)s)")
+    g.add_argument("--speed", type=float, default=o.speed_mps, metavar="M_S",
+                   help="speed, m/s (%(default)s)")
+    g.add_argument("--query-frames", type=int, default=o.query_frames, metavar="N",
+                   help="frames of each parked query recording (%(default)s)")
     g = parser.add_argument_group("tags and camera")
-    g.add_argument("--tag-size", type=float, default=0.16, metavar="M",
-                   help="edge of the black square, m (0.16)")
+    g.add_argument("--tag-size", type=float, default=o.tag_size_m, metavar="M",
+                   help="edge of the black square, m (%(default)s: the pipeline's pnp.tag_size)")
     g.add_argument("--tag-sizes", metavar="ID=M,...", help="per-id sizes, e.g. 0=0.2,5=0.1")
     g.add_argument("--tag-ids", metavar="IDS",
                    help="relabel the tags in layout order: 10-33 or 1,4,7")
     g.add_argument("--anchor", type=int, metavar="ID", help="anchor tag (default: first tag)")
     g.add_argument("--size", metavar="WxH", help="image size; the LIMO lens scaled (640x480)")
     g = parser.add_argument_group("noise and realism")
-    g.add_argument("--noise-t", type=float, default=0.0, metavar="M",
+    g.add_argument("--noise-t", type=float, default=o.noise_t_m, metavar="M",
                    help="observations: translation noise std per axis, m (paper: 0.10)")
-    g.add_argument("--noise-r-deg", type=float, default=0.0, metavar="DEG",
+    g.add_argument("--noise-r-deg", type=float, default=o.noise_r_deg, metavar="DEG",
                    help="observations: rotation noise std per axis, degrees")
-    g.add_argument("--corner-noise", type=float, default=0.3, metavar="PX",
-                   help="--detections: corner noise std, px (0.3)")
-    g.add_argument("--max-range", type=float, default=3.5, metavar="M",
-                   help="detections/observations: farthest tag reported, m (3.5)")
+    g.add_argument("--corner-noise", type=float, default=o.corner_noise_px, metavar="PX",
+                   help="--detections: corner noise std, px (%(default)s)")
+    g.add_argument("--max-range", type=float, default=o.max_range_m, metavar="M",
+                   help="detections/observations: farthest tag reported, m (%(default)s)")
     r = Realism()
     g.add_argument("--image-noise", type=float, default=r.noise_sigma, metavar="DN",
                    help=f"sensor noise std, grey levels ({r.noise_sigma})")
@@ -129,10 +134,13 @@ def options_from_args(args: argparse.Namespace) -> dict[str, Any]:
 
 def main(args: argparse.Namespace) -> int:
     """Run ``tagtrail simulate``; one line per recording. Exit code 0, or 2 on bad options."""
-    try:
-        written = simulate(args.scenario, args.out, **options_from_args(args))
-    except TagtrailError as err:
-        return report(err)
+    from tagtrail.cli import run_command
+
+    return run_command(lambda: _simulate(args))
+
+
+def _simulate(args: argparse.Namespace) -> int:
+    written = simulate(args.scenario, args.out, **options_from_args(args))
     for name, folder in written.items():
         print(f"{name}: {folder}  (ground truth: {folder / 'ground_truth'})")
     return 0

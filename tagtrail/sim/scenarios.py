@@ -36,6 +36,7 @@ from tagtrail.sim.scene import (
     stamps_ns,
     upright_pose,
 )
+from tagtrail.stages import pnp
 
 SCENARIOS = ("circle", "room", "corridor", "observations")
 RECORDINGS = {
@@ -60,7 +61,7 @@ class SimOptions:
     fps: float = 30.0
     speed_mps: float = 0.3
     query_frames: int = 30
-    tag_size_m: float = 0.16
+    tag_size_m: float = pnp.Params().tag_size  # the pipeline's default: it measures them right
     tag_sizes_m: Mapping[int, float] = field(default_factory=dict)
     tag_ids: tuple[int, ...] | None = None  # relabel the scenario's tags, in layout order
     anchor_id: int | None = None  # default: the first tag
