@@ -49,12 +49,13 @@ def prepare(folder: Path, frames: int | None = None, resimulate: bool = False) -
 
 def truth_d_phi(gt_reference: Path, gt_query: Path, plane: str) -> dict[str, Any]:
     """D and phi of a parked ground-truth test pose against the ground-truth reference path."""
-    from tagtrail.stages import report
+    from tagtrail.stages import align, report
 
     ref = read_trajectory(gt_reference / "trajectory.csv")
     test_pose = read_trajectory(gt_query / "test_poses.csv")
     out = report.run(
-        trajectory=test_pose, ref_trajectory=ref, alignment={},
+        trajectory=test_pose, ref_trajectory=ref,
+        alignment=align.alignment_block("none", None, 0, 2),
         params=report.Params(mode="point", plane=plane),  # type: ignore[arg-type]
     )
     row = out["relocalization"].iloc[0]

@@ -29,6 +29,7 @@ import pyarrow.parquet as pq
 from tagtrail import faults
 from tagtrail.errors import ArtifactError, SourceError
 from tagtrail.runner.paths import clean_temp_files, inside
+from tagtrail.schemas import documents
 from tagtrail.schemas.artifacts import conform
 
 
@@ -169,14 +170,9 @@ class Store:
                 if isinstance(value, pd.DataFrame):
                     fname = f"{name}.parquet"
                     pq.write_table(conform(f"{stage}.{name}", value), tmp / fname)
-                elif isinstance(value, dict):
+                else:  # a JSON document (schemas.documents validates the declared ones)
                     fname = f"{name}.json"
-                    (tmp / fname).write_text(pretty_json(value))
-                else:
-                    raise TypeError(
-                        f"output {name!r} is a {type(value).__name__}; "
-                        "a stage returns DataFrames or dicts"
-                    )
+                    (tmp / fname).write_text(pretty_json(documents.dump(f"{stage}.{name}", value)))
                 f = tmp / fname
                 faults.point(f"store:{stage}")
                 files[name] = {
@@ -207,7 +203,7 @@ class Store:
                                 "rerun to recompute it")
         f = self.entry(stage, key) / manifest["outputs"][output]["file"]
         if f.suffix == ".json":
-            return json.loads(f.read_text())
+            return documents.load(f"{stage}.{output}", json.loads(f.read_text()))
         return pd.read_parquet(f)
 
     @contextmanager

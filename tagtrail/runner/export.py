@@ -129,7 +129,7 @@ def tag_map(get: Getter, folder: Path, dataset: str) -> bool:
     tags, report = get("optimize", "tag_map"), get("optimize", "report")
     if tags is None or report is None:
         return False
-    layouts.write_tag_map(folder, tags, int(report["anchor_id"]))
+    layouts.write_tag_map(folder, tags, report.anchor_id)
     return True
 
 
@@ -149,11 +149,11 @@ def diagnostics(get: Getter, folder: Path, dataset: str) -> bool:
         ("detections", len(dets) if dets is not None and len(dets) else len(obs)),
         ("tags_detected", int(obs["tag_id"].nunique())),
         ("tags_mapped", len(tags) if tags is not None else ""),
-        ("tags_dropped", len(graph["dropped"]) if graph is not None else ""),
-        ("anchor_tag", f"tag36h11:{report['anchor_id']}" if report is not None else ""),
+        ("tags_dropped", len(graph.dropped) if graph is not None else ""),
+        ("anchor_tag", f"tag36h11:{report.anchor_id}" if report is not None else ""),
         ("pairwise_edges", len(edges) if edges is not None else ""),
-        ("map_residual_rms_t_m", report.get("rms_t_m", "") if report is not None else ""),
-        ("map_residual_rms_r_deg", report.get("rms_r_deg", "") if report is not None else ""),
+        ("map_residual_rms_t_m", report.rms_t_m if report is not None else ""),
+        ("map_residual_rms_r_deg", report.rms_r_deg if report is not None else ""),
     ]
     text = "metric,value\n" + "".join(f"{k},{v}\n" for k, v in rows)
     layouts.atomic_write_text(folder / "diagnostics.csv", text)
@@ -184,7 +184,7 @@ def evaluation(get: Getter, folder: Path, dataset: str) -> bool:
     ev = get("eval", "evaluation")
     if ev is None:
         return False
-    layouts.atomic_write_text(folder / "evaluation.json", pretty_json(ev))
+    layouts.atomic_write_text(folder / "evaluation.json", pretty_json(ev.model_dump(mode="json")))
     return True
 
 
@@ -195,7 +195,8 @@ def relocalization(get: Getter, folder: Path, dataset: str) -> bool:
     if reloc is None or summary is None or q_traj is None or ref_traj is None:
         return False
     ref_tags = get("optimize", "tag_map", reference=True)
-    reloc_files.write_outputs(folder, reloc, summary, q_traj, ref_traj, ref_tags, summary["plane"])
+    doc = json.loads(canonical_json(summary.model_dump(mode="json")))  # keys sorted, as stored
+    reloc_files.write_outputs(folder, reloc, doc, q_traj, ref_traj, ref_tags, summary.plane)
     return True
 
 

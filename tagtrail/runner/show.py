@@ -12,6 +12,7 @@ from tagtrail.errors import SpecError
 from tagtrail.io.layouts import atomic_write_text
 from tagtrail.runner.execute import Runner
 from tagtrail.runner.spec import did_you_mean
+from tagtrail.schemas import documents
 
 
 def csv_frame(df: pd.DataFrame) -> pd.DataFrame:
@@ -58,8 +59,8 @@ def show(
     for name in names:
         value = runner.store.load(stage, key, name)
         print(f"\n== {stage}.{name}")
-        if isinstance(value, dict):
-            print(json.dumps(value, indent=2, sort_keys=True))
+        if not isinstance(value, pd.DataFrame):  # a JSON document
+            print(json.dumps(documents.dump(f"{stage}.{name}", value), indent=2, sort_keys=True))
             continue
         print(f"rows: {len(value):,}   columns: {len(value.columns)}")
         print("schema:")

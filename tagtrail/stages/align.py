@@ -23,6 +23,7 @@ from tagtrail.geometry import se3
 from tagtrail.geometry.reference_path import Plane, reference_plane
 from tagtrail.geometry.registration import MODELS, Alignment, ransac_align, world_transform
 from tagtrail.schemas.artifacts import poses
+from tagtrail.schemas.documents import AlignmentBlock
 from tagtrail.stages.base import StageParams
 
 F64 = NDArray[np.float64]
@@ -71,22 +72,14 @@ def transform_trajectory(traj: pd.DataFrame, A: F64, R: F64) -> pd.DataFrame:
     return out
 
 
-def alignment_block(model: str, al: Alignment | None, n_common: int, dim: int) -> dict[str, Any]:
+def alignment_block(model: str, al: Alignment | None, n_common: int, dim: int) -> AlignmentBlock:
     """SPEC ``summary.json`` "alignment" block (``translation`` in plane (u, v) or world, m)."""
     if al is None:
-        return {
-            "model": "none", "scale": 1.0, "rotation_deg": 0.0, "translation": [0.0] * dim,
-            "inliers": 0, "common_tags": n_common, "rms_m": None,
-        }
-    return {
-        "model": model,
-        "scale": al.scale,
-        "rotation_deg": al.rotation_deg,
-        "translation": [float(v) for v in al.t],
-        "inliers": int(al.inliers.sum()),
-        "common_tags": n_common,
-        "rms_m": al.rms_m,
-    }
+        return AlignmentBlock(model="none", scale=1.0, rotation_deg=0.0, translation=[0.0] * dim,
+                              inliers=0, common_tags=n_common, rms_m=None)
+    return AlignmentBlock(model=model, scale=al.scale, rotation_deg=al.rotation_deg,
+                          translation=[float(v) for v in al.t], inliers=int(al.inliers.sum()),
+                          common_tags=n_common, rms_m=al.rms_m)
 
 
 def estimate(

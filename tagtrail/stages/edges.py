@@ -36,6 +36,7 @@ from scipy.sparse.csgraph import connected_components
 from tagtrail.errors import DataError, DisconnectedTagGraph
 from tagtrail.geometry.se3 import T_from_xyz_quat, inv, xyz_quat_from_T
 from tagtrail.schemas.artifacts import POSE_COLS, columns
+from tagtrail.schemas.documents import TagGraph
 from tagtrail.stages.base import StageParams
 
 log = logging.getLogger(__name__)
@@ -229,4 +230,4 @@ def run(observations: pd.DataFrame, params: Params) -> dict[str, Any]:
         "n_components": int(n_comp),
         "weak_links": weak,
     }
-    return {"edges": edges.reset_index(drop=True), "graph": graph}
+    return {"edges": edges.reset_index(drop=True), "graph": TagGraph.model_validate(graph)}

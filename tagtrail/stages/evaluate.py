@@ -30,6 +30,7 @@ from tagtrail.errors import DataError
 from tagtrail.geometry.registration import umeyama
 from tagtrail.geometry.se3 import T_from_xyz_quat, inv, make_T, pose_error
 from tagtrail.schemas.artifacts import POSE_COLS
+from tagtrail.schemas.documents import Evaluation
 from tagtrail.schemas.inputs import GroundTruth
 from tagtrail.stages.base import StageParams
 
@@ -157,4 +158,4 @@ def run(
     }
     if evaluation["trajectory"]["n"] == 0:
         log.warning("eval: no trajectory stamp matches the ground truth in %s", gt_dir)
-    return {"evaluation": evaluation}
+    return {"evaluation": Evaluation.model_validate(evaluation)}

@@ -17,7 +17,7 @@ or CameraInfo) are left out — their poses would be wrong — with a warning na
 
 Outputs (columns as docs/ARCHITECTURE.md): ``frames`` (every frame of the camera's size, with or
 without tags), ``detections`` (corners in px, detector order, OpenCV convention — pixel centres
-at integers —, in the raw, distorted image), ``camera`` (:meth:`CameraModel.to_dict`, ``{}``
+at integers —, in the raw, distorted image), ``camera`` (the ``CameraModel``; None
 for observation sources), ``observations`` (cam_T_tag given by the source). Rows sorted by
 (frame_idx, tag_id).
 """
@@ -98,7 +98,7 @@ def run(source: Source, params: Params) -> dict[str, Any]:
         return {
             "frames": _frames_table(frames["t_ns"], frames["frame_idx"], frames["n_det"]),
             "detections": _detections_table(*_empty_detections()),
-            "camera": {},
+            "camera": None,
             "observations": _typed(obs, OBSERVATION_COLS),
         }
     camera = src.camera()
@@ -123,7 +123,7 @@ def run(source: Source, params: Params) -> dict[str, Any]:
     return {
         "frames": _frames_table(t_ns, frame_idx, n_det),
         "detections": _detections_table(*det),
-        "camera": camera.to_dict(),
+        "camera": camera,
         "observations": _typed(obs, OBSERVATION_COLS),
     }
 

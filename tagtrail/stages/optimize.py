@@ -54,6 +54,7 @@ from tagtrail.geometry.posegraph import (
 )
 from tagtrail.geometry.se3 import R_from_quat_xyzw, inv, make_T, quat_xyzw_from_R
 from tagtrail.schemas.artifacts import CORNER_COLS, POSE_COLS, columns, ippe_solutions
+from tagtrail.schemas.documents import OptimizeReport, TagGraph
 from tagtrail.stages.base import StageParams
 
 log = logging.getLogger(__name__)
@@ -103,7 +104,7 @@ def _per_tag_rms(idx_i: np.ndarray, idx_j: np.ndarray, sq: np.ndarray, n: int) -
 
 def refine_on_corners(
     R: np.ndarray, t: np.ndarray, tags: np.ndarray, anchor: int, observations: pd.DataFrame,
-    detections: pd.DataFrame, camera: dict[str, Any], params: Params,
+    detections: pd.DataFrame, camera: CameraModel, params: Params,
 ) -> tuple[np.ndarray, np.ndarray, dict[str, Any]] | None:
     """Bundle-adjusted ``world_T_tag`` (``R (T, 3, 3)``, ``t (T, 3)``, for the sorted ids
     ``tags``) and a report block, or None when no frame shows two mapped tags with corners."""
@@ -122,7 +123,7 @@ def refine_on_corners(
         log.info("optimize: %d frames show two mapped tags (< ba_min_frames %d): no bundle "
                  "adjustment, the pose-graph map is kept", n_frames, params.ba_min_frames)
         return None
-    cam = CameraModel.from_dict(camera)
+    cam = camera
     px = m[CORNER_COLS].to_numpy(np.float64).reshape(-1, 4, 2)
     k = np.searchsorted(tags, m["tag_id"].to_numpy(np.int64))
     frames, f = np.unique(m["frame_idx"].to_numpy(np.int64), return_inverse=True)
@@ -155,15 +156,15 @@ def refine_on_corners(
 
 def run(
     edges: pd.DataFrame,
-    graph: dict[str, Any],
+    graph: TagGraph,
     observations: pd.DataFrame,
     params: Params,
     detections: pd.DataFrame | None = None,
-    camera: dict[str, Any] | None = None,
+    camera: CameraModel | None = None,
 ) -> dict[str, Any]:
     """Tag map (``TAG_MAP_COLS``), per-edge residuals (``RESIDUAL_COLS``) and a report dict."""
     tags = np.asarray(sorted(int(t) for t in graph.get("tags", [])), dtype=np.int64)
-    anchor = int(graph["anchor_id"])
+    anchor = graph.anchor_id
     if anchor not in tags:
         raise DataError(f"optimize: anchor tag {anchor} is not among the mapped tags {tags}")
     ti, tj = edges["tag_i"].to_numpy(np.int64), edges["tag_j"].to_numpy(np.int64)
@@ -192,7 +193,8 @@ def run(
     res = solve(g, loss=params.loss, f_scale=params.f_scale, max_nfev=params.max_nfev)
     R_map, t_map, res_t, res_r = res.R, res.t, res.res_t, res.res_r
     bundle = None
-    if params.refine == "corners" and detections is not None and len(detections) and camera:
+    has_corners = detections is not None and len(detections) > 0 and camera is not None
+    if params.refine == "corners" and has_corners:
         out = refine_on_corners(R_map, t_map, tags, g.anchor, observations, detections, camera,
                                 params)
         if out is not None:
@@ -235,4 +237,5 @@ def run(
         "refine": params.refine if bundle is not None else "none",
         "bundle": bundle,
     }
-    return {"tag_map": tag_map, "edge_residuals": residuals, "report": report}
+    return {"tag_map": tag_map, "edge_residuals": residuals,
+            "report": OptimizeReport.model_validate(report)}

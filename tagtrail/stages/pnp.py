@@ -65,16 +65,17 @@ class Params(StageParams):
 
 
 def run(
-    detections: pd.DataFrame, camera: dict[str, Any], extracted: pd.DataFrame, params: Params
+    detections: pd.DataFrame, camera: CameraModel | None, extracted: pd.DataFrame,
+    params: Params,
 ) -> dict[str, pd.DataFrame]:
     """Poses of every detection plus the source's own observations; see the module docstring."""
     parts = []
     if len(detections):
-        if not camera:
+        if camera is None:
             raise SourceError(
                 "extract.camera is empty: the source has no camera intrinsics for its detections"
             )
-        parts.append(_solve_table(detections, CameraModel.from_dict(camera), params))
+        parts.append(_solve_table(detections, camera, params))
     if len(extracted):
         parts.append(_passthrough(extracted, params))
     if not parts:

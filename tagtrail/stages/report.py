@@ -31,6 +31,7 @@ from tagtrail.geometry.reference_path import (
     reference_plane,
 )
 from tagtrail.schemas.artifacts import columns, poses
+from tagtrail.schemas.documents import AlignmentBlock, Summary
 from tagtrail.stages.base import StageParams
 
 INPUTS = {
@@ -41,9 +42,6 @@ INPUTS = {
 OUTPUTS = ("relocalization", "summary")
 SCOPE = "query"
 RELOC_COLS = columns("report.relocalization")
-ALIGNMENT_KEYS = (
-    "model", "scale", "rotation_deg", "translation", "inliers", "common_tags", "rms_m",
-)  # fmt: skip
 
 
 class Params(StageParams):
@@ -100,7 +98,7 @@ def choose_mode(mode: str, query_uv: ArrayLike, static_threshold_m: float) -> st
 def run(
     trajectory: pd.DataFrame,
     ref_trajectory: pd.DataFrame,
-    alignment: dict[str, Any],
+    alignment: AlignmentBlock,
     params: Params,
 ) -> dict[str, Any]:
     """D and phi of the query ``trajectory`` (already in the reference world) (Eqs. 3.11–3.16).
@@ -132,6 +130,6 @@ def run(
         "n": len(reloc),
         "distance_m": stats(reloc["distance_m"]),
         "abs_heading_error_deg": stats(np.abs(reloc["heading_error_deg"])),
-        "alignment": {k: alignment.get(k) for k in ALIGNMENT_KEYS},
+        "alignment": alignment,
     }
-    return {"relocalization": reloc, "summary": summary}
+    return {"relocalization": reloc, "summary": Summary.model_validate(summary)}

@@ -75,7 +75,7 @@ def _empty() -> pd.DataFrame:
 
 def _pnp_frames(
     T: np.ndarray, obs: pd.DataFrame, group: np.ndarray, detections: pd.DataFrame,
-    camera: dict[str, Any], W: np.ndarray, size: np.ndarray, params: Params,
+    camera: CameraModel, W: np.ndarray, size: np.ndarray, params: Params,
 ) -> tuple[np.ndarray, np.ndarray]:
     """Replace the poses of frames with >= 2 mapped, detected tags by multi-tag PnP."""
     det = detections.drop_duplicates(["frame_idx", "tag_id"], keep=False)
@@ -84,12 +84,12 @@ def _pnp_frames(
     px = det.reindex(key).to_numpy(np.float64).reshape(-1, 4, 2)
     ok = np.isfinite(px).all(axis=(1, 2)) & np.isfinite(size) & (size > 0)
     n_ok = np.bincount(group[ok], minlength=len(T))
-    K = np.asarray(camera["K"], dtype=np.float64)
+    K = camera.K.reshape(-1)
     thresh = params.ransac_px / (0.5 * (K[0] + K[4]))
     sel = ok & (n_ok[group] >= 2)
     if not sel.any():
         return T, np.zeros(len(T), bool)
-    norm = CameraModel.from_dict(camera).undistort(px[sel])
+    norm = camera.undistort(px[sel])
     pts_w = transform_points(W[sel][:, None], tag_corners(size[sel]))
     g = group[sel]
     starts = np.flatnonzero(np.r_[True, g[1:] != g[:-1]])
@@ -107,7 +107,7 @@ def _pnp_frames(
 def run(
     observations: pd.DataFrame,
     detections: pd.DataFrame,
-    camera: dict[str, Any],
+    camera: CameraModel | None,
     tag_map: pd.DataFrame,
     params: Params,
 ) -> dict[str, Any]:
@@ -134,7 +134,7 @@ def run(
     n = len(uframe)
 
     method = params.method
-    has_pix = detections is not None and len(detections) > 0 and bool(camera)
+    has_pix = detections is not None and len(detections) > 0 and camera is not None
     if method == "auto":
         method = "pnp" if has_pix else "lsq"
     if method == "avg":

@@ -188,7 +188,8 @@ def test_files_round_trip(limo: Path, tmp_path: Path) -> None:
     from tagtrail.io.reloc_files import read_relocalization_csv, write_summary_json
 
     ref, qry = limo / "reference_three_letric", limo / "query_quadrad_2"
-    out = report_stage.run(read_trajectory(qry), read_trajectory(ref), {},
+    out = report_stage.run(read_trajectory(qry), read_trajectory(ref),
+                           align_stage.alignment_block("none", None, 0, 2),
                            report_stage.Params(mode="trajectory"))  # fmt: skip
     relocalize(ref, qry, tmp_path, mode="trajectory", align="none")
     back = read_relocalization_csv(tmp_path / "relocalization.csv")

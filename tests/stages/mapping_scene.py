@@ -13,6 +13,7 @@ from dataclasses import dataclass
 import numpy as np
 import pandas as pd
 
+from tagtrail.geometry.camera import CameraModel
 from tagtrail.geometry.se3 import (
     inv,
     make_T,
@@ -25,8 +26,7 @@ POSE = ["x_m", "y_m", "z_m", "qx", "qy", "qz", "qw"]
 ALT = [f"alt_{c}" for c in POSE]
 T0_NS = 1_700_000_000_000_000_000
 K = np.array([[500.0, 0.0, 320.0], [0.0, 500.0, 240.0], [0.0, 0.0, 1.0]])
-CAMERA = {"width": 640, "height": 480, "distortion_model": "none", "K": K.reshape(-1).tolist(),
-          "D": []}
+CAMERA = CameraModel(640, 480, K, [], "none")
 
 
 @dataclass

@@ -84,7 +84,7 @@ def run(scene: dict, **params: object) -> dict:
 def test_recovers_planar_similarity_with_outliers(scene: dict, plane: str) -> None:
     out = run(scene, plane=plane)
     al, traj = out["alignment"], out["trajectory"]
-    assert list(al) == KEYS
+    assert list(al.model_dump()) == KEYS
     assert al["model"] == "similarity" and al["common_tags"] == 20 and al["inliers"] == 14
     assert al["scale"] == pytest.approx(scene["s"], abs=1e-4)
     assert al["rotation_deg"] == pytest.approx(scene["deg"], abs=0.01)
@@ -123,7 +123,7 @@ def test_se3_recovers_a_3d_transform() -> None:
 def test_align_none_keeps_the_query_frame(scene: dict) -> None:
     out = run(scene, align="none")
     pd.testing.assert_frame_equal(out["trajectory"], scene["q_traj"])
-    assert out["alignment"] == {"model": "none", "scale": 1.0, "rotation_deg": 0.0,
+    assert out["alignment"].model_dump() == {"model": "none", "scale": 1.0, "rotation_deg": 0.0,
                                 "translation": [0.0, 0.0], "inliers": 0, "common_tags": 20,
                                 "rms_m": None}  # fmt: skip
 

@@ -85,7 +85,7 @@ def test_disconnected_graph_dropped_with_warning(caplog: pytest.LogCaptureFixtur
         out = edges.run(_two_islands(), edges.Params())
     g = out["graph"]
     assert g["anchor_id"] == 0 and g["tags"] == [0, 1] and g["n_components"] == 2
-    assert g["dropped"] == [{"tag_id": 7, "n_obs": 2}, {"tag_id": 8, "n_obs": 2}]
+    assert g.model_dump()["dropped"] == [{"tag_id": 7, "n_obs": 2}, {"tag_id": 8, "n_obs": 2}]
     assert set(out["edges"]["tag_i"]) == {0}
     assert "7 (2 obs), 8 (2 obs)" in caplog.text and "anchor tag 0" in caplog.text
 
@@ -144,7 +144,7 @@ def test_bridges_match_brute_force() -> None:
 def test_weak_links_reported(caplog: pytest.LogCaptureFixture) -> None:
     with caplog.at_level(logging.WARNING, logger="tagtrail.stages.edges"):
         out = edges.run(_two_islands(), edges.Params(anchor_id=7))
-    assert out["graph"]["weak_links"] == [{"tag_i": 7, "tag_j": 8, "n_frames": 2}]
+    assert out["graph"].model_dump()["weak_links"] == [{"tag_i": 7, "tag_j": 8, "n_frames": 2}]
     assert "weak links in the tag graph" in caplog.text and "7-8 (2 frames)" in caplog.text
     # seen together in 3 frames: a bridge, but not weak
     assert edges.run(_two_islands(), edges.Params(anchor_id=0))["graph"]["weak_links"] == []

@@ -57,7 +57,8 @@ def test_exact_estimate_in_gt_frame(world) -> None:
     assert ev["anchor_id"] == 0 and ev["gt_anchor_id"] == 0
     for key in ("trajectory", "trajectory_raw", "tags"):
         block = ev[key]
-        assert set(block["position_m"]) == STATS and set(block["angle_deg"]) == STATS
+        assert set(block["position_m"].model_dump()) == STATS
+        assert set(block["angle_deg"].model_dump()) == STATS
         assert block["position_m"]["max"] < 1e-9 and block["angle_deg"]["max"] < 1e-6
     assert ev["trajectory"]["n"] == 40 and ev["trajectory"]["coverage"] == 1.0
     assert ev["tags"]["n"] == 11  # the anchor is left out

@@ -83,7 +83,7 @@ def test_paper_table_4_1_noise_free_is_exact() -> None:
     for name in ("tags", "raw"):
         assert err[name][0].max() < 1e-9 and err[name][1].max() < 1e-7, name
     tm, rep = out["tag_map"], out["report"]
-    assert list(tm.columns) == TAG_MAP_COLS and set(rep) == REPORT_KEYS
+    assert list(tm.columns) == TAG_MAP_COLS and set(rep.model_dump()) == REPORT_KEYS
     assert tm["n_obs"].tolist() == np.bincount(scene.tag).tolist()
     assert (tm["size_m"] == 0.16).all() and tm["res_t_rms_m"].max() < 1e-9
     assert rep["rms_t_m"] < 1e-9 and rep["anchor_id"] == out["graph"]["anchor_id"]
@@ -129,7 +129,7 @@ def test_edges_not_reaching_a_graph_tag_are_a_data_error() -> None:
     scene = ring_scene()
     obs = observations(scene)
     e = edges.run(obs, edges.Params())
-    bad_graph = {**e["graph"], "tags": [*e["graph"]["tags"], 77]}
+    bad_graph = e["graph"].model_copy(update={"tags": [*e["graph"].tags, 77]})
     with pytest.raises(DataError, match=r"tags \[77\] share no edge path"):
         optimize.run(e["edges"], bad_graph, obs, optimize.Params())
 
@@ -171,5 +171,5 @@ def test_corner_refinement_beats_the_pose_graph() -> None:
     # Without detections (an observations dataset) the pose graph is the map.
     o = optimize.run(e["edges"], e["graph"], obs, optimize.Params(refine="corners"),
                      detections=det.iloc[:0],
-                     camera={})
+                     camera=None)
     assert o["report"]["refine"] == "none"

@@ -67,7 +67,7 @@ def test_synthetic_poses_recovered_exactly(model: str) -> None:
     params = pnp.Params(tag_size=0.16, tag_sizes={1: 0.05, 2: 0.3})
     sizes = params.sizes(tag_ids)
     px = cam.project(se3.transform_points(T[:, None], SPEC_CORNERS * sizes[:, None, None]))
-    out = pnp.run(detections_table(px, tag_ids), cam.to_dict(), empty_obs(), params)
+    out = pnp.run(detections_table(px, tag_ids), cam, empty_obs(), params)
     obs = out["observations"]
     assert list(obs.columns) == pnp.COLUMNS and len(obs) == 60
     assert obs["size_m"].tolist() == sizes.tolist()
@@ -85,16 +85,17 @@ def test_pass_through_and_empty_inputs() -> None:
                         "x_m": [0.1, 0.2], "y_m": 0.0, "z_m": 1.0, "qx": 0.0, "qy": 0.0,
                         "qz": 0.0, "qw": 1.0})
     empty_det = detections_table(np.zeros((0, 4, 2)), np.zeros(0, int))
-    out = pnp.run(empty_det, {}, obs, pnp.Params(tag_size=0.2, tag_sizes={9: 0.1}))["observations"]
+    params = pnp.Params(tag_size=0.2, tag_sizes={9: 0.1})
+    out = pnp.run(empty_det, None, obs, params)["observations"]
     assert list(out.columns) == pnp.COLUMNS
     assert out["size_m"].tolist() == [0.2, 0.1] and out["x_m"].tolist() == [0.1, 0.2]
     assert out[["reproj_px", "alt_reproj_px", "ambiguity", "alt_x_m"]].isna().all().all()
-    none = pnp.run(empty_det, {}, empty_obs(), pnp.Params())["observations"]
+    none = pnp.run(empty_det, None, empty_obs(), pnp.Params())["observations"]
     assert list(none.columns) == pnp.COLUMNS and len(none) == 0
     assert none.dtypes["t_ns"] == np.int64 and none.dtypes["tag_id"] == np.int32
     det = detections_table(np.ones((1, 4, 2)), np.array([1]))
     with pytest.raises(SourceError, match="extract.camera is empty"):
-        pnp.run(det, {}, empty_obs(), pnp.Params())
+        pnp.run(det, None, empty_obs(), pnp.Params())
     with pytest.raises(ValueError, match="tag sizes must be > 0"):
         pnp.Params(tag_sizes={3: 0.0})
 
@@ -104,7 +105,7 @@ def test_real_corners_give_the_expected_distances(realdata: Path) -> None:
     cam = read_camera_file(folder / "frames/camera.yaml")
     corners = np.load(folder / "corners.npy") - 0.5  # C library → OpenCV pixel convention
     det = detections_table(corners, np.full(len(corners), 12))
-    obs = pnp.run(det, cam.to_dict(), empty_obs(), pnp.Params(tag_size=0.14))["observations"]
+    obs = pnp.run(det, cam, empty_obs(), pnp.Params(tag_size=0.14))["observations"]
     assert obs["z_m"].between(0.47, 0.73).all()  # README: camera-to-tag 0.478–0.726 m
     assert obs["reproj_px"].median() < 0.5 and obs["ambiguity"].median() < 0.1
     steps = np.linalg.norm(np.diff(obs[["x_m", "y_m", "z_m"]].to_numpy(), axis=0), axis=1)
@@ -188,7 +189,7 @@ def test_degenerate_corners_give_no_pose_and_no_runtime_warning(caplog) -> None:
         det = detections_table(corners, np.arange(len(corners)))
         with warnings.catch_warnings():
             warnings.simplefilter("error")  # any warning fails the test
-            obs = pnp.run(det, cam.to_dict(), empty_obs(), pnp.Params())["observations"]
+            obs = pnp.run(det, cam, empty_obs(), pnp.Params())["observations"]
         kept = obs["tag_id"].tolist()  # a pixel line is no ray line once undistorted: no check
         assert kept[:2] == [0, 1] and not {2, 4, 5, 6} & set(kept), (model, kept)
         assert np.isfinite(obs[["reproj_px", "alt_reproj_px", "ambiguity"]].to_numpy()).all()

@@ -48,14 +48,14 @@ def test_trajectory_mode_against_hand_values() -> None:
     np.testing.assert_allclose(rel["t_rel_s"], [0.0, 0.1, 0.2, 0.3, 0.4], atol=1e-12)
     np.testing.assert_allclose(rel[["ref_u", "ref_v"]], np.column_stack([0.1 * k, np.zeros(5)]),
                                atol=1e-12)  # fmt: skip
-    assert list(summary) == ["mode", "plane", "n", "distance_m", "abs_heading_error_deg",
-                             "alignment"]  # fmt: skip
+    assert list(summary.model_dump()) == ["mode", "plane", "n", "distance_m",
+                                          "abs_heading_error_deg", "alignment"]
     assert summary["mode"] == "trajectory" and summary["plane"] == "xz" and summary["n"] == 5
-    assert summary["alignment"] == ALIGNMENT
+    assert summary["alignment"].model_dump() == ALIGNMENT
     a = np.abs(heading)  # 20, 10, 30, 179, 90
     expected = {"mean": 65.8, "median": 30.0, "p90": 143.4, "p95": 161.2, "max": 179.0,
                 "rmse": math.sqrt(np.mean(a**2))}  # fmt: skip
-    assert list(summary["abs_heading_error_deg"]) == STAT_KEYS
+    assert list(summary["abs_heading_error_deg"].model_dump()) == STAT_KEYS
     for key, value in expected.items():
         assert summary["abs_heading_error_deg"][key] == pytest.approx(value, abs=1e-9)
     assert summary["distance_m"]["rmse"] == pytest.approx(math.hypot(0.02, 0.2), abs=1e-12)

@@ -1,0 +1,214 @@
+"""Pydantic models of the stages' JSON artifacts: one model per document, validated when a stage
+returns it and when the store loads it, so no consumer re-parses a dict by hand.
+
+``extract.camera`` is the exception in what consumers see: stages receive the
+:class:`~tagtrail.geometry.camera.CameraModel` itself (None for sources without a camera).
+The serialised form of every document is ``model_dump(mode="json")`` (keys sorted on disk).
+"""
+
+from __future__ import annotations
+
+from typing import Any, Literal
+
+from pydantic import BaseModel, ConfigDict, ValidationError
+
+from tagtrail.errors import ArtifactError
+from tagtrail.geometry.camera import CameraModel
+
+
+class Document(BaseModel):
+    """Base of every JSON artifact: unknown keys refused, immutable."""
+
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+    def __getitem__(self, key: str) -> Any:
+        """Read access by key, as for the JSON file (``doc["anchor_id"]``)."""
+        if key not in type(self).model_fields:
+            raise KeyError(key)
+        return getattr(self, key)
+
+    def get(self, key: str, default: Any = None) -> Any:
+        return getattr(self, key) if key in type(self).model_fields else default
+
+
+class CameraDoc(Document):
+    """``extract.camera``: as ``sensor_msgs/CameraInfo`` (K row-major, D in ROS order)."""
+
+    width: int
+    height: int
+    distortion_model: str
+    K: list[float]
+    D: list[float]
+
+    def model(self) -> CameraModel:
+        return CameraModel(self.width, self.height, self.K, self.D, self.distortion_model)
+
+    @classmethod
+    def of(cls, camera: CameraModel) -> CameraDoc:
+        return cls(width=camera.width, height=camera.height,
+                   distortion_model=camera.distortion_model,
+                   K=[float(v) for v in camera.K.reshape(-1)], D=[float(v) for v in camera.D])
+
+
+class DroppedTag(Document):
+    tag_id: int
+    n_obs: int
+
+
+class WeakLink(Document):
+    """A bridge of the tag graph seen together in fewer than 3 frames."""
+
+    tag_i: int
+    tag_j: int
+    n_frames: int
+
+
+class TagGraph(Document):
+    """``edges.graph``: the anchor (world) tag, the mapped tags, what was dropped and why."""
+
+    anchor_id: int
+    tags: list[int]
+    dropped: list[DroppedTag]
+    n_components: int
+    weak_links: list[WeakLink]
+
+
+class BundleSummary(Document):
+    """The corner bundle adjustment's figures (``optimize.report.bundle``)."""
+
+    frames: int
+    observations: int
+    iterations: int
+    converged: bool
+    cost_px2: float
+    rms_px: float
+    p95_px: float
+
+
+class OptimizeReport(Document):
+    """``optimize.report``: the pose graph solve (Eq. 3.4-3.7) and the optional refinement."""
+
+    anchor_id: int
+    loss: str
+    f_scale: float
+    cost: float
+    nfev: int
+    status: int
+    rms_t_m: float
+    rms_r_deg: float
+    refine: str
+    bundle: BundleSummary | None
+
+
+class ErrorStats(Document):
+    """Statistics of errors (None when there are none)."""
+
+    mean: float | None
+    median: float | None
+    rmse: float | None
+    p95: float | None
+    max: float | None
+    min: float | None
+
+
+class ErrorBlock(Document):
+    n: int
+    coverage: float
+    position_m: ErrorStats
+    angle_deg: ErrorStats
+
+
+class GaugeFree(Document):
+    """The errors after the best rigid fit of the map to ground truth."""
+
+    rotation_deg: float
+    translation_m: float
+    trajectory: ErrorBlock
+    tags: ErrorBlock
+
+
+class Evaluation(Document):
+    """``eval.evaluation``: errors against ground truth (``evaluation.json``)."""
+
+    anchor_id: int | None
+    gt_anchor_id: int | None
+    trajectory: ErrorBlock
+    trajectory_raw: ErrorBlock
+    tags: ErrorBlock
+    gauge_free: GaugeFree | None
+
+
+class AlignmentBlock(Document):
+    """``align.alignment``, the SPEC ``summary.json`` "alignment" block (``translation`` in the
+    plane's (u, v) or the world's (x, y, z), m)."""
+
+    model: str
+    scale: float
+    rotation_deg: float
+    translation: list[float]
+    inliers: int
+    common_tags: int
+    rms_m: float | None
+
+
+class RelocStats(Document):
+    mean: float | None
+    median: float | None
+    p90: float | None
+    p95: float | None
+    max: float | None
+    rmse: float | None
+
+
+class Summary(Document):
+    """``report.summary``, SPEC ``summary.json``."""
+
+    mode: Literal["trajectory", "point"]
+    plane: str
+    n: int
+    distance_m: RelocStats
+    abs_heading_error_deg: RelocStats
+    alignment: AlignmentBlock
+
+
+DOCUMENTS: dict[str, type[Document]] = {
+    "extract.camera": CameraDoc,
+    "edges.graph": TagGraph,
+    "optimize.report": OptimizeReport,
+    "eval.evaluation": Evaluation,
+    "align.alignment": AlignmentBlock,
+    "report.summary": Summary,
+}
+
+
+def dump(name: str, value: Any) -> dict[str, Any]:
+    """The JSON form of artifact ``name`` (``stage.output``): a model, a dict (validated), or,
+    for ``extract.camera``, a ``CameraModel`` or None (``{}``)."""
+    if name == "extract.camera" and (value is None or isinstance(value, CameraModel)):
+        return {} if value is None else CameraDoc.of(value).model_dump(mode="json")
+    model = DOCUMENTS.get(name)
+    if isinstance(value, BaseModel):
+        if model is not None and not isinstance(value, model):
+            raise TypeError(f"artifact {name} must be a {model.__name__}, not "
+                            f"{type(value).__name__}")
+        return value.model_dump(mode="json")
+    if not isinstance(value, dict):
+        raise TypeError(f"artifact {name} is a {type(value).__name__}; a stage returns "
+                        "DataFrames, documents or dicts")
+    return value if model is None else model.model_validate(value).model_dump(mode="json")
+
+
+def load(name: str, data: Any) -> Any:
+    """Artifact ``name`` from its JSON form: its model (``extract.camera``: a ``CameraModel`` or
+    None), or the plain dict of an undeclared document."""
+    model = DOCUMENTS.get(name)
+    if model is None:
+        return data
+    if name == "extract.camera" and data == {}:
+        return None
+    try:
+        doc = model.model_validate(data)
+    except ValidationError as err:
+        raise ArtifactError(f"artifact {name} does not fit its model: "
+                            f"{err.errors()[0]['loc']} {err.errors()[0]['msg']}") from err
+    return doc.model() if isinstance(doc, CameraDoc) else doc
