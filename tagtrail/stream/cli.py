@@ -15,13 +15,13 @@ from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any
 
-from tagtrail.errors import TagtrailError, report
 from tagtrail.geometry.reference_path import PLANES
 from tagtrail.stream.codec import POSE_TYPES
 from tagtrail.stream.session import add_session_arguments, config_from_args, open_session
 
 EXAMPLES = """examples:
   tagtrail stream relocalize --reference outputs/reference --alignment reloc/summary.json
+  tagtrail stream relocalize --reference outputs/query_1 --pipeline lab.yaml --dataset query_1
   tagtrail stream relocalize --reference ref/trajetoria_camera.csv --plane xz \\
       --connect tcp/192.168.1.10:7447          # the robot's zenoh-bridge-ros2dds
   tagtrail stream replay outputs/query/trajectory.csv --rate 2
@@ -51,6 +51,15 @@ def _number(kind: type, low: float, strict: bool = False) -> Callable[[str], Any
 NON_NEGATIVE = _number(float, 0.0)  # durations, periods, rates, margins
 COUNT = _number(int, 0)
 POSITIVE = _number(float, 0.0, strict=True)
+
+
+def _pipeline(p: argparse.ArgumentParser, what: str) -> None:
+    g = p.add_argument_group("parameters")
+    g.add_argument("--pipeline", type=Path, default=None, metavar="FILE",
+                   help=f"take {what} from this pipeline file (default: ./pipeline.yaml if there "
+                   "is one, else the stages' defaults); flags below override it")
+    g.add_argument("--dataset", default=None, metavar="NAME",
+                   help="whose parameters (its `params:` applied; default: the reference)")
 
 
 def _common(p: argparse.ArgumentParser, count_help: str, express: bool) -> None:
@@ -89,12 +98,14 @@ def add_arguments(parser: argparse.ArgumentParser) -> argparse.ArgumentParser:
     p.add_argument("--prefix", default="relocalization", help="output key prefix (default: "
                    "%(default)s)")
     p.add_argument("--plane", choices=list(PLANES), default=None,
-                   help="plane of D and phi (default: the alignment file's, else auto)")
+                   help="plane of D and phi (default: the alignment file's, else the pipeline's "
+                   "report.plane)")
     p.add_argument("--frame-id", default="map", help="frame of the outputs (default: map)")
     p.add_argument("--path-period", type=NON_NEGATIVE, default=1.0, metavar="S",
                    help="republish the reference path every S seconds (0: once; default 1)")
     p.add_argument("--path-max-points", type=COUNT, default=10_000, metavar="N",
                    help="decimate the published path to N poses (0: all; default 10000)")
+    _pipeline(p, "report's plane")
     _common(p, "stop after N input messages", express=True)
 
     p = sub.add_parser("replay", help="publish a trajectory's poses (or bag topics)",
@@ -130,14 +141,18 @@ def add_arguments(parser: argparse.ArgumentParser) -> argparse.ArgumentParser:
     p.add_argument("--pose-key", default="tag_only_pose", help="output key (default: "
                    "%(default)s)")
     p.add_argument("--frame-id", default="map", help="frame of the poses (default: map)")
-    p.add_argument("--tag-size", type=POSITIVE, default=0.16,
-                   help="edge (m) of tags whose size the map does not give (default 0.16)")
-    p.add_argument("--method", choices=["auto", "avg", "lsq", "pnp"], default="auto",
-                   help="multi-tag method of the trajectory stage (default: auto = pnp)")
-    p.add_argument("--min-decision-margin", type=NON_NEGATIVE, default=20.0, metavar="M",
-                   help="drop detections with a lower decision margin (default 20)")
-    p.add_argument("--max-hamming", type=COUNT, default=0, metavar="N",
-                   help="drop detections with more corrected bits (default 0)")
+    _pipeline(p, "extract's detector and filters, pnp's tag sizes and trajectory's method")
+    g = p.add_argument_group("overrides")
+    g.add_argument("--tag-size", type=POSITIVE, default=None, metavar="M",
+                   help="edge (m) of tags whose size neither the map nor pnp.tag_sizes gives "
+                   "(default: pnp.tag_size)")
+    g.add_argument("--method", choices=["auto", "avg", "lsq", "pnp"], default=None,
+                   help="per-frame method (default: trajectory.method)")
+    g.add_argument("--min-decision-margin", type=NON_NEGATIVE, default=None, metavar="M",
+                   help="drop detections with a lower decision margin (default: "
+                   "extract.min_decision_margin)")
+    g.add_argument("--max-hamming", type=COUNT, default=None, metavar="N",
+                   help="drop detections with more corrected bits (default: extract.max_hamming)")
     _common(p, "stop after N input messages", express=True)
     return parser
 
@@ -149,28 +164,31 @@ def build_parser() -> argparse.ArgumentParser:
 
 def main(args: argparse.Namespace | Sequence[str] | None = None) -> int:
     """Run a stream command from parsed arguments (or an argv list); 0 on success."""
+    from tagtrail.cli import run_command
+
     ns = args if isinstance(args, argparse.Namespace) else build_parser().parse_args(args)
     cmd = getattr(ns, "stream_command", None)
     if cmd is None:
         build_parser().print_help()
         return 2
-    try:
-        return {"relocalize": _relocalize, "replay": _replay, "localize": _localize}[cmd](ns)
-    except TagtrailError as err:
-        return report(err)
+    run = {"relocalize": _relocalize, "replay": _replay, "localize": _localize}[cmd]
+    return run_command(lambda: run(ns))
 
 
 def _relocalize(ns: argparse.Namespace) -> int:
     from tagtrail.io.layouts import read_trajectory
+    from tagtrail.stream.params import stage_params
     from tagtrail.stream.reloc_node import Relocalizer, load_alignment, serve
     from tagtrail.stream.session import leave_now, stop_on_signals
 
     ref = read_trajectory(ns.reference)
-    alignment, plane = None, ns.plane
+    # the alignment file's plane wins over the pipeline's: its planar transform acts in that plane
+    plane = ns.plane or stage_params(["report"], ns.pipeline, ns.dataset)["report"].plane
+    alignment = None
     if ns.alignment is not None:
-        A, R, file_plane = load_alignment(ns.alignment, ref, ns.plane)
-        alignment, plane = (A, R), ns.plane or file_plane
-    reloc = Relocalizer(ref, plane or "auto", alignment, ns.frame_id, ns.prefix, ns.pose_type,
+        A, R, file_plane = load_alignment(ns.alignment, ref, plane)
+        alignment, plane = (A, R), ns.plane or file_plane or plane
+    reloc = Relocalizer(ref, plane, alignment, ns.frame_id, ns.prefix, ns.pose_type,
                         ns.path_max_points)  # fmt: skip
     session = open_session(config_from_args(ns, "listen"))
     with stop_on_signals() as stop:
@@ -205,20 +223,32 @@ def _replay(ns: argparse.Namespace) -> int:
     return 0
 
 
+def localize_params(ns: argparse.Namespace) -> Any:
+    """The localize node's :class:`~tagtrail.stream.localize.Params`: the ``--pipeline`` /
+    ``--dataset`` parameters (else the stages' defaults) with the flags given applied."""
+    from tagtrail.stream.localize import Params
+    from tagtrail.stream.params import override, stage_params
+
+    got = stage_params(["extract", "pnp", "trajectory"], ns.pipeline, ns.dataset)
+    return Params(
+        extract=override(got["extract"], {
+            "min_decision_margin": ("--min-decision-margin", ns.min_decision_margin),
+            "max_hamming": ("--max-hamming", ns.max_hamming)}),
+        pnp=override(got["pnp"], {"tag_size": ("--tag-size", ns.tag_size)}),
+        trajectory=override(got["trajectory"], {"method": ("--method", ns.method)}),
+    )  # fmt: skip
+
+
 def _localize(ns: argparse.Namespace) -> int:
     from tagtrail.io.layouts import read_tag_map
-    from tagtrail.stages.trajectory import Params
     from tagtrail.stream.localize import Localizer, cv2_threads
     from tagtrail.stream.node import Node
     from tagtrail.stream.session import leave_now, stop_on_signals
     from tagtrail.stream.stats import Stats
-    from tagtrail.vision.detector import DetectorConfig
 
     tags, _ = read_tag_map(ns.map)
     stats = Stats("localize")
-    cfg = DetectorConfig(max_hamming=ns.max_hamming, min_decision_margin=ns.min_decision_margin)
-    loc = Localizer(tags, ns.tag_size, ns.pose_key, ns.frame_id, Params(method=ns.method), cfg,
-                    stats)  # fmt: skip
+    loc = Localizer(tags, localize_params(ns), ns.pose_key, ns.frame_id, stats)
     cv2_threads()
     node = Node(open_session(config_from_args(ns, "connect")), stats, ns.congestion, ns.express)
     node.count = ns.count

@@ -7,12 +7,15 @@ corners sit +0.5 px from OpenCV's convention and are shifted back, as the extrac
 extract stage's detector). Output: ``geometry_msgs/msg/PoseStamped`` (world_T_cam, the
 detection's stamp) — the input of ``tagtrail stream relocalize``.
 
-Per frame the offline pipeline's functions are called (one implementation, two drivers):
-IPPE per tag (:func:`tagtrail.stages.pnp.solve_ippe`), then the trajectory stage's fusion
-(:mod:`tagtrail.geometry.fusion`, Eq. 3.8) with its ``Params`` — ``pnp`` (default via ``auto``):
-one RANSAC PnP over every corner of every mapped tag when ≥ 2 are seen, else the robust fusion
-(``lsq``) of the per-tag estimates. :func:`frame_pose` is that per-frame glue (the trajectory
-stage works on whole tables).
+Per frame the offline pipeline's functions run with its stages' parameters (:class:`Params`; one
+implementation, two drivers): the extract stage's filters, IPPE per tag
+(:func:`tagtrail.geometry.ippe.solve_ippe`), then :func:`tagtrail.geometry.fusion.frame_poses`,
+the trajectory stage's per-frame method (Eq. 3.8; ``auto`` = one RANSAC PnP over every corner
+of every mapped tag when >= 2 are seen, else the robust fusion of the per-tag estimates). A
+frame's tags are taken in the trajectory stage's order (by tag id); a tag seen twice is left
+out, as offline. Tag sizes: the map's (``size_m``), else the pnp stage's ``tag_sizes`` /
+``tag_size``. A map made by the pipeline carries the sizes its pnp stage used, so the node's
+poses are the offline trajectory stage's (tests/stream/test_live_offline.py).
 """
 
 from __future__ import annotations
@@ -20,6 +23,7 @@ from __future__ import annotations
 import logging
 import struct
 from collections import Counter
+from dataclasses import dataclass, field
 from typing import Any
 
 import cv2
@@ -29,21 +33,18 @@ from numpy.typing import NDArray
 
 from tagtrail.errors import DataError
 from tagtrail.geometry.camera import CameraModel
-from tagtrail.geometry.fusion import (
-    camera_estimates,
-    fuse_mean,
-    fuse_robust,
-    multi_tag_pnp,
-    tag_corners,
-)
-from tagtrail.geometry.se3 import T_from_xyz_quat, transform_points, xyz_quat_from_T
+from tagtrail.geometry.fusion import frame_poses
+from tagtrail.geometry.ippe import solve_ippe
+from tagtrail.geometry.se3 import T_from_xyz_quat, xyz_quat_from_T
 from tagtrail.io import msgs
-from tagtrail.io.sources import detections_from_msg
+from tagtrail.io.sources import detections_from_msg, raw_image_from_msg
 from tagtrail.schemas.artifacts import POSE_COLS
+from tagtrail.stages import extract as extract_stage
+from tagtrail.stages import pnp as pnp_stage
 from tagtrail.stages import trajectory as trajectory_stage
 from tagtrail.stream import codec
 from tagtrail.stream.stats import DropError, Stats
-from tagtrail.vision.detector import DetectorConfig, filter_detections
+from tagtrail.vision.detector import filter_detections
 
 log = logging.getLogger("tagtrail.stream")
 F64 = NDArray[np.float64]
@@ -51,87 +52,85 @@ IMAGE_TYPES = {"compressed": msgs.COMPRESSED_IMAGE, "raw": msgs.IMAGE}
 MAX_IMAGE_SIDE = 8192  # px: larger images are dropped before decoding (8192² gray = 64 MiB)
 
 
-def frame_pose(
-    corners_px: F64,
-    tag_ids: NDArray[np.integer],
-    camera: CameraModel,
-    world_T_tag: dict[int, F64],
-    sizes: dict[int, float],
-    params: trajectory_stage.Params,
-) -> tuple[F64 | None, int]:
-    """``world_T_cam (4, 4)`` of one frame and the number of mapped tags used (None, 0 if none).
+@dataclass(frozen=True)
+class Params:
+    """The stage parameters the node uses (defaults: the stages' own)."""
 
-    ``corners_px (n, 4, 2)``: distorted pixels, OpenCV convention, SPEC corner order;
-    ``tag_ids (n,)``; ``world_T_tag``/``sizes`` (m) per mapped id. Tags seen twice are ignored
-    (as in the trajectory stage). Methods as :mod:`tagtrail.stages.trajectory`.
-    """
-    from tagtrail.stages.pnp import solve_ippe
+    extract: extract_stage.Params = field(default_factory=extract_stage.Params)
+    """Detector settings (images) and the detection filters."""
+    pnp: pnp_stage.Params = field(default_factory=pnp_stage.Params)
+    """Tag sizes of tags the map gives none for."""
+    trajectory: trajectory_stage.Params = field(default_factory=trajectory_stage.Params)
+    """The per-frame method and its settings."""
 
-    ids = np.asarray(tag_ids, dtype=np.int64).reshape(-1)
-    uniq, counts = np.unique(ids, return_counts=True)
-    once = set(uniq[counts == 1].tolist())
-    keep = np.array([i in once and i in world_T_tag for i in ids.tolist()], dtype=bool)
-    if not keep.any():
-        return None, 0
-    px = np.asarray(corners_px, dtype=np.float64).reshape(-1, 4, 2)[keep]
-    ids = ids[keep]
-    size = np.array([sizes[i] for i in ids.tolist()])
-    T, err = solve_ippe(px, size, camera)
-    good = np.isfinite(err[:, 0])
-    if not good.any():
-        return None, 0
-    px, size, T = px[good], size[good], T[good, 0]
-    W = np.stack([world_T_tag[i] for i in ids[good].tolist()])
-    est = camera_estimates(W, T)
-    group = np.zeros(len(est), dtype=np.int64)
-    method = "pnp" if params.method == "auto" else params.method
-    if method == "pnp" and len(est) >= 2:
-        norm = camera.undistort(px)
-        pts_w = transform_points(W[:, None], tag_corners(size))
-        thresh = params.ransac_px / (0.5 * (camera.K[0, 0] + camera.K[1, 1]))
-        pose, _ = multi_tag_pnp(pts_w.reshape(-1, 3), norm.reshape(-1, 2), ransac_thresh=thresh)
-        if pose is not None:
-            return pose, len(est)
-    if method == "avg":
-        return fuse_mean(est, group, 1)[0], len(est)
-    pose = fuse_robust(est, group, 1, loss=params.loss, f_scale=params.f_scale,
-                       rot_weight_m=params.rot_weight_m)[0]  # fmt: skip
-    return pose, len(est)
+
+def _duplicated(ids: NDArray[np.int64]) -> NDArray[np.bool_]:
+    """Entries of ``ids`` that occur more than once."""
+    _, inverse, counts = np.unique(ids, return_inverse=True, return_counts=True)
+    return counts[inverse.reshape(-1)] > 1
 
 
 class Localizer:
     """Per-message handlers of the localize node (bytes in, ``[(key, bytes)]`` out).
 
-    ``tag_map``: ``tag_id, x_m … qw[, size_m]`` (world_T_tag); ``tag_size`` (m) for tags without
-    a size; ``detector``: filters (``max_hamming``, ``min_decision_margin``, ``tag_ids``) and, for
-    images, the detector settings.
+    ``tag_map``: ``tag_id, x_m … qw[, size_m]`` (world_T_tag); ``params``: the stages'
+    parameters (:class:`Params`).
     """
 
     def __init__(
         self,
         tag_map: pd.DataFrame,
-        tag_size: float = 0.16,
+        params: Params | None = None,
         pose_key: str = "tag_only_pose",
         frame_id: str = "map",
-        params: trajectory_stage.Params | None = None,
-        detector: DetectorConfig | None = None,
         stats: Stats | None = None,
     ) -> None:
         if len(tag_map) == 0:
             raise DataError("localize: the tag map is empty")
+        self.params = params or Params()
         ids = tag_map["tag_id"].to_numpy(np.int64)
-        W = T_from_xyz_quat(tag_map[POSE_COLS[:3]].to_numpy(), tag_map[POSE_COLS[3:]].to_numpy())
-        size = (tag_map["size_m"].to_numpy(np.float64) if "size_m" in tag_map.columns
+        order = np.argsort(ids, kind="stable")
+        self.ids = ids[order]
+        vals = tag_map[POSE_COLS].to_numpy(np.float64)[order]
+        self.world_T_tag = T_from_xyz_quat(vals[:, :3], vals[:, 3:])
+        size = (tag_map["size_m"].to_numpy(np.float64)[order] if "size_m" in tag_map.columns
                 else np.full(len(ids), np.nan))  # fmt: skip
-        self.world_T_tag = {int(i): w for i, w in zip(ids, W, strict=True)}
-        self.sizes = {int(i): float(s) if np.isfinite(s) and s > 0 else tag_size
-                      for i, s in zip(ids, size, strict=True)}  # fmt: skip
-        self.params = params or trajectory_stage.Params()
-        self.detector = detector or DetectorConfig(min_decision_margin=20.0)
+        self.size_m = np.where(np.isfinite(size) & (size > 0), size,
+                               self.params.pnp.sizes(self.ids))  # fmt: skip
+        self.detector = self.params.extract.detector()
         self.camera: CameraModel | None = None
         self.pose_key = pose_key
         self.stats = stats
         self._enc = codec.PoseStampedEncoder(frame_id)
+
+    def frame_pose(self, corners_px: F64, tag_ids: NDArray[np.integer]) -> tuple[F64 | None, int]:
+        """``world_T_cam (4, 4)`` of one frame and the number of mapped tags used (None, 0 if
+        none). ``corners_px (n, 4, 2)``: distorted pixels, OpenCV convention, SPEC corner order;
+        ``tag_ids (n,)``: the frame's (filtered) detections."""
+        assert self.camera is not None
+        ids = np.asarray(tag_ids, dtype=np.int64).reshape(-1)
+        px = np.asarray(corners_px, dtype=np.float64).reshape(-1, 4, 2)
+        twice = _duplicated(ids)  # offline, the detections table has no corners for these
+        keep = np.flatnonzero(np.isin(ids, self.ids))
+        keep = keep[np.argsort(ids[keep], kind="stable")]  # the trajectory stage's order
+        if not len(keep):
+            return None, 0
+        k = np.searchsorted(self.ids, ids[keep])
+        cam_T_tag, err = solve_ippe(px[keep], self.size_m[k], self.camera)
+        good = np.flatnonzero(np.isfinite(err[:, 0]))  # offline, pnp keeps these observations
+        good = good[~_duplicated(ids[keep][good])]
+        if not len(good):
+            return None, 0
+        sel = keep[good]
+        corners = np.where(twice[sel, None, None], np.nan, px[sel])
+        p = self.params.trajectory
+        res = frame_poses(
+            self.world_T_tag[k[good]], cam_T_tag[good, 0], np.zeros(len(sel), np.int64), 1,
+            corners_px=corners, size_m=self.size_m[k[good]], camera=self.camera,
+            method=p.method, loss=p.loss, f_scale=p.f_scale, rot_weight_m=p.rot_weight_m,
+            ransac_px=p.ransac_px,
+        )
+        return res.world_T_cam[0], int(res.n_tags[0])
 
     def on_camera_info(self, data: bytes) -> list[tuple[str, bytes]]:
         try:
@@ -163,23 +162,21 @@ class Localizer:
         """Detect tags in one image and publish the pose. The image's size is checked before
         it is decoded (:meth:`check_size`): a bad or oversized image costs no memory."""
         from tagtrail.vision.apriltag import detect  # pupil-apriltags only where images are used
-        from tagtrail.vision.images import RawImage
 
         msg = self._decode(data, IMAGE_TYPES[kind])
-        if kind == "compressed":
-            payload, fmt = bytes(msg.data), str(msg.format)
+        raw = raw_image_from_msg(msg, IMAGE_TYPES[kind])
+        payload = bytes(raw.data)
+        if raw.kind == "compressed":
+            fmt = raw.encoding
             size = encoded_size(payload[12:] if "compresseddepth" in fmt.lower() else payload)
             if size is None:
                 raise DropError("bad_image", f"CompressedImage ({fmt!r}): no PNG/JPEG header")
             self.check_size(*size)
-            raw = RawImage("compressed", payload, encoding=fmt)
         else:
-            w, h, step, n = int(msg.width), int(msg.height), int(msg.step), len(msg.data)
+            w, h, step, n = raw.width, raw.height, raw.step, len(payload)
             self.check_size(w, h)
             if step < w or not step * (h - 1) + w <= n <= step * h:
                 raise DropError("bad_image", f"Image {w}x{h} step {step}: {n} data bytes")
-            raw = RawImage("raw", bytes(msg.data), encoding=str(msg.encoding), width=w,
-                           height=h, step=step, bigendian=bool(msg.is_bigendian))  # fmt: skip
         try:
             img = raw.decode()
         except Exception as err:  # noqa: BLE001 - SourceError, cv2.error
@@ -212,8 +209,7 @@ class Localizer:
     def _publish(self, stamp: Any, px: F64, ids: NDArray[np.int64]) -> list[tuple[str, bytes]]:
         if not np.isfinite(px).all():
             raise DropError("non_finite", "detection corners are not finite")
-        assert self.camera is not None
-        T, n = frame_pose(px, ids, self.camera, self.world_T_tag, self.sizes, self.params)
+        T, _ = self.frame_pose(px, ids)
         if T is None or not np.isfinite(T).all():
             raise DropError("no_pose", "no mapped tag in the frame")
         xyz, q = xyz_quat_from_T(T)

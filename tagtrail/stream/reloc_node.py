@@ -35,6 +35,7 @@ from tagtrail.geometry import se3
 from tagtrail.geometry.reference_path import PLANES, ReferencePath, reference_plane
 from tagtrail.geometry.registration import Alignment, world_transform
 from tagtrail.schemas.artifacts import poses
+from tagtrail.stages import report as report_stage
 from tagtrail.stream import codec
 from tagtrail.stream.markers import PoseMarkers, path_markers
 from tagtrail.stream.stats import DropError, Stats
@@ -95,7 +96,8 @@ def load_alignment(
         al = Alignment(model, float(block["scale"]), R2, t, np.ones(2, bool), 0.0)
     except (OSError, ValueError, KeyError, TypeError) as err:
         raise SourceError(f"{path}: not an alignment file: {err}") from err
-    A, R = world_transform(al, reference_plane(file_plane or plane or "auto", *poses(ref_traj)))
+    plane = file_plane or plane or report_stage.Params().plane
+    A, R = world_transform(al, reference_plane(plane, *poses(ref_traj)))
     return A, R, file_plane
 
 
@@ -119,16 +121,18 @@ class Relocalizer:
     """The live node's state and per-pose function (see the module docstring).
 
     ``ref_traj``: the reference trajectory (``t_ns, x_m … qw``, world_T_cam); ``plane``: SPEC
-    plane name; ``alignment``: ``(A, R)`` from :func:`load_alignment` or None; ``frame_id`` of the
-    outputs; ``path_max_points``: the published Path/markers are decimated to at most this many
-    poses (0: all) — D and phi always use every sample.
+    plane name (default: the report stage's); ``alignment``: ``(A, R)`` from
+    :func:`load_alignment` or None; ``frame_id`` of the outputs; ``path_max_points``: the
+    published Path/markers are decimated to at most this many poses (0: all) — D and phi always
+    use every sample.
     """
 
-    def __init__(self, ref_traj: pd.DataFrame, plane: str = "auto",
+    def __init__(self, ref_traj: pd.DataFrame, plane: str | None = None,
                  alignment: tuple[F64, F64] | None = None, frame_id: str = "map",
                  prefix: str = "relocalization", pose_type: str = "pose_stamped",
                  path_max_points: int = 10_000) -> None:  # fmt: skip
         P, R = poses(ref_traj)
+        plane = report_stage.Params().plane if plane is None else plane
         self.path = ReferencePath(P, reference_plane(plane, *poses(ref_traj)))
         self.pose_type = pose_type
         self.key = {k: f"{prefix}/{k}" for k in (*OUTPUTS, REFERENCE_PATH)}

@@ -25,6 +25,9 @@ import zenoh
 from tagtrail.stream.session import make_config
 
 REPO = Path(__file__).resolve().parents[2]
+# Nodes run here, not in the repository: its pipeline.yaml (the demo's) would be their default
+# --pipeline. No pipeline.yaml here, so they take the stages' defaults.
+NODE_CWD = Path(__file__).resolve().parent
 
 
 def free_port() -> int:
@@ -43,7 +46,7 @@ class Proc:
     def __init__(self, args: Sequence[str]) -> None:
         env = {**os.environ, "PYTHONUNBUFFERED": "1"}
         self.p = subprocess.Popen(
-            [sys.executable, "-m", "tagtrail.stream.cli", *map(str, args)], cwd=REPO, env=env,
+            [sys.executable, "-m", "tagtrail.stream.cli", *map(str, args)], cwd=NODE_CWD, env=env,
             stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
         )
         self.lines: list[str] = []
