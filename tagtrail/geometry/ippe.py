@@ -78,7 +78,8 @@ def ambiguity(reproj_px: NDArray[Any], alt_reproj_px: NDArray[Any]) -> NDArray[n
     """``reproj_px / alt_reproj_px`` (n,); 1 (ambiguous) where the alternative is not > 0 — both
     solutions exact, or none — instead of a division by zero."""
     alt = np.asarray(alt_reproj_px, dtype=np.float64)
-    return np.divide(reproj_px, alt, out=np.ones(len(alt)), where=alt > 0)
+    out: F64 = np.divide(reproj_px, alt, out=np.ones(len(alt)), where=alt > 0)
+    return out
 
 
 def best_pose(pose: F64, alt_pose: F64 | None = None, reproj_px: F64 | None = None,

@@ -393,11 +393,11 @@ def bundle_adjust(
             dt[cols] = spsolve(S[cols][:, cols].tocsc(), b.reshape(-1)[cols])
             if not np.isfinite(dt).all():  # singular (a tag left without weight): no step
                 dt[:] = 0.0
-            dt = dt.reshape(n_t, 6)
-            rhs = -gc - _sum_blocks(np.einsum("oij,oj->oi", Hct, dt[ob.tag]), ob.frame, n_f)
+            dt6 = dt.reshape(n_t, 6)
+            rhs = -gc - _sum_blocks(np.einsum("oij,oj->oi", Hct, dt6[ob.tag]), ob.frame, n_f)
             dc = np.einsum("fij,fj->fi", Hinv, rhs)
             Rc, tc = _left_update(R_cam, t_cam, dc)
-            Rt, tt = _left_update(R_tag, t_tag, dt)
+            Rt, tt = _left_update(R_tag, t_tag, dt6)
             new = evaluate(Rc, tc, Rt, tt)
             if new[0] <= cost or lam > 1e8:
                 break

@@ -71,7 +71,8 @@ class Plane:
         """World rotation ``(3, 3)`` by ``angle_rad`` about ``n``: adds the angle to headings."""
         c, s = np.cos(angle_rad), np.sin(angle_rad)
         B = self.basis
-        return B.T @ np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]]) @ B
+        R: F64 = B.T @ np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]]) @ B
+        return R
 
 
 def _unit(v: F64) -> F64:

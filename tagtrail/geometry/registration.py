@@ -110,7 +110,8 @@ def _samples(n: int, k: int, iterations: int, seed: int) -> NDArray[np.intp]:
 
 def _residuals(s: F64, R: F64, t: F64, src: F64, dst: F64) -> F64:
     pred = s[..., None, None] * np.einsum("...ij,nj->...ni", R, src) + t[..., None, :]
-    return np.linalg.norm(pred - dst, axis=-1)
+    dist: F64 = np.linalg.norm(pred - dst, axis=-1)
+    return dist
 
 
 def ransac_align(

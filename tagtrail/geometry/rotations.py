@@ -95,7 +95,8 @@ def _log_via_quaternion(R: F64) -> F64:
     q = q * np.where(q[:, :1] < 0, -1.0, 1.0)
     n = np.linalg.norm(q[:, 1:], axis=-1)
     scale = 2.0 * np.arctan2(n, q[:, 0]) / np.where(n > 0, n, 1.0)
-    return q[:, 1:] * scale[:, None]
+    out_: F64 = q[:, 1:] * scale[:, None]
+    return out_
 
 
 def log_so3(R: ArrayLike) -> F64:
@@ -118,14 +119,16 @@ def log_so3(R: ArrayLike) -> F64:
     near_pi = c < -0.99
     if near_pi.any():
         out[near_pi] = _log_via_quaternion(R[near_pi])
-    return out.reshape(lead + (3,))
+    out_: F64 = out.reshape(lead + (3,))
+    return out_
 
 
 def geodesic_angle(R_a: ArrayLike, R_b: ArrayLike) -> F64:
     """Angle (rad, [0, pi]) of ``R_a^T R_b`` for broadcastable ``(..., 3, 3)`` batches."""
     R_a = np.asarray(R_a, dtype=np.float64)
     R_b = np.asarray(R_b, dtype=np.float64)
-    return np.linalg.norm(log_so3(np.swapaxes(R_a, -1, -2) @ R_b), axis=-1)
+    out_: F64 = np.linalg.norm(log_so3(np.swapaxes(R_a, -1, -2) @ R_b), axis=-1)
+    return out_
 
 
 def wrap_angle(a: ArrayLike) -> F64:
@@ -142,7 +145,8 @@ def project_to_so3(M: ArrayLike) -> F64:
     d = np.where(d == 0, 1.0, d)
     D = np.ones(M.shape[:-2] + (3,))
     D[..., 2] = d
-    return (U * D[..., None, :]) @ Vt
+    out_: F64 = (U * D[..., None, :]) @ Vt
+    return out_
 
 
 def _group_sum(x: F64, group: I64, n_groups: int) -> F64:

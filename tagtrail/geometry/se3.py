@@ -48,7 +48,8 @@ def transform_points(a_T_b: ArrayLike, pts_b: ArrayLike) -> F64:
     """Map points ``(..., 3)`` in frame b to frame a."""
     a_T_b = np.asarray(a_T_b, dtype=np.float64)
     pts_b = np.asarray(pts_b, dtype=np.float64)
-    return np.einsum("...ij,...j->...i", a_T_b[..., :3, :3], pts_b) + a_T_b[..., :3, 3]
+    out_: F64 = np.einsum("...ij,...j->...i", a_T_b[..., :3, :3], pts_b) + a_T_b[..., :3, 3]
+    return out_
 
 
 def _batch_rot(R: F64) -> tuple[Rotation, tuple[int, ...]]:
@@ -60,27 +61,32 @@ def _batch_rot(R: F64) -> tuple[Rotation, tuple[int, ...]]:
 def rotvec_from_R(R: ArrayLike) -> F64:
     """Axis-angle vectors ``(..., 3)`` (radians, angle in [0, pi]) of rotations ``(..., 3, 3)``."""
     rot, lead = _batch_rot(np.asarray(R, dtype=np.float64))
-    return rot.as_rotvec().reshape(lead + (3,))
+    out_: F64 = rot.as_rotvec().reshape(lead + (3,))
+    return out_
 
 
 def R_from_rotvec(rv: ArrayLike) -> F64:
     """Rotation matrices ``(..., 3, 3)`` of axis-angle vectors ``(..., 3)``."""
     rv = np.asarray(rv, dtype=np.float64)
     R = Rotation.from_rotvec(np.array(rv.reshape(-1, 3))).as_matrix()
-    return R.reshape(rv.shape[:-1] + (3, 3))
+    out_: F64 = R.reshape(rv.shape[:-1] + (3, 3))
+    return out_
 
 
 def quat_xyzw_from_R(R: ArrayLike) -> F64:
     """Unit quaternions ``(..., 4)`` ordered (qx, qy, qz, qw), with qw >= 0."""
     rot, lead = _batch_rot(np.asarray(R, dtype=np.float64))
     q = rot.as_quat(canonical=True)
-    return q.reshape(lead + (4,))
+    out_: F64 = q.reshape(lead + (4,))
+    return out_
 
 
 def R_from_quat_xyzw(q_xyzw: ArrayLike) -> F64:
     """Rotation matrices of quaternions ``(..., 4)`` ordered (qx, qy, qz, qw); normalised first."""
     q = np.asarray(q_xyzw, dtype=np.float64)
-    return Rotation.from_quat(np.array(q.reshape(-1, 4))).as_matrix().reshape(q.shape[:-1] + (3, 3))
+    R = Rotation.from_quat(np.array(q.reshape(-1, 4))).as_matrix()
+    out_: F64 = R.reshape(q.shape[:-1] + (3, 3))
+    return out_
 
 
 def T_from_xyz_quat(xyz: ArrayLike, q_xyzw: ArrayLike) -> F64:
@@ -102,7 +108,8 @@ def T_from_rotvec_t(rv: ArrayLike, t: ArrayLike) -> F64:
 def rotation_angle(R: ArrayLike) -> F64:
     """Rotation angle in radians, [0, pi], of rotations ``(..., 3, 3)`` (numerically safe)."""
     R = np.asarray(R, dtype=np.float64)
-    return np.linalg.norm(rotvec_from_R(R), axis=-1)
+    out_: F64 = np.linalg.norm(rotvec_from_R(R), axis=-1)
+    return out_
 
 
 def pose_error(a_T_b: ArrayLike, a_T_b_ref: ArrayLike) -> tuple[F64, F64]:

@@ -156,7 +156,7 @@ class Store:
         except (OSError, ValueError, KeyError, TypeError):
             return None
         self._verified[d] = manifest
-        return manifest
+        return manifest  # type: ignore[no-any-return]
 
     def write(
         self, stage: str, key: str, outputs: dict[str, Any], record: dict[str, Any]

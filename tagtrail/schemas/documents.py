@@ -10,6 +10,7 @@ from __future__ import annotations
 
 from typing import Any, Literal
 
+import numpy as np
 from pydantic import BaseModel, ConfigDict, ValidationError
 
 from tagtrail.errors import ArtifactError
@@ -41,7 +42,8 @@ class CameraDoc(Document):
     D: list[float]
 
     def model(self) -> CameraModel:
-        return CameraModel(self.width, self.height, self.K, self.D, self.distortion_model)
+        return CameraModel(self.width, self.height, np.array(self.K), np.array(self.D),
+                           self.distortion_model)
 
     @classmethod
     def of(cls, camera: CameraModel) -> CameraDoc:

@@ -26,7 +26,7 @@ from __future__ import annotations
 
 import types
 import typing
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 from typing import Any, ClassVar, Protocol
 
 from pydantic import BaseModel, ConfigDict, model_validator
@@ -70,7 +70,11 @@ class StageParams(BaseModel):
 class StageModule(Protocol):
     """What a stage module exposes (checked at load time by ``runner.stage.stage_spec``)."""
 
-    Params: type[StageParams]
-    INPUTS: dict[str, str]
-    OUTPUTS: tuple[str, ...]
-    run: Callable[..., dict[str, Any]]
+    @property
+    def Params(self) -> type[StageParams]: ...  # noqa: N802 - the module's class
+    @property
+    def INPUTS(self) -> Mapping[str, str]: ...  # noqa: N802
+    @property
+    def OUTPUTS(self) -> tuple[str, ...]: ...  # noqa: N802
+    @property
+    def run(self) -> Callable[..., Mapping[str, Any]]: ...

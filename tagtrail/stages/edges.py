@@ -138,7 +138,8 @@ def edge_weights(d_i: np.ndarray, d_j: np.ndarray, s_i: np.ndarray, s_j: np.ndar
     """Distance weights (module docstring); ``d`` ranges (m), ``s`` tag sizes (m)."""
     var = (d_i**2 / s_i) ** 2 + (d_j**2 / s_j) ** 2
     w = 1.0 / np.maximum(var, 1e-18)
-    return np.clip(w / np.median(w), 0.01, 100.0) if len(w) else w
+    out_: np.ndarray = np.clip(w / np.median(w), 0.01, 100.0) if len(w) else w
+    return out_
 
 
 def _weak_links(

@@ -148,7 +148,7 @@ def run(
             "trajectory": trajectory_errors(trajectory, gt_traj, gt_T_world, fix),
             "tags": _block(fix @ T_tag, T_tag_gt, n_tags),
         }
-    evaluation = {
+    evaluation: dict[str, Any] = {
         "anchor_id": anchor,
         "gt_anchor_id": gt_anchor,
         "trajectory": trajectory_errors(trajectory, gt_traj, gt_T_world),

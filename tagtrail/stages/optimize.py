@@ -46,12 +46,12 @@ from tagtrail.geometry.fusion import camera_estimates, fuse_robust, tag_corners
 from tagtrail.geometry.ippe import best_pose
 from tagtrail.geometry.posegraph import (
     CornerObservations,
-    LossName,
     PoseGraph,
     bundle_adjust,
     relative_residuals,
     solve,
 )
+from tagtrail.geometry.robust import LossName
 from tagtrail.geometry.se3 import R_from_quat_xyzw, inv, make_T, quat_xyzw_from_R
 from tagtrail.schemas.artifacts import CORNER_COLS, POSE_COLS, columns, ippe_solutions
 from tagtrail.schemas.documents import OptimizeReport, TagGraph
@@ -193,8 +193,8 @@ def run(
     res = solve(g, loss=params.loss, f_scale=params.f_scale, max_nfev=params.max_nfev)
     R_map, t_map, res_t, res_r = res.R, res.t, res.res_t, res.res_r
     bundle = None
-    has_corners = detections is not None and len(detections) > 0 and camera is not None
-    if params.refine == "corners" and has_corners:
+    if (params.refine == "corners" and detections is not None and len(detections) > 0
+            and camera is not None):
         out = refine_on_corners(R_map, t_map, tags, g.anchor, observations, detections, camera,
                                 params)
         if out is not None:

@@ -153,6 +153,7 @@ def run(
                 size = tag_map["size_m"].to_numpy(np.float64)[order][k]
             if "size_m" in obs.columns:
                 size = np.where(np.isfinite(size), size, obs["size_m"].to_numpy(np.float64))
+            assert camera is not None  # has_pix
             T, used = _pnp_frames(T, obs, group, detections, camera, W, size, params)
             log.info("trajectory: multi-tag PnP for %d of %d frames", used.sum(), n)
 
