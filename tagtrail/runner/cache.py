@@ -28,6 +28,7 @@ import pyarrow.parquet as pq
 
 from tagtrail import faults
 from tagtrail.errors import ArtifactError, SourceError
+from tagtrail.io.layouts import atomic_write_text
 from tagtrail.runner.paths import clean_temp_files, inside
 from tagtrail.schemas import documents
 from tagtrail.schemas.artifacts import conform
@@ -108,22 +109,6 @@ class SourceHasher:
             self.save()
         except OSError:
             pass
-
-
-def atomic_write_text(path: Path, text: str) -> None:
-    """Write ``text`` to a temporary sibling of ``path`` and rename it into place; a failed
-    write (a full disk) removes its temporary file and leaves ``path`` as it was."""
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.")
-    try:
-        with os.fdopen(fd, "w") as f:
-            f.write(text)
-        os.replace(tmp, path)
-    except BaseException as err:
-        Path(tmp).unlink(missing_ok=True)
-        if isinstance(err, OSError) and err.filename is None:
-            err.filename = str(path)  # a failed write() names no file; say which
-        raise
 
 
 def _rows(value: Any) -> int | None:

@@ -13,10 +13,10 @@ from typing import Any
 
 from tagtrail import faults
 from tagtrail.errors import StageError, TagtrailError, storage_error
+from tagtrail.io.layouts import atomic_write_text
 from tagtrail.runner.cache import (
     SourceHasher,
     Store,
-    atomic_write_text,
     canonical_json,
     pretty_json,
     sha256_text,

@@ -22,8 +22,8 @@ import pandas as pd
 from tagtrail import faults
 from tagtrail.geometry.reference_path import reference_plane
 from tagtrail.io import layouts, reloc_files
+from tagtrail.io.layouts import atomic_write_text
 from tagtrail.runner.cache import (
-    atomic_write_text,
     canonical_json,
     file_sha256,
     pretty_json,

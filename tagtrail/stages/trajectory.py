@@ -26,16 +26,10 @@ from pydantic import Field
 
 from tagtrail.errors import DataError
 from tagtrail.geometry.camera import CameraModel
-from tagtrail.geometry.fusion import (
-    camera_estimates,
-    fuse_mean,
-    fuse_robust,
-    multi_tag_pnp,
-    tag_corners,
-)
+from tagtrail.geometry.fusion import frame_poses
 from tagtrail.geometry.ippe import best_pose
 from tagtrail.geometry.robust import LossName
-from tagtrail.geometry.se3 import T_from_xyz_quat, transform_points, xyz_quat_from_T
+from tagtrail.geometry.se3 import T_from_xyz_quat, xyz_quat_from_T
 from tagtrail.schemas.artifacts import CORNER_COLS, POSE_COLS, columns, ippe_solutions
 from tagtrail.stages.base import StageParams
 
@@ -73,37 +67,6 @@ def _empty() -> pd.DataFrame:
     return out
 
 
-def _pnp_frames(
-    T: np.ndarray, obs: pd.DataFrame, group: np.ndarray, detections: pd.DataFrame,
-    camera: CameraModel, W: np.ndarray, size: np.ndarray, params: Params,
-) -> tuple[np.ndarray, np.ndarray]:
-    """Replace the poses of frames with >= 2 mapped, detected tags by multi-tag PnP."""
-    det = detections.drop_duplicates(["frame_idx", "tag_id"], keep=False)
-    det = det.set_index(["frame_idx", "tag_id"])[CORNER_COLS]
-    key = pd.MultiIndex.from_arrays([obs["frame_idx"].to_numpy(), obs["tag_id"].to_numpy()])
-    px = det.reindex(key).to_numpy(np.float64).reshape(-1, 4, 2)
-    ok = np.isfinite(px).all(axis=(1, 2)) & np.isfinite(size) & (size > 0)
-    n_ok = np.bincount(group[ok], minlength=len(T))
-    K = camera.K.reshape(-1)
-    thresh = params.ransac_px / (0.5 * (K[0] + K[4]))
-    sel = ok & (n_ok[group] >= 2)
-    if not sel.any():
-        return T, np.zeros(len(T), bool)
-    norm = camera.undistort(px[sel])
-    pts_w = transform_points(W[sel][:, None], tag_corners(size[sel]))
-    g = group[sel]
-    starts = np.flatnonzero(np.r_[True, g[1:] != g[:-1]])
-    ends = np.r_[starts[1:], len(g)]
-    out, used = T.copy(), np.zeros(len(T), bool)
-    for s, e in zip(starts, ends, strict=True):
-        pose, _ = multi_tag_pnp(
-            pts_w[s:e].reshape(-1, 3), norm[s:e].reshape(-1, 2), ransac_thresh=thresh
-        )
-        if pose is not None:
-            out[g[s]], used[g[s]] = pose, True
-    return out, used
-
-
 def run(
     observations: pd.DataFrame,
     detections: pd.DataFrame,
@@ -129,36 +92,30 @@ def run(
     uframe, group = np.unique(frame, return_inverse=True)
     t_ns = obs.groupby("frame_idx")["t_ns"].first().reindex(uframe).to_numpy(np.int64)
     k = np.searchsorted(ids, obs["tag_id"].to_numpy(np.int64))
-    W = W_map[k]
-    est = camera_estimates(W, best_pose(*ippe_solutions(obs)))
-    n = len(uframe)
-
-    method = params.method
     has_pix = detections is not None and len(detections) > 0 and camera is not None
-    if method == "auto":
-        method = "pnp" if has_pix else "lsq"
-    if method == "avg":
-        T = fuse_mean(est, group, n)
-    else:
-        T = fuse_robust(
-            est, group, n, loss=params.loss, f_scale=params.f_scale,
-            rot_weight_m=params.rot_weight_m,
-        )
-    if method == "pnp":
-        if not has_pix:
-            log.warning("trajectory: method pnp needs detections and a camera; using lsq")
-        else:
-            size = np.full(len(obs), np.nan)
-            if "size_m" in tag_map.columns:
-                size = tag_map["size_m"].to_numpy(np.float64)[order][k]
-            if "size_m" in obs.columns:
-                size = np.where(np.isfinite(size), size, obs["size_m"].to_numpy(np.float64))
-            assert camera is not None  # has_pix
-            T, used = _pnp_frames(T, obs, group, detections, camera, W, size, params)
-            log.info("trajectory: multi-tag PnP for %d of %d frames", used.sum(), n)
-
+    px = None
+    if has_pix and params.method in ("auto", "pnp"):
+        det = detections.drop_duplicates(["frame_idx", "tag_id"], keep=False)
+        det = det.set_index(["frame_idx", "tag_id"])[CORNER_COLS]
+        key = pd.MultiIndex.from_arrays([obs["frame_idx"].to_numpy(), obs["tag_id"].to_numpy()])
+        px = det.reindex(key).to_numpy(np.float64).reshape(-1, 4, 2)
+    elif params.method == "pnp":
+        log.warning("trajectory: method pnp needs detections and a camera; using lsq")
+    size = np.full(len(obs), np.nan)
+    if "size_m" in tag_map.columns:
+        size = tag_map["size_m"].to_numpy(np.float64)[order][k]
+    if "size_m" in obs.columns:
+        size = np.where(np.isfinite(size), size, obs["size_m"].to_numpy(np.float64))
+    res = frame_poses(
+        W_map[k], best_pose(*ippe_solutions(obs)), group, len(uframe), corners_px=px,
+        size_m=size, camera=camera, method=params.method, loss=params.loss,
+        f_scale=params.f_scale, rot_weight_m=params.rot_weight_m, ransac_px=params.ransac_px,
+    )
+    if res.method == "pnp":
+        log.info("trajectory: multi-tag PnP for %d of %d frames", res.by_pnp.sum(), len(uframe))
+    T = res.world_T_cam
     xyz, q = xyz_quat_from_T(T)
     out = pd.DataFrame({"t_ns": t_ns})
     out[POSE_COLS] = np.concatenate([xyz, q], axis=1)
-    out["n_tags"] = np.bincount(group, minlength=n).astype(np.int32)
+    out["n_tags"] = res.n_tags.astype(np.int32)
     return {"trajectory": out.sort_values("t_ns", kind="stable").reset_index(drop=True)}

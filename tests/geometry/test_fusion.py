@@ -3,14 +3,11 @@
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Any
 
 import numpy as np
-import pandas as pd
 import pytest
 from scipy.spatial.transform import Rotation
 
-from tagtrail.geometry.camera import CameraModel
 from tagtrail.geometry.fusion import (
     camera_estimates,
     frame_poses,
@@ -19,17 +16,13 @@ from tagtrail.geometry.fusion import (
     multi_tag_pnp,
     tag_corners,
 )
-from tagtrail.geometry.ippe import best_pose
 from tagtrail.geometry.se3 import (
     R_from_rotvec,
-    T_from_xyz_quat,
     inv,
     make_T,
     pose_error,
     transform_points,
-    xyz_quat_from_T,
 )
-from tagtrail.schemas.artifacts import CORNER_COLS, POSE_COLS, ippe_solutions
 from tagtrail.sim.simulate import simulate
 
 
@@ -94,46 +87,7 @@ def test_multi_tag_pnp_rejects_a_wrong_tag() -> None:
     assert multi_tag_pnp(pts_w[:4], norm[:4], ransac_thresh=3 / 500) == (None, 0)
 
 
-# --- frame_poses: the trajectory stage's numbers, exactly ------------------------------------
-
-
-def _stage_glue(observations, detections, camera, tag_map, params):  # noqa: ANN001, ANN202
-    """The trajectory stage's table handling around :func:`frame_poses` (the call that replaces
-    its per-frame code): ``trajectory.trajectory`` columns, and what frame_poses returned."""
-    if isinstance(camera, dict):  # the extract.camera artifact as JSON
-        camera = CameraModel.from_dict(camera) if camera else None
-    ids = tag_map["tag_id"].to_numpy(np.int64)
-    order = np.argsort(ids)
-    ids = ids[order]
-    mv = tag_map[POSE_COLS].to_numpy(np.float64)[order]
-    W_map = T_from_xyz_quat(mv[:, :3], mv[:, 3:])
-    obs = observations[observations["tag_id"].isin(ids)]
-    obs = obs[~obs.duplicated(["frame_idx", "tag_id"], keep=False)]
-    obs = obs.sort_values(["frame_idx", "tag_id"], kind="stable")
-    uframe, group = np.unique(obs["frame_idx"].to_numpy(np.int64), return_inverse=True)
-    t_ns = obs.groupby("frame_idx")["t_ns"].first().reindex(uframe).to_numpy(np.int64)
-    k = np.searchsorted(ids, obs["tag_id"].to_numpy(np.int64))
-    px = None
-    if len(detections) > 0 and camera is not None and params.method in ("auto", "pnp"):
-        det = detections.drop_duplicates(["frame_idx", "tag_id"], keep=False)
-        det = det.set_index(["frame_idx", "tag_id"])[CORNER_COLS]
-        key = pd.MultiIndex.from_arrays([obs["frame_idx"].to_numpy(), obs["tag_id"].to_numpy()])
-        px = det.reindex(key).to_numpy(np.float64).reshape(-1, 4, 2)
-    size = np.full(len(obs), np.nan)
-    if "size_m" in tag_map.columns:
-        size = tag_map["size_m"].to_numpy(np.float64)[order][k]
-    if "size_m" in obs.columns:
-        size = np.where(np.isfinite(size), size, obs["size_m"].to_numpy(np.float64))
-    res = frame_poses(
-        W_map[k], best_pose(*ippe_solutions(obs)), group, len(uframe),
-        corners_px=px, size_m=size, camera=camera, method=params.method, loss=params.loss,
-        f_scale=params.f_scale, rot_weight_m=params.rot_weight_m, ransac_px=params.ransac_px,
-    )
-    xyz, q = xyz_quat_from_T(res.world_T_cam)
-    out = pd.DataFrame({"t_ns": t_ns})
-    out[POSE_COLS] = np.concatenate([xyz, q], axis=1)
-    out["n_tags"] = res.n_tags.astype(np.int32)
-    return out.sort_values("t_ns", kind="stable").reset_index(drop=True), res
+# --- frame_poses ------------------------------------------------------------------------------
 
 
 @pytest.fixture(scope="module")
@@ -147,46 +101,22 @@ def corridor(tmp_path_factory: pytest.TempPathFactory) -> Path:
     return root / "pipeline.yaml"
 
 
-def _offline(pipeline: Path, *overrides: str) -> tuple[Any, ...]:
-    """The real stages run by the runner: their inputs and output of ``trajectory``."""
+@pytest.mark.parametrize("method", ["auto", "pnp"])
+def test_trajectory_stage_poses_single_tag_frames_by_fusion_and_the_rest_by_pnp(
+    corridor: Path, method: str, caplog: pytest.LogCaptureFixture
+) -> None:
     from tagtrail.runner.execute import Runner
     from tagtrail.runner.spec import load_pipeline
     from tagtrail.stages import REGISTRY
 
-    pipe = load_pipeline(pipeline, REGISTRY, overrides)
-    runner = Runner(pipe)
-    runner.run(["trajectory"])
-
-    def get(stage: str, output: str) -> Any:
-        key = runner.key_of(stage, "corridor")
-        assert key is not None
-        return runner.store.load(stage, key, output)
-
-    return (get("pnp", "observations"), get("extract", "detections"), get("extract", "camera"),
-            get("optimize", "tag_map"), get("trajectory", "trajectory"),
-            pipe.params_for("trajectory", "corridor"))  # fmt: skip
-
-
-@pytest.mark.parametrize("method", ["auto", "avg", "lsq", "pnp"])
-def test_frame_poses_equals_the_trajectory_stage(corridor: Path, method: str) -> None:
-    obs, det, camera, tags, want, params = _offline(corridor, f"trajectory.method={method}",
-                                                    "trajectory.f_scale=0.05")  # fmt: skip
-    assert params.method == method
-    got, res = _stage_glue(obs, det, camera, tags, params)
-    pd.testing.assert_frame_equal(got, want, check_exact=True)
-    if method in ("auto", "pnp"):  # both branches taken: PnP frames and single-tag frames
-        assert 0 < res.by_pnp.sum() < len(res.by_pnp)
-        assert res.method == "pnp"
-    else:
-        assert not res.by_pnp.any() and res.method == method
-
-
-def test_frame_poses_without_corners_is_lsq(corridor: Path) -> None:
-    obs, det, camera, tags, want, params = _offline(corridor, "trajectory.method=lsq")
-    got, res = _stage_glue(obs, det.iloc[:0], camera, tags, params.model_copy(
-        update={"method": "pnp"}))  # fmt: skip
-    pd.testing.assert_frame_equal(got, want, check_exact=True)
-    assert res.method == "lsq" and not res.by_pnp.any()
+    runner = Runner(load_pipeline(corridor, REGISTRY, [f"trajectory.method={method}"]))
+    with caplog.at_level("INFO", logger="tagtrail.stages.trajectory"):
+        runner.run(["trajectory"])
+    key = runner.key_of("trajectory", "corridor")
+    assert key is not None
+    traj = runner.store.load("trajectory", key, "trajectory")
+    n_pnp = int(caplog.text.split("multi-tag PnP for ")[1].split(" of ")[0])
+    assert 0 < n_pnp < len(traj) and (traj["n_tags"] >= 2).sum() >= n_pnp
 
 
 def test_frame_poses_frame_without_observations_is_nan() -> None:
