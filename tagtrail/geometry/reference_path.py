@@ -143,7 +143,7 @@ def path_headings(uv: ArrayLike) -> F64:
 class PathMatch(NamedTuple):
     """Association of M query poses with the reference (arrays of length M; angles in rad)."""
 
-    index: NDArray[np.int64]  # k* (Eq. 3.12), or the segment [k, k+1] in polyline mode
+    ref_idx: NDArray[np.int64]  # k* (Eq. 3.12), or the segment [k, k+1] in polyline mode
     distance_m: F64  # D (Eq. 3.13)
     phi_rad: F64  # wrap(θq − θref) (Eq. 3.15)
     query_heading_rad: F64
@@ -155,7 +155,7 @@ class PathMatch(NamedTuple):
 class PoseMatch(NamedTuple):
     """:class:`PathMatch` of one pose as Python floats (the live node's per-message result)."""
 
-    index: int
+    ref_idx: int
     distance_m: float
     phi_rad: float
     query_heading_rad: float
@@ -254,7 +254,7 @@ class ReferencePath:
     def query_polyline(self, uv: ArrayLike, heading_rad: ArrayLike) -> PathMatch:
         """Nearest point of the reference polyline (``point`` mode); θref = that segment's heading.
 
-        ``index`` is the segment ``[k, k+1]``; at a vertex shared by two segments the earlier
+        ``ref_idx`` is the segment ``[k, k+1]``; at a vertex shared by two segments the earlier
         segment wins (as the original tool). ``uv (M, 2)`` (m), ``heading_rad (M,)``.
         """
         uv = np.asarray(uv, dtype=np.float64).reshape(-1, 2)

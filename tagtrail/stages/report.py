@@ -74,7 +74,7 @@ def relocalization_frame(t_ns: ArrayLike, t0_ns: int, m: PathMatch) -> pd.DataFr
         {
             "t_ns": t,
             "t_rel_s": (t - np.int64(t0_ns)).astype(np.float64) * 1e-9,
-            "nearest_ref_idx": m.index.astype(np.int64),
+            "nearest_ref_idx": m.ref_idx.astype(np.int64),
             "distance_m": m.distance_m,
             "heading_error_deg": np.degrees(m.phi_rad),
             "query_heading_deg": np.degrees(m.query_heading_rad),

@@ -176,7 +176,7 @@ class Relocalizer:
         m = self.path.query_point(x, y, z, *_optical_axis(*q))
         if not math.isfinite(m.distance_m):  # finite but huge coordinates
             raise DropError("non_finite", f"pose {vals} gives D = {m.distance_m}")
-        k = m.index
+        k = m.ref_idx
         return Outputs(p.sec, p.nanosec, m.distance_m, m.phi_rad, math.degrees(m.phi_rad), k,
                        m.u, m.v, m.ref_u, m.ref_v, (x, y, z, *q),
                        tuple(self._ref7[k].tolist()))  # fmt: skip

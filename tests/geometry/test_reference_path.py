@@ -61,7 +61,7 @@ def test_heading_of_camera() -> None:
 def test_straight_line() -> None:
     path = ReferencePath(xz_points([(0.1 * k, 0.0) for k in range(11)]), XZ)
     m = path.query(xz_points([(0.33, 0.2)]), cam_R(30.0)[None])
-    assert m.index[0] == 3
+    assert m.ref_idx[0] == 3
     assert m.distance_m[0] == pytest.approx(math.hypot(0.03, 0.2), abs=1e-9)
     assert math.degrees(m.phi_rad[0]) == pytest.approx(30.0, abs=1e-9)
     np.testing.assert_allclose(m.ref_uv[0], [0.3, 0.0], atol=1e-12)
@@ -77,7 +77,7 @@ def test_circle_centred_difference_is_the_tangent() -> None:
     k = 7
     q = xz_points([(1.3 * np.cos(a[k]), 1.3 * np.sin(a[k]))])
     m = path.query(q, cam_R(100.0)[None])
-    assert m.index[0] == k
+    assert m.ref_idx[0] == k
     assert m.distance_m[0] == pytest.approx(0.3, abs=1e-9)
     expected = math.remainder(math.radians(100.0) - (a[k] + math.pi / 2), 2 * math.pi)
     assert m.phi_rad[0] == pytest.approx(expected, abs=1e-9)
@@ -101,7 +101,7 @@ def test_ends_of_the_path_use_one_sided_differences() -> None:
     np.testing.assert_allclose(path_headings(uv), [0.0, math.atan2(1, 2), math.pi / 4])
     path = ReferencePath(xz_points(uv), XZ)
     m = path.query(xz_points([(2.5, 1.2), (-0.4, 0.1)]), np.stack([cam_R(50.0), cam_R(-10.0)]))
-    np.testing.assert_array_equal(m.index, [2, 0])
+    np.testing.assert_array_equal(m.ref_idx, [2, 0])
     np.testing.assert_allclose(m.distance_m, [math.hypot(0.5, 0.2), math.hypot(0.4, 0.1)],
                                atol=1e-9)  # fmt: skip
     np.testing.assert_allclose(np.degrees(m.phi_rad), [5.0, -10.0], atol=1e-9)
@@ -110,7 +110,7 @@ def test_ends_of_the_path_use_one_sided_differences() -> None:
 def test_query_exactly_on_a_sample() -> None:
     path = ReferencePath(xz_points([(0.0, 0.0), (1.0, 0.0), (2.0, 1.0)]), XZ)
     m = path.query(xz_points([(1.0, 0.0)]), cam_R(0.0)[None])
-    assert m.index[0] == 1 and m.distance_m[0] == pytest.approx(0.0, abs=1e-12)
+    assert m.ref_idx[0] == 1 and m.distance_m[0] == pytest.approx(0.0, abs=1e-12)
     assert m.phi_rad[0] == pytest.approx(-math.atan2(1, 2), abs=1e-9)
 
 
@@ -123,12 +123,12 @@ def test_pauses_keep_the_previous_heading() -> None:
 def test_point_mode_between_two_samples() -> None:
     path = ReferencePath(xz_points([(0.0, 0.0), (2.0, 0.0), (4.0, 2.0)]), XZ)
     m = path.query_polyline([[1.0, 0.3]], [math.radians(20.0)])
-    assert m.index[0] == 0
+    assert m.ref_idx[0] == 0
     assert m.distance_m[0] == pytest.approx(0.3, abs=1e-9)  # the nearest sample is 1.04 m away
     np.testing.assert_allclose(m.ref_uv[0], [1.0, 0.0], atol=1e-12)
     assert math.degrees(m.phi_rad[0]) == pytest.approx(20.0, abs=1e-9)
     m = path.query_polyline([[2.0, 2.0]], [0.0])  # projects onto the sloped segment at (3, 1)
-    assert m.index[0] == 1
+    assert m.ref_idx[0] == 1
     assert m.distance_m[0] == pytest.approx(math.sqrt(2.0), abs=1e-9)
     assert math.degrees(m.phi_rad[0]) == pytest.approx(-45.0, abs=1e-9)
     assert path.query_uv([[1.0, 0.3]], [0.0]).distance_m[0] == pytest.approx(math.hypot(1, 0.3))
@@ -137,7 +137,7 @@ def test_point_mode_between_two_samples() -> None:
 def test_point_mode_vertex_tie_goes_to_the_earlier_segment() -> None:
     path = ReferencePath(xz_points([(0.0, 0.0), (1.0, 0.0), (1.0, 1.0)]), XZ)
     m = path.query_polyline([[1.5, -0.5]], [0.0])
-    assert m.index[0] == 0 and m.ref_heading_rad[0] == 0.0
+    assert m.ref_idx[0] == 0 and m.ref_heading_rad[0] == 0.0
     assert m.distance_m[0] == pytest.approx(math.hypot(0.5, 0.5), abs=1e-12)
 
 
@@ -152,7 +152,7 @@ def test_batch_single_and_polyline_chunks_agree() -> None:
     m = path.query(P, R)
     for i in range(50):
         one = path.query_one(P[i], R[i])
-        assert one.index == m.index[i]
+        assert one.ref_idx == m.ref_idx[i]
         assert one.distance_m == pytest.approx(m.distance_m[i], abs=1e-12)
         assert one.phi_rad == pytest.approx(m.phi_rad[i], abs=1e-12)
         assert (one.ref_u, one.ref_v) == tuple(m.ref_uv[i])
@@ -162,7 +162,7 @@ def test_batch_single_and_polyline_chunks_agree() -> None:
     poly = path.query_polyline(m.query_uv, m.query_heading_rad)
     for i in range(0, 50, 7):
         single = path.query_polyline(m.query_uv[i], m.query_heading_rad[i])
-        assert single.index[0] == poly.index[i]
+        assert single.ref_idx[0] == poly.ref_idx[i]
         assert single.distance_m[0] == pytest.approx(poly.distance_m[i], abs=1e-12)
     assert np.all(poly.distance_m <= m.distance_m + 1e-12)
 
@@ -239,5 +239,5 @@ def test_degenerate_inputs_raise_no_runtime_warning() -> None:
         assert np.isfinite(poly.distance_m).all() and np.isfinite(poly.ref_heading_rad).all()
         np.testing.assert_allclose(poly.distance_m, [0.0, 0.0, 0.2], atol=1e-12)
         m = path.query_uv(np.zeros((0, 2)), np.zeros(0))
-        assert len(m.index) == 0
+        assert len(m.ref_idx) == 0
         assert path_headings(np.zeros((0, 2))).shape == (0,)

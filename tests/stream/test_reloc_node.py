@@ -75,7 +75,7 @@ def test_drive_along_long_reference_equals_batch_query() -> None:
     query = frame(T, np.arange(len(s), dtype=np.int64))
     outs = [node.process(codec.decode_pose(p)) for p in _payloads(query)]
     want = node.path.query(T[:, :3, 3], T[:, :3, :3])
-    assert [o.nearest_ref_idx for o in outs] == want.index.tolist()
+    assert [o.nearest_ref_idx for o in outs] == want.ref_idx.tolist()
     np.testing.assert_allclose([o.distance_m for o in outs], want.distance_m, atol=1e-12, rtol=0)
     np.testing.assert_allclose([o.heading_error_rad for o in outs], want.phi_rad, atol=1e-12,
                                rtol=0)  # fmt: skip
