@@ -23,17 +23,18 @@ C_LIBRARY_PIXEL_OFFSET = 0.5
 
 @dataclass(frozen=True)
 class DetectorConfig:
-    """Detector settings plus the filters applied to its output (hashable: a cache key)."""
+    """Detector settings plus the filters applied to its output (hashable: a cache key). No
+    defaults here: ``stages.extract.Params.detector()`` is the one source of them."""
 
-    quad_decimate: float = 2.0
-    quad_sigma: float = 0.0
-    refine_edges: bool = True
-    decode_sharpening: float = 0.25
-    max_hamming: int = 0
-    min_decision_margin: float = 0.0
-    tag_ids: tuple[int, ...] | None = None
-    refit_corners: bool = True
-    keep_truncated: bool = False
+    quad_decimate: float
+    quad_sigma: float
+    refine_edges: bool
+    decode_sharpening: float
+    max_hamming: int
+    min_decision_margin: float
+    tag_ids: tuple[int, ...] | None
+    refit_corners: bool
+    keep_truncated: bool
 
 
 @dataclass(frozen=True)

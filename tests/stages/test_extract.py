@@ -209,7 +209,6 @@ SCRIPT = """
 import sys
 import cv2
 from tagtrail.vision.apriltag import detect
-from tagtrail.vision.detector import DetectorConfig
 from tagtrail.io.sources import open_source
 from tagtrail.schemas.pipeline import DatasetConfig
 from tagtrail.stages import extract
@@ -219,7 +218,7 @@ def main():
         out = extract.run(src, extract.Params(workers=1))
     # and a detector in this very process, alive until exit (the guarded teardown path)
     img = cv2.imread(sys.argv[1] + "/frame0000.jpg", cv2.IMREAD_GRAYSCALE)
-    ints, _ = detect(img, DetectorConfig())
+    ints, _ = detect(img, extract.Params(min_decision_margin=0).detector())
     print(len(out["detections"]), len(ints))
 """
 

@@ -119,16 +119,19 @@ def test_truncated_tags_are_the_ones_whose_quiet_zone_leaves_the_image() -> None
 
 
 def test_detector_drops_a_tag_cut_by_the_border_unless_asked() -> None:
+    from dataclasses import replace
+
+    from tagtrail.stages import extract
     from tagtrail.vision.apriltag import detect
-    from tagtrail.vision.detector import DetectorConfig
 
     # a tag whose right quiet zone runs ~3 px off the image (black square 5 px inside)
     cam_T_tag = make_T(R_from_rotvec([np.pi, 0.0, 0.0]), np.array([0.62, 0.0, 1.0]))
     img = render_tag(LIMO, cam_T_tag, SIZE, 5, np.random.default_rng(0), ss=4)
     assert truncated(true_corners(LIMO, cam_T_tag, SIZE), 640, 480)[0]
     assert [d.tag_id for d in detector(2.0).detect(img)] == [5]  # the detector still finds it
-    assert len(detect(img, DetectorConfig())[0]) == 0
-    assert detect(img, DetectorConfig(keep_truncated=True))[0][:, 0].tolist() == [5]
+    cfg = extract.Params(min_decision_margin=0).detector()
+    assert len(detect(img, cfg)[0]) == 0
+    assert detect(img, replace(cfg, keep_truncated=True))[0][:, 0].tolist() == [5]
 
 
 def test_frames_batched_equal_frames_one_at_a_time() -> None:
