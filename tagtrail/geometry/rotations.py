@@ -156,13 +156,6 @@ def _group_sum(x: F64, group: I64, n_groups: int) -> F64:
     return out
 
 
-def chordal_mean(R: ArrayLike, weights: ArrayLike | None = None) -> F64:
-    """Weighted chordal L2 mean of rotations ``(N, 3, 3)``: ``argmin sum w |R - R_i|_F^2``."""
-    R = np.asarray(R, dtype=np.float64)
-    w = np.ones(len(R)) if weights is None else np.asarray(weights, dtype=np.float64)
-    return project_to_so3(np.einsum("n,nij->ij", w, R))
-
-
 def grouped_chordal_mean(
     R: ArrayLike, group: ArrayLike, n_groups: int, weights: ArrayLike | None = None
 ) -> F64:
