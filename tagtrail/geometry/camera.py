@@ -17,11 +17,11 @@ from typing import Any
 
 import cv2
 import numpy as np
-from numpy.typing import ArrayLike, NDArray
+from numpy.typing import ArrayLike
 
 from tagtrail.errors import SourceError
+from tagtrail.geometry.arrays import F64
 
-F64 = NDArray[np.float64]
 MODELS = ("plumb_bob", "rational_polynomial", "equidistant", "none")
 _ALIASES = {"": "none", "fisheye": "equidistant", "radtan": "plumb_bob", "pinhole": "none"}
 _OPENCV_NCOEF = (4, 5, 8, 12, 14)

@@ -22,13 +22,12 @@ import cv2
 import numpy as np
 from numpy.typing import NDArray
 
+from tagtrail.geometry.arrays import F64, I64
 from tagtrail.geometry.camera import CameraModel
 from tagtrail.geometry.robust import LossName, irls_weights
 from tagtrail.geometry.rotations import grouped_chordal_mean, hat, log_so3
 from tagtrail.geometry.se3 import R_from_rotvec, T_from_rotvec_t, inv, make_T, transform_points
 
-F64 = NDArray[np.float64]
-I64 = NDArray[np.int64]
 Method = Literal["auto", "avg", "lsq", "pnp"]
 
 

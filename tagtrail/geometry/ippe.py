@@ -17,11 +17,11 @@ import cv2
 import numpy as np
 from numpy.typing import NDArray
 
+from tagtrail.geometry.arrays import F64
 from tagtrail.geometry.camera import CameraModel
 from tagtrail.geometry.fusion import tag_corners
 from tagtrail.geometry.se3 import R_from_rotvec, T_from_xyz_quat, make_T, transform_points
 
-F64 = NDArray[np.float64]
 UNIT_CORNERS_TAG = tag_corners(np.ones(1))[0]  # SPEC corner order, unit square
 _IPPE_ORDER = [3, 2, 1, 0]  # SPEC corners in IPPE_SQUARE's canonical order
 # Undistorted rays beyond this tangent (89.994°) point nowhere a tag can be seen; such corners

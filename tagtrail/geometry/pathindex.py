@@ -29,9 +29,10 @@ import math
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
+from tagtrail.geometry.arrays import F64
+
 SUB = 32  # samples per sub-block
 DIRECT = 4  # up to this many candidate blocks, scan them whole (fewer numpy calls)
-F64 = NDArray[np.float64]
 
 
 def _boxes(u: NDArray[np.float64], v: NDArray[np.float64], size: int) -> tuple[F64, ...]:

@@ -31,13 +31,13 @@ from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
-from numpy.typing import NDArray
 from scipy.optimize import least_squares
 from scipy.sparse import coo_matrix, csr_matrix
 from scipy.sparse.csgraph import dijkstra
 from scipy.sparse.linalg import spsolve
 
 from tagtrail.errors import DataError
+from tagtrail.geometry.arrays import F64, I64
 from tagtrail.geometry.robust import LossName, rho
 from tagtrail.geometry.rotations import (
     grouped_median,
@@ -49,8 +49,6 @@ from tagtrail.geometry.rotations import (
 )
 from tagtrail.geometry.se3 import R_from_rotvec
 
-F64 = NDArray[np.float64]
-I64 = NDArray[np.int64]
 BLOCK = 6
 
 

@@ -22,10 +22,10 @@ from numpy.typing import ArrayLike, NDArray
 from scipy.spatial import cKDTree
 
 from tagtrail.errors import DataError
+from tagtrail.geometry.arrays import F64
 from tagtrail.geometry.pathindex import PathIndex
 from tagtrail.geometry.rotations import wrap_angle
 
-F64 = NDArray[np.float64]
 PlaneName = Literal["auto", "xz", "xy", "yz"]
 PLANES: tuple[str, ...] = ("auto", "xz", "xy", "yz")
 _FIXED = {"xz": (0, 2), "xy": (0, 1), "yz": (1, 2)}

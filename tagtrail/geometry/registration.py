@@ -17,9 +17,9 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from tagtrail.errors import DataError
+from tagtrail.geometry.arrays import F64
 from tagtrail.geometry.reference_path import Plane
 
-F64 = NDArray[np.float64]
 MODELS: dict[str, tuple[int, bool]] = {  # model → (dimension, with scale)
     "similarity": (2, True),
     "rigid": (2, False),

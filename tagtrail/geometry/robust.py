@@ -10,9 +10,10 @@ from __future__ import annotations
 from typing import Literal
 
 import numpy as np
-from numpy.typing import ArrayLike, NDArray
+from numpy.typing import ArrayLike
 
-F64 = NDArray[np.float64]
+from tagtrail.geometry.arrays import F64
+
 LossName = Literal["linear", "soft_l1", "huber", "cauchy"]
 
 

@@ -13,12 +13,10 @@ Grouped functions take a flat batch ``R (N, 3, 3)`` and ``group (N,)`` int label
 from __future__ import annotations
 
 import numpy as np
-from numpy.typing import ArrayLike, NDArray
+from numpy.typing import ArrayLike
 
+from tagtrail.geometry.arrays import F64, I64
 from tagtrail.geometry.se3 import R_from_rotvec
-
-F64 = NDArray[np.float64]
-I64 = NDArray[np.int64]
 
 _SMALL = 1e-4  # below this angle (rad) the Jacobian coefficients use their Taylor series
 

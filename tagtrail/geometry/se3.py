@@ -10,10 +10,10 @@ Quaternions are ordered ``q_xyzw`` (scalar last, as ROS and scipy).
 from __future__ import annotations
 
 import numpy as np
-from numpy.typing import ArrayLike, NDArray
+from numpy.typing import ArrayLike
 from scipy.spatial.transform import Rotation
 
-F64 = NDArray[np.float64]
+from tagtrail.geometry.arrays import F64
 
 
 def make_T(R: ArrayLike, t: ArrayLike) -> F64:

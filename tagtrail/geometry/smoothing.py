@@ -23,17 +23,14 @@ stamps jump by more than ``max_gap_s`` (or do not increase). Sparse analytic Jac
 from __future__ import annotations
 
 import numpy as np
-from numpy.typing import NDArray
 from scipy.optimize import least_squares
 from scipy.sparse import coo_matrix, csr_matrix
 
+from tagtrail.geometry.arrays import F64, I64
 from tagtrail.geometry.posegraph import block_loss
 from tagtrail.geometry.robust import LossName
 from tagtrail.geometry.rotations import log_so3, right_jacobian, right_jacobian_inv
 from tagtrail.geometry.se3 import R_from_rotvec
-
-F64 = NDArray[np.float64]
-I64 = NDArray[np.int64]
 
 
 def segment_triples(t_s: F64, max_gap_s: float) -> I64:

@@ -15,18 +15,17 @@ from typing import Any, Literal
 
 import numpy as np
 import pandas as pd
-from numpy.typing import NDArray
 from pydantic import Field
 
 from tagtrail.errors import DataError
 from tagtrail.geometry import se3
+from tagtrail.geometry.arrays import F64
 from tagtrail.geometry.reference_path import Plane, reference_plane
 from tagtrail.geometry.registration import MODELS, Alignment, ransac_align, world_transform
 from tagtrail.schemas.artifacts import poses
 from tagtrail.schemas.documents import AlignmentBlock
 from tagtrail.stages.base import StageParams
 
-F64 = NDArray[np.float64]
 log = logging.getLogger(__name__)
 
 INPUTS = {

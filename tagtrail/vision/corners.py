@@ -30,9 +30,8 @@ import cv2
 import numpy as np
 from numpy.typing import NDArray
 
+from tagtrail.geometry.arrays import F64
 from tagtrail.geometry.camera import CameraModel
-
-F64 = NDArray[np.float64]
 
 CELLS = 8  # tag36h11: the black square is 8 cells wide (6 data + the 1-cell border each side)
 MIN_CELL_PX = 2.5
