@@ -11,7 +11,6 @@ import re
 from collections.abc import Iterable, Mapping
 from dataclasses import dataclass
 from pathlib import Path
-from types import ModuleType
 from typing import Any
 
 import yaml
@@ -130,12 +129,16 @@ def parse_override(text: str) -> tuple[str, list[str], Any]:
     return parts[0], parts[1:], value
 
 
-def _resolve_dataset(name: str, ds: DatasetConfig, root: Path) -> DatasetConfig:
+def _resolve_dataset(name: str, ds: DatasetConfig, root: Path, check: bool) -> DatasetConfig:
     def absolute(p: Path | None) -> Path | None:
         return None if p is None else (p if p.is_absolute() else (root / p)).resolve()
 
     source = absolute(ds.source)
     assert source is not None
+    if not check:  # only the parameters are wanted (a live node on a machine without the data)
+        gt = absolute(ds.ground_truth)
+        return ds.model_copy(update={"source": source, "camera": absolute(ds.camera),
+                                     "ground_truth": gt})
     if not source.exists():
         raise SpecError(f"dataset {name!r}: source {source} does not exist")
     camera = absolute(ds.camera)
@@ -151,10 +154,14 @@ def _resolve_dataset(name: str, ds: DatasetConfig, root: Path) -> DatasetConfig:
 
 def load_pipeline(
     path: Path,
-    registry: Mapping[str, ModuleType],
+    registry: Mapping[str, Any],
     overrides: Iterable[str] = (),
+    check_sources: bool = True,
 ) -> Pipeline:
-    """Read, validate and resolve a pipeline file; apply ``-S stage.param=value`` overrides."""
+    """Read, validate and resolve a pipeline file; apply ``-S stage.param=value`` overrides.
+
+    ``check_sources=False`` skips checking that the datasets' files exist (for callers that
+    only need the parameters, like the live nodes)."""
     path = Path(path)
     if not path.is_file():
         raise SpecError(f"{path}: pipeline file not found (create one with `tagtrail init`)")
@@ -212,7 +219,8 @@ def load_pipeline(
                 raise SpecError(_fmt_validation(where, err, fields)) from err
 
     root = path.resolve().parent
-    datasets = {n: _resolve_dataset(n, ds, root) for n, ds in config.datasets.items()}
+    datasets = {n: _resolve_dataset(n, ds, root, check_sources)
+                for n, ds in config.datasets.items()}
     for n, ds in datasets.items():
         for key, ref in ds.inputs.items():
             stage, _, arg = key.partition(".")

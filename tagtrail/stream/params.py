@@ -40,7 +40,7 @@ def stage_params(
         return {s: REGISTRY[s].Params() for s in stages}
     from tagtrail.runner.spec import did_you_mean, load_pipeline
 
-    pipe = load_pipeline(Path(pipeline), REGISTRY)
+    pipe = load_pipeline(Path(pipeline), REGISTRY, check_sources=False)
     name = pipe.reference if dataset is None else dataset
     if name not in pipe.datasets:
         raise SpecError(f"--dataset {name}: {pipeline} has no such dataset"
