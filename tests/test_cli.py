@@ -8,20 +8,12 @@ import pytest
 import yaml
 
 from tagtrail.cli import main
-from tagtrail.sim import simulate
+from tests.cli_helpers import detection_bags, one_error_line
 
 
 @pytest.fixture(scope="module")
 def bags(tmp_path_factory: pytest.TempPathFactory) -> Path:
-    root = tmp_path_factory.mktemp("bags")
-    simulate("room", root, frames=40, query_frames=5, detections=True, storage="sqlite3")
-    return root
-
-
-def one_error_line(capsys: pytest.CaptureFixture[str]) -> str:
-    err = capsys.readouterr().err.strip().splitlines()
-    assert len(err) == 1 and err[0].startswith("error: "), err
-    return err[0]
+    return detection_bags(tmp_path_factory.mktemp("bags"))
 
 
 def test_init_then_run_then_show(bags: Path, tmp_path: Path, monkeypatch, capsys) -> None:

@@ -15,20 +15,12 @@ from tagtrail.cli import main
 from tagtrail.errors import SpecError
 from tagtrail.runner.cache import Store
 from tagtrail.runner.paths import clean_temp_files, inside
-from tagtrail.sim import simulate
+from tests.cli_helpers import detection_bags, one_error_line
 
 
 @pytest.fixture(scope="module")
 def bags(tmp_path_factory: pytest.TempPathFactory) -> Path:
-    root = tmp_path_factory.mktemp("bags")
-    simulate("room", root, frames=40, query_frames=5, detections=True, storage="sqlite3")
-    return root
-
-
-def one_error_line(capsys: pytest.CaptureFixture[str]) -> str:
-    err = capsys.readouterr().err.strip().splitlines()
-    assert len(err) == 1 and err[0].startswith("error: "), err
-    return err[0]
+    return detection_bags(tmp_path_factory.mktemp("bags"))
 
 
 def tree(root: Path) -> dict[str, bytes]:
