@@ -147,3 +147,24 @@ class Collector:
         for s in self._subs:
             s.undeclare()
         self.session.close()
+
+
+def localize_replayed(
+    node_args: Sequence[str | Path], recording: Path, port: int, n_poses: int, *,
+    replay_timeout: float = 30.0, timeout: float = 20.0, sig: int = signal.SIGTERM,
+) -> tuple[list[bytes], Proc]:
+    """Run a ``stream localize`` node (``node_args``, listening on ``port``), replay the
+    detections bag ``recording`` into it, collect ``n_poses`` ``tag_only_pose`` messages, stop
+    the node with ``sig`` (asserting a clean exit) and return the poses and the stopped node."""
+    with running([str(a) for a in node_args]) as (node,):
+        node.wait_for("localize: ready")
+        sub = Collector(port, ["tag_only_pose"])
+        try:
+            with running(["replay", str(recording), "--topics", "/camera_info", "/detections",
+                          "--connect", loopback(port), "--rate", "2"]) as (rep,):  # fmt: skip
+                assert rep.p.wait(replay_timeout) == 0, rep.output
+            poses = sub.wait("tag_only_pose", n_poses, timeout=timeout)
+        finally:
+            sub.close()
+        assert node.stop(sig=sig) == 0, node.output
+    return poses, node

@@ -21,7 +21,7 @@ from tagtrail.io.layouts import read_tag_map, read_trajectory
 from tagtrail.sim.simulate import simulate
 from tagtrail.stream import codec
 from tagtrail.stream.replay import bag_messages
-from tests.stream.helpers import Collector, free_port, loopback, running
+from tests.stream.helpers import free_port, localize_replayed, loopback
 
 MIN_MARGIN = 72.0  # not extract's default (20): drops ~1/4 of these detections, offline and live
 
@@ -65,18 +65,9 @@ def test_live_localize_equals_the_trajectory_stage(project: Path) -> None:
     node_args = ["localize", "--map", out / "tag_map.yaml", "--pipeline",
                  project / "pipeline.yaml", "--listen", loopback(port), "--duration", "60",
                  "--stats-period", "0"]  # fmt: skip
-    with running(node_args) as (node,):
-        node.wait_for("localize: ready")
-        sub = Collector(port, ["tag_only_pose"])
-        try:
-            with running(["replay", rec, "--topics", "/camera_info", "/detections",
-                          "--connect", loopback(port), "--rate", "2"]) as (rep,):  # fmt: skip
-                assert rep.p.wait(60) == 0, rep.output
-            # the first detection message precedes the first CameraInfo: dropped, counted
-            poses = sub.wait("tag_only_pose", len(offline) - 1, timeout=30)
-        finally:
-            sub.close()
-        assert node.stop() == 0, node.output
+    # the first detection message precedes the first CameraInfo: dropped, counted
+    poses, node = localize_replayed(node_args, rec, port, len(offline) - 1, replay_timeout=60,
+                                    timeout=30)
     assert set(node.stats()["dropped"]) <= {"no_camera_info", "no_pose"}, node.stats()
 
     live = [codec.decode_pose(raw) for raw in poses]

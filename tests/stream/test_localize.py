@@ -16,7 +16,7 @@ from tagtrail.stream import codec
 from tagtrail.stream.localize import Localizer
 from tagtrail.stream.replay import bag_messages
 from tagtrail.stream.stats import DropError
-from tests.stream.helpers import Collector, free_port, loopback, running
+from tests.stream.helpers import Collector, free_port, localize_replayed, loopback, running
 
 N_FRAMES = 45
 
@@ -75,18 +75,9 @@ def test_localize_over_zenoh_within_1cm(noisy: Path) -> None:
     gt = read_trajectory(noisy / "ground_truth" / "trajectory.csv")
     node_args = ["localize", "--map", noisy / "ground_truth" / "tag_map.yaml",
                  "--listen", loopback(port), "--duration", "45", "--stats-period", "0"]
-    with running(node_args) as (node,):
-        node.wait_for("localize: ready")
-        sub = Collector(port, ["tag_only_pose"])
-        try:
-            with running(["replay", noisy, "--topics", "/camera_info", "/detections",
-                          "--connect", loopback(port), "--rate", "2"]) as (rep,):  # fmt: skip
-                assert rep.p.wait(30) == 0, rep.output
-            # the first detection may precede the first CameraInfo: it is dropped, counted
-            poses = sub.wait("tag_only_pose", N_FRAMES - 1)
-        finally:
-            sub.close()
-        assert node.stop(sig=signal.SIGINT) == 0, node.output  # Ctrl-C: a clean exit too
+    # the first detection may precede the first CameraInfo: it is dropped, counted
+    poses, node = localize_replayed(node_args, noisy, port, N_FRAMES - 1,
+                                    sig=signal.SIGINT)  # Ctrl-C: a clean exit too
     stats = node.stats()
     assert stats["processed"] >= 2 * N_FRAMES - 1
     assert set(stats["dropped"]) <= {"no_camera_info"}, stats

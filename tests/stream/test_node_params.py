@@ -22,7 +22,7 @@ from tagtrail.stream.localize import Localizer
 from tagtrail.stream.params import stage_params
 from tagtrail.stream.replay import bag_messages
 from tests.stream.cases import query_frame, reference_frame
-from tests.stream.helpers import Collector, free_port, loopback, running
+from tests.stream.helpers import Collector, free_port, localize_replayed, loopback, running
 
 TAG_SIZE = 0.2  # the simulated tags' edge (m); pnp's default is 0.16
 N_FRAMES = 20
@@ -89,17 +89,7 @@ def test_localize_node_publishes_with_the_pipeline_tag_size(rec: Path, tmp_path:
     port = free_port()
     node_args = ["localize", "--map", rec / "ground_truth" / "tag_map.csv", "--pipeline", pipe,
                  "--listen", loopback(port), "--duration", "45", "--stats-period", "0"]
-    with running(node_args) as (node,):
-        node.wait_for("localize: ready")
-        sub = Collector(port, ["tag_only_pose"])
-        try:
-            with running(["replay", rec, "--topics", "/camera_info", "/detections",
-                          "--connect", loopback(port), "--rate", "2"]) as (rep,):  # fmt: skip
-                assert rep.p.wait(30) == 0, rep.output
-            poses = sub.wait("tag_only_pose", N_FRAMES - 1)
-        finally:
-            sub.close()
-        assert node.stop() == 0, node.output
+    poses, _ = localize_replayed(node_args, rec, port, N_FRAMES - 1)
     err = _errors_m(poses, read_trajectory(rec / "ground_truth" / "trajectory.csv"))
     assert err.max() < 1e-6, err.max()
 
