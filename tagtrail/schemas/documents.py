@@ -10,7 +10,6 @@ from __future__ import annotations
 
 from typing import Any, Literal
 
-import numpy as np
 from pydantic import BaseModel, ConfigDict, ValidationError
 
 from tagtrail.errors import ArtifactError
@@ -42,14 +41,11 @@ class CameraDoc(Document):
     D: list[float]
 
     def model(self) -> CameraModel:
-        return CameraModel(self.width, self.height, np.array(self.K), np.array(self.D),
-                           self.distortion_model)
+        return CameraModel.from_dict(self.model_dump())
 
     @classmethod
     def of(cls, camera: CameraModel) -> CameraDoc:
-        return cls(width=camera.width, height=camera.height,
-                   distortion_model=camera.distortion_model,
-                   K=[float(v) for v in camera.K.reshape(-1)], D=[float(v) for v in camera.D])
+        return cls.model_validate(camera.to_dict())
 
 
 class DroppedTag(Document):
