@@ -12,8 +12,15 @@ import time
 import traceback
 from collections.abc import Callable, Sequence
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 from tagtrail.errors import TagtrailError, one_line, report, storage_error
+
+if TYPE_CHECKING:
+    from tagtrail.runner.execute import Runner
+    from tagtrail.stages.base import StageModule
+
+    _SubParsers = argparse._SubParsersAction[argparse.ArgumentParser]  # add_subparsers()'s
 
 EXAMPLES = {
     "run": "examples:\n  tagtrail run\n  tagtrail run optimize -S optimize.f_scale=0.05\n"
@@ -25,13 +32,13 @@ EXAMPLES = {
 }
 
 
-def _registry():  # noqa: ANN202 - imported lazily so `tagtrail --help` stays fast
+def _registry() -> dict[str, StageModule]:  # imported lazily so `tagtrail --help` stays fast
     from tagtrail.stages import REGISTRY
 
     return REGISTRY
 
 
-def _runner(args: argparse.Namespace):  # noqa: ANN202
+def _runner(args: argparse.Namespace) -> Runner:
     from tagtrail.runner.execute import Runner
     from tagtrail.runner.spec import load_pipeline
 
@@ -87,7 +94,7 @@ def cmd_show(args: argparse.Namespace) -> int:
     return show(_runner(args), args.stage, args.dataset, args.output, args.csv, args.rows)
 
 
-def _sub(sp, name: str, help: str) -> argparse.ArgumentParser:  # noqa: ANN001
+def _sub(sp: _SubParsers, name: str, help: str) -> argparse.ArgumentParser:
     p = sp.add_parser(
         name, help=help, description=help, epilog=EXAMPLES.get(name),
         formatter_class=argparse.RawDescriptionHelpFormatter,
@@ -153,7 +160,7 @@ OPTIONAL = (
 )
 
 
-def _optional_commands(sp, command: str | None) -> None:  # noqa: ANN001
+def _optional_commands(sp: _SubParsers, command: str | None) -> None:
     """Commands implemented in their own modules; only the one being run is imported."""
     import importlib
 

@@ -39,15 +39,14 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 def inspect(source: Path, camera: Path | None) -> tuple[DatasetConfig, str]:
     """Open a source as the pipeline will; return its dataset entry and a one-line description."""
-    from tagtrail.io.sources import open_source
+    from tagtrail.io.sources import BagSource, open_source
 
     cfg = DatasetConfig(source=source.resolve(), camera=camera.resolve() if camera else None)
     with open_source(cfg) as src:
         topics: dict[str, Any] = {}
-        topic = getattr(src, "topic", None)
-        if topic is not None:
-            topics["detections" if src.kind == "detections" else "image"] = topic
-            if getattr(src, "camera_info_topic", None):
+        if isinstance(src, BagSource):  # the one source with topics
+            topics["detections" if src.kind == "detections" else "image"] = src.topic
+            if src.camera_info_topic:
                 topics["camera_info"] = src.camera_info_topic
         if src.kind != "observations" and src.camera() is None:
             raise SourceError(f"{source}: no camera calibration found; pass --camera FILE "

@@ -13,13 +13,13 @@ import argparse
 import logging
 from collections.abc import Sequence
 from pathlib import Path
-from typing import Any
+from typing import Any, Literal
 
 import numpy as np
 import pandas as pd
 
 from tagtrail.errors import DataError, SourceError, SpecError
-from tagtrail.geometry.reference_path import PLANES
+from tagtrail.geometry.reference_path import PLANES, PlaneName
 from tagtrail.io import reloc_files
 from tagtrail.io.layouts import TAG_MAP_NAMES, read_tag_map, read_trajectory
 from tagtrail.schemas.artifacts import POSE_COLS
@@ -27,6 +27,10 @@ from tagtrail.stages import align as align_stage
 from tagtrail.stages import report as report_stage
 
 log = logging.getLogger(__name__)
+# the choices of report.Params.mode, align.Params.align and align.Params.model
+Mode = Literal["auto", "trajectory", "point"]
+Align = Literal["auto", "none", "tags"]
+AlignModel = Literal["similarity", "rigid", "se3", "sim3"]
 OUTPUT_FILES = ("relocalization.csv", "summary.json", "relocalization.png", "map.png")
 EXAMPLES = """examples:
   tagtrail relocalize outputs/reference outputs/query -o reloc
@@ -57,10 +61,10 @@ def relocalize(
     reference: Path,
     query: Path,
     out: Path,
-    mode: str = "auto",
-    align: str = "auto",
-    align_model: str = "similarity",
-    plane: str = "auto",
+    mode: Mode = "auto",
+    align: Align = "auto",
+    align_model: AlignModel = "similarity",
+    plane: PlaneName = "auto",
     allow_scale: bool = False,
 ) -> dict[str, Any]:
     """Relocalize ``query`` against ``reference`` and write the SPEC files into ``out``.
@@ -68,19 +72,20 @@ def relocalize(
     Returns the ``summary.json`` dict. Raises :class:`SourceError` (missing/unreadable input) or
     :class:`DataError` (no common tags with ``align="tags"``, scale out of range, …).
     """
-    return _relocalize(
+    summary: dict[str, Any] = _relocalize(
         reference, query, out, mode, align, align_model, plane, allow_scale
     )["summary"]
+    return summary
 
 
 def _relocalize(
     reference: Path,
     query: Path,
     out: Path,
-    mode: str,
-    align: str,
-    align_model: str,
-    plane: str,
+    mode: Mode,
+    align: Align,
+    align_model: AlignModel,
+    plane: PlaneName,
     allow_scale: bool,
 ) -> dict[str, Any]:
     check_out(Path(out))

@@ -13,7 +13,8 @@ from typing import Any
 import numpy as np
 
 from tagtrail.errors import SourceError
-from tagtrail.geometry.camera import F64, CameraModel
+from tagtrail.geometry.arrays import F64
+from tagtrail.geometry.camera import CameraModel
 from tagtrail.io.layouts import load_yaml
 
 _ROS_KEYS = ("image_width", "image_height", "camera_matrix", "distortion_model",

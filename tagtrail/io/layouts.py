@@ -15,7 +15,7 @@ import re
 import tempfile
 from collections.abc import Callable
 from pathlib import Path
-from typing import Any
+from typing import Any, cast
 
 import numpy as np
 import pandas as pd
@@ -36,7 +36,7 @@ _CSV_TRAJ_HEADER = ["stamp_sec", "stamp_nanosec", "x", "y", "z", "qx", "qy", "qz
 _CSV_TAG_HEADER = ["tag", "x", "y", "z", "qx", "qy", "qz", "qw", "n_obs"]
 
 
-def atomic_write(path: Path, write: Callable[[Path], None]) -> None:
+def atomic_write(path: Path, write: Callable[[Path], object]) -> None:
     """Call ``write(tmp)`` on a temporary sibling of ``path``, then rename it into place."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
@@ -211,7 +211,7 @@ def _data_row(i: int) -> str:
     return f"data row {i + 1}"
 
 
-def _cell_text(value: object) -> str:
+def _cell_text(value: Any) -> str:  # a cell of any dtype
     return "empty cell" if pd.isna(value) else repr(str(value).strip())
 
 
@@ -281,6 +281,7 @@ def _stamp_text(t_ns: int) -> str:
 
 def tag_map_csv_text(tags: pd.DataFrame) -> str:
     lines = [",".join(_CSV_TAG_HEADER)]
+    row: Any  # a namedtuple of the columns, their dtypes known at run time only
     for row in tags.itertuples(index=False):
         vals = ",".join(_fmt(getattr(row, c)) for c in POSE_COLS)
         lines.append(f"{tag_name(row.tag_id)},{vals},{int(row.n_obs)}")
@@ -289,6 +290,7 @@ def tag_map_csv_text(tags: pd.DataFrame) -> str:
 
 def tag_map_yaml_text(tags: pd.DataFrame, anchor_id: int) -> str:
     entries: dict[str, Any] = {}
+    row: Any  # a namedtuple of the columns, their dtypes known at run time only
     for row in tags.itertuples(index=False):
         entry: dict[str, Any] = {
             "position": {"x": float(row.x_m), "y": float(row.y_m), "z": float(row.z_m)},
@@ -328,7 +330,8 @@ def read_tag_map(path: Path) -> tuple[pd.DataFrame, int | None]:
     out["n_obs"] = _integers(f, df, "n_obs", 0, 2**62) if "n_obs" in df.columns else 0
     _check_quaternions(f, out[POSE_COLS[3:]].to_numpy(), _data_row)
     _check_unique(f, out["tag_id"].to_numpy(), _data_row)
-    ident = np.isclose(out[POSE_COLS].to_numpy(), [0, 0, 0, 0, 0, 0, 1], atol=1e-12).all(axis=1)
+    near_identity = np.isclose(out[POSE_COLS].to_numpy(), [0, 0, 0, 0, 0, 0, 1], atol=1e-12)
+    ident = cast("NDArray[np.bool_]", near_identity.all(axis=1))  # one flag per row
     anchor = int(out.loc[ident, "tag_id"].iloc[0]) if ident.any() else None
     return out, anchor
 

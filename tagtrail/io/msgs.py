@@ -10,6 +10,7 @@ from functools import lru_cache
 from typing import Any
 
 from rosbags.typesys import Stores, get_types_from_msg, get_typestore
+from rosbags.typesys.store import Typestore
 
 # apriltag_msgs 2.0.1 (the ROS 2 apriltag_ros output), verbatim field lists.
 APRILTAG_MSGS = {
@@ -31,7 +32,7 @@ POSE_STAMPED = "geometry_msgs/msg/PoseStamped"
 
 
 @lru_cache(maxsize=1)
-def typestore() -> Any:
+def typestore() -> Typestore:
     """The shared Humble typestore with apriltag_msgs registered."""
     store = get_typestore(Stores.ROS2_HUMBLE)
     types: dict[str, Any] = {}

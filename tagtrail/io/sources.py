@@ -27,7 +27,7 @@ import re
 from collections.abc import Iterator
 from contextlib import contextmanager
 from pathlib import Path
-from typing import TYPE_CHECKING, Any, Literal
+from typing import TYPE_CHECKING, Any, Literal, SupportsInt, cast
 
 import numpy as np
 import pandas as pd
@@ -217,8 +217,9 @@ class BagSource(Source):
             by_topic: dict[str, list[Any]] = {}
             for c in reader.connections:
                 by_topic.setdefault(c.topic, []).append(c)
-            self._types = {t: cs[0].msgtype for t, cs in by_topic.items()}
-            self._counts = {t: sum(c.msgcount for c in cs) for t, cs in by_topic.items()}
+            self._types: dict[str, str] = {t: cs[0].msgtype for t, cs in by_topic.items()}
+            self._counts: dict[str, int] = {t: sum(c.msgcount for c in cs)
+                                            for t, cs in by_topic.items()}
             self.kind, self.topic = self._choose_topic(cfg)
             self.camera_info_topic: str | None = None
             self._camera = camera
@@ -350,7 +351,7 @@ class BagSource(Source):
             idx, warned = 0, False
             try:
                 for conn, t_recv, raw in reader.messages(connections=conns):
-                    msg = reader.deserialize(raw, conn.msgtype)
+                    msg: Any = reader.deserialize(raw, conn.msgtype)
                     if conn.topic == self.camera_info_topic:
                         if not warned and self._camera is not None:
                             cam = CameraModel.from_camera_info(msg)
@@ -465,5 +466,6 @@ class ObservationsSource(Source):
         return self._obs.copy()
 
     def iter_raw(self) -> Iterator[Frame]:
-        for (idx, t_ns), grp in self._obs.groupby(["frame_idx", "t_ns"], sort=True):
+        for key, grp in self._obs.groupby(["frame_idx", "t_ns"], sort=True):
+            idx, t_ns = cast("tuple[SupportsInt, SupportsInt]", key)  # two integer columns
             yield int(idx), int(t_ns), grp.reset_index(drop=True)

@@ -17,7 +17,8 @@ import numpy as np
 from rosbags.rosbag2 import StoragePlugin, Writer
 from tqdm import tqdm
 
-from tagtrail.geometry.se3 import F64, R_from_rotvec, make_T, xyz_quat_from_T
+from tagtrail.geometry.arrays import F64
+from tagtrail.geometry.se3 import R_from_rotvec, make_T, xyz_quat_from_T
 from tagtrail.io import msgs
 from tagtrail.io.layouts import atomic_write_text, tag_name
 from tagtrail.sim.camera import FRAME_ID, Visibility, tag_visibility
@@ -82,7 +83,8 @@ def _centre(c: F64) -> F64:
     """Intersection of the quad's diagonals (the homography image of the tag centre)."""
     h = np.concatenate([c, np.ones(c.shape[:-1] + (1,))], -1)
     p = np.cross(np.cross(h[0], h[2]), np.cross(h[1], h[3]))
-    return p[:2] / p[2]
+    centre: F64 = p[:2] / p[2]
+    return centre
 
 
 def detections_msg(t_ns: int, frame_id: str, ids: np.ndarray, corners: F64, margins: F64) -> Any:

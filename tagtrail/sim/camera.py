@@ -13,9 +13,9 @@ from dataclasses import dataclass
 import numpy as np
 
 from tagtrail.errors import CameraModelError
+from tagtrail.geometry.arrays import F64
 from tagtrail.geometry.camera import CameraModel
 from tagtrail.geometry.fusion import tag_corners
-from tagtrail.geometry.se3 import F64
 
 # The LIMO's Orbbec Dabai colour camera (NOTES "The LIMO"), 640x480: (fx, fy, cx, cy) px and
 # plumb_bob (k1, k2, p1, p2, k3).

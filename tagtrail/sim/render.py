@@ -21,8 +21,9 @@ import cv2
 import numpy as np
 
 from tagtrail.errors import SpecError
+from tagtrail.geometry.arrays import F64
 from tagtrail.geometry.camera import CameraModel
-from tagtrail.geometry.se3 import F64, inv
+from tagtrail.geometry.se3 import inv
 from tagtrail.sim.camera import undistort_grid
 from tagtrail.sim.scene import Scene, Wall
 
@@ -241,5 +242,5 @@ class Renderer:
         ~3 s and ~8 s at 30 fps) of relative std ``exposure_jitter``."""
         k = np.arange(n, dtype=np.float64)
         ph = rng.uniform(0.0, 2 * np.pi, size=2)
-        drift = np.sin(2 * np.pi * k / 90.0 + ph[0]) + np.sin(2 * np.pi * k / 237.0 + ph[1])
+        drift: F64 = np.sin(2 * np.pi * k / 90.0 + ph[0]) + np.sin(2 * np.pi * k / 237.0 + ph[1])
         return 1.0 + self.realism.exposure_jitter * drift

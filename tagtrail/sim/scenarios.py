@@ -17,8 +17,8 @@ from typing import Any
 import numpy as np
 
 from tagtrail.errors import SpecError
+from tagtrail.geometry.arrays import F64
 from tagtrail.geometry.camera import CameraModel
-from tagtrail.geometry.se3 import F64
 from tagtrail.sim.camera import limo_camera
 from tagtrail.sim.render import Realism, tag_bits
 from tagtrail.sim.scene import (

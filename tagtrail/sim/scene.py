@@ -13,9 +13,10 @@ from typing import Any
 import numpy as np
 
 from tagtrail.errors import SpecError
+from tagtrail.geometry.arrays import F64
 from tagtrail.geometry.camera import CameraModel
 from tagtrail.geometry.rotations import wrap_angle
-from tagtrail.geometry.se3 import F64, compose, inv, make_T
+from tagtrail.geometry.se3 import compose, inv, make_T
 
 EPOCH_NS = 1_700_000_000 * 1_000_000_000
 
@@ -204,7 +205,7 @@ def ease_curvature(poly: F64, closed: bool, ramp_m: float, step_m: float = 1e-3)
     theta = heading[0] + np.r_[0.0, np.cumsum(kappa)] * ds  # heading at each step's start
     mid = 0.5 * (theta[:-1] + theta[1:])  # midpoint rule: exact on arcs to O(ds^2)
     steps = ds * np.stack([np.cos(mid), np.sin(mid)], -1)
-    out = xy[0] + np.vstack([np.zeros((1, 2)), np.cumsum(steps, axis=0)])
+    out: F64 = xy[0] + np.vstack([np.zeros((1, 2)), np.cumsum(steps, axis=0)])
     if closed:
         gap = out[-1] - xy[0]  # the loop's end should meet its start
         out = out[:-1] - np.linspace(0.0, 1.0, len(out))[:-1, None] * gap

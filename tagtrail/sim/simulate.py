@@ -22,7 +22,8 @@ import pandas as pd
 import yaml
 
 from tagtrail.errors import SpecError
-from tagtrail.geometry.se3 import F64, xyz_quat_from_T
+from tagtrail.geometry.arrays import F64
+from tagtrail.geometry.se3 import xyz_quat_from_T
 from tagtrail.io.layouts import atomic_write_text, write_tag_map, write_trajectory_csv
 from tagtrail.schemas.artifacts import POSE_COLS
 from tagtrail.sim import bagwrite

@@ -177,13 +177,18 @@ def main(args: argparse.Namespace | Sequence[str] | None = None) -> int:
 
 def _relocalize(ns: argparse.Namespace) -> int:
     from tagtrail.io.layouts import read_trajectory
+    from tagtrail.stages import report as report_stage
     from tagtrail.stream.params import stage_params
     from tagtrail.stream.reloc_node import Relocalizer, load_alignment, serve
     from tagtrail.stream.session import leave_now, stop_on_signals
 
     ref = read_trajectory(ns.reference)
     # the alignment file's plane wins over the pipeline's: its planar transform acts in that plane
-    plane = ns.plane or stage_params(["report"], ns.pipeline, ns.dataset)["report"].plane
+    plane = ns.plane
+    if not plane:
+        report = stage_params(["report"], ns.pipeline, ns.dataset)["report"]
+        assert isinstance(report, report_stage.Params)
+        plane = report.plane
     alignment = None
     if ns.alignment is not None:
         A, R, file_plane = load_alignment(ns.alignment, ref, plane)
@@ -226,16 +231,20 @@ def _replay(ns: argparse.Namespace) -> int:
 def localize_params(ns: argparse.Namespace) -> Any:
     """The localize node's :class:`~tagtrail.stream.localize.Params`: the ``--pipeline`` /
     ``--dataset`` parameters (else the stages' defaults) with the flags given applied."""
+    from tagtrail.stages import extract, pnp, trajectory
     from tagtrail.stream.localize import Params
     from tagtrail.stream.params import override, stage_params
 
     got = stage_params(["extract", "pnp", "trajectory"], ns.pipeline, ns.dataset)
+    ex, pn, tr = got["extract"], got["pnp"], got["trajectory"]
+    assert isinstance(ex, extract.Params) and isinstance(pn, pnp.Params)
+    assert isinstance(tr, trajectory.Params)
     return Params(
-        extract=override(got["extract"], {
+        extract=override(ex, {
             "min_decision_margin": ("--min-decision-margin", ns.min_decision_margin),
             "max_hamming": ("--max-hamming", ns.max_hamming)}),
-        pnp=override(got["pnp"], {"tag_size": ("--tag-size", ns.tag_size)}),
-        trajectory=override(got["trajectory"], {"method": ("--method", ns.method)}),
+        pnp=override(pn, {"tag_size": ("--tag-size", ns.tag_size)}),
+        trajectory=override(tr, {"method": ("--method", ns.method)}),
     )  # fmt: skip
 
 

@@ -18,7 +18,7 @@ from __future__ import annotations
 import operator
 import struct
 from collections.abc import Sequence
-from typing import Any, NamedTuple
+from typing import Any, NamedTuple, cast
 
 import numpy as np
 
@@ -169,7 +169,8 @@ _STAMP_SENTINEL = (0x7E5A3C01, 0x3C5A7E02)
 
 def sentinel(i: int) -> float:
     """A float64 whose 8 bytes are unlikely anywhere else in a message (``i`` < 250)."""
-    return struct.unpack("<d", bytes([0x5A, i + 1, 0x3C, 0xA5, 0x96, 0xC3, 0x71, 0x42]))[0]
+    packed = bytes([0x5A, i + 1, 0x3C, 0xA5, 0x96, 0xC3, 0x71, 0x42])
+    return cast(float, struct.unpack("<d", packed)[0])
 
 
 def text_placeholder(n: int) -> str:
@@ -197,15 +198,15 @@ class Template:
             raise ValueError("template: no header stamp found")
         patches += [(at, "iI", ("sec", "nsec")) for at in stamps]
         for i in range(n_doubles):
-            at = _find_all(payload, struct.pack("<d", sentinel(i)))
-            if len(at) != 1:
-                raise ValueError(f"template: double {i} found {len(at)} times")
-            patches.append((at[0], "d", (i,)))
+            hits = _find_all(payload, struct.pack("<d", sentinel(i)))
+            if len(hits) != 1:
+                raise ValueError(f"template: double {i} found {len(hits)} times")
+            patches.append((hits[0], "d", (i,)))
         if text_len:
-            at = _find_all(payload, text_placeholder(text_len).encode())
-            if len(at) != 1:
+            hits = _find_all(payload, text_placeholder(text_len).encode())
+            if len(hits) != 1:
                 raise ValueError("template: the text placeholder is not unique")
-            patches.append((at[0], f"{text_len}s", ("text",)))
+            patches.append((hits[0], f"{text_len}s", ("text",)))
         fmt, pos = "<", 0
         consts: list[bytes] = []
         order: list[tuple[str, str | int]] = []

@@ -165,6 +165,7 @@ class Localizer:
 
         msg = self._decode(data, IMAGE_TYPES[kind])
         raw = raw_image_from_msg(msg, IMAGE_TYPES[kind])
+        assert isinstance(raw.data, bytes)  # a message's image: bytes, not a file path
         payload = bytes(raw.data)
         if raw.kind == "compressed":
             fmt = raw.encoding
@@ -206,7 +207,7 @@ class Localizer:
             self.stats.stamp(int(msg.header.stamp.sec), int(msg.header.stamp.nanosec))
         return msg
 
-    def _publish(self, stamp: Any, px: F64, ids: NDArray[np.int64]) -> list[tuple[str, bytes]]:
+    def _publish(self, stamp: Any, px: F64, ids: NDArray[np.integer]) -> list[tuple[str, bytes]]:
         if not np.isfinite(px).all():
             raise DropError("non_finite", "detection corners are not finite")
         T, _ = self.frame_pose(px, ids)

@@ -10,7 +10,7 @@ array is a :class:`~tagtrail.stream.codec.Template`: built once, patched per mes
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Iterable, Sequence
 from typing import Any
 
 import numpy as np
@@ -82,7 +82,7 @@ def path_markers(positions: np.ndarray, frame_id: str, sec: int = 0, nanosec: in
 class PoseMarkers:
     """Per-pose markers: nearest point, error segment, text. ``up (3,)``: unit "up" in world."""
 
-    def __init__(self, frame_id: str, up: Sequence[float]) -> None:
+    def __init__(self, frame_id: str, up: Iterable[float]) -> None:
         self.frame_id = frame_id
         self.up = [float(v) for v in up]
         s = codec.sentinel

@@ -138,7 +138,7 @@ class Relocalizer:
         self.key = {k: f"{prefix}/{k}" for k in (*OUTPUTS, REFERENCE_PATH)}
         self._ref7 = ref_traj[["x_m", "y_m", "z_m", "qx", "qy", "qz", "qw"]].to_numpy(np.float64)
         self._A: tuple[tuple[float, ...], ...] | None = None
-        self._q_al = (0.0, 0.0, 0.0, 1.0)
+        self._q_al: tuple[float, ...] = (0.0, 0.0, 0.0, 1.0)
         if alignment is not None and not np.allclose(alignment[0], np.eye(4), atol=0, rtol=0):
             A, Ra = alignment
             self._A = tuple(tuple(map(float, row)) for row in A[:3])

@@ -97,7 +97,7 @@ def _read_bag(path: Path, topic: str | None) -> tuple[list[int], list[list[float
         conns = [c for c in reader.connections if c.topic == topic]
         t_ns, vals, frames = [], [], []
         for conn, t_recv, raw in reader.messages(connections=conns):
-            msg = reader.deserialize(raw, conn.msgtype)
+            msg: Any = reader.deserialize(raw, conn.msgtype)  # one of POSE_MSGTYPES
             p = msg.pose if conn.msgtype == msgs.POSE_STAMPED else msg.pose.pose
             st = msg.header.stamp
             stamp = int(st.sec) * 1_000_000_000 + int(st.nanosec)
@@ -167,7 +167,8 @@ def schedule_s(t_ns: NDArray[np.int64], rate: float) -> NDArray[np.float64]:
     if rate <= 0 or len(t_ns) == 0:
         return np.zeros(len(t_ns))
     t = np.maximum.accumulate(t_ns.astype(np.int64))  # a stamp going back: no pause
-    return (t - t[0]) * 1e-9 / rate
+    send_s: NDArray[np.float64] = (t - t[0]) * 1e-9 / rate
+    return send_s
 
 
 class NoSubscriber(TagtrailError):

@@ -119,7 +119,7 @@ def close_all(session: zenoh.Session | None, entities: Sequence[Any],
 
     def close() -> None:
         try:
-            session.close()
+            session.close()  # type: ignore[no-untyped-call]  # unannotated in zenoh's stubs
         except Exception as err:  # noqa: BLE001
             log.debug("session close: %s", err)
 
@@ -139,7 +139,8 @@ def matching(publisher: zenoh.Publisher) -> bool:
     In eclipse-zenoh 1.x ``matching_status`` is a ``MatchingStatus`` object, always truthy: the
     answer is its ``.matching`` field.
     """
-    return bool(publisher.matching_status.matching)
+    # zenoh's stubs declare ``-> bool``; at run time it is the MatchingStatus above
+    return bool(publisher.matching_status.matching)  # type: ignore[attr-defined]
 
 
 def wait_matching(publisher: zenoh.Publisher, timeout_s: float, stop: threading.Event) -> bool:

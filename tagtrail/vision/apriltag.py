@@ -131,7 +131,8 @@ def detect_chunk(
     and ``n_truncated`` (): tags dropped as cut by the image border.
     """
     _single_threaded_opencv()
-    n_det, shapes, det_frame, ints, floats, imgs = [], [], [], [], [], []
+    n_det, shapes, det_frame, ints, floats = [], [], [], [], []
+    imgs: list[NDArray[np.uint8] | None] = []  # None: no tags (the image is not kept)
     n_cut = 0
     for idx, _t_ns, raw in chunk:
         img = raw.decode()
@@ -145,8 +146,12 @@ def detect_chunk(
         imgs.append(img if len(i) else None)
     if cfg.refit_corners:  # the whole chunk in one fit
         with_tags = [k for k, f in enumerate(floats) if len(f)]
-        refined = refine_many([imgs[k] for k in with_tags],
-                              [floats[k][:, 1:] for k in with_tags], camera)
+        grays = []
+        for k in with_tags:
+            gray = imgs[k]
+            assert gray is not None  # a frame with tags keeps its image
+            grays.append(gray)
+        refined = refine_many(grays, [floats[k][:, 1:] for k in with_tags], camera)
         for k, r in zip(with_tags, refined, strict=True):
             floats[k][:, 1:] = r.reshape(-1, 8)
     return {

@@ -70,10 +70,12 @@ class RawImage:
     def decode(self) -> U8:
         """The frame as a C-contiguous ``(height, width)`` uint8 grayscale image."""
         if self.kind == "file":
-            img = cv2.imread(str(self.data), cv2.IMREAD_GRAYSCALE)
+            path = str(self.data)
+            img = cv2.imread(path, cv2.IMREAD_GRAYSCALE)
             if img is None:
-                raise SourceError(f"{self.data}: cannot read image (not a jpg/png?)")
+                raise SourceError(f"{path}: cannot read image (not a jpg/png?)")
             return np.ascontiguousarray(img)
+        assert isinstance(self.data, bytes), "a raw or compressed image holds bytes"
         if self.kind == "compressed":
             return decode_compressed(bytes(self.data), self.encoding)
         return decode_raw(
