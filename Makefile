@@ -4,7 +4,7 @@ VENV := .venv
 BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed
 
-.PHONY: demo test bench lint clean
+.PHONY: demo test bench lint check clean
 
 $(STAMP): pyproject.toml
 	@command -v $(PY) >/dev/null 2>&1 || { echo "error: $(PY) not found (need Python >= 3.11)"; exit 2; }
@@ -24,6 +24,9 @@ bench: $(STAMP)
 
 lint: $(STAMP)
 	$(BIN)/ruff check tagtrail tests bench
+	$(BIN)/mypy tagtrail
+
+check: lint test
 
 clean:
 	rm -rf $(VENV) artifacts outputs demo

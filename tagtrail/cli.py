@@ -157,6 +157,7 @@ OPTIONAL = (
     ("demo", "tagtrail.commands.demo", "simulate the demo recordings and run everything"),
     ("init", "tagtrail.commands.init", "inspect sources and write a pipeline file"),
     ("stream", "tagtrail.stream.cli", "live relocalization over zenoh"),
+    ("eval", "tagtrail.commands.eval", "the paper's evaluation tables from a run"),
 )
 
 

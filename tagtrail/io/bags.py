@@ -38,6 +38,6 @@ def open_bag(path: Path) -> AnyReader:
     try:
         reader = AnyReader([bag], default_typestore=msgs.typestore())
         reader.open()
-    except Exception as err:  # noqa: BLE001 - see the docstring
+    except Exception as err:
         raise SourceError(f"{bag}: cannot read bag: {err}") from err
     return reader

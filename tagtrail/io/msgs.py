@@ -40,8 +40,3 @@ def typestore() -> Typestore:
         types.update(get_types_from_msg(text, name))
     store.register(types)
     return store
-
-
-def msgdef(msgtype: str) -> str:
-    """The ``.msg`` definition text of a registered type (for writing self-describing bags)."""
-    return typestore().generate_msgdef(msgtype)[0]

@@ -71,10 +71,10 @@ class StageModule(Protocol):
     """What a stage module exposes (checked at load time by ``runner.stage.stage_spec``)."""
 
     @property
-    def Params(self) -> type[StageParams]: ...  # noqa: N802 - the module's class
+    def Params(self) -> type[StageParams]: ...
     @property
-    def INPUTS(self) -> Mapping[str, str]: ...  # noqa: N802
+    def INPUTS(self) -> Mapping[str, str]: ...
     @property
-    def OUTPUTS(self) -> tuple[str, ...]: ...  # noqa: N802
+    def OUTPUTS(self) -> tuple[str, ...]: ...
     @property
     def run(self) -> Callable[..., Mapping[str, Any]]: ...

@@ -32,7 +32,6 @@ POSE_TYPES = {
 }
 # bytes after the 7 pose doubles: PoseWithCovariance's covariance; Odometry's + the twist part
 _TAIL = {"pose_stamped": 0, "pose_with_covariance": 288, "odometry": 288 + 48 + 288}
-FLOAT64 = "std_msgs/msg/Float64"
 POSE_STAMPED = msgs.POSE_STAMPED
 PATH = "nav_msgs/msg/Path"
 MARKER_ARRAY = "visualization_msgs/msg/MarkerArray"

@@ -139,7 +139,7 @@ class Localizer:
             raise DropError("malformed", str(err)) from err
         try:
             cam = CameraModel.from_camera_info(msg)
-        except Exception as err:  # noqa: BLE001 - SourceError, shapes
+        except Exception as err:
             raise DropError("bad_camera_info", str(err)) from err
         if cam.width <= 0 or cam.height <= 0:  # images are checked against it
             raise DropError("bad_camera_info", f"image size {cam.width}x{cam.height}")
@@ -180,7 +180,7 @@ class Localizer:
                 raise DropError("bad_image", f"Image {w}x{h} step {step}: {n} data bytes")
         try:
             img = raw.decode()
-        except Exception as err:  # noqa: BLE001 - SourceError, cv2.error
+        except Exception as err:
             raise DropError("bad_image", str(err)) from err
         ints, floats = detect(np.ascontiguousarray(img), self.detector, self.camera)
         return self._publish(msg.header.stamp, floats[:, 1:].reshape(-1, 4, 2), ints[:, 0])

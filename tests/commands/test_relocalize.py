@@ -106,10 +106,10 @@ def test_uses_the_stage_functions(
 ) -> None:
     calls: list[str] = []
 
-    def spy(mod):  # noqa: ANN001, ANN202
+    def spy(mod):
         real = mod.run
 
-        def run(*args, **kwargs):  # noqa: ANN002, ANN003, ANN202
+        def run(*args, **kwargs):
             calls.append(mod.__name__)
             return real(*args, **kwargs)
 

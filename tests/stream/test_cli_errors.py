@@ -49,7 +49,7 @@ def listener() -> tuple[zenoh.Session, int]:
     session.close()
 
 
-def test_replay_without_subscriber_is_an_error(poses: Path, listener) -> None:  # noqa: ANN001
+def test_replay_without_subscriber_is_an_error(poses: Path, listener) -> None:
     session, port = listener
     other = session.declare_subscriber("some/other/key", lambda _s: None)
     try:
@@ -72,7 +72,7 @@ def test_replay_without_subscriber_is_an_error(poses: Path, listener) -> None:  
     assert "published 30 messages" in res.stdout
 
 
-def test_replay_waits_for_a_late_subscriber(poses: Path, listener) -> None:  # noqa: ANN001
+def test_replay_waits_for_a_late_subscriber(poses: Path, listener) -> None:
     """The subscriber appears 1.5 s after replay starts: every pose still reaches it."""
     session, port = listener
     got: list[bytes] = []

@@ -25,7 +25,7 @@ BLOCK = {"model": "similarity", "scale": 0.98, "rotation_deg": -20.0, "translati
          "inliers": 3, "common_tags": 3, "rms_m": 0.002}
 
 
-def _payloads(query) -> list[bytes]:  # noqa: ANN001
+def _payloads(query) -> list[bytes]:
     enc = codec.PoseStampedEncoder("map")
     sec, nsec = np.divmod(query["t_ns"].to_numpy(), 10**9)
     vals = query[["x_m", "y_m", "z_m", "qx", "qy", "qz", "qw"]].to_numpy().tolist()

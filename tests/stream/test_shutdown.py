@@ -88,7 +88,7 @@ def _interrupt(proc: Proc) -> tuple[int, float]:
     return rc, time.monotonic() - t0
 
 
-def _wait(cond, timeout: float, what: str) -> None:  # noqa: ANN001
+def _wait(cond, timeout: float, what: str) -> None:
     deadline = time.monotonic() + timeout
     while not cond():
         assert time.monotonic() < deadline, what

@@ -13,5 +13,5 @@ class Params(StageParams):
     pass
 
 
-def run(total, ref_total, params: Params) -> dict:  # noqa: ANN001
+def run(total, ref_total, params: Params) -> dict:
     return {"diff": {"delta": total["sum"] - ref_total["sum"]}}

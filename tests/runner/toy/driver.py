@@ -7,10 +7,10 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from toy import load_registry  # noqa: E402
+from toy import load_registry
 
-import tagtrail.stages  # noqa: E402
-from tagtrail.cli import main  # noqa: E402
+import tagtrail.stages
+from tagtrail.cli import main
 
 if __name__ == "__main__":
     tagtrail.stages.REGISTRY.clear()

@@ -14,6 +14,6 @@ class Params(StageParams):
     column: str = "value"
 
 
-def run(source, params: Params) -> dict:  # noqa: ANN001
+def run(source, params: Params) -> dict:
     df = pd.read_csv(source.source)
     return {"table": df[[params.column]].rename(columns={params.column: "value"})}

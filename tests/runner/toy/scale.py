@@ -14,5 +14,5 @@ class Params(StageParams):
     factor: float = Field(2.0, gt=0)
 
 
-def run(table, params: Params) -> dict:  # noqa: ANN001
+def run(table, params: Params) -> dict:
     return {"table": table.assign(value=table["value"] * params.factor)}

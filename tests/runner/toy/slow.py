@@ -17,7 +17,7 @@ class Params(StageParams):
     seconds: float = 0.0
 
 
-def run(table, params: Params) -> dict:  # noqa: ANN001
+def run(table, params: Params) -> dict:
     time.sleep(params.seconds)
     rep = np.repeat(table["value"].to_numpy(), 1000)
     return {"table": pd.DataFrame({"value": rep, "i": np.arange(len(rep))})}

@@ -12,5 +12,5 @@ class Params(StageParams):
     pass
 
 
-def run(table, params: Params) -> dict:  # noqa: ANN001
+def run(table, params: Params) -> dict:
     return {"summary": {"sum": float(table["value"].sum()), "n": len(table)}}
