@@ -29,7 +29,7 @@ import os
 import time
 from collections import Counter
 from collections.abc import Iterator
-from typing import Any
+from typing import Any, Literal
 
 import numpy as np
 import pandas as pd
@@ -70,6 +70,10 @@ class Params(StageParams):
     keep_truncated: bool = Field(
         False, description="keep tags whose white quiet zone runs off the image (their corners "
         "are unreliable)")
+    small_tags: Literal["redetect", "off"] = Field(
+        "off", description="redetect: re-detect small-tag candidates (dark square blobs of "
+        "8-72 px not in a found tag) at full resolution in crops around them, for the tags "
+        "quad_decimate loses; off: the decimated pass only")
     EXECUTION_ONLY = frozenset({"workers", "chunk_size"})  # same output whatever their values
 
     workers: int = Field(0, ge=0, description="detector processes; 0 = all cores")
@@ -86,6 +90,7 @@ class Params(StageParams):
             tag_ids=None if self.tag_ids is None else tuple(sorted(set(self.tag_ids))),
             refit_corners=self.refit_corners,
             keep_truncated=self.keep_truncated,
+            small_tags=self.small_tags,
         )
 
 
