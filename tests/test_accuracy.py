@@ -66,7 +66,7 @@ def circle(folder: Path, **sim: Any) -> dict[str, Any]:
     simulate("circle", folder / "data", **sim)  # the simulator's defaults: 942 frames, seed 0
     runner = run(folder, "reference: circle\ndatasets:\n  circle:\n    source: data/circle\n"
                          "stages:\n  pnp:\n    tag_size: 0.16\n"
-                         "  optimize:\n    refine: corners\n")
+                         "  optimize:\n    method: joint\n")
     return artifact(runner, "eval", "evaluation", "circle")
 
 

@@ -94,7 +94,7 @@ class OptimizeReport(Document):
     status: int
     rms_t_m: float
     rms_r_deg: float
-    refine: str
+    method: Literal["joint", "pairwise"]
     bundle: BundleSummary | None
 
 

@@ -6,27 +6,21 @@ R_obs)]`` scaled by ``sqrt(weight)``; the robust ``loss`` acts on its norm with 
 (m). Initialised from a spanning tree of robust per-pair means; solved by scipy's ``trf`` with an
 analytic sparse Jacobian. See :mod:`tagtrail.geometry.posegraph` for the maths.
 
-``refine="corners"`` (opt-in; datasets with detections and a camera) then refines that map by
-bundle adjustment: tag poses and the camera pose of every frame showing >= 2 mapped tags,
-jointly, on the corner reprojection error (px; robust ``ba_loss`` per tag with scale
-``ba_f_scale_px``), the pose-graph map and per-frame fused camera poses as the start. The
-pairwise edges of Eq. 3.2 carry the bias of single-tag PnP -- a small tag's out-of-plane
-rotation error (~0.5-1 deg) levered over the distance to the other tag, which does not average
-out -- and the pose graph inherits it. Measured against the simulator's ground truth (tag error
-/ trajectory error, mean, seed 0): circle from detections with unbiased 0.3 px corner noise 33.4
-/ 30.7 mm with the pose graph, 3.3 / 3.1 mm refined; circle from rendered images 24.3 / 19.5 ->
-11.2 / 9.1 mm; room demo (jpeg) 14.3 / 14.9 -> 8.0 / 6.5 mm. What remains is mostly the anchor
-tag's own orientation, which world inherits (``eval``'s ``gauge_free`` block: 0.9-1.5 mm for the
-tags). ``f_scale`` no longer matters then (0.03 or 0.1: same maps to 0.1 mm). The edge residuals
-and per-tag RMS are those of the final map. ``"none"`` (default): the paper's pose graph alone.
+``method="joint"`` (the default; datasets with detections and a camera) then solves tag poses and
+the camera pose of every frame showing >= 2 mapped tags jointly on the corner reprojection error
+(px; robust ``joint_loss`` per tag with scale ``joint_f_scale_px``), starting from the pose-graph
+map and per-frame fused camera poses. The pairwise edges of Eq. 3.2 carry the bias of single-tag
+PnP (a small tag's out-of-plane rotation error levered over the distance to the other tag) and
+the pose graph inherits it; the joint solve does not (figures: bench/ and the closing notes).
+The edge residuals and per-tag RMS are those of the final map. ``"pairwise"``: the paper's pose
+graph alone, also what observation-only datasets get.
 
-The refinement needs redundancy: its gain is averaging many frames, each camera pose shared by
-its tags; from a handful of frames it averages nothing, and the shared pose couples the tags'
-model errors instead (a miscalibrated lens: a near tag fitting poorly drags the far ones). On
-the real FRC field photos (``../shared/realdata/photonvision_frc2024_field``: 3 frames per
-connected group of tags, another unit's calibration) the pose graph's distances are off the
-official layout by 1.7 % (median), the bundle-adjusted ones by 3.1 %. So it runs only with
-``ba_min_frames`` (30) frames or more showing two mapped tags.
+The joint solve needs redundancy: its gain is averaging many frames, each camera pose shared by
+its tags; from a handful of frames the shared pose couples the tags' model errors instead (a
+miscalibrated lens: a near tag fitting poorly drags the far ones; seen on the real FRC field
+photos, 3 frames per group of tags). So it runs only with ``joint_min_frames`` (30) frames or
+more showing two mapped tags; otherwise the pose-graph map is kept and the log says so.
+Old parameter names (``refine: corners|none``, ``ba_*``) still work with a deprecation line.
 """
 
 from __future__ import annotations
@@ -36,7 +30,7 @@ from typing import Any, Literal
 
 import numpy as np
 import pandas as pd
-from pydantic import Field
+from pydantic import Field, model_validator
 from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
 
@@ -63,7 +57,16 @@ TAG_MAP_COLS = columns("optimize.tag_map")
 RESIDUAL_COLS = columns("optimize.edge_residuals")
 
 
+_RENAMED = {"ba_loss": "joint_loss", "ba_f_scale_px": "joint_f_scale_px",
+            "ba_max_iter": "joint_max_iter", "ba_min_frames": "joint_min_frames"}
+_REFINE = {"corners": "joint", "none": "pairwise"}
+
+
 class Params(StageParams):
+    method: Literal["joint", "pairwise"] = "joint"
+    """``joint`` (default): the pairwise pose graph, then all tag and camera poses jointly on the
+    corner reprojection error (needs detections and a camera and ``joint_min_frames``; else the
+    pose graph is kept). ``pairwise``: the paper's pose graph alone (Eq. 3.4-3.7)."""
     loss: LossName = "soft_l1"
     """Robust loss on each edge's residual norm (Eq. 3.7): linear, soft_l1, huber, cauchy."""
     f_scale: float = Field(0.1, gt=0.0)
@@ -71,17 +74,36 @@ class Params(StageParams):
     rot_weight_m: float = Field(1.0, gt=0.0)
     """Metres of residual per radian of rotation residual (1.0: the paper's plain stacking)."""
     max_nfev: int = Field(100, ge=1)
-    refine: Literal["none", "corners"] = "none"
-    """``corners``: bundle adjustment on the tag corners after the pose graph (needs detections
-    and a camera; otherwise skipped). ``none``: the pose graph only."""
-    ba_loss: LossName = "huber"
-    """Robust loss of the bundle adjustment, on each tag's 8-vector of corner errors (px)."""
-    ba_f_scale_px: float = Field(1.0, gt=0.0)
-    """Corner error norm (px) where the bundle adjustment's loss turns sub-quadratic."""
-    ba_max_iter: int = Field(50, ge=1)
-    ba_min_frames: int = Field(30, ge=1)
-    """Frames showing >= 2 mapped tags needed for the bundle adjustment; with fewer, the pose
-    graph is kept (module docstring)."""
+    joint_loss: LossName = "huber"
+    """Robust loss of the joint solve, on each tag's 8-vector of corner errors (px)."""
+    joint_f_scale_px: float = Field(1.0, gt=0.0)
+    """Corner error norm (px) where the joint solve's loss turns sub-quadratic."""
+    joint_max_iter: int = Field(50, ge=1)
+    joint_min_frames: int = Field(30, ge=1)
+    """Frames showing >= 2 mapped tags needed for the joint solve; with fewer, the pose graph
+    is kept (module docstring)."""
+
+    @model_validator(mode="before")
+    @classmethod
+    def _old_names(cls, data: Any) -> Any:
+        """``refine: corners|none`` and ``ba_*`` still work, with one deprecation line each."""
+        if not isinstance(data, dict):
+            return data
+        out = dict(data)
+        if "refine" in out:
+            old = out.pop("refine")
+            if "method" in out:
+                raise ValueError("give optimize.method only (optimize.refine is its old name)")
+            new = _REFINE.get(old, old)
+            log.warning("optimize.refine is deprecated: use optimize.method: %s", new)
+            out["method"] = new
+        for old, new in _RENAMED.items():
+            if old in out:
+                if new in out:
+                    raise ValueError(f"give optimize.{new} only (optimize.{old} is its old name)")
+                log.warning("optimize.%s is deprecated: use optimize.%s", old, new)
+                out[new] = out.pop(old)
+        return out
 
 
 INPUTS = {
@@ -119,9 +141,9 @@ def refine_on_corners(
         return None
     m = m.sort_values(["frame_idx", "tag_id"], kind="stable")
     n_frames = m["frame_idx"].nunique()
-    if n_frames < params.ba_min_frames:
-        log.info("optimize: %d frames show two mapped tags (< ba_min_frames %d): no bundle "
-                 "adjustment, the pose-graph map is kept", n_frames, params.ba_min_frames)
+    if n_frames < params.joint_min_frames:
+        log.info("optimize: %d frames show two mapped tags (< joint_min_frames %d): no bundle "
+                 "adjustment, the pose-graph map is kept", n_frames, params.joint_min_frames)
         return None
     cam = camera
     px = m[CORNER_COLS].to_numpy(np.float64).reshape(-1, 4, 2)
@@ -136,11 +158,11 @@ def refine_on_corners(
                             uv=cam.undistort(px))
     res = bundle_adjust(
         R, t, cam_T_world[:, :3, :3], cam_T_world[:, :3, 3], ob, anchor,
-        px_per_unit=0.5 * float(cam.K[0, 0] + cam.K[1, 1]), loss=params.ba_loss,
-        f_scale_px=params.ba_f_scale_px, max_iter=params.ba_max_iter,
+        px_per_unit=0.5 * float(cam.K[0, 0] + cam.K[1, 1]), loss=params.joint_loss,
+        f_scale_px=params.joint_f_scale_px, max_iter=params.joint_max_iter,
     )
     if not res.converged:
-        log.warning("optimize: bundle adjustment stopped after %d iterations (ba_max_iter) "
+        log.warning("optimize: bundle adjustment stopped after %d iterations (joint_max_iter) "
                     "before converging", res.iters)
     block = {
         "frames": int(len(frames)),
@@ -193,7 +215,7 @@ def run(
     res = solve(g, loss=params.loss, f_scale=params.f_scale, max_nfev=params.max_nfev)
     R_map, t_map, res_t, res_r = res.R, res.t, res.res_t, res.res_r
     bundle = None
-    if (params.refine == "corners" and detections is not None and len(detections) > 0
+    if (params.method == "joint" and detections is not None and len(detections) > 0
             and camera is not None):
         out = refine_on_corners(R_map, t_map, tags, g.anchor, observations, detections, camera,
                                 params)
@@ -234,7 +256,7 @@ def run(
         "status": res.status,
         "rms_t_m": float(np.sqrt(np.mean(e_t**2))) if len(e_t) else 0.0,
         "rms_r_deg": float(np.rad2deg(np.sqrt(np.mean(e_r**2)))) if len(e_r) else 0.0,
-        "refine": params.refine if bundle is not None else "none",
+        "method": "joint" if bundle is not None else "pairwise",
         "bundle": bundle,
     }
     return {"tag_map": tag_map, "edge_residuals": residuals,

@@ -24,7 +24,7 @@ from tests.stages.mapping_scene import (
 TAG_MAP_COLS = ["tag_id", *POSE, "n_obs", "size_m", "res_t_rms_m", "res_r_rms_deg"]
 CORNERS = [f"c{k}{a}" for k in range(4) for a in "xy"]
 REPORT_KEYS = {"anchor_id", "loss", "f_scale", "cost", "nfev", "status", "rms_t_m", "rms_r_deg",
-               "refine", "bundle"}
+               "method", "bundle"}
 
 
 def paper_scene() -> Scene:
@@ -157,19 +157,31 @@ def test_corner_refinement_beats_the_pose_graph() -> None:
     e = edges.run(obs, edges.Params())
     anchor = e["graph"]["anchor_id"]
     err, reports = {}, {}
-    for refine in ("none", "corners"):
-        o = optimize.run(e["edges"], e["graph"], obs, optimize.Params(refine=refine),
+    for method in ("pairwise", "joint"):
+        o = optimize.run(e["edges"], e["graph"], obs, optimize.Params(method=method),
                          detections=det, camera=CAMERA)
-        err[refine] = tag_errors(scene, o["tag_map"], anchor)[0].mean()
-        reports[refine] = o["report"]
-    assert err["corners"] < 0.35 * err["none"] and err["corners"] < 0.025
-    assert reports["none"]["refine"] == "none" and reports["none"]["bundle"] is None
-    ba = reports["corners"]["bundle"]
-    assert reports["corners"]["refine"] == "corners" and ba["converged"]
+        err[method] = tag_errors(scene, o["tag_map"], anchor)[0].mean()
+        reports[method] = o["report"]
+    assert err["joint"] < 0.35 * err["pairwise"] and err["joint"] < 0.025
+    assert reports["pairwise"]["method"] == "pairwise" and reports["pairwise"]["bundle"] is None
+    ba = reports["joint"]["bundle"]
+    assert reports["joint"]["method"] == "joint" and ba["converged"]
     # rms_px: RMS corner distance, sqrt(2) * 0.3 px less what the fit absorbs
     assert ba["observations"] == len(obs) and 0.3 < ba["rms_px"] < 0.42
     # Without detections (an observations dataset) the pose graph is the map.
-    o = optimize.run(e["edges"], e["graph"], obs, optimize.Params(refine="corners"),
-                     detections=det.iloc[:0],
+    o = optimize.run(e["edges"], e["graph"], obs, optimize.Params(), detections=det.iloc[:0],
                      camera=None)
-    assert o["report"]["refine"] == "none"
+    assert o["report"]["method"] == "pairwise"
+
+
+def test_joint_is_the_default_and_old_names_still_work(caplog: pytest.LogCaptureFixture) -> None:
+    assert optimize.Params().method == "joint"
+    with caplog.at_level("WARNING"):
+        old = optimize.Params.model_validate({"refine": "none", "ba_f_scale_px": 2.0})
+    assert old.method == "pairwise" and old.joint_f_scale_px == 2.0
+    assert "optimize.refine is deprecated: use optimize.method: pairwise" in caplog.text
+    assert "optimize.ba_f_scale_px is deprecated: use optimize.joint_f_scale_px" in caplog.text
+    assert optimize.Params.model_validate({"refine": "corners"}).key_dump() == \
+        optimize.Params().key_dump()  # the same cache key under either spelling
+    with pytest.raises(ValueError, match="give optimize.method only"):
+        optimize.Params.model_validate({"refine": "none", "method": "joint"})
