@@ -28,6 +28,7 @@ EXAMPLES = {
     "status": "examples:\n  tagtrail status\n  tagtrail status -p my_pipeline.yaml",
     "dag": "examples:\n  tagtrail dag\n  tagtrail dag --mermaid > dag.mmd",
     "show": "examples:\n  tagtrail show extract\n  tagtrail show pnp --dataset query\n"
+    "  tagtrail show extract -S extract.quad_decimate=1.0   # the artifact that run made\n"
     "  tagtrail show extract --csv detections.csv",
 }
 
@@ -106,6 +107,11 @@ def _pipeline_arg(p: argparse.ArgumentParser) -> None:
     p.add_argument("-p", "--pipeline", default="pipeline.yaml", help="pipeline file")
 
 
+def _set_arg(p: argparse.ArgumentParser) -> None:
+    p.add_argument("-S", "--set", action="append", metavar="STAGE.PARAM=VALUE",
+                   help="override a stage parameter, as for `run` (repeatable)")
+
+
 def build_parser(command: str | None = None) -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog="tagtrail",
@@ -120,8 +126,7 @@ def build_parser(command: str | None = None) -> argparse.ArgumentParser:
     p = _sub(sp, "run", "bring the pipeline's stages up to date (make-style)")
     p.add_argument("stages", nargs="*", metavar="STAGE", help="stages to run (with ancestors)")
     _pipeline_arg(p)
-    p.add_argument("-S", "--set", action="append", metavar="STAGE.PARAM=VALUE",
-                   help="override a stage parameter (repeatable)")
+    _set_arg(p)
     p.add_argument("--force", action="store_true", help="rerun even if up to date")
     p.add_argument("--dry-run", action="store_true", help="say what would run and why")
     p.add_argument("-j", "--jobs", type=int, default=1, help="stages run in parallel")
@@ -130,17 +135,19 @@ def build_parser(command: str | None = None) -> argparse.ArgumentParser:
 
     p = _sub(sp, "status", "which stages are up to date, and why the others are not")
     _pipeline_arg(p)
-    p.add_argument("-S", "--set", action="append", metavar="STAGE.PARAM=VALUE")
+    _set_arg(p)
     p.set_defaults(func=cmd_status)
 
     p = _sub(sp, "dag", "print the stage graph")
     _pipeline_arg(p)
+    _set_arg(p)
     p.add_argument("--mermaid", action="store_true", help="mermaid flowchart")
     p.set_defaults(func=cmd_dag)
 
     p = _sub(sp, "show", "inspect a stage's artifact: schema, rows, head, statistics")
     p.add_argument("stage")
     _pipeline_arg(p)
+    _set_arg(p)
     p.add_argument("--dataset", default=None, help="dataset (default: the reference)")
     p.add_argument("--output", default=None, help="which output of the stage")
     p.add_argument("--csv", type=Path, default=None, help="export the table to CSV")

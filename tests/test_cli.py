@@ -90,3 +90,19 @@ def test_every_entry_point_reports_an_unexpected_error_on_one_line(tmp_path: Pat
     log = Path(err[0].rsplit("(traceback in ", 1)[1].rstrip(")"))
     assert "Traceback" in log.read_text()
     log.unlink()
+
+
+def test_show_and_dag_take_the_same_overrides_as_run(bags, tmp_path, monkeypatch, capsys):
+    """`run extract -S …` then `show extract -S …` inspects the artifact that run just made."""
+    monkeypatch.chdir(tmp_path)
+    Path("pipeline.yaml").write_text(f"datasets:\n  reference: {{source: {bags / 'reference'}}}\n")
+    override = ["-S", "extract.min_decision_margin=5"]
+    assert main(["run", "extract", *override]) == 0
+    capsys.readouterr()
+    assert main(["show", "extract", *override]) == 0
+    assert "extract [reference]  artifact" in capsys.readouterr().out
+    assert main(["show", "extract"]) == 2  # the default parameters' artifact was never made
+    assert "not up to date" in one_error_line(capsys)
+    assert main(["dag", *override]) == 0
+    assert main(["dag", "-S", "extract.min_decision_margin=-1"]) == 2
+    assert "min_decision_margin" in one_error_line(capsys)

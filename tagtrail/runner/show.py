@@ -54,7 +54,8 @@ def show(
             )
     key = runner.key_of(stage, dataset)
     if key is None:
-        raise SpecError(f"{stage} [{dataset}] is not up to date: run `tagtrail run {stage}` first")
+        raise SpecError(f"{stage} [{dataset}] is not up to date: run `tagtrail run {stage}` first "
+                        "(with the same -S overrides, if any)")
     print(f"{stage} [{dataset}]  artifact {key[:12]}  ({runner.store.entry(stage, key)})")
     for name in names:
         value = runner.store.load(stage, key, name)
