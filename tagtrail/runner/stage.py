@@ -97,6 +97,7 @@ def _parse(path: str, mtime_ns: int, size: int) -> tuple[str, tuple[tuple[str, s
     return digest, tuple(imports)
 
 
+@functools.lru_cache(maxsize=1024)
 def _origin(name: str) -> str | None:
     """The source file of an importable module, or None (not a module, or no source)."""
     try:

@@ -21,7 +21,6 @@ poses are the offline trajectory stage's (tests/stream/test_live_offline.py).
 from __future__ import annotations
 
 import logging
-import struct
 from collections import Counter
 from dataclasses import dataclass, field
 from typing import Any
@@ -45,6 +44,7 @@ from tagtrail.stages import trajectory as trajectory_stage
 from tagtrail.stream import codec
 from tagtrail.stream.stats import DropError, Stats
 from tagtrail.vision.detector import filter_detections
+from tagtrail.vision.images import encoded_size
 
 log = logging.getLogger("tagtrail.stream")
 F64 = NDArray[np.float64]
@@ -218,39 +218,6 @@ class Localizer:
                                           *q.tolist()))]  # fmt: skip
 
 
-_PNG = b"\x89PNG\r\n\x1a\n"
-# JPEG start-of-frame markers (C4 DHT, C8 JPG, CC DAC are not frames)
-_SOF = frozenset(range(0xC0, 0xD0)) - {0xC4, 0xC8, 0xCC}
-
-
-def encoded_size(data: bytes) -> tuple[int, int] | None:
-    """``(width, height)`` from a PNG's IHDR or a JPEG's start-of-frame, without decoding;
-    None if ``data`` is neither (or its header is cut)."""
-    if data[:8] == _PNG:
-        if data[12:16] != b"IHDR" or len(data) < 24:
-            return None
-        w, h = struct.unpack_from(">II", data, 16)
-        return w, h
-    if data[:2] != b"\xff\xd8":
-        return None
-    i = 2
-    while i + 9 <= len(data):
-        if data[i] != 0xFF:
-            return None
-        marker = data[i + 1]
-        if marker == 0xFF:  # fill byte
-            i += 1
-            continue
-        if marker in (0xD9, 0xDA):  # end of image, start of scan: no frame header before
-            return None
-        if marker == 0x01 or 0xD0 <= marker <= 0xD8:  # markers without a length
-            i += 2
-            continue
-        if marker in _SOF:  # length (2), precision (1), height (2), width (2)
-            h, w = struct.unpack_from(">HH", data, i + 5)
-            return (w, h) if w and h else None  # height 0: given later by a DNL (unsupported)
-        i += 2 + struct.unpack_from(">H", data, i + 2)[0]
-    return None
 
 
 def cv2_threads() -> None:

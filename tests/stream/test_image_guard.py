@@ -15,10 +15,11 @@ import pytest
 from tagtrail.io.layouts import read_tag_map
 from tagtrail.sim.simulate import simulate
 from tagtrail.stream import codec
-from tagtrail.stream.localize import MAX_IMAGE_SIDE, Localizer, encoded_size
+from tagtrail.stream.localize import MAX_IMAGE_SIDE, Localizer
 from tagtrail.stream.replay import bag_messages
 from tagtrail.stream.session import wait_matching
 from tagtrail.stream.stats import DropError
+from tagtrail.vision.images import encoded_size
 from tests.stream.helpers import Collector, free_port, loopback, running
 
 INFO_KEY = "camera/color/camera_info"
