@@ -29,3 +29,12 @@ def test_missing_columns_and_bad_types_are_named() -> None:
 def test_schema_column_names_are_unique() -> None:
     for name, schema in SCHEMAS.items():
         assert len(set(schema.names)) == len(schema.names), name
+
+
+def test_documents_read_like_their_json() -> None:
+    from tagtrail.schemas.documents import AlignmentBlock
+
+    al = AlignmentBlock(model="none", scale=1.0, rotation_deg=0.0, translation=[0.0, 0.0],
+                        inliers=0, common_tags=3, rms_m=None)
+    assert "scale" in al and "nope" not in al
+    assert al["common_tags"] == 3 and al.get("nope", 7) == 7
