@@ -19,6 +19,7 @@ scenarios (recordings written under OUT):
   circle        24 tags around a circular path (paper's simulation)     -> circle
   room          loop in a room + 3 parked test poses (the demo)          -> reference, query_1..3
   corridor      long path, one or two tags in view at a time             -> corridor
+  hall          sparse: tags flat on both walls, 1-3 in view, U-turn    -> hall
   observations  cam_T_tag observations from rigid transforms (+ noise)  -> observations
 
 examples:

@@ -3,9 +3,10 @@
 ``circle``: 24 tags on a ring (r = 2.3 m) around a circular path (r = 1.5 m), the paper's
 simulation experiment. ``room``: a closed loop in a 5 x 4 m room with 18 wall tags (``reference``)
 plus three parked queries ``query_1..3``. ``corridor``: a 15 m corridor with tags on boards,
-one or two in view at a time. ``observations``: the circle's tags and path, written as
-camera-to-tag observations instead of images. The anchor (default: the first tag) is upright on a
-wall/board, so the floor is the x–z plane of ``world``.
+one or two in view at a time. ``hall``: a 14 x 2.4 m hall with tags flat on both walls (seen
+obliquely, one to three at a time), driven out and back with a U-turn. ``observations``: the
+circle's tags and path, written as camera-to-tag observations instead of images. The anchor
+(default: the first tag) is upright on a wall/board, so the floor is the x–z plane of ``world``.
 """
 
 from __future__ import annotations
@@ -38,11 +39,12 @@ from tagtrail.sim.scene import (
 )
 from tagtrail.stages import pnp
 
-SCENARIOS = ("circle", "room", "corridor", "observations")
+SCENARIOS = ("circle", "room", "corridor", "hall", "observations")
 RECORDINGS = {
     "circle": ("circle",),
     "room": ("reference", "query_1", "query_2", "query_3"),
     "corridor": ("corridor",),
+    "hall": ("hall",),
     "observations": ("observations",),
 }
 # Parked test poses of the room: (fraction of the loop, offset to the left m, turn deg).
@@ -211,6 +213,31 @@ def corridor(opts: SimOptions) -> list[Scene]:
     return [_moving("corridor", poly, False, tags, walls, anchor, opts, info)]
 
 
+def hall(opts: SimOptions) -> list[Scene]:
+    """The sparse scene of issue 12: a 14 x 2.4 m hall, 28 tags flat on its walls (0.8 m apart on
+    each wall from x = 2.2 m, staggered by 0.4 m across, 0.30/0.36 m high), so a forward-looking
+    camera sees them obliquely (50-65 deg incidence) and one to three at a time (about a third
+    of the frames that see a tag see one). The robot drives 12.2 m out 0.3 m right of the centre
+    line, U-turns (radius 0.3 m, no tag in view) and drives 9 m back 0.3 m left of it."""
+    length, width, lane, step = 14.0, 2.4, 0.3, 0.8
+    poses = []
+    for side, first in ((1.0, 2.6), (-1.0, 2.2)):  # left (+y) wall (the anchor first), right
+        for i, x in enumerate(np.arange(first, 13.01, step)):
+            poses.append(upright_pose(np.array([x, side * width / 2, 0.30 + 0.06 * (i % 2)]),
+                                      np.array([0.0, -side])))
+    tags, anchor = _tags(poses, opts)
+    walls = box_walls(0.0, -width / 2, length, width / 2, height_m=2.5)
+    x_turn = 12.5
+    a = np.linspace(-np.pi / 2, np.pi / 2, 181)[1:-1]
+    poly = np.vstack([np.stack([np.linspace(0.3, x_turn, 1220), np.full(1220, -lane)], -1),
+                      np.stack([x_turn + lane * np.cos(a), lane * np.sin(a)], -1),
+                      np.stack([np.linspace(x_turn, 3.5, 900), np.full(900, lane)], -1)])
+    poly = ease_curvature(poly, False, ROOM_CURVATURE_RAMP_M)
+    info = {"scenario": "hall", "hall_m": [length, width], "lane_offset_m": lane,
+            "tag_spacing_m": step}
+    return [_moving("hall", poly, False, tags, walls, anchor, opts, info)]
+
+
 def build(scenario: str, opts: SimOptions) -> list[Scene]:
     """The scenes (recordings) of ``scenario``."""
     if scenario == "circle":
@@ -219,6 +246,8 @@ def build(scenario: str, opts: SimOptions) -> list[Scene]:
         return room(opts)
     if scenario == "corridor":
         return corridor(opts)
+    if scenario == "hall":
+        return hall(opts)
     if scenario == "observations":
         scene = circle(opts, name="observations")[0]
         return [replace(scene, info={**scene.info, "scenario": "observations"})]

@@ -83,7 +83,7 @@ def test_corridor_sees_one_or_two_tags_and_stays_connected() -> None:
 
 
 def test_world_is_the_anchor_frame_with_the_floor_as_its_xz_plane() -> None:
-    for name in ("circle", "room", "corridor"):
+    for name in ("circle", "room", "corridor", "hall"):
         scene = build(name, SimOptions(frames=50))[0]
         world_T_cam = scene.world_T_cam()
         # camera y (down) is world -y: the anchor tag is upright, so world y is "up"
