@@ -1,0 +1,90 @@
+"""Benchmark (issue 12): the whole recording phase on a 9,000-frame (5 min at 30 Hz) detections
+recording, wall time and peak memory vs the targets (< 30 s, < 1.5 GB), median of 3.
+
+The recording: ``tagtrail simulate room --detections --frames 9000`` (one slow lap of the room,
+~4 tags per frame, ~36k detections), mapped with the pipeline ``tagtrail init`` writes. Each
+repeat starts from an empty artifact store (``artifacts/`` and ``outputs/`` removed: nothing
+cached, the source hashed again) and runs ``tagtrail run`` (extract .. smooth and eval) in a child
+process; wall time is measured around it, peak RSS is the child's ``ru_maxrss`` from
+``os.wait4`` (the largest resident set of the child and any process it waited for).
+
+Per-stage times come from the run log (``artifacts/runs/last_run.json``) of one more run with
+``-j 2``: with the default ``-j 1`` it reports ~0 s per stage (the serial executor runs a node
+inside ``submit``, before the runner starts its clock).
+Run: ``.venv/bin/python bench/bench_scale.py [--frames 9000] [--repeats 3] [--keep DIR]``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import shutil
+import statistics
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+BIN = Path(sys.executable).parent
+TARGET_S, TARGET_GB = 30.0, 1.5
+
+
+def timed_run(project: Path, *args: str) -> tuple[float, float, str]:
+    """(wall s, peak RSS GB, stdout) of ``tagtrail run ARGS`` in ``project`` from scratch."""
+    for d in ("artifacts", "outputs"):
+        shutil.rmtree(project / d, ignore_errors=True)
+    with tempfile.TemporaryFile() as out, tempfile.TemporaryFile() as err:
+        t0 = time.perf_counter()
+        proc = subprocess.Popen([str(BIN / "tagtrail"), "run", *args], cwd=project,
+                                stdout=out, stderr=err)
+        _, status, usage = os.wait4(proc.pid, 0)
+        wall = time.perf_counter() - t0
+        proc.returncode = os.waitstatus_to_exitcode(status)
+        out.seek(0)
+        err.seek(0)
+        if proc.returncode != 0:
+            raise RuntimeError(f"tagtrail run failed ({proc.returncode}):\n{err.read().decode()}")
+        return wall, usage.ru_maxrss / 2**20, out.read().decode()  # ru_maxrss: KiB on Linux
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--frames", type=int, default=9000)
+    ap.add_argument("--repeats", type=int, default=3)
+    ap.add_argument("--keep", type=Path, help="work in DIR and keep it")
+    args = ap.parse_args()
+    work = args.keep or Path(tempfile.mkdtemp(prefix="tagtrail-bench-scale-"))
+    work.mkdir(parents=True, exist_ok=True)
+    try:
+        t0 = time.perf_counter()
+        subprocess.run([str(BIN / "tagtrail"), "simulate", "room", "--out", "sim", "--detections",
+                        "--frames", str(args.frames), "--query-frames", "2", "--no-progress",
+                        "--force"], cwd=work, check=True, capture_output=True)
+        subprocess.run([str(BIN / "tagtrail"), "init", "--reference", "sim/reference", "--force"],
+                       cwd=work, check=True, capture_output=True)
+        print(f"recording: room --detections --frames {args.frames} "
+              f"(simulated in {time.perf_counter() - t0:.1f} s)")
+        walls, rss = [], []
+        for i in range(args.repeats):
+            wall, gb, _ = timed_run(work)
+            walls.append(wall)
+            rss.append(gb)
+            print(f"  run {i + 1}: {wall:6.2f} s, peak RSS {gb:.3f} GB", flush=True)
+        timed_run(work, "-j", "2")
+        stages = json.loads((work / "artifacts" / "runs" / "last_run.json").read_text())
+        wall, gb = statistics.median(walls), statistics.median(rss)
+        print("per stage (-j 2 run): " + ", ".join(
+            f"{s['stage']} {s['seconds']:.2f} s" for s in stages))
+        print(f"recording phase, median of {args.repeats}: {wall:.2f} s "
+              f"(target < {TARGET_S:.0f} s: {'yes' if wall < TARGET_S else 'no'}), "
+              f"peak RSS {gb:.3f} GB (target < {TARGET_GB} GB: "
+              f"{'yes' if gb < TARGET_GB else 'no'})")
+    finally:
+        if args.keep is None:
+            shutil.rmtree(work, ignore_errors=True)
+
+
+if __name__ == "__main__":
+    main()
