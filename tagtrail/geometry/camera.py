@@ -70,6 +70,11 @@ class CameraModel:
         object.__setattr__(self, "width", int(self.width))
         object.__setattr__(self, "height", int(self.height))
 
+    @property
+    def focal_px(self) -> float:
+        """Pixels per unit of normalised image coordinates (the mean focal length)."""
+        return 0.5 * float(self.K[0, 0] + self.K[1, 1])
+
     # --- construction -----------------------------------------------------------------------
 
     @classmethod

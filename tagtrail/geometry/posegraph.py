@@ -21,8 +21,8 @@ analytic and sparse (right perturbations, see :mod:`tagtrail.geometry.rotations`
 with ``E = R_pred^T R_obs``. Solved with ``scipy.optimize.least_squares`` (``trf``, LSMR on the
 sparse Jacobian).
 
-:func:`bundle_adjust` then refines such a map on the tags' corners themselves, jointly with the
-camera poses (stage ``optimize``, ``refine="corners"``).
+:mod:`tagtrail.geometry.bundle` then refines such a map on the tags' corners themselves, jointly
+with the camera poses (stage ``optimize``, ``method="joint"``).
 """
 
 from __future__ import annotations
@@ -32,9 +32,8 @@ from dataclasses import dataclass
 
 import numpy as np
 from scipy.optimize import least_squares
-from scipy.sparse import coo_matrix, csr_matrix
+from scipy.sparse import csr_matrix
 from scipy.sparse.csgraph import dijkstra
-from scipy.sparse.linalg import spsolve
 
 from tagtrail.errors import DataError
 from tagtrail.geometry.arrays import F64, I64
@@ -258,170 +257,3 @@ def solve(
     return PoseGraphResult(
         R, t, r_t, r_r, float(sol.cost), int(sol.nfev), int(sol.status), str(sol.message)
     )
-
-
-# --- refinement on tag corners (bundle adjustment) ---------------------------------------------
-
-
-@dataclass(frozen=True)
-class CornerObservations:
-    """Tag corners seen in frames: observation ``o`` is tag ``tag[o]`` (index ``0..T-1``) in frame
-    ``frame[o]`` (index ``0..F-1``), its corners ``pts_tag (O, 4, 3)`` (tag frame, m) seen at
-    ``uv (O, 4, 2)`` (undistorted normalised image coordinates, ``x/z, y/z``)."""
-
-    frame: I64
-    tag: I64
-    pts_tag: F64
-    uv: F64
-
-
-@dataclass(frozen=True)
-class BundleResult:
-    """Refined ``world_T_tag`` (``R_tag (T, 3, 3)``, ``t_tag (T, 3)``) and ``cam_T_world``
-    (``R_cam (F, 3, 3)``, ``t_cam (F, 3)``); ``res_px (O,)``: RMS corner reprojection error of
-    each observation (px); ``cost``: robust cost (px^2); ``iters``: accepted LM steps."""
-
-    R_tag: F64
-    t_tag: F64
-    R_cam: F64
-    t_cam: F64
-    res_px: F64
-    cost: float
-    iters: int
-    converged: bool
-
-
-def _project(R_cam: F64, t_cam: F64, R_tag: F64, t_tag: F64, ob: CornerObservations
-             ) -> tuple[F64, F64, F64]:
-    """Residuals ``(O, 4, 2)`` (normalised), points in world and camera frames ``(O, 4, 3)``."""
-    pts_w = np.einsum("oij,okj->oki", R_tag[ob.tag], ob.pts_tag) + t_tag[ob.tag][:, None]
-    pts_c = np.einsum("oij,okj->oki", R_cam[ob.frame], pts_w) + t_cam[ob.frame][:, None]
-    z = np.where(pts_c[..., 2:3] > 1e-9, pts_c[..., 2:3], 1e-9)
-    return pts_c[..., :2] / z - ob.uv, pts_w, pts_c
-
-
-def _same_frame_pairs(frame: I64) -> tuple[I64, I64]:
-    """All ordered pairs ``(a, b)`` of observations in the same frame, ``a == b`` included."""
-    order = np.argsort(frame, kind="stable")
-    f = frame[order]
-    starts = np.flatnonzero(np.r_[True, f[1:] != f[:-1]])
-    size = np.diff(np.r_[starts, len(f)])
-    grp = np.repeat(np.arange(len(starts)), size)  # frame group of each sorted observation
-    reps = size[grp]  # each observation pairs with every member of its group
-    a = np.repeat(np.arange(len(f)), reps)
-    b = starts[grp][a] + np.arange(len(a)) - np.repeat(np.cumsum(reps) - reps, reps)
-    return order[a], order[b]
-
-
-def bundle_adjust(
-    R_tag: F64,
-    t_tag: F64,
-    R_cam: F64,
-    t_cam: F64,
-    ob: CornerObservations,
-    anchor: int,
-    *,
-    px_per_unit: float,
-    loss: LossName = "huber",
-    f_scale_px: float = 1.0,
-    max_iter: int = 50,
-) -> BundleResult:
-    """Jointly refine tag poses and camera poses on the corner reprojection error.
-
-    ``min sum_o f^2 rho(|r_o|^2 / f^2)``, ``r_o = px_per_unit * (pi(cam_T_world world_T_tag X) -
-    uv)`` the 8-vector of observation ``o`` in pixels (``px_per_unit``: focal length), ``rho`` a
-    robust loss on the whole tag (an outlier detection is down-weighted as one), ``f`` =
-    ``f_scale_px``. Tag ``anchor`` stays fixed (the gauge). This is the maximum-likelihood map
-    under Gaussian corner noise: unlike the pairwise relative poses of Eq. 3.2 it does not inherit
-    the bias of single-tag PnP (a small tag's out-of-plane rotation, levered over the distance to
-    the other tag), because each camera pose is shared by every tag of its frame (Triggs et al.,
-    "Bundle adjustment -- a modern synthesis", 2000).
-
-    Levenberg-Marquardt with IRLS weights; camera poses are eliminated per frame (Schur
-    complement), leaving a sparse ``6T x 6T`` system in the tags (blocks of co-visible tags).
-    Left perturbations: ``R <- Exp(w) R``, ``t <- Exp(w) t + v`` for both ``cam_T_world`` and
-    ``world_T_tag``.
-    """
-    n_f, n_t, n_o = len(R_cam), len(R_tag), len(ob.frame)
-    free = np.flatnonzero(np.arange(n_t) != anchor)
-    cols = (6 * free[:, None] + np.arange(6)).reshape(-1)
-    pa, pb = _same_frame_pairs(ob.frame)
-    k6 = np.arange(6)
-    # Sparse reduced system in the free tags: co-visibility blocks, then the diagonal blocks.
-    ta, tb = np.r_[ob.tag[pa], np.arange(n_t)], np.r_[ob.tag[pb], np.arange(n_t)]
-    shape = (len(ta), 6, 6)
-    s_rows = np.broadcast_to((6 * ta)[:, None, None] + k6[:, None], shape).reshape(-1)
-    s_cols = np.broadcast_to((6 * tb)[:, None, None] + k6[None, :], shape).reshape(-1)
-    eye3 = np.broadcast_to(np.eye(3), (n_o, 4, 3, 3))
-    f2 = f_scale_px**2
-
-    def evaluate(Rc: F64, tc: F64, Rt: F64, tt: F64) -> tuple[float, F64, F64, F64, F64]:
-        r, pw, pc = _project(Rc, tc, Rt, tt, ob)
-        sq = np.sum(r * r, axis=(1, 2)) * px_per_unit**2
-        bad = (pc[..., 2] <= 1e-6).any(axis=1)  # behind the camera: an outlier, no gradient
-        val, w = rho(loss, np.where(bad, 1e12, sq) / f2)
-        return float(f2 * val.sum()), r, pw, pc, np.where(bad, 0.0, w)
-
-    cost, r, pw, pc, w = evaluate(R_cam, t_cam, R_tag, t_tag)
-    lam, it, converged = 1e-4, 0, not (len(free) and n_o)
-    while it < max_iter and len(free) and n_o:
-        z = pc[..., 2]
-        Jp = np.zeros((n_o, 4, 2, 3))
-        Jp[..., 0, 0] = Jp[..., 1, 1] = 1.0 / z
-        Jp[..., 2] = -pc[..., :2] / (z * z)[..., None]
-        Jc = (Jp @ np.concatenate([-hat(pc), eye3], axis=-1)).reshape(n_o, 8, 6)
-        Jt = (Jp @ R_cam[ob.frame][:, None] @ np.concatenate([-hat(pw), eye3], axis=-1))
-        Jt = Jt.reshape(n_o, 8, 6)
-        rv = r.reshape(n_o, 8)
-        W = w[:, None, None]
-        Hcc = _sum_blocks(np.einsum("oki,okj->oij", Jc, Jc) * W, ob.frame, n_f)
-        Htt = _sum_blocks(np.einsum("oki,okj->oij", Jt, Jt) * W, ob.tag, n_t)
-        Hct = np.einsum("oki,okj->oij", Jc, Jt) * W
-        gc = _sum_blocks(np.einsum("oki,ok->oi", Jc, rv) * w[:, None], ob.frame, n_f)
-        gt = _sum_blocks(np.einsum("oki,ok->oi", Jt, rv) * w[:, None], ob.tag, n_t)
-        while True:
-            Hinv = np.linalg.inv(Hcc + lam * Hcc * np.eye(6) + 1e-12 * np.eye(6))
-            M = Hinv[ob.frame] @ Hct  # (O, 6, 6)
-            vals = np.r_[-np.einsum("pji,pjk->pik", Hct[pa], M[pb]).reshape(-1),
-                         (Htt + lam * Htt * np.eye(6) + 1e-12 * np.eye(6)).reshape(-1)]
-            S = coo_matrix((vals, (s_rows, s_cols)), shape=(6 * n_t, 6 * n_t)).tocsr()
-            y = np.einsum("fij,fj->fi", Hinv, gc)
-            b = _sum_blocks(np.einsum("oji,oj->oi", Hct, y[ob.frame]), ob.tag, n_t) - gt
-            dt = np.zeros(6 * n_t)
-            dt[cols] = spsolve(S[cols][:, cols].tocsc(), b.reshape(-1)[cols])
-            if not np.isfinite(dt).all():  # singular (a tag left without weight): no step
-                dt[:] = 0.0
-            dt6 = dt.reshape(n_t, 6)
-            rhs = -gc - _sum_blocks(np.einsum("oij,oj->oi", Hct, dt6[ob.tag]), ob.frame, n_f)
-            dc = np.einsum("fij,fj->fi", Hinv, rhs)
-            Rc, tc = _left_update(R_cam, t_cam, dc)
-            Rt, tt = _left_update(R_tag, t_tag, dt6)
-            new = evaluate(Rc, tc, Rt, tt)
-            if new[0] <= cost or lam > 1e8:
-                break
-            lam *= 10.0
-        if new[0] > cost:
-            converged = True  # no descent left at any damping: a (local) minimum
-            break
-        step = max(np.abs(dt).max(), np.abs(dc).max(initial=0.0))
-        done = cost - new[0] <= 1e-10 * cost or step < 1e-12
-        R_cam, t_cam, R_tag, t_tag = Rc, tc, Rt, tt
-        cost, r, pw, pc, w = new
-        it, lam = it + 1, max(lam / 10.0, 1e-9)
-        if done:
-            converged = True
-            break
-    res_px = np.sqrt(np.mean(np.sum(r * r, axis=2), axis=1)) * px_per_unit
-    return BundleResult(R_tag, t_tag, R_cam, t_cam, res_px, cost, it, converged)
-
-
-def _sum_blocks(x: F64, idx: I64, n: int) -> F64:
-    """``out[k] = sum of x[o] with idx[o] == k`` for blocks ``x (O, ...)``."""
-    flat = x.reshape(len(x), -1)
-    out = np.stack([np.bincount(idx, flat[:, c], n) for c in range(flat.shape[1])], axis=1)
-    return out.reshape((n, *x.shape[1:]))
-
-
-def _left_update(R: F64, t: F64, d: F64) -> tuple[F64, F64]:
-    dR = R_from_rotvec(d[:, :3])
-    return dR @ R, np.einsum("nij,nj->ni", dR, t) + d[:, 3:]

@@ -279,12 +279,35 @@ def _stamp_text(t_ns: int) -> str:
 # --- tag maps ---------------------------------------------------------------------------------
 
 
+STD_COLS = ["std_pos_m", "std_rot_deg"]  # a tag's or frame's standard deviation, when known
+
+
+def _opt(x: float) -> str:
+    return _fmt(x) if np.isfinite(x) else ""
+
+
 def tag_map_csv_text(tags: pd.DataFrame) -> str:
-    lines = [",".join(_CSV_TAG_HEADER)]
+    """SPEC's columns, then ``std_pos_m,std_rot_deg`` when the map has them (empty: unknown)."""
+    std = all(c in tags.columns for c in STD_COLS)
+    lines = [",".join(_CSV_TAG_HEADER + (STD_COLS if std else []))]
     row: Any  # a namedtuple of the columns, their dtypes known at run time only
     for row in tags.itertuples(index=False):
         vals = ",".join(_fmt(getattr(row, c)) for c in POSE_COLS)
-        lines.append(f"{tag_name(row.tag_id)},{vals},{int(row.n_obs)}")
+        extra = "," + ",".join(_opt(getattr(row, c)) for c in STD_COLS) if std else ""
+        lines.append(f"{tag_name(row.tag_id)},{vals},{int(row.n_obs)}{extra}")
+    return "\n".join(lines) + "\n"
+
+
+def trajectory_std_csv_text(traj: pd.DataFrame) -> str:
+    """``trajectory_std.csv``: ``stamp_sec,stamp_nanosec,std_pos_m,std_rot_deg,n_tags`` per
+    frame (the trajectory CSV's rows; empty cells where the method gives no uncertainty)."""
+    t_ns = traj["t_ns"].to_numpy(np.int64)
+    sec, nsec = np.divmod(t_ns, 1_000_000_000)
+    lines = ["stamp_sec,stamp_nanosec," + ",".join(STD_COLS) + ",n_tags"]
+    std = traj[STD_COLS].to_numpy(np.float64)
+    n = traj["n_tags"].to_numpy(np.int64)
+    for s_, n_, (p, r), k in zip(sec, nsec, std, n, strict=True):
+        lines.append(f"{int(s_)},{int(n_)},{_opt(p)},{_opt(r)},{int(k)}")
     return "\n".join(lines) + "\n"
 
 
@@ -301,6 +324,9 @@ def tag_map_yaml_text(tags: pd.DataFrame, anchor_id: int) -> str:
         if "size_m" in tags.columns and pd.notna(row.size_m):
             entry["size"] = float(row.size_m)
         entry["n_obs"] = int(row.n_obs)
+        if all(c in tags.columns for c in STD_COLS) and np.isfinite(row.std_pos_m):
+            entry["std"] = {"position_m": float(row.std_pos_m),
+                            "orientation_deg": float(row.std_rot_deg)}
         entries[tag_name(row.tag_id)] = entry
     doc = {"world_frame": "map", "anchor_tag": tag_name(anchor_id), "tags": entries}
     return yaml.safe_dump(doc, sort_keys=False)

@@ -117,13 +117,17 @@ def write_map_png(
     axis_names: tuple[str, str] = ("u", "v"),
     flip_v: bool = False,
     title: str = "",
+    weak_tags: ArrayLike | None = None,
+    tag_std_m: ArrayLike | None = None,
 ) -> None:
     """``map.png``: the plane seen from above, (u, v) in m.
 
     ``ref_uv (N, 2)`` reference path; ``query_uv (M, 2)`` every (aligned) query pose; ``reloc``
     the report rows (evaluated poses, headings, nearest reference points → links); ``tags_uv
-    (K, 2)`` with ``tag_ids``. ``flip_v`` draws v downwards (when the normal points down, so
-    that the picture is seen from above rather than from below).
+    (K, 2)`` with ``tag_ids``; ``weak_tags (K,)`` (bool) are drawn apart as poorly constrained,
+    labelled with their position standard deviation ``tag_std_m (K,)``. ``flip_v`` draws v
+    downwards (when the normal points down, so that the picture is seen from above rather than
+    from below).
     """
     ref = np.asarray(ref_uv, dtype=np.float64).reshape(-1, 2)
     qry = np.asarray(query_uv, dtype=np.float64).reshape(-1, 2)
@@ -136,10 +140,19 @@ def write_map_png(
     ax.plot(*ref[-1], marker="x", color="black", markersize=8, linestyle="", label="end")
     if tags_uv is not None and len(tag_ids):
         tags = np.asarray(tags_uv, dtype=np.float64).reshape(-1, 2)
-        ax.scatter(tags[:, 0], tags[:, 1], marker="s", s=24, color="tab:orange", label="tags")
-        for (u, v), k in zip(tags, tag_ids, strict=True):
-            ax.annotate(str(k), (u, v), xytext=(0, 5), textcoords="offset points",
-                        ha="center", fontsize=7, color="#3a4a6a")  # fmt: skip
+        weak = (np.zeros(len(tags), bool) if weak_tags is None
+                else np.asarray(weak_tags, bool).reshape(-1))
+        std = (np.full(len(tags), np.nan) if tag_std_m is None
+               else np.asarray(tag_std_m, np.float64).reshape(-1))
+        ax.scatter(tags[~weak, 0], tags[~weak, 1], marker="s", s=24, color="tab:orange",
+                   label="tags")
+        if weak.any():
+            ax.scatter(tags[weak, 0], tags[weak, 1], marker="s", s=40, facecolors="none",
+                       edgecolors="tab:red", linewidths=1.5, label="poorly constrained tags")
+        for (u, v), k, w, sd in zip(tags, tag_ids, weak, std, strict=True):
+            text = f"{k} (±{100 * sd:.1f} cm)" if w and np.isfinite(sd) else str(k)
+            ax.annotate(text, (u, v), xytext=(0, 5), textcoords="offset points",
+                        ha="center", fontsize=7, color="tab:red" if w else "#3a4a6a")
     ax.scatter(qry[:, 0], qry[:, 1], s=6, color="tab:blue", alpha=0.5, label="query poses")
     step = max(1, len(pq) // 120)
     links = np.stack([pq[::step], pr[::step]], axis=1)  # (L, 2, 2)

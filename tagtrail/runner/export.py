@@ -33,6 +33,7 @@ from tagtrail.runner.execute import Runner
 from tagtrail.runner.paths import clean_temp_files, inside
 from tagtrail.runner.stage import code_fingerprint
 from tagtrail.schemas.artifacts import columns, poses
+from tagtrail.stages import optimize
 
 STAMP = ".tagtrail-export.json"
 
@@ -110,12 +111,18 @@ Getter = Callable[..., Any]
 
 
 def trajectories(get: Getter, folder: Path, dataset: str) -> bool:
-    """``trajectory.csv``, ``trajectory.tum`` (smoothed) and ``trajectory_raw.csv``."""
+    """``trajectory.csv``, ``trajectory.tum`` (smoothed) and ``trajectory_raw.csv``; with them
+    ``trajectory_std.csv`` (each frame's standard deviation) when the trajectory has one."""
     wrote = False
     smooth = get("smooth", "trajectory")
     if smooth is not None:
         layouts.write_trajectory_csv(folder / "trajectory.csv", smooth)
         layouts.write_trajectory_tum(folder / "trajectory.tum", smooth)
+        std = folder / "trajectory_std.csv"
+        if all(c in smooth.columns for c in layouts.STD_COLS) and smooth["std_pos_m"].notna().any():
+            layouts.atomic_write_text(std, layouts.trajectory_std_csv_text(smooth))
+        else:
+            std.unlink(missing_ok=True)  # not a stale one from another method's run
         wrote = True
     raw = get("trajectory", "trajectory")
     if raw is not None:
@@ -155,6 +162,27 @@ def diagnostics(get: Getter, folder: Path, dataset: str) -> bool:
         ("map_residual_rms_t_m", report.rms_t_m if report is not None else ""),
         ("map_residual_rms_r_deg", report.rms_r_deg if report is not None else ""),
     ]
+    bundle = report.bundle if report is not None else None
+    if bundle is not None:  # the joint solve
+        rows += [("map_method", "joint"), ("joint_frames", bundle.frames),
+                 ("joint_single_tag_frames", bundle.single_tag_frames),
+                 ("joint_motion_prior_frames", bundle.motion_prior_frames),
+                 ("joint_ippe_second_solution", bundle.ippe_second_solution),
+                 ("joint_corner_rms_px", bundle.rms_px),
+                 ("joint_variance_factor", bundle.variance_factor)]
+    elif report is not None:
+        rows.append(("map_method", report.method))
+    if tags is not None and "std_pos_m" in tags.columns:
+        weak = tags.loc[optimize.poorly_constrained(tags), "tag_id"].astype(int)
+        rows += [("tag_std_pos_m_median", float(tags["std_pos_m"].median())),
+                 ("tag_std_pos_m_max", float(tags["std_pos_m"].max())),
+                 ("poorly_constrained_tags", " ".join(f"tag36h11:{t}" for t in weak))]
+    if graph is not None:
+        rows.append(("weak_links", " ".join(f"tag36h11:{w.tag_i}-tag36h11:{w.tag_j}"
+                                            f"({w.n_frames})" for w in graph.weak_links)))
+    if traj is not None and "std_pos_m" in traj.columns and traj["std_pos_m"].notna().any():
+        rows += [("frame_std_pos_m_median", float(traj["std_pos_m"].median())),
+                 ("frame_std_pos_m_max", float(traj["std_pos_m"].max()))]
     text = "metric,value\n" + "".join(f"{k},{v}\n" for k, v in rows)
     layouts.atomic_write_text(folder / "diagnostics.csv", text)
     return True
@@ -175,6 +203,8 @@ def recording_map(get: Getter, folder: Path, dataset: str) -> bool:
         folder / "map.png", plane.to_uv(P), np.zeros((0, 2)), empty,
         plane.to_uv(tags[["x_m", "y_m", "z_m"]].to_numpy()), tags["tag_id"].astype(int).tolist(),
         ("u", "v"), flip_v, f"{dataset}: trajectory and tag map (plane auto, seen from above)",
+        weak_tags=optimize.poorly_constrained(tags),
+        tag_std_m=tags["std_pos_m"].to_numpy(np.float64) if "std_pos_m" in tags else None,
     )  # fmt: skip
     return True
 

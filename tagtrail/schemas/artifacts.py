@@ -13,9 +13,9 @@ import pandas as pd
 import pyarrow as pa
 from numpy.typing import NDArray
 
-from tagtrail.geometry.se3 import R_from_quat_xyzw
+from tagtrail.geometry.se3 import R_from_quat_xyzw, T_from_xyz_quat
 
-VERSION = 1
+VERSION = 2
 
 I32, I64, F64 = pa.int32(), pa.int64(), pa.float64()
 POSE = [("x_m", F64), ("y_m", F64), ("z_m", F64), ("qx", F64), ("qy", F64), ("qz", F64),
@@ -40,7 +40,7 @@ SCHEMAS: dict[str, pa.Schema] = {
     ),
     "optimize.tag_map": pa.schema(
         [("tag_id", I32), *POSE, ("n_obs", I64), ("size_m", F64), ("res_t_rms_m", F64),
-         ("res_r_rms_deg", F64)]  # fmt: skip
+         ("res_r_rms_deg", F64), ("std_pos_m", F64), ("std_rot_deg", F64)]  # fmt: skip
     ),
     "optimize.edge_residuals": pa.schema(
         [("tag_i", I32), ("tag_j", I32), ("t_ns", I64), ("res_t_m", F64), ("res_r_deg", F64)]
@@ -106,3 +106,31 @@ def conform(name: str, df: pd.DataFrame) -> pa.Table:
     return pa.Table.from_arrays(
         cols + [table[c] for c in extra], names=schema.names + extra
     )
+
+
+def corner_rows(observations: pd.DataFrame, detections: pd.DataFrame,
+                tags: NDArray[np.int64]) -> pd.DataFrame:
+    """``pnp.observations`` rows of the mapped ``tags`` joined with their corners
+    (``CORNER_COLS``), with a finite pose and size; one row per (frame, tag) -- a tag seen
+    twice in a frame is ambiguous and left out -- in (time, frame, tag) order."""
+    obs = observations[observations["tag_id"].isin(tags)]
+    obs = obs[~obs.duplicated(["frame_idx", "tag_id"], keep=False)]
+    det = detections.drop_duplicates(["frame_idx", "tag_id"], keep=False)
+    m = obs.merge(det[["frame_idx", "tag_id", *CORNER_COLS]], on=["frame_idx", "tag_id"])
+    m = m[np.isfinite(m[CORNER_COLS].to_numpy(np.float64)).all(axis=1)
+          & np.isfinite(m[POSE_COLS].to_numpy(np.float64)).all(axis=1)]
+    m = m[np.isfinite(m["size_m"].to_numpy(np.float64)) & (m["size_m"] > 0)]
+    out: pd.DataFrame = m.sort_values(["t_ns", "frame_idx", "tag_id"], kind="stable")
+    return out.reset_index(drop=True)
+
+
+def both_solutions(rows: pd.DataFrame) -> NDArray[np.float64]:
+    """``cam_T_tag`` ``(N, 2, 4, 4)``: both IPPE solutions of ``pnp.observations`` rows (the
+    second NaN where the source gave one pose)."""
+    pose, alt, _, _ = ippe_solutions(rows)
+    out = np.full((len(rows), 2, 4, 4), np.nan)
+    out[:, 0] = T_from_xyz_quat(pose[:, :3], pose[:, 3:])
+    if alt is not None:
+        ok = np.isfinite(alt).all(axis=1)
+        out[ok, 1] = T_from_xyz_quat(alt[ok, :3], alt[ok, 3:])
+    return out

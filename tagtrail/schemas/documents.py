@@ -75,13 +75,22 @@ class TagGraph(Document):
 
 
 class BundleSummary(Document):
-    """The corner bundle adjustment's figures (``optimize.report.bundle``)."""
+    """The joint solve's figures (``optimize.report.bundle``): frames posed (of them with a single
+    tag, and held by the motion prior), frames started from a tag's second IPPE solution, tags
+    the pose graph left out and the trajectory linked to the map, the
+    whitened cost and its variance factor (cost per degree of freedom, 1 when the corner noise is
+    as assumed), corner reprojection RMS / p95 (px)."""
 
     frames: int
+    single_tag_frames: int
     observations: int
+    motion_prior_frames: int
+    ippe_second_solution: int
+    linked_tags: list[int]
     iterations: int
     converged: bool
-    cost_px2: float
+    cost: float
+    variance_factor: float
     rms_px: float
     p95_px: float
 

@@ -6,20 +6,24 @@ R_obs)]`` scaled by ``sqrt(weight)``; the robust ``loss`` acts on its norm with 
 (m). Initialised from a spanning tree of robust per-pair means; solved by scipy's ``trf`` with an
 analytic sparse Jacobian. See :mod:`tagtrail.geometry.posegraph` for the maths.
 
-``method="joint"`` (the default; datasets with detections and a camera) then solves tag poses and
-the camera pose of every frame showing >= 2 mapped tags jointly on the corner reprojection error
-(px; robust ``joint_loss`` per tag with scale ``joint_f_scale_px``), starting from the pose-graph
-map and per-frame fused camera poses. The pairwise edges of Eq. 3.2 carry the bias of single-tag
-PnP (a small tag's out-of-plane rotation error levered over the distance to the other tag) and
-the pose graph inherits it; the joint solve does not (figures: bench/ and the closing notes).
-The edge residuals and per-tag RMS are those of the final map. ``"pairwise"``: the paper's pose
-graph alone, also what observation-only datasets get.
+``method="joint"`` (the default; datasets with detections and a camera) then solves the tag poses
+and the camera pose of every frame that sees a mapped tag jointly on the corner reprojection
+error, the frames held together in time by a constant-velocity motion prior
+(:mod:`tagtrail.geometry.bundle`: units, weights and the solver). It starts from the pose-graph
+map, each frame at the IPPE solution its neighbours agree with; tags the pose graph left out
+(seen with the map only ambiguously, or never together with it) are placed through the
+trajectory first (``link_tags``). The pairwise edges of Eq. 3.2 carry the bias of single-tag PnP
+(a small tag's out-of-plane rotation error levered over the distance to the other tag) and the
+pose graph inherits it; the joint solve does not. Each tag gets its standard deviation
+(``std_pos_m``, ``std_rot_deg``; the anchor 0). The edge residuals and per-tag RMS are those of
+the final map. ``"pairwise"``: the paper's pose graph alone, also what observation-only datasets
+get.
 
-The joint solve needs redundancy: its gain is averaging many frames, each camera pose shared by
-its tags; from a handful of frames the shared pose couples the tags' model errors instead (a
-miscalibrated lens: a near tag fitting poorly drags the far ones; seen on the real FRC field
-photos, 3 frames per group of tags). So it runs only with ``joint_min_frames`` (30) frames or
-more showing two mapped tags; otherwise the pose-graph map is kept and the log says so.
+The joint solve needs redundancy: its gain is averaging many frames; from a handful of photos the
+shared camera pose couples the tags' model errors instead (a miscalibrated lens: a near tag
+fitting poorly drags the far ones; seen on the real FRC field photos, 3 frames per group of
+tags). So it runs only when ``joint_min_frames`` (30) frames or more see a mapped tag; otherwise
+the pose-graph map is kept and the log says so.
 Old parameter names (``refine: corners|none``, ``ba_*``) still work with a deprecation line.
 """
 
@@ -35,19 +39,18 @@ from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
 
 from tagtrail.errors import DataError
-from tagtrail.geometry.camera import CameraModel
-from tagtrail.geometry.fusion import camera_estimates, fuse_robust, tag_corners
-from tagtrail.geometry.ippe import best_pose
-from tagtrail.geometry.posegraph import (
-    CornerObservations,
-    PoseGraph,
-    bundle_adjust,
-    relative_residuals,
-    solve,
+from tagtrail.geometry.bundle import (
+    MotionPrior,
+    corner_observations,
+    initial_cameras,
+    link_tags,
+    solve_joint,
 )
+from tagtrail.geometry.camera import CameraModel
+from tagtrail.geometry.posegraph import PoseGraph, relative_residuals, solve
 from tagtrail.geometry.robust import LossName
-from tagtrail.geometry.se3 import R_from_quat_xyzw, inv, make_T, quat_xyzw_from_R
-from tagtrail.schemas.artifacts import CORNER_COLS, POSE_COLS, columns, ippe_solutions
+from tagtrail.geometry.se3 import R_from_quat_xyzw, make_T, quat_xyzw_from_R
+from tagtrail.schemas.artifacts import CORNER_COLS, POSE_COLS, both_solutions, columns, corner_rows
 from tagtrail.schemas.documents import OptimizeReport, TagGraph
 from tagtrail.stages.base import StageParams
 
@@ -80,8 +83,29 @@ class Params(StageParams):
     """Corner error norm (px) where the joint solve's loss turns sub-quadratic."""
     joint_max_iter: int = Field(50, ge=1)
     joint_min_frames: int = Field(30, ge=1)
-    """Frames showing >= 2 mapped tags needed for the joint solve; with fewer, the pose graph
-    is kept (module docstring)."""
+    """Frames seeing a mapped tag needed for the joint solve; with fewer, the pose graph is
+    kept (module docstring)."""
+    corner_sigma_px: float = Field(0.5, gt=0.0)
+    """Corner noise (px, per coordinate) of the joint solve: weighs the corners against the
+    motion prior and scales the reported standard deviations."""
+    motion: Literal["constant_velocity", "none"] = "constant_velocity"
+    """Motion prior between consecutive frames of the joint solve (geometry.bundle)."""
+    motion_acc_sigma: float = Field(0.3, gt=0.0)
+    """Linear acceleration noise density of the motion prior (m/s^2/sqrt(Hz)): smaller holds
+    the camera path straighter."""
+    motion_ang_sigma_deg: float = Field(30.0, gt=0.0)
+    """Angular acceleration noise density of the motion prior (deg/s^2/sqrt(Hz))."""
+    max_gap_s: float = Field(0.5, gt=0.0)
+    """Frames further apart than this are not linked by the motion prior (gaps stay gaps)."""
+    link_tags: bool = True
+    """Joint solve: place tags the pose graph left out (never seen together with the map without
+    ambiguity) through the trajectory, then solve them with the rest (geometry.bundle.link_tags)."""
+
+    def prior(self) -> tuple[float, float] | None:
+        """``(acc_sigma m/s^2/sqrt(Hz), ang_sigma rad/s^2/sqrt(Hz))``, None without a prior."""
+        if self.motion == "none":
+            return None
+        return self.motion_acc_sigma, float(np.radians(self.motion_ang_sigma_deg))
 
     @model_validator(mode="before")
     @classmethod
@@ -117,6 +141,16 @@ OUTPUTS = ("tag_map", "edge_residuals", "report")
 SCOPE = "all"
 
 
+def poorly_constrained(tag_map: pd.DataFrame) -> np.ndarray:
+    """Tags whose position standard deviation exceeds 3x the map's median (or 5 cm): what the
+    diagnostics list and ``map.png`` draws apart. All False when the map has no uncertainty."""
+    std = tag_map["std_pos_m"].to_numpy(np.float64) if "std_pos_m" in tag_map else None
+    if std is None or not np.isfinite(std).any():
+        return np.zeros(len(tag_map), bool)
+    med = float(np.nanmedian(std[std > 0])) if (std > 0).any() else 0.0
+    return np.asarray(np.isfinite(std) & (std > min(3.0 * med, 0.05)) & (std > 0))
+
+
 def _per_tag_rms(idx_i: np.ndarray, idx_j: np.ndarray, sq: np.ndarray, n: int) -> np.ndarray:
     """RMS of per-edge values ``sqrt(sq)`` over the edges touching each tag (NaN if none)."""
     s = np.bincount(idx_i, sq, n) + np.bincount(idx_j, sq, n)
@@ -127,53 +161,78 @@ def _per_tag_rms(idx_i: np.ndarray, idx_j: np.ndarray, sq: np.ndarray, n: int) -
 def refine_on_corners(
     R: np.ndarray, t: np.ndarray, tags: np.ndarray, anchor: int, observations: pd.DataFrame,
     detections: pd.DataFrame, camera: CameraModel, params: Params,
-) -> tuple[np.ndarray, np.ndarray, dict[str, Any]] | None:
-    """Bundle-adjusted ``world_T_tag`` (``R (T, 3, 3)``, ``t (T, 3)``, for the sorted ids
-    ``tags``) and a report block, or None when no frame shows two mapped tags with corners."""
-    obs = observations[observations["tag_id"].isin(tags)]
-    obs = obs[~obs.duplicated(["frame_idx", "tag_id"], keep=False)]
-    det = detections.drop_duplicates(["frame_idx", "tag_id"], keep=False)
-    m = obs.merge(det[["frame_idx", "tag_id", *CORNER_COLS]], on=["frame_idx", "tag_id"])
-    m = m[np.isfinite(m[CORNER_COLS].to_numpy(np.float64)).all(axis=1)]
-    m = m[np.isfinite(m["size_m"].to_numpy(np.float64)) & (m["size_m"] > 0)]
-    m = m[m.groupby("frame_idx")["tag_id"].transform("size") >= 2]
-    if m.empty:
-        return None
-    m = m.sort_values(["frame_idx", "tag_id"], kind="stable")
-    n_frames = m["frame_idx"].nunique()
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, dict[str, Any]] | None:
+    """The joint solve from the pose-graph map ``R (T, 3, 3)``, ``t (T, 3)`` of the sorted ids
+    ``tags``: the ids it maps (``tags`` plus tags linked through the trajectory), their
+    ``world_T_tag`` (R, t), standard deviations ``(N, 2)`` (m, rad) and a report block; None when
+    too few frames see a mapped tag (``joint_min_frames``)."""
+    m = corner_rows(observations, detections, np.unique(observations["tag_id"].to_numpy()))
+    n_frames = int(m.loc[m["tag_id"].isin(tags), "frame_idx"].nunique())
     if n_frames < params.joint_min_frames:
-        log.info("optimize: %d frames show two mapped tags (< joint_min_frames %d): no bundle "
-                 "adjustment, the pose-graph map is kept", n_frames, params.joint_min_frames)
+        log.info("optimize: %d frames see a mapped tag (< joint_min_frames %d): no joint solve, "
+                 "the pose-graph map is kept", n_frames, params.joint_min_frames)
         return None
-    cam = camera
-    px = m[CORNER_COLS].to_numpy(np.float64).reshape(-1, 4, 2)
-    k = np.searchsorted(tags, m["tag_id"].to_numpy(np.int64))
-    frames, f = np.unique(m["frame_idx"].to_numpy(np.int64), return_inverse=True)
-    world_T_tag = make_T(R, t)
-    # Start: each frame's camera pose fused from its tags' IPPE poses in the pose-graph map.
-    cam_T_tag = best_pose(*ippe_solutions(m))
-    world_T_cam = fuse_robust(camera_estimates(world_T_tag[k], cam_T_tag), f, len(frames))
-    cam_T_world = inv(world_T_cam)
-    ob = CornerObservations(frame=f, tag=k, pts_tag=tag_corners(m["size_m"].to_numpy(np.float64)),
-                            uv=cam.undistort(px))
-    res = bundle_adjust(
-        R, t, cam_T_world[:, :3, :3], cam_T_world[:, :3, 3], ob, anchor,
-        px_per_unit=0.5 * float(cam.K[0, 0] + cam.K[1, 1]), loss=params.joint_loss,
-        f_scale_px=params.joint_f_scale_px, max_iter=params.joint_max_iter,
+    ids = np.union1d(tags, m["tag_id"].to_numpy(np.int64))
+    W = np.full((len(ids), 4, 4), np.nan)
+    W[np.searchsorted(ids, tags)] = make_T(R, t)
+    known = np.isin(ids, tags)
+    cam_T_tag = both_solutions(m)
+    k = np.searchsorted(ids, m["tag_id"].to_numpy(np.int64))
+    linked: list[int] = []
+    if params.link_tags and not known[k].all():
+        ob, t_ns = corner_observations(
+            m["frame_idx"].to_numpy(np.int64), m["t_ns"].to_numpy(np.int64), k,
+            m[CORNER_COLS].to_numpy(np.float64).reshape(-1, 4, 2),
+            m["size_m"].to_numpy(np.float64), camera)
+        W, now = link_tags(W, known, cam_T_tag, ob, (t_ns - t_ns[0]) * 1e-9,
+                           px_per_unit=camera.focal_px, max_gap_s=params.max_gap_s)
+        linked = ids[now & ~known].tolist()
+        if linked:
+            log.info("optimize: tags %s linked to the map through the trajectory", linked)
+        known = now
+    keep = known[k]
+    m, cam_T_tag = m[keep].reset_index(drop=True), cam_T_tag[keep]
+    ids, W = ids[known], W[known]
+    k = np.searchsorted(ids, m["tag_id"].to_numpy(np.int64))
+    ob, t_ns = corner_observations(
+        m["frame_idx"].to_numpy(np.int64), m["t_ns"].to_numpy(np.int64), k,
+        m[CORNER_COLS].to_numpy(np.float64).reshape(-1, 4, 2), m["size_m"].to_numpy(np.float64),
+        camera)
+    t_s = (t_ns - t_ns[0]) * 1e-9
+    cam_T_world, choice = initial_cameras(W[k], cam_T_tag, ob, t_s, px_per_unit=camera.focal_px,
+                                          max_gap_s=params.max_gap_s)
+    prior = params.prior()
+    mp = None if prior is None else MotionPrior(t_s, *prior, params.max_gap_s)
+    a = int(np.searchsorted(ids, tags[anchor]))
+    free = (np.arange(len(ids)) != a) & (np.bincount(k, minlength=len(ids)) > 0)
+    res = solve_joint(
+        W[:, :3, :3], W[:, :3, 3], cam_T_world[:, :3, :3], cam_T_world[:, :3, 3], ob, free,
+        px_per_unit=camera.focal_px, sigma_px=params.corner_sigma_px, loss=params.joint_loss,
+        f_scale_px=params.joint_f_scale_px, max_iter=params.joint_max_iter, prior=mp,
+        covariance=True,
     )
     if not res.converged:
-        log.warning("optimize: bundle adjustment stopped after %d iterations (joint_max_iter) "
+        log.warning("optimize: the joint solve stopped after %d iterations (joint_max_iter) "
                     "before converging", res.iters)
+    n_tags = np.bincount(ob.frame, minlength=len(t_ns))
     block = {
-        "frames": int(len(frames)),
+        "frames": int(len(t_ns)),
+        "single_tag_frames": int((n_tags == 1).sum()),
         "observations": int(len(m)),
+        "motion_prior_frames": res.prior_terms,
+        "ippe_second_solution": int((choice % 2 == 1).sum()),
+        "linked_tags": linked,
         "iterations": res.iters,
         "converged": res.converged,
-        "cost_px2": res.cost,
+        "cost": res.cost,
+        "variance_factor": res.variance_factor,
         "rms_px": float(np.sqrt(np.mean(res.res_px**2))),
         "p95_px": float(np.percentile(res.res_px, 95)),
     }
-    return res.R_tag, res.t_tag, block
+    assert res.tag_std is not None
+    fixed = np.where(np.arange(len(ids)) == a, 0.0, np.nan)[:, None]  # the anchor; unobserved
+    std = np.where(free[:, None], res.tag_std, fixed)
+    return ids, res.R_tag, res.t_tag, std, block
 
 
 def run(
@@ -214,14 +273,18 @@ def run(
     )
     res = solve(g, loss=params.loss, f_scale=params.f_scale, max_nfev=params.max_nfev)
     R_map, t_map, res_t, res_r = res.R, res.t, res.res_t, res.res_r
-    bundle = None
+    bundle, std = None, np.full((len(tags), 2), np.nan)
+    std[g.anchor] = 0.0
     if (params.method == "joint" and detections is not None and len(detections) > 0
             and camera is not None):
         out = refine_on_corners(R_map, t_map, tags, g.anchor, observations, detections, camera,
                                 params)
         if out is not None:
-            R_map, t_map, bundle = out
-            res_t, res_r = relative_residuals(R_map, t_map, g)
+            ids, R_map, t_map, std, bundle = out
+            sel = np.searchsorted(ids, tags)
+            res_t, res_r = relative_residuals(R_map[sel], t_map[sel], g)
+            tags = ids
+            ii, jj = np.searchsorted(tags, ti), np.searchsorted(tags, tj)
 
     e_t = np.linalg.norm(res_t, axis=1)
     e_r = np.linalg.norm(res_r, axis=1)
@@ -237,6 +300,8 @@ def run(
     tag_map["size_m"] = size
     tag_map["res_t_rms_m"] = _per_tag_rms(ii, jj, e_t**2, len(tags))
     tag_map["res_r_rms_deg"] = np.rad2deg(_per_tag_rms(ii, jj, e_r**2, len(tags)))
+    tag_map["std_pos_m"] = std[:, 0]
+    tag_map["std_rot_deg"] = np.rad2deg(std[:, 1])
 
     residuals = pd.DataFrame(
         {

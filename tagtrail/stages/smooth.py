@@ -6,15 +6,12 @@ non-uniform stamps; see :mod:`tagtrail.geometry.smoothing`). Weights are 1/stand
 ``pos_sigma_m`` / ``rot_sigma_deg`` (per-frame noise of the raw poses) against ``pos_acc_mps2`` /
 ``rot_acc_dps2`` (plausible accelerations); the robust ``loss`` (scale ``f_scale`` standard
 deviations) keeps manoeuvres and rejects outlier frames. Segments break at gaps > ``max_gap_s``.
-``method="none"`` passes the trajectory through unchanged. Defaults, re-measured once the corner
-bundle adjustment of ``optimize`` had cut the raw per-frame error to a few mm, on the simulator's
-room (jpeg, 5 seeds) / circle from images (3 seeds) / circle from detections (3 seeds): the
-heading of the smoothed path's 1-frame segments -- what ``report``'s point mode compares a parked
-query with -- is off by 0.60 / 0.43 / 0.50 deg RMS with ``pos_sigma_m=0.01, pos_acc_mps2=0.2``,
-0.81 / 0.39 / 0.70 deg with the former 0.02 and 1.0; position error (after removing the anchor's
-gauge error) 2.2 / 1.9 / 1.4 mm, 2.3 / 1.9 / 1.6 mm before. Harder (0.01 / 0.1) starts to cut the
-room's corners: 0.91 / 0.59 / 0.60 deg. The room's parked queries then come out within 0.45 deg
-of their true phi (seeds 0-4; up to 1.2 deg with the former weights).
+``method="none"`` passes the trajectory through unchanged; ``"auto"`` (default) is ``none`` for a
+trajectory already held together by the motion prior of the joint solve (rows with
+``motion_prior``: smoothing it again would only move it away from its evidence) and ``lsq``
+otherwise (frame-by-frame trajectories: pairwise maps, observation-only datasets). The defaults
+favour the heading of short segments (what ``report``'s point mode compares a parked query with)
+without cutting the corners of a room loop.
 """
 
 from __future__ import annotations
@@ -33,7 +30,7 @@ from tagtrail.stages.base import StageParams
 
 
 class Params(StageParams):
-    method: Literal["none", "lsq"] = "lsq"
+    method: Literal["auto", "none", "lsq"] = "auto"
     pos_sigma_m: float = Field(0.01, gt=0.0)
     """Per-frame position noise of the raw trajectory (m): weight of the position data term."""
     rot_sigma_deg: float = Field(1.0, gt=0.0)
@@ -57,7 +54,8 @@ SCOPE = "all"
 def run(trajectory: pd.DataFrame, params: Params) -> dict[str, Any]:
     """The smoothed trajectory: same rows (sorted by ``t_ns``) and columns as the input."""
     traj = trajectory.sort_values("t_ns", kind="stable").reset_index(drop=True)
-    if params.method == "none" or len(traj) < 3:
+    prior = "motion_prior" in traj.columns and bool(traj["motion_prior"].any())
+    if params.method == "none" or (params.method == "auto" and prior) or len(traj) < 3:
         return {"trajectory": traj}
     t_ns = traj["t_ns"].to_numpy(np.int64)
     t_s = (t_ns - t_ns[0]).astype(np.float64) * 1e-9

@@ -1,16 +1,24 @@
 """trajectory: ``world_T_cam`` per frame from the tag map and that frame's observations (Eq. 3.8).
 
-Every mapped tag ``i`` seen in a frame gives ``world_T_cam^(i) = world_T_tag_i (cam_T_tag_i)^-1``
-(of its two IPPE solutions, the one with the lower reprojection error). Methods:
+``joint`` (what ``auto`` picks when the dataset has detections and a camera): every frame's
+camera pose on its tags' corners against the fixed map, held together in time by the motion
+prior of :mod:`tagtrail.geometry.bundle` (the same problem as ``optimize``'s joint solve with the
+map fixed, so on the reference recording with the same settings it is the joint solution's
+trajectory). Each frame starts from the IPPE solution its neighbours agree with; a single-tag
+frame is held by its neighbours; frames further apart than ``max_gap_s`` are not linked, and
+frames without a tag get no pose. Rows carry ``std_pos_m`` / ``std_rot_deg`` (the frame's
+standard deviation given the map) and ``motion_prior`` (True: the smoother adds nothing).
+
+The frame-by-frame methods: every mapped tag ``i`` seen in a frame gives ``world_T_cam^(i) =
+world_T_tag_i (cam_T_tag_i)^-1`` (of its two IPPE solutions, the one with the lower reprojection
+error), fused by
 
 - ``avg``: translation mean + chordal rotation mean of the per-tag estimates (paper, "averaging");
 - ``lsq``: per-frame robust least squares over the per-tag estimates (IRLS, ``loss``/``f_scale``
   on the 6-vector ``[dt ; rot_weight_m * dR]``) -- the original tool's default;
 - ``pnp``: frames with >= 2 mapped tags: one RANSAC PnP over all their corners (undistorted),
   immune to single-tag IPPE flips; other frames and PnP failures fall back to ``lsq``;
-- ``auto``: ``pnp`` when the dataset has detections and a camera, else ``lsq``. Measured on the
-  simulator's circle / room / corridor recordings (mean position error of the raw trajectory):
-  pnp 3.2 / 3.9 / 27.8 cm, lsq 12.8 / 9.6 / 40.6 cm, avg 16.6 / 16.0 / 40.6 cm.
+- ``auto``: ``joint`` when the dataset has detections and a camera, else ``lsq``.
 
 Frames without a mapped tag get no pose. Output rows are sorted by ``t_ns``.
 """
@@ -25,12 +33,20 @@ import pandas as pd
 from pydantic import Field
 
 from tagtrail.errors import DataError
+from tagtrail.geometry.bundle import MotionPrior, corner_observations, initial_cameras, solve_joint
 from tagtrail.geometry.camera import CameraModel
 from tagtrail.geometry.fusion import frame_poses
 from tagtrail.geometry.ippe import best_pose
 from tagtrail.geometry.robust import LossName
-from tagtrail.geometry.se3 import T_from_xyz_quat, xyz_quat_from_T
-from tagtrail.schemas.artifacts import CORNER_COLS, POSE_COLS, columns, ippe_solutions
+from tagtrail.geometry.se3 import T_from_xyz_quat, inv, make_T, xyz_quat_from_T
+from tagtrail.schemas.artifacts import (
+    CORNER_COLS,
+    POSE_COLS,
+    both_solutions,
+    columns,
+    corner_rows,
+    ippe_solutions,
+)
 from tagtrail.stages.base import StageParams
 
 log = logging.getLogger(__name__)
@@ -39,7 +55,7 @@ TRAJ_COLS = columns("trajectory.trajectory")
 
 
 class Params(StageParams):
-    method: Literal["auto", "avg", "lsq", "pnp"] = "auto"
+    method: Literal["auto", "joint", "avg", "lsq", "pnp"] = "auto"
     loss: LossName = "soft_l1"
     """Robust loss of the ``lsq`` fusion (per tag, on the 6-vector residual)."""
     f_scale: float = Field(0.1, gt=0.0)
@@ -47,6 +63,18 @@ class Params(StageParams):
     rot_weight_m: float = Field(1.0, gt=0.0)
     ransac_px: float = Field(3.0, gt=0.0)
     """``pnp``: RANSAC inlier threshold (pixels)."""
+    corner_sigma_px: float = Field(0.5, gt=0.0)
+    """``joint``: corner noise (px), as optimize's (same default)."""
+    joint_loss: LossName = "huber"
+    joint_f_scale_px: float = Field(1.0, gt=0.0)
+    joint_max_iter: int = Field(50, ge=1)
+    motion: Literal["constant_velocity", "none"] = "constant_velocity"
+    motion_acc_sigma: float = Field(0.3, gt=0.0)
+    """``joint``: linear acceleration noise density (m/s^2/sqrt(Hz)), as optimize's."""
+    motion_ang_sigma_deg: float = Field(30.0, gt=0.0)
+    """``joint``: angular acceleration noise density (deg/s^2/sqrt(Hz)), as optimize's."""
+    max_gap_s: float = Field(0.5, gt=0.0)
+    """``joint``: frames further apart than this are not linked (gaps stay gaps)."""
 
 
 INPUTS = {
@@ -64,7 +92,48 @@ def _empty() -> pd.DataFrame:
     for c in POSE_COLS:
         out[c] = np.zeros(0)
     out["n_tags"] = np.zeros(0, np.int32)
+    return _extra(out)
+
+
+def _extra(out: pd.DataFrame, std: np.ndarray | None = None, prior: bool = False
+           ) -> pd.DataFrame:
+    std = np.full((len(out), 2), np.nan) if std is None else std
+    out["std_pos_m"] = std[:, 0]
+    out["std_rot_deg"] = np.rad2deg(std[:, 1])
+    out["motion_prior"] = np.full(len(out), prior)
     return out
+
+
+def joint_trajectory(rows: pd.DataFrame, ids: np.ndarray, W_map: np.ndarray,
+                     camera: CameraModel, params: Params) -> pd.DataFrame:
+    """The ``joint`` method on ``corner_rows`` of the mapped tags ``ids`` (map ``W_map``)."""
+    k = np.searchsorted(ids, rows["tag_id"].to_numpy(np.int64))
+    ob, t_ns = corner_observations(
+        rows["frame_idx"].to_numpy(np.int64), rows["t_ns"].to_numpy(np.int64), k,
+        rows[CORNER_COLS].to_numpy(np.float64).reshape(-1, 4, 2),
+        rows["size_m"].to_numpy(np.float64), camera)
+    t_s = (t_ns - t_ns[0]) * 1e-9
+    cam_T_world, _ = initial_cameras(W_map[k], both_solutions(rows), ob, t_s,
+                                     px_per_unit=camera.focal_px, max_gap_s=params.max_gap_s)
+    prior = None
+    if params.motion != "none":
+        prior = MotionPrior(t_s, params.motion_acc_sigma, np.radians(params.motion_ang_sigma_deg),
+                            params.max_gap_s)
+    res = solve_joint(
+        W_map[:, :3, :3], W_map[:, :3, 3], cam_T_world[:, :3, :3], cam_T_world[:, :3, 3], ob,
+        np.zeros(len(ids), bool), px_per_unit=camera.focal_px, sigma_px=params.corner_sigma_px,
+        loss=params.joint_loss, f_scale_px=params.joint_f_scale_px,
+        max_iter=params.joint_max_iter, prior=prior, covariance=True)
+    if not res.converged:
+        log.warning("trajectory: the joint solve stopped after %d iterations (joint_max_iter) "
+                    "before converging", res.iters)
+    xyz, q = xyz_quat_from_T(inv(make_T(res.R_cam, res.t_cam)))
+    out = pd.DataFrame({"t_ns": t_ns})
+    out[POSE_COLS] = np.concatenate([xyz, q], axis=1)
+    out["n_tags"] = np.bincount(ob.frame, minlength=len(t_ns)).astype(np.int32)
+    log.info("trajectory: joint solve of %d frames (%d held by the motion prior), corner RMS "
+             "%.2f px", len(t_ns), res.prior_terms, float(np.sqrt(np.mean(res.res_px**2))))
+    return _extra(out, res.cam_std, prior is not None)
 
 
 def run(
@@ -88,13 +157,27 @@ def run(
         log.warning("trajectory: no frame sees a mapped tag; the trajectory is empty")
         return {"trajectory": _empty()}
     obs = obs.sort_values(["frame_idx", "tag_id"], kind="stable")
+    has_pix = detections is not None and len(detections) > 0 and camera is not None
+    parts = []
+    if has_pix and params.method in ("auto", "joint"):
+        assert camera is not None
+        rows = corner_rows(obs, detections, ids)
+        if len(rows):
+            parts.append(joint_trajectory(rows, ids, W_map, camera, params))
+            # frames without usable corners fall back to the frame-by-frame fusion
+            obs = obs[~obs["frame_idx"].isin(rows["frame_idx"].unique())]
+            if obs.empty:
+                return {"trajectory": parts[0]}
+            log.info("trajectory: %d frames without usable corners fused frame by frame",
+                     obs["frame_idx"].nunique())
+    elif params.method == "joint":
+        log.warning("trajectory: method joint needs detections and a camera; using lsq")
     frame = obs["frame_idx"].to_numpy(np.int64)
     uframe, group = np.unique(frame, return_inverse=True)
     t_ns = obs.groupby("frame_idx")["t_ns"].first().reindex(uframe).to_numpy(np.int64)
     k = np.searchsorted(ids, obs["tag_id"].to_numpy(np.int64))
-    has_pix = detections is not None and len(detections) > 0 and camera is not None
     px = None
-    if has_pix and params.method in ("auto", "pnp"):
+    if has_pix and params.method == "pnp":
         det = detections.drop_duplicates(["frame_idx", "tag_id"], keep=False)
         det = det.set_index(["frame_idx", "tag_id"])[CORNER_COLS]
         key = pd.MultiIndex.from_arrays([obs["frame_idx"].to_numpy(), obs["tag_id"].to_numpy()])
@@ -108,8 +191,9 @@ def run(
         size = np.where(np.isfinite(size), size, obs["size_m"].to_numpy(np.float64))
     res = frame_poses(
         W_map[k], best_pose(*ippe_solutions(obs)), group, len(uframe), corners_px=px,
-        size_m=size, camera=camera, method=params.method, loss=params.loss,
-        f_scale=params.f_scale, rot_weight_m=params.rot_weight_m, ransac_px=params.ransac_px,
+        size_m=size, camera=camera, method="lsq" if params.method == "joint" else params.method,
+        loss=params.loss, f_scale=params.f_scale, rot_weight_m=params.rot_weight_m,
+        ransac_px=params.ransac_px,
     )
     if res.method == "pnp":
         log.info("trajectory: multi-tag PnP for %d of %d frames", res.by_pnp.sum(), len(uframe))
@@ -118,4 +202,5 @@ def run(
     out = pd.DataFrame({"t_ns": t_ns})
     out[POSE_COLS] = np.concatenate([xyz, q], axis=1)
     out["n_tags"] = res.n_tags.astype(np.int32)
+    out = pd.concat([*parts, _extra(out)], ignore_index=True)
     return {"trajectory": out.sort_values("t_ns", kind="stable").reset_index(drop=True)}

@@ -11,11 +11,13 @@ Per frame the offline pipeline's functions run with its stages' parameters (:cla
 implementation, two drivers): the extract stage's filters, IPPE per tag
 (:func:`tagtrail.geometry.ippe.solve_ippe`), then :func:`tagtrail.geometry.fusion.frame_poses`,
 the trajectory stage's per-frame method (Eq. 3.8; ``auto`` = one RANSAC PnP over every corner
-of every mapped tag when >= 2 are seen, else the robust fusion of the per-tag estimates). A
-frame's tags are taken in the trajectory stage's order (by tag id); a tag seen twice is left
-out, as offline. Tag sizes: the map's (``size_m``), else the pnp stage's ``tag_sizes`` /
-``tag_size``. A map made by the pipeline carries the sizes its pnp stage used, so the node's
-poses are the offline trajectory stage's (tests/stream/test_live_offline.py).
+of every mapped tag when >= 2 are seen, else the robust fusion of the per-tag estimates; the
+offline default ``joint`` holds frames together in time, which a node answering each frame at
+once cannot, so it poses such a pipeline's frames by ``auto``). A frame's tags are taken in
+the trajectory stage's order (by tag id); a tag seen twice is left out, as offline. Tag sizes:
+the map's (``size_m``), else the pnp stage's ``tag_sizes`` / ``tag_size``. A map made by the
+pipeline carries the sizes its pnp stage used, so the node's poses are the offline trajectory
+stage's frame-by-frame poses (tests/stream/test_live_offline.py).
 """
 
 from __future__ import annotations
@@ -127,8 +129,8 @@ class Localizer:
         res = frame_poses(
             self.world_T_tag[k[good]], cam_T_tag[good, 0], np.zeros(len(sel), np.int64), 1,
             corners_px=corners, size_m=self.size_m[k[good]], camera=self.camera,
-            method=p.method, loss=p.loss, f_scale=p.f_scale, rot_weight_m=p.rot_weight_m,
-            ransac_px=p.ransac_px,
+            method="auto" if p.method == "joint" else p.method, loss=p.loss, f_scale=p.f_scale,
+            rot_weight_m=p.rot_weight_m, ransac_px=p.ransac_px,
         )
         return res.world_T_cam[0], int(res.n_tags[0])
 

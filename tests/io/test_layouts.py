@@ -7,6 +7,7 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 import pytest
+import yaml
 
 from tagtrail.errors import SourceError
 from tagtrail.io import layouts
@@ -51,6 +52,37 @@ def test_tag_map_yaml_and_csv_round_trip(tmp_path: Path) -> None:
     cmap, _ = layouts.read_tag_map(tmp_path / "tag_map.csv")
     pd.testing.assert_frame_equal(cmap, t.drop(columns="size_m"), check_dtype=False)
     assert (tmp_path / "tag_map.csv").read_text().splitlines()[1].startswith("tag36h11:0,")
+
+
+def test_tag_map_with_standard_deviations(tmp_path: Path) -> None:
+    """SPEC's columns first, then the std columns (empty when unknown); the YAML's ``std`` block;
+    both still read back as SPEC tag maps."""
+    t = traj().drop(columns="t_ns")
+    t.insert(0, "tag_id", [0, 3, 7, 12, 40])
+    t["n_obs"] = [5, 4, 3, 2, 1]
+    t["std_pos_m"] = [0.0, 0.002, 0.004, np.nan, 0.01]
+    t["std_rot_deg"] = [0.0, 0.1, 0.2, np.nan, 0.5]
+    layouts.write_tag_map(tmp_path, t, anchor_id=0)
+    lines = (tmp_path / "tag_map.csv").read_text().splitlines()
+    assert lines[0] == "tag,x,y,z,qx,qy,qz,qw,n_obs,std_pos_m,std_rot_deg"
+    assert lines[2].endswith(",4,0.002,0.1") and lines[4].endswith(",2,,")
+    doc = yaml.safe_load((tmp_path / "tag_map.yaml").read_text())
+    assert doc["tags"]["tag36h11:7"]["std"] == {"position_m": 0.004, "orientation_deg": 0.2}
+    assert "std" not in doc["tags"]["tag36h11:12"]
+    for name in ("tag_map.csv", "tag_map.yaml"):
+        back, _ = layouts.read_tag_map(tmp_path / name)
+        assert back["tag_id"].tolist() == [0, 3, 7, 12, 40]
+        assert np.allclose(back[layouts.POSE_COLS], t[layouts.POSE_COLS])
+
+
+def test_trajectory_std_csv() -> None:
+    t = traj()
+    t["n_tags"] = [1, 2, 3, 1, 0]
+    t["std_pos_m"] = [0.001, 0.002, np.nan, 0.004, 0.005]
+    t["std_rot_deg"] = [0.1, 0.2, np.nan, 0.4, 0.5]
+    lines = layouts.trajectory_std_csv_text(t).splitlines()
+    assert lines[0] == "stamp_sec,stamp_nanosec,std_pos_m,std_rot_deg,n_tags"
+    assert lines[1] == "1700000000,1,0.001,0.1,1" and lines[3].endswith(",,,3")
 
 
 def test_reads_original_tool_folders(realdata: Path) -> None:

@@ -60,10 +60,20 @@ def test_stage_contract() -> None:
     assert str(spec.inputs["camera"]) == "extract.camera"
 
 
-@pytest.mark.parametrize("method", ["avg", "lsq", "pnp", "auto"])
+EXTRA = ["std_pos_m", "std_rot_deg", "motion_prior"]
+
+
+@pytest.mark.parametrize("method", ["avg", "lsq", "pnp", "joint-none"])
 def test_exact_observations_give_exact_poses(scene: Scene, method: str) -> None:
-    traj = run(scene, observations(scene), method)
-    assert list(traj.columns) == ["t_ns", *POSE, "n_tags"]
+    if method == "joint-none":  # the joint method without the motion prior: exact too
+        params = trajectory.Params(method="joint", motion="none")
+        traj = trajectory.run(observations(scene), detections(scene), CAMERA,
+                              tag_map_frame(scene.world_T_tag), params)["trajectory"]
+        assert np.isfinite(traj["std_pos_m"]).all() and not traj["motion_prior"].any()
+    else:
+        traj = run(scene, observations(scene), method)
+        assert traj["std_pos_m"].isna().all()
+    assert list(traj.columns) == ["t_ns", *POSE, "n_tags", *EXTRA]
     assert traj["t_ns"].is_monotonic_increasing and len(traj) == len(scene.t_ns)
     assert traj["n_tags"].tolist() == np.bincount(scene.frame).tolist()
     dt, dr = frame_errors(scene, traj)

@@ -3,7 +3,9 @@
 A simulated recording's ``/detections`` + ``/camera_info`` are replayed over zenoh (127.0.0.1) into
 the node, which takes the pipeline file's parameters and the map the pipeline made; the offline
 side is ``tagtrail run`` (extract → pnp → edges → optimize → trajectory) on the same bag. The
-node's poses must equal the trajectory stage's (``trajectory_raw.csv``) to 1e-9.
+node poses each frame on its own, so the offline side uses the frame-by-frame ``trajectory.method:
+pnp`` (the default ``joint`` holds frames together in time, which a live node cannot wait for);
+the node's poses must equal the trajectory stage's (``trajectory_raw.csv``) to 1e-9.
 """
 
 from __future__ import annotations
@@ -34,7 +36,7 @@ def project(tmp_path_factory: pytest.TempPathFactory) -> Path:
     (root / "pipeline.yaml").write_text(
         f"reference: corridor\ndatasets:\n  corridor:\n    source: {rec}\nstages:\n"
         f"  extract:\n    min_decision_margin: {MIN_MARGIN}\n"
-        "  trajectory:\n    ransac_px: 2.0\n"
+        "  trajectory:\n    method: pnp\n    ransac_px: 2.0\n"
     )
     run = subprocess.run([sys.executable, "-m", "tagtrail.cli", "run", "trajectory"], cwd=root,
                          capture_output=True, text=True, timeout=300)  # fmt: skip
