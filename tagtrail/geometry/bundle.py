@@ -377,7 +377,7 @@ def _std(ne: tuple[F64, F64, F64, F64, coo_matrix], bidx: tuple[I64, ...], free_
         tag_std[free_idx, 1] = np.sqrt(np.trace(blocks[:, :3, :3], axis1=1, axis2=2) * vf / 3)
         if 6 * n_f * len(S) <= _CHUNK:  # the map's share: X S^-1 X^T, X = A^-1 B
             X = cho_solve_banded((cb, True), B.toarray()).reshape(n_f, 6, -1)
-            cam_cov = cam_cov + np.einsum("fik,kl,fjl->fij", X, Sinv, X)
+            cam_cov = cam_cov + np.einsum("fik,fjk->fij", X @ Sinv, X)
     cam_std = np.stack([np.sqrt(np.trace(cam_cov[:, 3:, 3:], axis1=1, axis2=2) * vf / 3),
                         np.sqrt(np.trace(cam_cov[:, :3, :3], axis1=1, axis2=2) * vf / 3)], axis=1)
     return tag_std, cam_std
