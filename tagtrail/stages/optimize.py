@@ -90,7 +90,7 @@ class Params(StageParams):
     motion prior and scales the reported standard deviations."""
     motion: Literal["constant_velocity", "none"] = "constant_velocity"
     """Motion prior between consecutive frames of the joint solve (geometry.bundle)."""
-    motion_acc_sigma: float = Field(0.3, gt=0.0)
+    motion_acc_sigma: float = Field(0.1, gt=0.0)
     """Linear acceleration noise density of the motion prior (m/s^2/sqrt(Hz)): smaller holds
     the camera path straighter."""
     motion_ang_sigma_deg: float = Field(30.0, gt=0.0)

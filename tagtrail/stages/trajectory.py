@@ -69,7 +69,7 @@ class Params(StageParams):
     joint_f_scale_px: float = Field(1.0, gt=0.0)
     joint_max_iter: int = Field(50, ge=1)
     motion: Literal["constant_velocity", "none"] = "constant_velocity"
-    motion_acc_sigma: float = Field(0.3, gt=0.0)
+    motion_acc_sigma: float = Field(0.1, gt=0.0)
     """``joint``: linear acceleration noise density (m/s^2/sqrt(Hz)), as optimize's."""
     motion_ang_sigma_deg: float = Field(30.0, gt=0.0)
     """``joint``: angular acceleration noise density (deg/s^2/sqrt(Hz)), as optimize's."""
