@@ -138,7 +138,7 @@ def test_sparse_hall_from_detections_with_the_defaults(tmp_path: Path,
     """Issue 12's sparse scene (``tagtrail simulate hall``: 28 tags flat on the walls, seen at
     50-65 deg, 1-3 in view) from a detections bag, with the pipeline ``tagtrail init`` writes:
     every tag in one map, every frame that sees a tag posed, and the issue's sparse-scene
-    bounds (trajectory mean <= 2.5 cm, max <= 10 cm, tags <= 2 cm; measured 1.3 / 4.3 /
+    bounds (trajectory mean <= 2.5 cm, max <= 10 cm, tags <= 2 cm; measured 1.3 / 3.1 /
     1.2 cm). The paper's pairwise map, trajectory and smoother on the same data are worse."""
     from tagtrail.cli import main
 

@@ -226,7 +226,7 @@ def solve_joint(
     free: np.ndarray,
     *,
     px_per_unit: float,
-    sigma_px: float = 1.0,
+    sigma_px: float | F64 = 1.0,
     loss: LossName = "huber",
     f_scale_px: float = 1.0,
     max_iter: int = 50,
@@ -234,7 +234,9 @@ def solve_joint(
     covariance: bool = False,
 ) -> JointResult:
     """Minimise the module's cost over the free tags (``free (T,)`` bool) and every camera,
-    from the given start; cameras must be in time order when ``prior`` is given."""
+    from the given start; cameras must be in time order when ``prior`` is given. ``sigma_px``:
+    the corner noise, one value or one per observation (:func:`corner_sigma`); the robust scale
+    ``f_scale_px`` is taken at its median."""
     n_f, n_t, n_o = len(R_cam), len(R_tag), len(ob.frame)
     free = np.asarray(free, bool)
     free_idx = np.flatnonzero(free)
@@ -250,8 +252,10 @@ def solve_joint(
     kp = pr.k
     bidx = _band_index(n_f)
     eye3 = np.broadcast_to(np.eye(3), (n_o, 4, 3, 3))
-    scale = px_per_unit / sigma_px  # normalised coordinates -> units of the corner noise
-    f = f_scale_px / sigma_px
+    # normalised coordinates -> units of each observation's corner noise
+    sig = np.broadcast_to(np.asarray(sigma_px, np.float64), (n_o,))
+    scale = px_per_unit / sig
+    f = f_scale_px / float(np.median(sig)) if n_o else 1.0
     f2 = f * f
 
     def evaluate(Rc: F64, tc: F64, Rt: F64, tt: F64
@@ -270,12 +274,12 @@ def solve_joint(
                          ) -> tuple[F64, F64, F64, F64, coo_matrix]:
         z = pc[..., 2]
         Jp = np.zeros((n_o, 4, 2, 3))
-        Jp[..., 0, 0] = Jp[..., 1, 1] = scale / z
-        Jp[..., 2] = -scale * pc[..., :2] / (z * z)[..., None]
+        Jp[..., 0, 0] = Jp[..., 1, 1] = scale[:, None] / z
+        Jp[..., 2] = -scale[:, None, None] * pc[..., :2] / (z * z)[..., None]
         Jc = (Jp @ np.concatenate([-hat(pc), eye3], axis=-1)).reshape(n_o, 8, 6)
         Jt = (Jp @ Rc[ob.frame][:, None] @ np.concatenate([-hat(pw), eye3], axis=-1))
         Jt = Jt.reshape(n_o, 8, 6)
-        rv = r.reshape(n_o, 8) * scale
+        rv = r.reshape(n_o, 8) * scale[:, None]
         W = w[:, None, None]
         Ablk = np.zeros((n_f, 3, 6, 6))
         Ablk[:, 0] = sum_blocks(np.einsum("oki,okj->oij", Jc, Jc) * W, ob.frame, n_f)
@@ -394,6 +398,18 @@ def same_frame_pairs(frame: I64) -> tuple[I64, I64]:
     a = np.repeat(np.arange(len(f)), reps)
     b = starts[grp][a] + np.arange(len(a)) - np.repeat(np.cumsum(reps) - reps, reps)
     return order[a], order[b]
+
+
+def corner_sigma(corners_px: F64, sigma_px: float, side_ref_px: float = 20.0) -> F64:
+    """Each observation's corner noise ``(O,)`` px: ``sigma_px`` for a tag whose mean side is
+    ``side_ref_px``, scaling as ``sqrt(side_ref_px / side)`` within 0.5-2x -- a corner is fitted
+    to edges whose pixel count grows with the side, so a small, far or foreshortened (oblique)
+    tag's corners are noisier (the weighting by geometry; its low decision margin goes with
+    it)."""
+    c = np.asarray(corners_px, np.float64).reshape(-1, 4, 2)
+    side = np.linalg.norm(c - np.roll(c, 1, axis=1), axis=2).mean(axis=1)
+    ratio = np.sqrt(side_ref_px / np.maximum(side, 1e-6))
+    return np.asarray(sigma_px * np.clip(np.nan_to_num(ratio, nan=1.0), 0.5, 2.0))
 
 
 def corner_observations(frame_idx: I64, t_ns: I64, tag: I64, corners_px: F64, size_m: F64,

@@ -42,6 +42,7 @@ from tagtrail.errors import DataError
 from tagtrail.geometry.bundle import (
     MotionPrior,
     corner_observations,
+    corner_sigma,
     initial_cameras,
     link_tags,
     solve_joint,
@@ -86,8 +87,11 @@ class Params(StageParams):
     """Frames seeing a mapped tag needed for the joint solve; with fewer, the pose graph is
     kept (module docstring)."""
     corner_sigma_px: float = Field(0.5, gt=0.0)
-    """Corner noise (px, per coordinate) of the joint solve: weighs the corners against the
-    motion prior and scales the reported standard deviations."""
+    """Corner noise (px, per coordinate) of the joint solve for a tag of 20 px sides: weighs the
+    corners against the motion prior and scales the reported standard deviations."""
+    corner_weighting: Literal["size", "none"] = "size"
+    """``size``: a tag's corner noise grows as its sides shrink (small, far, oblique tags; see
+    geometry.bundle.corner_sigma); ``none``: ``corner_sigma_px`` for every tag."""
     motion: Literal["constant_velocity", "none"] = "constant_velocity"
     """Motion prior between consecutive frames of the joint solve (geometry.bundle)."""
     motion_acc_sigma: float = Field(0.1, gt=0.0)
@@ -207,7 +211,9 @@ def refine_on_corners(
     free = (np.arange(len(ids)) != a) & (np.bincount(k, minlength=len(ids)) > 0)
     res = solve_joint(
         W[:, :3, :3], W[:, :3, 3], cam_T_world[:, :3, :3], cam_T_world[:, :3, 3], ob, free,
-        px_per_unit=camera.focal_px, sigma_px=params.corner_sigma_px, loss=params.joint_loss,
+        px_per_unit=camera.focal_px, loss=params.joint_loss,
+        sigma_px=(params.corner_sigma_px if params.corner_weighting == "none" else
+                  corner_sigma(m[CORNER_COLS].to_numpy(np.float64), params.corner_sigma_px)),
         f_scale_px=params.joint_f_scale_px, max_iter=params.joint_max_iter, prior=mp,
         covariance=True,
     )

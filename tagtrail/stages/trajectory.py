@@ -33,7 +33,13 @@ import pandas as pd
 from pydantic import Field
 
 from tagtrail.errors import DataError
-from tagtrail.geometry.bundle import MotionPrior, corner_observations, initial_cameras, solve_joint
+from tagtrail.geometry.bundle import (
+    MotionPrior,
+    corner_observations,
+    corner_sigma,
+    initial_cameras,
+    solve_joint,
+)
 from tagtrail.geometry.camera import CameraModel
 from tagtrail.geometry.fusion import frame_poses
 from tagtrail.geometry.ippe import best_pose
@@ -64,7 +70,9 @@ class Params(StageParams):
     ransac_px: float = Field(3.0, gt=0.0)
     """``pnp``: RANSAC inlier threshold (pixels)."""
     corner_sigma_px: float = Field(0.5, gt=0.0)
-    """``joint``: corner noise (px), as optimize's (same default)."""
+    """``joint``: corner noise (px, 20 px tag), as optimize's (same default)."""
+    corner_weighting: Literal["size", "none"] = "size"
+    """``joint``: as optimize's."""
     joint_loss: LossName = "huber"
     joint_f_scale_px: float = Field(1.0, gt=0.0)
     joint_max_iter: int = Field(50, ge=1)
@@ -121,7 +129,9 @@ def joint_trajectory(rows: pd.DataFrame, ids: np.ndarray, W_map: np.ndarray,
                             params.max_gap_s)
     res = solve_joint(
         W_map[:, :3, :3], W_map[:, :3, 3], cam_T_world[:, :3, :3], cam_T_world[:, :3, 3], ob,
-        np.zeros(len(ids), bool), px_per_unit=camera.focal_px, sigma_px=params.corner_sigma_px,
+        np.zeros(len(ids), bool), px_per_unit=camera.focal_px,
+        sigma_px=(params.corner_sigma_px if params.corner_weighting == "none" else
+                  corner_sigma(rows[CORNER_COLS].to_numpy(np.float64), params.corner_sigma_px)),
         loss=params.joint_loss, f_scale_px=params.joint_f_scale_px,
         max_iter=params.joint_max_iter, prior=prior, covariance=True)
     if not res.converged:
