@@ -10,7 +10,9 @@ Cost (every term whitened, so it reads as a negative log-likelihood)::
 ``sigma_px`` (the corner noise), ``rho`` a robust loss on the whole tag with scale ``f`` (in
 units of ``sigma_px``) -- the maximum-likelihood map under Gaussian corner noise, which does not
 inherit the bias of single-tag PnP. A tag's weight follows from its geometry: a small, far or
-oblique tag's corners move less per metre or radian of pose, so its observation counts less.
+oblique tag's corners move less per metre or radian of pose, and are noisier
+(:func:`corner_sigma`), so its observation counts less; a bridge between two parts of the map
+seen in one or two frames weighs what those frames' corners say, no more.
 
 ``m_k`` (6,): a constant-velocity (white-noise-on-acceleration) motion prior at each frame ``k``
 whose neighbours ``k-1, k+1`` lie within ``max_gap_s`` (gaps without tags stay gaps: the chain
