@@ -11,6 +11,7 @@ from tagtrail.geometry.bundle import (
     _Prior,
     initial_cameras,
     left_update,
+    link_tags,
     same_frame_pairs,
     solve_joint,
 )
@@ -219,3 +220,41 @@ def test_single_tag_stretch_is_held_by_its_neighbours() -> None:
             err[name] = np.linalg.norm(c - centre, axis=1)
         assert err["prior"].mean() <= 0.025 and err["prior"].max() <= 0.10
         assert err["none"].mean() > 3 * err["prior"].mean()
+
+
+def test_tags_never_seen_together_are_linked_through_the_trajectory() -> None:
+    """Tag 0 alone for 2 s, then tag 1 alone for 2 s (never in one frame: no pose-graph edge):
+    ``link_tags`` places tag 1 from the camera path extrapolated across the hand-over, and the
+    joint solve with the motion prior puts it within 3 cm of the truth (per-frame IPPE alone
+    cannot place it at all). A hand-over after a gap longer than ``max_gap_s`` links nothing."""
+    cam = CameraModel(640, 480, np.array([[FOCAL_PX, 0, 320], [0, FOCAL_PX, 240], [0, 0, 1]]),
+                      [], "none")
+    n = 120
+    t_s = np.arange(n) / 30.0
+    W = make_T(R_from_rotvec(np.array([[0, 0, 0], [0, 0.3, 0]])), np.array([[0, 0, 0],
+                                                                              [1.2, 0.1, 0.1]]))
+    R_wc = R_from_rotvec(np.stack([np.zeros(n), np.full(n, np.pi), np.zeros(n)], 1))
+    centre = np.stack([np.linspace(-0.3, 1.5, n), np.zeros(n), np.full(n, 1.5)], 1)
+    world_T_cam = make_T(R_wc, centre)
+    tag = (np.arange(n) >= 60).astype(np.int64)
+    cam_T_tag = inv(world_T_cam) @ W[tag]
+    pts = tag_corners(np.full(n, 0.16))
+    p = np.einsum("oij,okj->oki", cam_T_tag[:, :3, :3], pts) + cam_T_tag[:, None, :3, 3]
+    uv = p[..., :2] / p[..., 2:] + np.random.default_rng(2).normal(scale=0.2 / FOCAL_PX,
+                                                                    size=p[..., :2].shape)
+    sol, _ = solve_ippe(uv * FOCAL_PX + np.array([320.0, 240.0]), np.full(n, 0.16), cam)
+    ob = CornerObservations(np.arange(n), tag, pts, uv)
+    start = W.copy()
+    start[1] = np.nan
+    for gap, linked in ((0.0, True), (1.0, False)):
+        ts = t_s + np.where(np.arange(n) >= 60, gap, 0.0)
+        Wl, known = link_tags(start, np.array([True, False]), sol, ob, ts,
+                              px_per_unit=FOCAL_PX, max_gap_s=0.5)
+        assert bool(known[1]) is linked
+    Wl, known = link_tags(start, np.array([True, False]), sol, ob, t_s, px_per_unit=FOCAL_PX,
+                          max_gap_s=0.5)
+    C0, _ = initial_cameras(Wl[tag], sol, ob, t_s, px_per_unit=FOCAL_PX, max_gap_s=0.5)
+    res = solve_joint(Wl[:, :3, :3], Wl[:, :3, 3], C0[:, :3, :3], C0[:, :3, 3], ob,
+                      np.array([False, True]), px_per_unit=FOCAL_PX, sigma_px=0.2,
+                      prior=MotionPrior(t_s, 0.1, np.radians(30.0), 0.5))
+    assert np.linalg.norm(res.t_tag[1] - W[1, :3, 3]) < 0.03
