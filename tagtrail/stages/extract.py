@@ -71,9 +71,10 @@ class Params(StageParams):
         False, description="keep tags whose white quiet zone runs off the image (their corners "
         "are unreliable)")
     small_tags: Literal["redetect", "off"] = Field(
-        "off", description="redetect: re-detect small-tag candidates (dark square blobs of "
-        "8-72 px not in a found tag) at full resolution in crops around them, for the tags "
-        "quad_decimate loses; off: the decimated pass only")
+        "redetect", description="redetect: the tags quad_decimate loses (shorter side under "
+        "~35 px) re-detected at full resolution in crops around tag-like dark blobs not in a "
+        "found tag (1.1-1.5x the decimated pass's time, bench/bench_recall.py); off: the "
+        "decimated pass only")
     EXECUTION_ONLY = frozenset({"workers", "chunk_size"})  # same output whatever their values
 
     workers: int = Field(0, ge=0, description="detector processes; 0 = all cores")

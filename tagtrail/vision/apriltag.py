@@ -136,57 +136,93 @@ def _detect_raw(
     return ints, floats
 
 
-# Small-tag re-detection (``small_tags: redetect``). Decimation loses the quads of tags under
-# ~40 px (the 1-cell black border becomes ~1 px); the decode itself runs at full resolution and
-# is not the problem. Candidates: dark, roughly square blobs of an adaptive threshold of the
-# half-size image (~1 ms on 816x612), not inside a tag already found; each is re-detected at full
-# resolution (quad_decimate 1) in a crop with a margin, the smallest first, up to CROP_BUDGET of
-# the image.
-SMALL_MIN_PX = 8.0  # candidate bounding box side, full-resolution px
-SMALL_MAX_PX = 72.0  # larger tags are found at quad_decimate 2
-CROP_MARGIN = 0.75  # crop margin, in candidate sizes
+# Small-tag re-detection (``small_tags: redetect``). Decimation loses the quads of tags whose
+# shorter side is under ~35 px (their 1-cell border and quiet zone become ~1 px); the decode itself
+# runs at full resolution and is not the problem. Candidates: dark blobs of an adaptive threshold
+# of the image at 2/3 size (at half size the quiet zone of ~15 px tags vanishes and the tag merges
+# with what surrounds it) that look like a tag's border, not inside a tag already found; each is
+# re-detected at full resolution (quad_decimate 1) in a crop around it, the smallest first, up to
+# CROP_BUDGET of the image.
+SEARCH_SCALE = 2 / 3
+SEARCH_INTERP = cv2.INTER_LINEAR  # INTER_AREA is ~5x slower at 2/3
+SEARCH_BLOCK = 11  # adaptive threshold window at SEARCH_SCALE (~16 full-resolution px)
+SEARCH_C = 7  # a pixel is dark this far below its window's mean (gray levels)
+SMALL_MIN_PX = 6.0  # a candidate's shorter bounding-box side, full-resolution px
+SMALL_MAX_PX = 40.0  # shorter sides above this are found at quad_decimate 2
+SMALL_MAX_LONG_PX = 96.0  # the longer side (tags seen at a grazing angle are long and thin)
+SMALL_MAX_ASPECT = 6.0
+# A tag's border with the dark data cells joined to it: holes (the white cells) cover ~20-60 % of
+# its outline, and the outline (a perspective square) fills much of its bounding box; solid dark
+# blobs and thin strokes are neither.
+SMALL_MIN_HOLES = 0.15
+SMALL_MIN_FILL = 0.2
+CROP_MARGIN = 0.15  # crop margin, in candidate sizes, plus CROP_MARGIN_PX: the quiet zone and
+CROP_MARGIN_PX = 4  # some of the background the C library's threshold needs
+# The C library thresholds in 4x4-px tiles from the image origin: crops start on that grid, so a
+# crop's pixels are thresholded as in the full image (and its tags get the same corners).
+CROP_ALIGN_PX = 4
 CROP_INSIDE_PX = 1.0  # a crop's detection must keep this far from the crop's cut edges
-CROP_BUDGET = 0.25  # crops cover at most this fraction of the image (full resolution costs ~4x)
+CROP_BUDGET = 0.2  # crops cover at most this fraction of the image (full resolution costs ~3x)
+
+
+def tag_like_blobs(img: NDArray[np.uint8]) -> NDArray[np.float64]:
+    """Dark blobs of the gray image ``img`` (H, W) that may be small tags (see above): (k, 4)
+    bounding boxes ``x, y, w, h`` in full-resolution px."""
+    h, w = img.shape
+    small = cv2.resize(img, (round(w * SEARCH_SCALE), round(h * SEARCH_SCALE)),
+                       interpolation=SEARCH_INTERP)
+    mask = cv2.adaptiveThreshold(small, 255, cv2.ADAPTIVE_THRESH_MEAN_C, cv2.THRESH_BINARY_INV,
+                                 SEARCH_BLOCK, SEARCH_C)
+    contours, hier = cv2.findContours(mask, cv2.RETR_CCOMP, cv2.CHAIN_APPROX_SIMPLE)
+    if not contours:
+        return np.zeros((0, 4))
+    # every contour's box at once (a Python loop over ~1000 contours costs as much as finding
+    # them): CCOMP's top level are the outlines of dark blobs, nested ones included; their
+    # children are their holes
+    parent = hier[0][:, 3]
+    n_pts = np.fromiter(map(len, contours), np.int64, len(contours))
+    starts = np.cumsum(n_pts) - n_pts
+    pts = np.concatenate(contours).reshape(-1, 2)
+    lo, hi = np.minimum.reduceat(pts, starts), np.maximum.reduceat(pts, starts)
+    size = (hi - lo + 1) / SEARCH_SCALE
+    short, long = size.min(axis=1), size.max(axis=1)
+    blob = np.flatnonzero((parent < 0) & (SMALL_MIN_PX <= short) & (short <= SMALL_MAX_PX)
+                          & (long <= SMALL_MAX_LONG_PX) & (long <= SMALL_MAX_ASPECT * short))
+    hole = np.flatnonzero(np.isin(parent, blob))
+    area = np.zeros(len(contours))
+    for k in np.concatenate([blob, hole]):
+        area[k] = cv2.contourArea(contours[k])
+    holes = np.bincount(parent[hole], weights=area[hole], minlength=len(contours))
+    keep = blob[(holes[blob] >= SMALL_MIN_HOLES * area[blob])
+                & (area[blob] >= SMALL_MIN_FILL * np.prod(hi[blob] - lo[blob], axis=1))]
+    return np.column_stack([lo[keep] / SEARCH_SCALE, size[keep]])
 
 
 def small_tag_candidates(
     img: NDArray[np.uint8], found: NDArray[Any]
 ) -> list[tuple[int, int, int, int]]:
     """Crops ``(x0, y0, x1, y1)`` (full-resolution px, exclusive ends; they may overlap) around
-    dark square blobs of ``img`` that may be small tags, leaving out those whose centre lies in a
-    tag of ``found`` (m, 9) (see :func:`detect`) and those inside an earlier crop."""
+    the tag-like blobs of ``img`` (:func:`tag_like_blobs`), leaving out those whose centre lies
+    in a tag of ``found`` (m, 9) (see :func:`detect`) and those inside an earlier crop."""
     h, w = img.shape
-    small = cv2.resize(img, (w // 2, h // 2), interpolation=cv2.INTER_AREA)
-    mask = cv2.adaptiveThreshold(small, 255, cv2.ADAPTIVE_THRESH_MEAN_C, cv2.THRESH_BINARY_INV,
-                                 11, 7)
-    contours, _ = cv2.findContours(mask, cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_SIMPLE)
-    boxes = []
+    boxes = tag_like_blobs(img)
+    centre = boxes[:, None, :2] + boxes[:, None, 2:] / 2
     quads = found[:, 1:].reshape(-1, 4, 2)
-    lo_q, hi_q = quads.min(axis=1), quads.max(axis=1)
-    for c in contours:
-        x, y, bw, bh = cv2.boundingRect(c)
-        x, y, bw, bh = 2 * x, 2 * y, 2 * bw, 2 * bh
-        if not (SMALL_MIN_PX <= bw <= SMALL_MAX_PX and SMALL_MIN_PX <= bh <= SMALL_MAX_PX):
-            continue
-        (_, (rw, rh), _) = cv2.minAreaRect(c)
-        if max(rw, rh) > 3 * max(min(rw, rh), 1) or cv2.contourArea(c) < 0.6 * rw * rh:
-            continue  # not a (perspective) square filled by its black border
-        cx, cy = x + bw / 2, y + bh / 2
-        if np.any((lo_q[:, 0] <= cx) & (cx <= hi_q[:, 0]) & (lo_q[:, 1] <= cy)
-                  & (cy <= hi_q[:, 1])):
-            continue
-        boxes.append((max(bw, bh), x, y, bw, bh))
+    in_found = (quads.min(axis=1) <= centre) & (centre <= quads.max(axis=1))
+    boxes = boxes[~np.all(in_found, axis=2).any(axis=1)]
     crops: list[tuple[int, int, int, int]] = []
     area, budget = 0, CROP_BUDGET * h * w
-    for size, x, y, bw, bh in sorted(boxes):  # the smallest first: the likeliest to be missed
-        m = 0.25 * size
+    for x, y, bw, bh in boxes[np.argsort(boxes[:, 2:].max(axis=1), kind="stable")]:
+        # the smallest first: the likeliest to be missed
+        size = max(bw, bh)
+        m = CROP_MARGIN * size
         if any(x0 + CROP_INSIDE_PX < x - m and y0 + CROP_INSIDE_PX < y - m
                and x + bw + m < x1 - 1 - CROP_INSIDE_PX and y + bh + m < y1 - 1 - CROP_INSIDE_PX
                for x0, y0, x1, y1 in crops):
             continue  # already inside a crop
-        m = CROP_MARGIN * size + 4
-        crop = (max(0, int(x - m)), max(0, int(y - m)), min(w, int(x + bw + m + 1)),
-                min(h, int(y + bh + m + 1)))
+        m += CROP_MARGIN_PX
+        x0, y0 = (max(0, int(v - m)) // CROP_ALIGN_PX * CROP_ALIGN_PX for v in (x, y))
+        crop = (x0, y0, min(w, int(x + bw + m + 1)), min(h, int(y + bh + m + 1)))
         area += (crop[2] - crop[0]) * (crop[3] - crop[1])
         if area > budget:
             break

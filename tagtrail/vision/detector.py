@@ -19,7 +19,6 @@ FAMILY = "tag36h11"
 # The AprilTag C library (pupil-apriltags, apriltag_ros) puts corners +0.5 px from OpenCV's pixel
 # convention (measured +0.49 px); tagtrail works in OpenCV's.
 C_LIBRARY_PIXEL_OFFSET = 0.5
-SMALL_TAGS_MODES = ("redetect", "off")
 
 
 @dataclass(frozen=True)
