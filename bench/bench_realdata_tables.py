@@ -175,8 +175,9 @@ def photonvision(work: Path) -> list[str]:
             ran.add(applied)
         applied_by[method] = "/".join(sorted(ran))
     out = ["### PhotonVision FRC 2024 field (Table A.1 layout; measured = official layout)", "",
-           "Tag graph components mapped (the same for every method): " + ", ".join(
-               "{" + ",".join(map(str, c)) + "}" for c in comps["joint"])
+           "Maps made (one per run, each a set of tags): " + "; ".join(
+               f"{m}: " + ", ".join("{" + ",".join(map(str, c)) + "}" for c in comps[m])
+               for m in METHODS)
            + ". Solve applied: " + "; ".join(f"{m}: {a}" for m, a in applied_by.items())
            + " (joint*: `-S optimize.joint_min_frames=1`).", ""]
     return out + table_a1(pairs, "layout")
