@@ -37,7 +37,7 @@ from tagtrail.errors import SourceError
 from tagtrail.geometry.camera import CameraModel
 from tagtrail.io import msgs
 from tagtrail.io.bags import BAG_FILE_SUFFIXES, open_bag
-from tagtrail.io.camera_files import read_camera_file
+from tagtrail.io.camera_files import read_camera_file, split_camera_path
 from tagtrail.io.layouts import read_stamped_poses, tag_ids
 from tagtrail.schemas.pipeline import DatasetConfig
 from tagtrail.vision.detector import (  # apriltag_ros: the C library
@@ -160,7 +160,7 @@ def open_source(cfg: DatasetConfig) -> Source:
 def _camera_override(path: Path | None) -> CameraModel | None:
     if path is None:
         return None
-    if not Path(path).is_file():
+    if not split_camera_path(path)[0].is_file():
         raise SourceError(f"{path}: camera file not found (`camera:` of the dataset)")
     return read_camera_file(path)
 

@@ -28,6 +28,7 @@ import pyarrow.parquet as pq
 
 from tagtrail import faults
 from tagtrail.errors import ArtifactError, SourceError
+from tagtrail.io.camera_files import split_camera_path
 from tagtrail.io.layouts import atomic_write_text
 from tagtrail.runner.paths import clean_temp_files, inside
 from tagtrail.schemas import documents
@@ -85,6 +86,11 @@ class SourceHasher:
         self._cache[key] = [st.st_size, st.st_mtime_ns, digest]
         self._dirty = True
         return digest
+
+    def hash_camera(self, path: Path) -> str:
+        """The hash of a camera file, ``FILE#NAME`` (a camchain's camera) with the name."""
+        file, name = split_camera_path(path)
+        return self.hash(file) if name is None else f"{self.hash(file)}#{name}"
 
     def hash(self, path: Path) -> str:
         """sha256 over a file, or over a folder's files (relative names + content hashes)."""

@@ -17,6 +17,7 @@ import yaml
 from pydantic import ValidationError
 
 from tagtrail.errors import SpecError
+from tagtrail.io.camera_files import split_camera_path
 from tagtrail.runner.stage import InputRef, StageSpec, stage_spec
 from tagtrail.schemas.pipeline import DatasetConfig, PipelineConfig
 from tagtrail.stages.base import StageParams
@@ -142,7 +143,7 @@ def _resolve_dataset(name: str, ds: DatasetConfig, root: Path, check: bool) -> D
     if not source.exists():
         raise SpecError(f"dataset {name!r}: source {source} does not exist")
     camera = absolute(ds.camera)
-    if camera is not None and not camera.is_file():
+    if camera is not None and not split_camera_path(camera)[0].is_file():
         raise SpecError(f"dataset {name!r}: camera file {camera} does not exist")
     gt = absolute(ds.ground_truth)
     if gt is None and source.is_dir() and (source / "ground_truth").is_dir():
