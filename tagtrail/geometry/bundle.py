@@ -92,7 +92,8 @@ class JointResult:
     observation (px); ``tag_std``/``cam_std`` ``(T|F, 2)``: position (m) and rotation (rad)
     standard deviations (RMS over the axes; 0 for fixed tags; None unless asked for);
     ``variance_factor``: the whitened cost per degree of freedom (1 when the noise is as
-    assumed); ``prior_terms``: frames held by the motion prior."""
+    assumed); ``prior_terms``: frames held by the motion prior; ``sigma_px``: the median corner
+    noise used (estimated with ``estimate_noise``)."""
 
     R_tag: F64
     t_tag: F64
@@ -104,6 +105,7 @@ class JointResult:
     converged: bool
     variance_factor: float
     prior_terms: int
+    sigma_px: float
     tag_std: F64 | None = None
     cam_std: F64 | None = None
 
@@ -234,11 +236,15 @@ def solve_joint(
     max_iter: int = 50,
     prior: MotionPrior | None = None,
     covariance: bool = False,
+    estimate_noise: bool = False,
 ) -> JointResult:
     """Minimise the module's cost over the free tags (``free (T,)`` bool) and every camera,
     from the given start; cameras must be in time order when ``prior`` is given. ``sigma_px``:
     the corner noise, one value or one per observation (:func:`corner_sigma`); the robust scale
-    ``f_scale_px`` is taken at its median."""
+    ``f_scale_px`` is taken at its median. ``estimate_noise``: after the first solve, rescale the
+    corner noise to what the residuals show (clamped to 0.05-5 px) and solve again, so that
+    precise corners are not outweighed by the motion prior (nor noisy ones by it overruled);
+    ``JointResult.sigma_px`` reports the median noise used."""
     n_f, n_t, n_o = len(R_cam), len(R_tag), len(ob.frame)
     free = np.asarray(free, bool)
     free_idx = np.flatnonzero(free)
@@ -255,7 +261,7 @@ def solve_joint(
     bidx = _band_index(n_f)
     eye3 = np.broadcast_to(np.eye(3), (n_o, 4, 3, 3))
     # normalised coordinates -> units of each observation's corner noise
-    sig = np.broadcast_to(np.asarray(sigma_px, np.float64), (n_o,))
+    sig = np.broadcast_to(np.asarray(sigma_px, np.float64), (n_o,)).copy()
     scale = px_per_unit / sig
     f = f_scale_px / float(np.median(sig)) if n_o else 1.0
     f2 = f * f
@@ -309,46 +315,59 @@ def solve_joint(
             C[:, c0:c0 + step] -= (B.T @ X)
         return C
 
+    it = 0
     cost, r, pw, pc, w, m, Jm = evaluate(R_cam, t_cam, R_tag, t_tag)
-    lam, it, converged = 1e-4, 0, n_o == 0
-    while it < max_iter and n_o:
-        Ablk, gc, Htt, gt, B = normal_equations(R_cam, r, pw, pc, w, m, Jm)
-        while True:
-            try:
-                cb = cholesky_banded(_band(Ablk, bidx, lam), lower=True)
-                dt = np.zeros((n_t, 6))
-                if n_free:
-                    y = cho_solve_banded((cb, True), gc.reshape(-1))
-                    S = schur(cb, Htt, B, lam)
-                    rhs = -gt.reshape(-1) + B.T @ y
-                    dt[free_idx] = cho_solve(cho_factor(S), rhs).reshape(n_free, 6)
-                    dcv = -y - cho_solve_banded((cb, True), B @ dt[free_idx].reshape(-1))
-                else:
-                    dcv = -cho_solve_banded((cb, True), gc.reshape(-1))
-                dc = dcv.reshape(n_f, 6)
-                ok = bool(np.isfinite(dc).all() and np.isfinite(dt).all())
-            except (LinAlgError, ValueError):
-                ok = False
-            if ok:
-                Rc, tc = left_update(R_cam, t_cam, dc)
-                Rt, tt = left_update(R_tag, t_tag, dt)
-                new = evaluate(Rc, tc, Rt, tt)
-                if new[0] <= cost:
-                    break
-            if lam > 1e8:
+    for round_ in range(2 if estimate_noise and n_o else 1):
+        if round_:  # the corner noise the residuals show, then the solve again from there
+            sq0 = np.sum(r * r, axis=(1, 2)) * scale**2
+            dof0 = 8 * n_o - 6 * (n_f + n_free)
+            if dof0 <= 0:
                 break
-            lam *= 10.0
-        if not ok or new[0] > cost:
-            converged = True  # no descent left at any damping: a (local) minimum
-            break
-        step_size = max(np.abs(dt).max(initial=0.0), np.abs(dc).max(initial=0.0))
-        done = cost - new[0] <= 1e-10 * max(cost, 1e-300) or step_size < 1e-12
-        R_cam, t_cam, R_tag, t_tag = Rc, tc, Rt, tt
-        cost, r, pw, pc, w, m, Jm = new
-        it, lam = it + 1, max(lam / 10.0, 1e-9)
-        if done:
-            converged = True
-            break
+            factor = float(np.sum(w * sq0) / dof0)
+            sig = np.clip(sig * np.sqrt(factor), 0.05, 5.0)
+            scale = px_per_unit / sig
+            f = f_scale_px / float(np.median(sig))
+            f2 = f * f
+            cost, r, pw, pc, w, m, Jm = evaluate(R_cam, t_cam, R_tag, t_tag)
+        lam, converged = 1e-4, n_o == 0
+        while it < max_iter * (round_ + 1) and n_o:
+            Ablk, gc, Htt, gt, B = normal_equations(R_cam, r, pw, pc, w, m, Jm)
+            while True:
+                try:
+                    cb = cholesky_banded(_band(Ablk, bidx, lam), lower=True)
+                    dt = np.zeros((n_t, 6))
+                    if n_free:
+                        y = cho_solve_banded((cb, True), gc.reshape(-1))
+                        S = schur(cb, Htt, B, lam)
+                        rhs = -gt.reshape(-1) + B.T @ y
+                        dt[free_idx] = cho_solve(cho_factor(S), rhs).reshape(n_free, 6)
+                        dcv = -y - cho_solve_banded((cb, True), B @ dt[free_idx].reshape(-1))
+                    else:
+                        dcv = -cho_solve_banded((cb, True), gc.reshape(-1))
+                    dc = dcv.reshape(n_f, 6)
+                    ok = bool(np.isfinite(dc).all() and np.isfinite(dt).all())
+                except (LinAlgError, ValueError):
+                    ok = False
+                if ok:
+                    Rc, tc = left_update(R_cam, t_cam, dc)
+                    Rt, tt = left_update(R_tag, t_tag, dt)
+                    new = evaluate(Rc, tc, Rt, tt)
+                    if new[0] <= cost:
+                        break
+                if lam > 1e8:
+                    break
+                lam *= 10.0
+            if not ok or new[0] > cost:
+                converged = True  # no descent left at any damping: a (local) minimum
+                break
+            step_size = max(np.abs(dt).max(initial=0.0), np.abs(dc).max(initial=0.0))
+            done = cost - new[0] <= 1e-10 * max(cost, 1e-300) or step_size < 1e-12
+            R_cam, t_cam, R_tag, t_tag = Rc, tc, Rt, tt
+            cost, r, pw, pc, w, m, Jm = new
+            it, lam = it + 1, max(lam / 10.0, 1e-9)
+            if done:
+                converged = True
+                break
     sq = np.sum(r * r, axis=(1, 2)) * scale**2
     dof = 8 * n_o + 6 * len(kp) - 6 * (n_f + n_free)
     chi2 = float(np.sum(w * sq) + np.sum(m * m))
@@ -359,7 +378,7 @@ def solve_joint(
         tag_std, cam_std = _std(normal_equations(R_cam, r, pw, pc, w, m, Jm), bidx, free_idx,
                                 t_tag, n_t, max(vf, 1.0) if np.isfinite(vf) else 1.0, schur)
     return JointResult(R_tag, t_tag, R_cam, t_cam, res_px, cost, it, converged, vf, len(kp),
-                       tag_std, cam_std)
+                       float(np.median(sig)) if n_o else float("nan"), tag_std, cam_std)
 
 
 def _std(ne: tuple[F64, F64, F64, F64, coo_matrix], bidx: tuple[I64, ...], free_idx: I64,

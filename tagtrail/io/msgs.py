@@ -28,6 +28,10 @@ IMAGE = "sensor_msgs/msg/Image"
 COMPRESSED_IMAGE = "sensor_msgs/msg/CompressedImage"
 CAMERA_INFO = "sensor_msgs/msg/CameraInfo"
 DETECTIONS = "apriltag_msgs/msg/AprilTagDetectionArray"
+# TagSLAM's (ROS 1 apriltag_ros of berndpfrommer): per-tag id, family (the detector's name: mit,
+# umich, or empty), hamming, corners; no decision margin. Its definition travels in the bag.
+TAGSLAM_DETECTIONS = "apriltag_msgs/msg/ApriltagArrayStamped"
+DETECTION_TYPES = (DETECTIONS, TAGSLAM_DETECTIONS)
 POSE_STAMPED = "geometry_msgs/msg/PoseStamped"
 
 

@@ -174,8 +174,24 @@ def _stamp_ns(stamp: Any) -> int:
     return int(sec) * 1_000_000_000 + int(nsec)
 
 
-def detections_from_msg(msg: Any) -> list[TagDetection]:
-    """An ``AprilTagDetectionArray`` as :class:`TagDetection` s, corners in OpenCV's convention."""
+def detections_from_msg(msg: Any, msgtype: str = msgs.DETECTIONS) -> list[TagDetection]:
+    """A detection message as :class:`TagDetection` s, corners in OpenCV's convention.
+
+    ``AprilTagDetectionArray`` (apriltag_ros, ROS 2): the AprilTag C library's corners, +0.5 px
+    from OpenCV's. TagSLAM's ``ApriltagArrayStamped``: the MIT detector's corners are OpenCV's
+    already (its ``family`` holds the detector's name, ``mit`` or empty); ``umich`` is the C
+    library's. It has no decision margin (NaN: ``min_decision_margin`` does not apply) and no
+    family (the configured tag36h11)."""
+    if msgtype == msgs.TAGSLAM_DETECTIONS:
+        return [
+            TagDetection(
+                tag_id=int(a.id), hamming=int(a.hamming), decision_margin=float("nan"),
+                corners=np.array([[c.x, c.y] for c in a.corners], dtype=np.float64)
+                - (C_LIBRARY_PIXEL_OFFSET if str(a.family) == "umich" else 0.0),
+                family="",
+            )
+            for a in msg.apriltags
+        ]
     out = []
     for d in msg.detections:
         corners = np.array([[c.x, c.y] for c in d.corners], dtype=np.float64)
@@ -221,6 +237,10 @@ class BagSource(Source):
             self._counts: dict[str, int] = {t: sum(c.msgcount for c in cs)
                                             for t, cs in by_topic.items()}
             self.kind, self.topic = self._choose_topic(cfg)
+            if self._types[self.topic] == msgs.TAGSLAM_DETECTIONS:
+                log.info("%s: %s (TagSLAM) carries no decision margin, so min_decision_margin "
+                         "is not applied; corners are taken in OpenCV's convention (the MIT "
+                         "detector's)", self.path, self.topic)
             self.camera_info_topic: str | None = None
             self._camera = camera
             if camera is not None:
@@ -293,18 +313,18 @@ class BagSource(Source):
             if cfg.topics.image is not None:
                 log.warning("%s: topics.detections is set, so topics.image is ignored", self.path)
             return "detections", self._topic_of(cfg.topics.detections, "detections",
-                                                (msgs.DETECTIONS,))
+                                                msgs.DETECTION_TYPES)
         if cfg.topics.image is not None:
             return "images", self._topic_of(cfg.topics.image, "image", IMAGE_TYPES)
         image = self._unique(IMAGE_TYPES, "image")
         if image is not None:
             return "images", image
-        dets = self._unique((msgs.DETECTIONS,), "detections")
+        dets = self._unique(msgs.DETECTION_TYPES, "detections")
         if dets is not None:
             return "detections", dets
         raise SourceError(
             f"{self.path}: no image (sensor_msgs/msg/Image, CompressedImage) or detection "
-            f"({msgs.DETECTIONS}) topic; topics there: {self._listing()}"
+            f"({', '.join(msgs.DETECTION_TYPES)}) topic; topics there: {self._listing()}"
         )
 
     def _choose_camera_info(self, cfg: DatasetConfig) -> str | None:
@@ -361,8 +381,8 @@ class BagSource(Source):
                                 warned = True
                         continue
                     t_ns = _stamp_ns(msg.header.stamp) or int(t_recv)
-                    if conn.msgtype == msgs.DETECTIONS:
-                        yield idx, t_ns, detections_from_msg(msg)
+                    if conn.msgtype in msgs.DETECTION_TYPES:
+                        yield idx, t_ns, detections_from_msg(msg, conn.msgtype)
                     else:
                         yield idx, t_ns, raw_image_from_msg(msg, conn.msgtype)
                     idx += 1

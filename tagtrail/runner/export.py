@@ -169,7 +169,8 @@ def diagnostics(get: Getter, folder: Path, dataset: str) -> bool:
                  ("joint_motion_prior_frames", bundle.motion_prior_frames),
                  ("joint_ippe_second_solution", bundle.ippe_second_solution),
                  ("joint_corner_rms_px", bundle.rms_px),
-                 ("joint_variance_factor", bundle.variance_factor)]
+                 ("joint_variance_factor", bundle.variance_factor),
+                 ("joint_corner_sigma_px", bundle.corner_sigma_px)]
     elif report is not None:
         rows.append(("map_method", report.method))
     if tags is not None and "std_pos_m" in tags.columns:

@@ -79,7 +79,8 @@ class BundleSummary(Document):
     tag, and held by the motion prior), frames started from a tag's second IPPE solution, tags
     the pose graph left out and the trajectory linked to the map, the
     whitened cost and its variance factor (cost per degree of freedom, 1 when the corner noise is
-    as assumed), corner reprojection RMS / p95 (px)."""
+    as assumed), the corner noise it used (px, median; estimated from the residuals by default),
+    corner reprojection RMS / p95 (px)."""
 
     frames: int
     single_tag_frames: int
@@ -91,6 +92,7 @@ class BundleSummary(Document):
     converged: bool
     cost: float
     variance_factor: float
+    corner_sigma_px: float
     rms_px: float
     p95_px: float
 

@@ -89,6 +89,9 @@ class Params(StageParams):
     corner_sigma_px: float = Field(0.5, gt=0.0)
     """Corner noise (px, per coordinate) of the joint solve for a tag of 20 px sides: weighs the
     corners against the motion prior and scales the reported standard deviations."""
+    corner_noise: Literal["estimated", "given"] = "given"
+    """``estimated``: ``corner_sigma_px`` is the start, rescaled to what the corner residuals show
+    (then solved again); ``given``: taken as it is."""
     corner_weighting: Literal["size", "none"] = "size"
     """``size``: a tag's corner noise grows as its sides shrink (small, far, oblique tags; see
     geometry.bundle.corner_sigma); ``none``: ``corner_sigma_px`` for every tag."""
@@ -215,7 +218,7 @@ def refine_on_corners(
         sigma_px=(params.corner_sigma_px if params.corner_weighting == "none" else
                   corner_sigma(m[CORNER_COLS].to_numpy(np.float64), params.corner_sigma_px)),
         f_scale_px=params.joint_f_scale_px, max_iter=params.joint_max_iter, prior=mp,
-        covariance=True,
+        covariance=True, estimate_noise=params.corner_noise == "estimated",
     )
     if not res.converged:
         log.warning("optimize: the joint solve stopped after %d iterations (joint_max_iter) "
@@ -232,6 +235,7 @@ def refine_on_corners(
         "converged": res.converged,
         "cost": res.cost,
         "variance_factor": res.variance_factor,
+        "corner_sigma_px": res.sigma_px,
         "rms_px": float(np.sqrt(np.mean(res.res_px**2))),
         "p95_px": float(np.percentile(res.res_px, 95)),
     }

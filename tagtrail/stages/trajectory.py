@@ -71,6 +71,9 @@ class Params(StageParams):
     """``pnp``: RANSAC inlier threshold (pixels)."""
     corner_sigma_px: float = Field(0.5, gt=0.0)
     """``joint``: corner noise (px, 20 px tag), as optimize's (same default)."""
+    corner_noise: Literal["estimated", "given"] = "given"
+    """``estimated``: ``corner_sigma_px`` is the start, rescaled to what the corner residuals show
+    (then solved again); ``given``: taken as it is."""
     corner_weighting: Literal["size", "none"] = "size"
     """``joint``: as optimize's."""
     joint_loss: LossName = "huber"
@@ -133,7 +136,8 @@ def joint_trajectory(rows: pd.DataFrame, ids: np.ndarray, W_map: np.ndarray,
         sigma_px=(params.corner_sigma_px if params.corner_weighting == "none" else
                   corner_sigma(rows[CORNER_COLS].to_numpy(np.float64), params.corner_sigma_px)),
         loss=params.joint_loss, f_scale_px=params.joint_f_scale_px,
-        max_iter=params.joint_max_iter, prior=prior, covariance=True)
+        max_iter=params.joint_max_iter, prior=prior, covariance=True,
+        estimate_noise=params.corner_noise == "estimated")
     if not res.converged:
         log.warning("trajectory: the joint solve stopped after %d iterations (joint_max_iter) "
                     "before converging", res.iters)

@@ -258,3 +258,12 @@ def test_tags_never_seen_together_are_linked_through_the_trajectory() -> None:
                       np.array([False, True]), px_per_unit=FOCAL_PX, sigma_px=0.2,
                       prior=MotionPrior(t_s, 0.1, np.radians(30.0), 0.5))
     assert np.linalg.norm(res.t_tag[1] - W[1, :3, 3]) < 0.03
+
+
+def test_corner_noise_is_estimated_from_the_residuals() -> None:
+    """Started from a corner noise 4x too large, ``estimate_noise`` finds the 0.5 px it is."""
+    ob, W, C, anchor, t_s = corner_problem(noise_px=0.5, seed=7, n_frames=120)
+    res = solve(ob, W, C, anchor, sigma_px=2.0, estimate_noise=True,
+                prior=MotionPrior(t_s, 1.0, 1.0, 1.0))
+    given = solve(ob, W, C, anchor, sigma_px=2.0, prior=MotionPrior(t_s, 1.0, 1.0, 1.0))
+    assert given.sigma_px == 2.0 and abs(res.sigma_px - 0.5) < 0.05
