@@ -242,3 +242,27 @@ def test_bad_sources(tmp_path: Path, upenn) -> None:
         open_source(cfg(lonely))
     with pytest.raises(SourceError, match=r"cam.yaml: camera file not found"):
         open_source(DatasetConfig(source=bag, camera=tmp_path / "cam.yaml"))
+
+
+def test_tagslam_ros1_detections_are_read_directly(realdata: Path, tmp_path: Path) -> None:
+    """TagSLAM test 16's ``apriltag_msgs/ApriltagArrayStamped`` bag (ROS 1, MIT detector, no
+    decision margin, family ``mit``) with its Kalibr ``cameras.yaml``: every detection comes
+    out, tag36h11, corners as recorded (the MIT detector's are OpenCV's), margin NaN."""
+    import bz2
+
+    import numpy as np
+
+    from tagtrail.io.sources import open_source
+    from tagtrail.schemas.pipeline import DatasetConfig
+
+    root = realdata / "tagslam_test_16"
+    bag = tmp_path / "tag_detections.bag"
+    bag.write_bytes(bz2.decompress((root / "tag_detections.bag.bz2").read_bytes()))
+    src = open_source(DatasetConfig(source=bag, camera=root / "cameras.yaml"))
+    assert src.kind == "detections" and src.camera() is not None
+    frames = list(src.iter_raw())
+    dets = [d for _, _, data in frames for d in data]
+    assert len(frames) == 297 and len(dets) == 1471
+    first = frames[0][2][0]
+    assert first.tag_id == 1 and first.family == "" and np.isnan(first.decision_margin)
+    assert np.allclose(first.corners[0], [526.064208984375, 392.17669677734375])
