@@ -29,7 +29,8 @@ EXAMPLES = {
     "dag": "examples:\n  tagtrail dag\n  tagtrail dag --mermaid > dag.mmd",
     "show": "examples:\n  tagtrail show extract\n  tagtrail show pnp --dataset query\n"
     "  tagtrail show extract -S extract.quad_decimate=1.0   # the artifact that run made\n"
-    "  tagtrail show extract --csv detections.csv",
+    "  tagtrail show extract --csv detections.csv\n"
+    "  tagtrail show optimize --point 3   # point 3 of the newest `tagtrail sweep`",
 }
 
 
@@ -92,6 +93,16 @@ def cmd_dag(args: argparse.Namespace) -> int:
 def cmd_show(args: argparse.Namespace) -> int:
     from tagtrail.runner.show import show
 
+    if args.point is not None:  # a sweep point's overrides, then any -S on top
+        from tagtrail.runner.sweep import point_overrides
+
+        name, sets = point_overrides(Path(args.pipeline), args.point, args.sweep)
+        print(f"sweep {name}, point {args.point}: {' '.join(sets) or '(no overrides)'}")
+        args.set = [*sets, *(args.set or ())]
+    elif args.sweep is not None:
+        from tagtrail.errors import SpecError
+
+        raise SpecError("--sweep NAME names the sweep of --point N; give --point too")
     return show(_runner(args), args.stage, args.dataset, args.output, args.csv, args.rows)
 
 
@@ -152,6 +163,10 @@ def build_parser(command: str | None = None) -> argparse.ArgumentParser:
     p.add_argument("--output", default=None, help="which output of the stage")
     p.add_argument("--csv", type=Path, default=None, help="export the table to CSV")
     p.add_argument("--rows", type=int, default=10, help="rows of head to print")
+    p.add_argument("--point", type=int, default=None, metavar="N",
+                   help="the artifact of point N of a `tagtrail sweep` (its -S overrides)")
+    p.add_argument("--sweep", default=None, metavar="NAME",
+                   help="the sweep of --point (default: the newest under sweeps/)")
     p.set_defaults(func=cmd_show)
 
     _optional_commands(sp, command)
@@ -165,6 +180,7 @@ OPTIONAL = (
     ("init", "tagtrail.commands.init", "inspect sources and write a pipeline file"),
     ("stream", "tagtrail.stream.cli", "live relocalization over zenoh"),
     ("eval", "tagtrail.commands.eval", "the paper's evaluation tables from a run"),
+    ("sweep", "tagtrail.commands.sweep", "run a grid of parameter overrides on the cache"),
 )
 
 
