@@ -67,6 +67,7 @@ class Source:
     kind: Kind
     path: Path
     camera_origin: str = "the camera model"  # where camera() comes from, for messages
+    timed: bool = True  # stamps are capture times (not an image folder's file order)
 
     def camera(self) -> CameraModel | None:
         """The camera model (None for observations sources)."""
@@ -423,6 +424,7 @@ class ImageFolderSource(Source):
         if camera_file is not None:
             self.camera_origin = str(camera_file)
         self.stamps_ns = self._stamps()
+        self.timed = (self.path / "stamps.csv").is_file()
 
     def _stamps(self) -> NDArray[np.int64]:
         f = self.path / "stamps.csv"

@@ -15,7 +15,7 @@ from numpy.typing import NDArray
 
 from tagtrail.geometry.se3 import R_from_quat_xyzw, T_from_xyz_quat
 
-VERSION = 2
+VERSION = 3
 
 I32, I64, F64 = pa.int32(), pa.int64(), pa.float64()
 POSE = [("x_m", F64), ("y_m", F64), ("z_m", F64), ("qx", F64), ("qy", F64), ("qz", F64),
@@ -25,7 +25,8 @@ CORNERS = [(f"c{i}{a}", F64) for i in range(4) for a in "xy"]
 TRAJECTORY = pa.schema([("t_ns", I64), *POSE, ("n_tags", I32)])
 
 SCHEMAS: dict[str, pa.Schema] = {
-    "extract.frames": pa.schema([("t_ns", I64), ("frame_idx", I32), ("n_det", I32)]),
+    "extract.frames": pa.schema([("t_ns", I64), ("frame_idx", I32), ("n_det", I32),
+                                 ("timed", pa.bool_())]),
     "extract.detections": pa.schema(
         [("t_ns", I64), ("frame_idx", I32), ("tag_id", I32), ("hamming", I32),
          ("decision_margin", F64), *CORNERS]  # fmt: skip
@@ -106,6 +107,12 @@ def conform(name: str, df: pd.DataFrame) -> pa.Table:
     return pa.Table.from_arrays(
         cols + [table[c] for c in extra], names=schema.names + extra
     )
+
+
+def timed(frames: pd.DataFrame | None) -> bool:
+    """Whether ``extract.frames`` stamps are capture times (an image folder without stamps.csv
+    has only its files' order: no motion links its frames)."""
+    return frames is None or "timed" not in frames.columns or bool(frames["timed"].all())
 
 
 def corner_rows(observations: pd.DataFrame, detections: pd.DataFrame,

@@ -22,6 +22,7 @@ class Source(Protocol):
     kind: Kind
     path: Path
     camera_origin: str  # where camera() comes from, for messages
+    timed: bool  # stamps are capture times (False: an image folder's file order at 10 Hz)
 
     def camera(self) -> CameraModel | None: ...
     def __len__(self) -> int: ...

@@ -102,7 +102,8 @@ def run(source: Source, params: Params) -> dict[str, Any]:
         obs = src.observations()[OBSERVATION_COLS]
         frames = obs.groupby(["frame_idx", "t_ns"], sort=True).size().reset_index(name="n_det")
         return {
-            "frames": _frames_table(frames["t_ns"], frames["frame_idx"], frames["n_det"]),
+            "frames": _frames_table(frames["t_ns"], frames["frame_idx"], frames["n_det"],
+                                    getattr(src, "timed", True)),
             "detections": _detections_table(*_empty_detections()),
             "camera": None,
             "observations": _typed(obs, OBSERVATION_COLS),
@@ -127,7 +128,7 @@ def run(source: Source, params: Params) -> dict[str, Any]:
              n_frames, len(det[0]), dt, n_frames / dt, src.describe())
     obs = pd.DataFrame({c: np.zeros(0) for c in OBSERVATION_COLS})
     return {
-        "frames": _frames_table(t_ns, frame_idx, n_det),
+        "frames": _frames_table(t_ns, frame_idx, n_det, getattr(src, "timed", True)),
         "detections": _detections_table(*det),
         "camera": camera,
         "observations": _typed(obs, OBSERVATION_COLS),
@@ -244,11 +245,14 @@ def _empty_detections() -> tuple[Any, Any, Any, Any]:
     )
 
 
-def _frames_table(t_ns: Any, frame_idx: Any, n_det: Any) -> pd.DataFrame:
+def _frames_table(t_ns: Any, frame_idx: Any, n_det: Any, timed: bool) -> pd.DataFrame:
+    """``timed``: the stamps are capture times (False for an image folder without stamps.csv:
+    then no motion prior links its frames)."""
     return pd.DataFrame({
         "t_ns": np.asarray(t_ns, dtype=np.int64),
         "frame_idx": np.asarray(frame_idx, dtype=np.int32),
         "n_det": np.asarray(n_det, dtype=np.int32),
+        "timed": np.full(len(np.asarray(t_ns)), bool(timed)),
     })
 
 

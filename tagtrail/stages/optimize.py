@@ -51,7 +51,14 @@ from tagtrail.geometry.camera import CameraModel
 from tagtrail.geometry.posegraph import PoseGraph, relative_residuals, solve
 from tagtrail.geometry.robust import LossName
 from tagtrail.geometry.se3 import R_from_quat_xyzw, make_T, quat_xyzw_from_R
-from tagtrail.schemas.artifacts import CORNER_COLS, POSE_COLS, both_solutions, columns, corner_rows
+from tagtrail.schemas.artifacts import (
+    CORNER_COLS,
+    POSE_COLS,
+    both_solutions,
+    columns,
+    corner_rows,
+    timed,
+)
 from tagtrail.schemas.documents import OptimizeReport, TagGraph
 from tagtrail.stages.base import StageParams
 
@@ -143,6 +150,7 @@ INPUTS = {
     "observations": "pnp.observations",
     "detections": "extract.detections",
     "camera": "extract.camera",
+    "frames": "extract.frames",
 }
 OUTPUTS = ("tag_map", "edge_residuals", "report")
 SCOPE = "all"
@@ -252,6 +260,7 @@ def run(
     params: Params,
     detections: pd.DataFrame | None = None,
     camera: CameraModel | None = None,
+    frames: pd.DataFrame | None = None,
 ) -> dict[str, Any]:
     """Tag map (``TAG_MAP_COLS``), per-edge residuals (``RESIDUAL_COLS``) and a report dict."""
     tags = np.asarray(sorted(int(t) for t in graph.get("tags", [])), dtype=np.int64)
@@ -287,6 +296,11 @@ def run(
     std[g.anchor] = 0.0
     if (params.method == "joint" and detections is not None and len(detections) > 0
             and camera is not None):
+        if not timed(frames) and params.motion != "none":
+            log.info("optimize: the stamps are the files' order, not capture times: no motion "
+                     "prior, no tags linked through the trajectory")
+            params = params.model_copy(update={"motion": "none", "link_tags": False,
+                                               "max_gap_s": 1e-9})
         out = refine_on_corners(R_map, t_map, tags, g.anchor, observations, detections, camera,
                                 params)
         if out is not None:

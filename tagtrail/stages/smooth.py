@@ -25,7 +25,7 @@ from pydantic import Field
 from tagtrail.geometry.robust import LossName
 from tagtrail.geometry.se3 import R_from_quat_xyzw, quat_xyzw_from_R
 from tagtrail.geometry.smoothing import smooth_poses
-from tagtrail.schemas.artifacts import POSE_COLS
+from tagtrail.schemas.artifacts import POSE_COLS, timed
 from tagtrail.stages.base import StageParams
 
 
@@ -46,16 +46,20 @@ class Params(StageParams):
     """Stamps further apart than this start a new segment (no smoothing across the gap)."""
 
 
-INPUTS = {"trajectory": "trajectory.trajectory"}
+INPUTS = {"trajectory": "trajectory.trajectory", "frames": "extract.frames"}
 OUTPUTS = ("trajectory",)
 SCOPE = "all"
 
 
-def run(trajectory: pd.DataFrame, params: Params) -> dict[str, Any]:
-    """The smoothed trajectory: same rows (sorted by ``t_ns``) and columns as the input."""
+def run(trajectory: pd.DataFrame, params: Params, frames: pd.DataFrame | None = None
+        ) -> dict[str, Any]:
+    """The smoothed trajectory: same rows (sorted by ``t_ns``) and columns as the input. Frames
+    whose stamps are only an image folder's file order (``extract.frames.timed``) are not
+    smoothed: nothing links them in time."""
     traj = trajectory.sort_values("t_ns", kind="stable").reset_index(drop=True)
     prior = "motion_prior" in traj.columns and bool(traj["motion_prior"].any())
-    if params.method == "none" or (params.method == "auto" and prior) or len(traj) < 3:
+    if (params.method == "none" or (params.method == "auto" and prior) or len(traj) < 3
+            or not timed(frames)):
         return {"trajectory": traj}
     t_ns = traj["t_ns"].to_numpy(np.int64)
     t_s = (t_ns - t_ns[0]).astype(np.float64) * 1e-9

@@ -52,6 +52,7 @@ from tagtrail.schemas.artifacts import (
     columns,
     corner_rows,
     ippe_solutions,
+    timed,
 )
 from tagtrail.stages.base import StageParams
 
@@ -93,6 +94,7 @@ INPUTS = {
     "detections": "extract.detections",
     "camera": "extract.camera",
     "tag_map": "optimize.tag_map",
+    "frames": "extract.frames",
 }
 OUTPUTS = ("trajectory",)
 SCOPE = "all"
@@ -156,8 +158,13 @@ def run(
     camera: CameraModel | None,
     tag_map: pd.DataFrame,
     params: Params,
+    frames: pd.DataFrame | None = None,
 ) -> dict[str, Any]:
     """One ``world_T_cam`` per frame with a mapped tag: ``TRAJ_COLS``."""
+    if not timed(frames) and params.motion != "none":
+        log.info("trajectory: the stamps are the files' order, not capture times: no motion "
+                 "prior")
+        params = params.model_copy(update={"motion": "none", "max_gap_s": 1e-9})
     if tag_map is None or len(tag_map) == 0:
         raise DataError("trajectory: the tag map is empty (did optimize map any tag?)")
     ids = tag_map["tag_id"].to_numpy(np.int64)

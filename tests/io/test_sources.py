@@ -266,3 +266,24 @@ def test_tagslam_ros1_detections_are_read_directly(realdata: Path, tmp_path: Pat
     first = frames[0][2][0]
     assert first.tag_id == 1 and first.family == "" and np.isnan(first.decision_margin)
     assert np.allclose(first.corners[0], [526.064208984375, 392.17669677734375])
+
+
+def test_image_folder_without_stamps_is_not_timed(realdata: Path, tmp_path: Path) -> None:
+    """Without stamps.csv an image folder's stamps are its files' order (10 Hz): not capture
+    times, so nothing downstream links its frames in time."""
+    import shutil
+
+    from tagtrail.io.sources import open_source
+    from tagtrail.schemas.pipeline import DatasetConfig
+
+    frames = realdata / "upenn_ar_tag36h11_id12_seq" / "frames"
+    folder = tmp_path / "imgs"
+    folder.mkdir()
+    shutil.copy(frames / "camera.yaml", folder)
+    names = [f.name for f in sorted(frames.glob("frame*.jpg"))[:3]]
+    for name in names:
+        shutil.copy(frames / name, folder)
+    assert not open_source(DatasetConfig(source=folder)).timed
+    (folder / "stamps.csv").write_text("file,stamp_sec,stamp_nanosec\n" + "".join(
+        f"{name},{100 + k},0\n" for k, name in enumerate(names)))
+    assert open_source(DatasetConfig(source=folder)).timed

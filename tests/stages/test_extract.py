@@ -21,7 +21,7 @@ from tests.io import bags
 
 T0 = bags.T0_NS
 DT = 33_333_333
-FRAME_COLS = ["t_ns", "frame_idx", "n_det"]
+FRAME_COLS = ["t_ns", "frame_idx", "n_det", "timed"]
 DET_COLS = ["t_ns", "frame_idx", "tag_id", "hamming", "decision_margin",
             "c0x", "c0y", "c1x", "c1y", "c2x", "c2y", "c3x", "c3y"]
 OBS_COLS = ["t_ns", "frame_idx", "tag_id", "x_m", "y_m", "z_m", "qx", "qy", "qz", "qw"]
@@ -59,7 +59,7 @@ def check_tables(out: dict) -> None:
     assert list(out["frames"].columns) == FRAME_COLS
     assert list(out["detections"].columns) == DET_COLS
     assert list(out["observations"].columns) == OBS_COLS
-    assert out["frames"].dtypes.tolist() == [np.int64, np.int32, np.int32]
+    assert out["frames"].dtypes.tolist() == [np.int64, np.int32, np.int32, np.bool_]
     assert out["detections"].dtypes.tolist()[:4] == [np.int64, np.int32, np.int32, np.int32]
     det = out["detections"]
     assert (det.sort_values(["frame_idx", "tag_id"], kind="stable").index == det.index).all()
@@ -71,6 +71,7 @@ def test_upenn_corners_match_expected_minus_half_pixel(upenn_unrefined: dict, up
     check_tables(out)
     det = out["detections"]
     assert len(out["frames"]) == 93 and (out["frames"]["n_det"] == 1).all()
+    assert out["frames"]["timed"].all()  # a bag: its header stamps are capture times
     assert (det["tag_id"] == 12).all() and (det["hamming"] == 0).all()
     assert det["t_ns"].tolist() == [T0 + k * DT for k in range(93)]
     expected = np.load(upenn_dir / "corners.npy")  # a peer detector, C-library pixel convention
@@ -169,7 +170,7 @@ def test_observations_source(tmp_path: Path) -> None:
     out = extract_from(tmp_path, extract.Params())
     check_tables(out)
     assert out["camera"] is None and len(out["detections"]) == 0
-    assert out["frames"].values.tolist() == [[10**9, 0, 2], [2 * 10**9, 1, 1]]
+    assert out["frames"].values.tolist() == [[10**9, 0, 2, True], [2 * 10**9, 1, 1, True]]
     obs = out["observations"]
     assert obs["tag_id"].tolist() == [2, 4, 4] and obs["z_m"].tolist() == [2.0, 1.5, 1.4]
 

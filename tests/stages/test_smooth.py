@@ -95,3 +95,20 @@ def test_outlier_frame_is_pulled_back() -> None:
     out = smooth.run(df, smooth.Params())["trajectory"]
     dt, dr = errors(out, t_s)
     assert dr[30] < 3.0 and dt[30] < 0.05
+
+
+def test_untimed_frames_are_neither_smoothed_nor_held_by_the_prior() -> None:
+    """An image folder without stamps.csv has only its files' order (extract.frames.timed
+    False): smooth passes the trajectory through, and the joint trajectory has no prior."""
+    from tagtrail.stages import smooth as smooth_stage
+
+    t_ns = np.arange(5, dtype=np.int64) * 100_000_000
+    traj = pd.DataFrame({"t_ns": t_ns, "x_m": [0.0, 1.0, 0.0, 1.0, 0.0], "y_m": 0.0,
+                         "z_m": 0.0, "qx": 0.0, "qy": 0.0, "qz": 0.0, "qw": 1.0, "n_tags": 1})
+    frames = pd.DataFrame({"t_ns": t_ns, "frame_idx": np.arange(5), "n_det": 1,
+                           "timed": False})
+    out = smooth_stage.run(traj, smooth_stage.Params(method="lsq"), frames)["trajectory"]
+    assert out["x_m"].tolist() == traj["x_m"].tolist()
+    moved = smooth_stage.run(traj, smooth_stage.Params(method="lsq"),
+                             frames.assign(timed=True))["trajectory"]
+    assert moved["x_m"].tolist() != traj["x_m"].tolist()
