@@ -24,7 +24,9 @@ if TYPE_CHECKING:
 
 EXAMPLES = {
     "run": "examples:\n  tagtrail run\n  tagtrail run optimize -S optimize.f_scale=0.05\n"
-    "  tagtrail run --dry-run\n  tagtrail run --force -j 2",
+    "  tagtrail run --dry-run\n  tagtrail run --force -j 2\n"
+    "  tagtrail run --executor dask -j 4   # a local Dask cluster of 4 worker processes\n"
+    "  tagtrail run --scheduler tcp://scheduler-host:8786   # an existing Dask cluster",
     "status": "examples:\n  tagtrail status\n  tagtrail status -p my_pipeline.yaml",
     "dag": "examples:\n  tagtrail dag\n  tagtrail dag --mermaid > dag.mmd",
     "show": "examples:\n  tagtrail show extract\n  tagtrail show pnp --dataset query\n"
@@ -45,7 +47,10 @@ def _runner(args: argparse.Namespace) -> Runner:
     from tagtrail.runner.spec import load_pipeline
 
     pipe = load_pipeline(Path(args.pipeline), _registry(), getattr(args, "set", None) or ())
-    return Runner(pipe, jobs=getattr(args, "jobs", 1), echo=print)
+    scheduler = getattr(args, "scheduler", None)  # `run --executor/--scheduler`
+    executor = getattr(args, "executor", None) or ("dask" if scheduler else "local")
+    return Runner(pipe, jobs=getattr(args, "jobs", 1), echo=print, executor=executor,
+                  scheduler=scheduler)
 
 
 def cmd_run(args: argparse.Namespace) -> int:
@@ -140,7 +145,14 @@ def build_parser(command: str | None = None) -> argparse.ArgumentParser:
     _set_arg(p)
     p.add_argument("--force", action="store_true", help="rerun even if up to date")
     p.add_argument("--dry-run", action="store_true", help="say what would run and why")
-    p.add_argument("-j", "--jobs", type=int, default=1, help="stages run in parallel")
+    p.add_argument("-j", "--jobs", type=int, default=1,
+                   help="stages run in parallel (dask: worker processes of the local cluster)")
+    p.add_argument("--executor", choices=("local", "dask"), default=None,
+                   help="where stages run: local threads (default) or a Dask cluster "
+                   "(pip install 'tagtrail[dask]')")
+    p.add_argument("--scheduler", default=None, metavar="ADDRESS",
+                   help="an existing Dask scheduler (tcp://host:8786; implies --executor dask; "
+                   "default: start a local cluster)")
     p.add_argument("--json", action="store_true", help="print the run log as JSON")
     p.set_defaults(func=cmd_run)
 

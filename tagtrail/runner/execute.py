@@ -7,11 +7,9 @@ import logging
 import time
 import traceback
 from collections.abc import Callable
-from contextlib import ExitStack
 from dataclasses import asdict, dataclass
 from typing import Any
 
-from tagtrail import faults
 from tagtrail.errors import StageError, TagtrailError, storage_error
 from tagtrail.io.layouts import atomic_write_text
 from tagtrail.runner.cache import (
@@ -22,8 +20,7 @@ from tagtrail.runner.cache import (
     sha256_text,
 )
 from tagtrail.runner.dag import Graph, Node, build_graph, select
-from tagtrail.runner.executors import make_executor
-from tagtrail.runner.inputs import resolve
+from tagtrail.runner.executors import NodeTask, open_executor, run_node, run_remote
 from tagtrail.runner.paths import inside
 from tagtrail.runner.spec import Pipeline
 from tagtrail.schemas.artifacts import VERSION as ARTIFACT_SCHEMA_VERSION
@@ -59,10 +56,14 @@ def _param_diff(old: dict[str, Any], new: dict[str, Any]) -> str:
 
 
 class Runner:
-    """Executes a validated pipeline against its artifact store."""
+    """Executes a validated pipeline against its artifact store.
+
+    ``executor``: ``local`` (``jobs`` nodes at once in threads) or ``dask`` (``jobs`` local
+    worker processes, or the workers of ``scheduler``; see :mod:`tagtrail.runner.executors`)."""
 
     def __init__(
-        self, pipe: Pipeline, jobs: int = 1, echo: Callable[[str], None] | None = None
+        self, pipe: Pipeline, jobs: int = 1, echo: Callable[[str], None] | None = None,
+        executor: str = "local", scheduler: str | None = None,
     ) -> None:
         self.pipe = pipe
         self.graph: Graph = build_graph(pipe)
@@ -70,6 +71,8 @@ class Runner:
         self.hasher = SourceHasher(pipe.artifacts / "sources.json")
         self.jobs = max(1, jobs)
         self.echo = echo or (lambda s: None)
+        self.executor = executor
+        self.scheduler = scheduler
         self._source_fp: dict[tuple[str, str], str] = {}
 
     # --- keys -------------------------------------------------------------------------------
@@ -162,29 +165,33 @@ class Runner:
 
     # --- run --------------------------------------------------------------------------------
 
-    def _execute(
+    def _task(
         self, node: Node, key: str, record: dict[str, Any], keys: dict[Node, str]
-    ) -> int | None:
-        spec = self.pipe.stages[node.stage]
-        kwargs: dict[str, Any] = {}
-        with ExitStack() as stack:
-            for arg, (ref, up) in self.graph.inputs[node].items():
-                if up is None:
-                    assert ref.special is not None
-                    kwargs[arg] = resolve(ref.special, self.pipe.datasets[node.dataset],
-                                          str(node), stack)
-                else:
-                    assert ref.output is not None
-                    kwargs[arg] = self.store.load(up.stage, keys[up], ref.output)
-            outputs = spec.run(self.pipe.params_for(node.stage, node.dataset), **kwargs)
-        faults.point(f"stage:{node.stage}")
-        if not isinstance(outputs, dict) or set(outputs) != set(spec.outputs):
-            got = sorted(outputs) if isinstance(outputs, dict) else type(outputs).__name__
-            raise TypeError(f"run() returned {got}, expected outputs {list(spec.outputs)}")
-        manifest = self.store.write(node.stage, key, outputs, record)
-        self.store.save_record(node.dataset, node.stage, record)
-        rows = [o["rows"] for o in manifest["outputs"].values() if o["rows"] is not None]
-        return sum(rows) if rows else None
+    ) -> NodeTask:
+        """What an executor needs to run ``node`` (picklable, for workers in other processes)."""
+        specials: dict[str, str] = {}
+        upstream: dict[str, tuple[str, str, str]] = {}
+        for arg, (ref, up) in self.graph.inputs[node].items():
+            if up is None:
+                assert ref.special is not None
+                specials[arg] = ref.special
+            else:
+                assert ref.output is not None
+                upstream[arg] = (up.stage, keys[up], ref.output)
+        module = self.pipe.stages[node.stage].module
+        return NodeTask(
+            stage=node.stage, dataset=node.dataset, module=module.__name__,
+            module_file=getattr(module, "__file__", None),
+            params=self.pipe.params_for(node.stage, node.dataset),
+            config=self.pipe.datasets[node.dataset], key=key, record=record,
+            specials=specials, upstream=upstream, artifacts=self.store.root.resolve(),
+            log_level=logging.getLogger("tagtrail").getEffectiveLevel(),
+        )
+
+    def _submit(self, pool: cf.Executor, task: NodeTask) -> cf.Future[int | None]:
+        if getattr(pool, "remote", False):  # another process: it rebuilds the stage from names
+            return pool.submit(run_remote, task)
+        return pool.submit(run_node, task, self.pipe.stages[task.stage], self.store)
 
     def run(self, stages: list[str] | None = None, force: bool = False) -> list[NodeState]:
         """Bring the selected nodes up to date; raise the first failure after others finish."""
@@ -193,7 +200,8 @@ class Runner:
         keys: dict[Node, str] = {}
         states: dict[Node, NodeState] = {}
         failure: BaseException | None = None
-        with self.store.lock(), make_executor("local", self.jobs) as pool:
+        with self.store.lock(), open_executor(self.executor, self.jobs, self.scheduler,
+                                              self.echo, self.store.root.resolve()) as pool:
             running: dict[cf.Future[int | None], tuple[Node, NodeState, float]] = {}
             pending = list(order)
             while pending or running:
@@ -216,7 +224,7 @@ class Runner:
                             continue
                         why = "forced" if force else self.why_stale(node, record)
                         st = NodeState(node.stage, node.dataset, "ran", why, key)
-                        fut = pool.submit(self._execute, node, key, record, dict(keys))
+                        fut = self._submit(pool, self._task(node, key, record, keys))
                         running[fut] = (node, st, time.perf_counter())
                 if not running:
                     break
