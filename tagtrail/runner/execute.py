@@ -85,7 +85,7 @@ class Runner:
                 doc = {
                     "source": self.hasher.hash(ds.source),
                     "topics": ds.topics.model_dump(mode="json"),
-                    "camera": self.hasher.hash(ds.camera) if ds.camera else None,
+                    "camera": self.hasher.hash_camera(ds.camera) if ds.camera else None,
                 }
                 self._source_fp[memo] = sha256_text(canonical_json(doc))
             else:
