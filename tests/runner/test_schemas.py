@@ -12,16 +12,16 @@ from tagtrail.schemas.artifacts import SCHEMAS, conform
 
 def test_conform_casts_and_keeps_extra_columns() -> None:
     df = pd.DataFrame({"n_det": [1, 2], "frame_idx": np.array([0, 1], np.int64),
-                       "t_ns": [5, 6], "note": ["a", "b"]})
+                       "t_ns": [5, 6], "note": ["a", "b"], "timed": True})
     t = conform("extract.frames", df)
-    assert t.schema.names == ["t_ns", "frame_idx", "n_det", "note"]
+    assert t.schema.names == ["t_ns", "frame_idx", "n_det", "timed", "note"]
     assert t.schema.field("frame_idx").type == pa.int32()
 
 
 def test_missing_columns_and_bad_types_are_named() -> None:
     with pytest.raises(TypeError, match=r"extract.frames lacks columns \['n_det'\]"):
-        conform("extract.frames", pd.DataFrame({"t_ns": [1], "frame_idx": [0]}))
-    bad = pd.DataFrame({"t_ns": [1], "frame_idx": [2**40], "n_det": [1]})
+        conform("extract.frames", pd.DataFrame({"t_ns": [1], "frame_idx": [0], "timed": True}))
+    bad = pd.DataFrame({"t_ns": [1], "frame_idx": [2**40], "n_det": [1], "timed": True})
     with pytest.raises(TypeError, match="does not fit its schema"):
         conform("extract.frames", bad)
 
