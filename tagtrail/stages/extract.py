@@ -34,7 +34,7 @@ from typing import Any, Literal
 import numpy as np
 import pandas as pd
 from numpy.typing import NDArray
-from pydantic import Field
+from pydantic import Field, field_validator
 
 from tagtrail.errors import SourceError
 from tagtrail.geometry.camera import CameraModel
@@ -76,6 +76,12 @@ class Params(StageParams):
         "found tag (1.1-1.5x the decimated pass's time, bench/bench_recall.py); off: the "
         "decimated pass only")
     EXECUTION_ONLY = frozenset({"workers", "chunk_size"})  # same output whatever their values
+
+    @field_validator("small_tags", mode="before")
+    @classmethod
+    def _yaml_off(cls, value: Any) -> Any:
+        """YAML 1.1 reads a bare ``off`` as false: take it as the word it was written as."""
+        return "off" if value is False else value
 
     workers: int = Field(0, ge=0, description="detector processes; 0 = all cores")
     chunk_size: int = Field(16, ge=1, description="frames per task sent to a worker")

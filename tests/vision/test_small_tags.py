@@ -161,3 +161,11 @@ def test_small_tags_default_and_values() -> None:
     assert extract.Params(small_tags="off").detector().small_tags == "off"
     with pytest.raises(ValueError, match="small_tags"):
         extract.Params(small_tags="on")  # type: ignore[arg-type]
+
+
+def test_small_tags_off_reads_as_written() -> None:
+    """``small_tags: off`` in pipeline.yaml or ``-S`` is YAML 1.1's false: it means off."""
+    from tagtrail.stages import extract
+
+    assert extract.Params.model_validate({"small_tags": False}).small_tags == "off"
+    assert extract.Params.model_validate({"small_tags": "off"}).small_tags == "off"
