@@ -1,6 +1,6 @@
-"""``small_tags`` (issue 12): the default ``redetect`` finds the small tags quad_decimate 2 loses,
-re-detected at full resolution in crops; ``off`` is the decimated pass alone. Recall, false
-detections and corners only — timing lives in bench/bench_recall.py."""
+"""``small_tags`` (issue 12): ``redetect`` finds the small tags quad_decimate 2 loses,
+re-detected at full resolution in crops; ``off`` (the default) is the decimated pass alone.
+Recall, false detections and corners only — timing lives in bench/bench_recall.py."""
 
 from __future__ import annotations
 
@@ -18,7 +18,7 @@ from tests.vision.test_corners import LIMO
 
 MODES = {"full": {"quad_decimate": 1.0, "small_tags": "off"},
          "dec2": {"quad_decimate": 2.0, "small_tags": "off"},
-         "default": {}}
+         "default": {"small_tags": "redetect"}}  # what redetect gives (not the default)
 Dets = dict[str, list[tuple[Any, Any]]]
 
 
@@ -149,15 +149,19 @@ def test_default_finds_the_tags_off_misses(realdata: Path) -> None:
     img = cv2.imread(str(realdata / "duckietown_dt_apriltags_test" / "test_image.png"),
                      cv2.IMREAD_GRAYSCALE)
     off = sorted(detect(img, extract.Params(small_tags="off").detector())[0][:, 0].tolist())
-    default = sorted(detect(img, extract.Params().detector())[0][:, 0].tolist())
+    default = sorted(detect(img, extract.Params(small_tags="redetect").detector())[0][:, 0]
+                     .tolist())
     assert off == [318, 387]  # 2 of the 5 tags of the scene (the other 3: ~15-35 px on a mat)
     assert default == [60, 82, 318, 328, 387]
 
 
 def test_small_tags_default_and_values() -> None:
-    assert extract.Params().small_tags == "redetect"
+    # off by default: with redetect the swatbotics laps' maps disagree by 0.74 m mean instead of
+    # 3.0 cm (bench/bench_realdata_tables.py), whatever the recall gain
+    assert extract.Params().small_tags == "off"
     assert extract.Params().quad_decimate == 2.0
-    assert extract.Params().detector().small_tags == "redetect"
+    assert extract.Params().detector().small_tags == "off"
+    assert extract.Params(small_tags="redetect").detector().small_tags == "redetect"
     assert extract.Params(small_tags="off").detector().small_tags == "off"
     with pytest.raises(ValueError, match="small_tags"):
         extract.Params(small_tags="on")  # type: ignore[arg-type]
