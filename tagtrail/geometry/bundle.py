@@ -474,11 +474,7 @@ def initial_cameras(
     for s in range(2):
         for lo in range(0, len(a), 200_000):
             aa, bb = a[lo:lo + 200_000], b[lo:lo + 200_000]
-            T = np.nan_to_num(cand[aa, s])
-            pc = np.einsum("oij,okj->oki", T[:, :3, :3], pts_w[bb]) + T[:, None, :3, 3]
-            z = pc[..., 2:3]
-            e = np.where(z > 1e-6, pc[..., :2] / np.where(z > 1e-6, z, 1.0) - ob.uv[bb], 1e3)
-            err = np.minimum(np.mean(np.sum(e * e, -1), -1), cap2)
+            err = _capped_sq(np.nan_to_num(cand[aa, s]), pts_w[bb], ob.uv[bb], cap2)
             unary[:, s] += np.bincount(aa, err, n_o)
     unary = unary * px_per_unit**2
     unary[~valid] = np.inf
@@ -612,9 +608,17 @@ def _best_candidate(world_T_tag: F64, cam_T_tag: F64, ob: CornerObservations, kn
         return None
     pts_w = (np.einsum("oij,okj->oki", world_T_tag[ob.tag[kn], :3, :3], ob.pts_tag[kn])
              + world_T_tag[ob.tag[kn], None, :3, 3])
-    cw = inv(cand)
-    pc = np.einsum("cij,okj->coki", cw[:, :3, :3], pts_w) + cw[:, None, None, :3, 3]
-    z = pc[..., 2:3]
-    e = np.where(z > 1e-6, pc[..., :2] / np.where(z > 1e-6, z, 1.0) - ob.uv[kn], 1.0)
-    score = np.minimum(np.mean(np.sum(e * e, -1), -1) * px_per_unit**2, 64.0).sum(1)
+    score = _capped_sq(inv(cand)[:, None], pts_w[None], ob.uv[kn][None],
+                       (8.0 / px_per_unit) ** 2).sum(1)
     return np.asarray(cand[int(np.argmin(score))])
+
+
+def _capped_sq(cam_T_world: F64, pts_w: F64, uv: F64, cap2: float) -> F64:
+    """Mean squared corner error (normalised units) of world corners ``pts_w (..., 4, 3)`` seen
+    at ``uv (..., 4, 2)`` from ``cam_T_world (..., 4, 4)`` (broadcast), capped at ``cap2``
+    (a corner behind the camera counts as the cap): the candidate score of the start poses."""
+    pc = (np.einsum("...ij,...kj->...ki", cam_T_world[..., :3, :3], pts_w)
+          + cam_T_world[..., None, :3, 3])
+    z = pc[..., 2:3]
+    e = np.where(z > 1e-6, pc[..., :2] / np.where(z > 1e-6, z, 1.0) - uv, 1e3)
+    return np.asarray(np.minimum(np.mean(np.sum(e * e, -1), -1), cap2))
