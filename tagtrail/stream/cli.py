@@ -53,6 +53,14 @@ COUNT = _number(int, 0)
 POSITIVE = _number(float, 0.0, strict=True)
 
 
+def tcp_port(text: str) -> int:
+    """An argparse ``type=``: a TCP port 0..65535 (0: any free one)."""
+    port = COUNT(text)
+    if port > 65535:
+        raise argparse.ArgumentTypeError(f"must be a TCP port 0..65535, got {text!r}")
+    return int(port)
+
+
 def _pipeline(p: argparse.ArgumentParser, what: str) -> None:
     g = p.add_argument_group("parameters")
     g.add_argument("--pipeline", type=Path, default=None, metavar="FILE",
@@ -107,6 +115,14 @@ def add_arguments(parser: argparse.ArgumentParser) -> argparse.ArgumentParser:
                    help="decimate the published path to N poses (0: all; default 10000)")
     _pipeline(p, "report's plane")
     _common(p, "stop after N input messages", express=True)
+    g = p.add_argument_group("foxglove")
+    g.add_argument("--foxglove", type=tcp_port, nargs="?", const=8765, default=None,
+                   metavar="PORT",
+                   help="also serve the outputs on a Foxglove WebSocket (default port 8765; "
+                   "pip install 'tagtrail[foxglove]')")
+    g.add_argument("--foxglove-host", default="127.0.0.1", metavar="HOST",
+                   help="address the Foxglove server binds (default: %(default)s, this machine "
+                   "only; 0.0.0.0: every interface)")
 
     p = sub.add_parser("replay", help="publish a trajectory's poses (or bag topics)",
                        epilog=EXAMPLES, formatter_class=fmt,
@@ -195,12 +211,23 @@ def _relocalize(ns: argparse.Namespace) -> int:
         alignment, plane = (A, R), ns.plane or file_plane or plane
     reloc = Relocalizer(ref, plane, alignment, ns.frame_id, ns.prefix, ns.pose_type,
                         ns.path_max_points)  # fmt: skip
-    session = open_session(config_from_args(ns, "listen"))
+    fox = None
+    if getattr(ns, "foxglove", None) is not None:
+        from tagtrail.stream.reloc_node import foxglove_server
+
+        fox = foxglove_server(reloc, ns.foxglove, ns.foxglove_host)
+        print(f"relocalize: foxglove {fox.url}", flush=True)
+    try:
+        session = open_session(config_from_args(ns, "listen"))
+    except BaseException:
+        if fox is not None:
+            fox.close()
+        raise
     with stop_on_signals() as stop:
         summary = serve(reloc, session, ns.pose_key, congestion=ns.congestion,
                         express=ns.express, path_period_s=ns.path_period,
                         duration_s=ns.duration, count=ns.count,
-                        stats_period_s=ns.stats_period, stop=stop)  # fmt: skip
+                        stats_period_s=ns.stats_period, stop=stop, foxglove=fox)  # fmt: skip
     if not summary["shutdown_clean"]:
         leave_now(0)  # a zenoh callback thread blocked in a put would hold the exit for 5 s
     return 0

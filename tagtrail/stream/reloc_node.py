@@ -43,6 +43,13 @@ from tagtrail.stream.stats import DropError, Stats
 F64 = np.ndarray
 OUTPUTS = ("distance_m", "heading_error_deg", "state", "current_pose", "nearest_pose", "markers")
 REFERENCE_PATH = "reference_path"
+# each output's ROS 2 type (SPEC Streaming); "json": the state document
+OUTPUT_TYPES = {
+    "distance_m": "std_msgs/msg/Float64", "heading_error_deg": "std_msgs/msg/Float64",
+    "state": "json", "current_pose": "geometry_msgs/msg/PoseStamped",
+    "nearest_pose": "geometry_msgs/msg/PoseStamped",
+    "markers": "visualization_msgs/msg/MarkerArray", REFERENCE_PATH: "nav_msgs/msg/Path",
+}  # fmt: skip
 
 
 class Outputs(NamedTuple):
@@ -232,12 +239,15 @@ def serve(
     count: int | None = None,
     stats_period_s: float = 10.0,
     stop: Any = None,
+    foxglove: Any = None,
 ) -> dict[str, Any]:
     """Run the node on an open zenoh ``session`` until stopped; returns the stats summary.
 
     Subscribes to ``pose_key``, publishes every output under the prefix, republishes the
     reference path (and its marker) every ``path_period_s`` (0: once) at low priority and answers
-    ``get`` on ``<prefix>/reference_path``. Closes the session on the way out.
+    ``get`` on ``<prefix>/reference_path``. ``foxglove``: a
+    :class:`~tagtrail.stream.foxglove.FoxgloveServer` that also gets every output (stopped here
+    too). Closes the session on the way out.
     """
     import zenoh  # only where a session is used
 
@@ -246,6 +256,16 @@ def serve(
     stats = Stats("relocalize")
     node = Node(session, stats, congestion, express)
     node.count = count
+
+    def handle(data: bytes) -> Iterator[tuple[str, bytes]]:
+        out = reloc.handle(data, stats)
+        return out if foxglove is None else foxglove.tee(out)
+
+    def republish() -> None:
+        node.publish(reference, background=True)
+        if foxglove is not None:
+            foxglove.latch(reloc.reference_outputs())
+
     try:
         # the reference outputs never change: made zenoh payloads once, so that a republish
         # does not copy ~1 MB (10,000 path poses) again while holding the GIL
@@ -254,9 +274,23 @@ def serve(
         for k in OUTPUTS:
             node.publisher(reloc.key[k])
         node.queryable(reloc.key[REFERENCE_PATH], lambda: path_payload)
-        node.subscribe(pose_key, lambda data: reloc.handle(data, stats))
-        node.every(path_period_s, lambda: node.publish(reference, background=True))
+        node.subscribe(pose_key, handle)
+        node.every(path_period_s, republish)
     except BaseException:
         node.close()
+        if foxglove is not None:
+            foxglove.close()
         raise
-    return node.run(duration_s, stats_period_s, stop)
+    try:
+        return node.run(duration_s, stats_period_s, stop)
+    finally:
+        if foxglove is not None:
+            foxglove.close()
+
+
+def foxglove_server(reloc: Relocalizer, port: int, host: str = "127.0.0.1") -> Any:
+    """A :class:`~tagtrail.stream.foxglove.FoxgloveServer` with a channel per output of
+    ``reloc`` (its keys and :data:`OUTPUT_TYPES`)."""
+    from tagtrail.stream.foxglove import FoxgloveServer
+
+    return FoxgloveServer({reloc.key[k]: t for k, t in OUTPUT_TYPES.items()}, port, host)
