@@ -5,7 +5,9 @@ source of one of three kinds:
 
 - ``"images"`` — frames are :class:`~tagtrail.vision.images.RawImage` (undecoded; ``decode()`` them,
   preferably in worker processes — iterating the source itself decodes in-process);
-- ``"detections"`` — frames are lists of :class:`TagDetection` (``apriltag_msgs``);
+- ``"detections"`` — frames are lists of :class:`TagDetection` (apriltag_ros ROS 2, TagSLAM's
+  ROS 1 ``ApriltagArrayStamped``, isaac_ros_apriltag; :data:`tagtrail.io.msgs.DETECTION_SOURCES`
+  declares each type's corner convention and quality fields);
 - ``"observations"`` — camera→tag poses given directly (``observations.csv``).
 
 Every source yields ``(frame_idx, t_ns, payload)`` in recording order; ``frame_idx`` counts from 0.
@@ -15,7 +17,8 @@ when the bag has an image topic (``sensor_msgs/Image`` or ``CompressedImage``), 
 source. Each choice must be unambiguous or named in ``pipeline.yaml`` (``topics: {image: ...}``).
 Stamps come from message headers (receive time when a header stamp is zero); the camera model
 from ``DatasetConfig.camera`` if given, else the first ``CameraInfo`` message (a warning if it
-changes later). Corners of detection messages are converted to the OpenCV pixel convention.
+changes later). Corners of detection messages are converted to the OpenCV pixel convention by
+their type's declared offset; a field the type lacks is "not carried" (hamming -1, margin NaN).
 """
 
 from __future__ import annotations
@@ -40,10 +43,7 @@ from tagtrail.io.bags import BAG_FILE_SUFFIXES, open_bag
 from tagtrail.io.camera_files import read_camera_file, split_camera_path
 from tagtrail.io.layouts import read_stamped_poses, tag_ids
 from tagtrail.schemas.pipeline import DatasetConfig
-from tagtrail.vision.detector import (  # apriltag_ros: the C library
-    C_LIBRARY_PIXEL_OFFSET,
-    TagDetection,
-)
+from tagtrail.vision.detector import TagDetection
 from tagtrail.vision.images import RawImage
 
 if TYPE_CHECKING:
@@ -176,35 +176,23 @@ def _stamp_ns(stamp: Any) -> int:
 
 
 def detections_from_msg(msg: Any, msgtype: str = msgs.DETECTIONS) -> list[TagDetection]:
-    """A detection message as :class:`TagDetection` s, corners in OpenCV's convention.
-
-    ``AprilTagDetectionArray`` (apriltag_ros, ROS 2): the AprilTag C library's corners, +0.5 px
-    from OpenCV's. TagSLAM's ``ApriltagArrayStamped``: the MIT detector's corners are OpenCV's
-    already (its ``family`` holds the detector's name, ``mit`` or empty); ``umich`` is the C
-    library's. It has no decision margin (NaN: ``min_decision_margin`` does not apply) and no
-    family (the configured tag36h11)."""
-    if msgtype == msgs.TAGSLAM_DETECTIONS:
-        return [
-            TagDetection(
-                tag_id=int(a.id), hamming=int(a.hamming), decision_margin=float("nan"),
-                corners=np.array([[c.x, c.y] for c in a.corners], dtype=np.float64)
-                - (C_LIBRARY_PIXEL_OFFSET if str(a.family) == "umich" else 0.0),
-                family="",
-            )
-            for a in msg.apriltags
-        ]
+    """A detection message of type ``msgtype`` (one of :data:`msgs.DETECTION_SOURCES`) as
+    :class:`TagDetection` s, corners moved to OpenCV's convention by the type's declared offset.
+    Fields the type lacks come out as "not carried": hamming -1, decision margin NaN, family ""
+    (tagtrail's tag36h11 assumed)."""
+    kind = msgs.DETECTION_SOURCES[msgtype]
+    items = msg.apriltags if msgtype == msgs.TAGSLAM_DETECTIONS else msg.detections
     out = []
-    for d in msg.detections:
+    for d in items:
+        family = str(d.family)
         corners = np.array([[c.x, c.y] for c in d.corners], dtype=np.float64)
-        out.append(
-            TagDetection(
-                tag_id=int(d.id),
-                hamming=int(d.hamming),
-                decision_margin=float(d.decision_margin),
-                corners=corners - C_LIBRARY_PIXEL_OFFSET,
-                family=str(d.family),
-            )
-        )
+        out.append(TagDetection(
+            tag_id=int(d.id),
+            hamming=int(d.hamming) if kind.hamming else -1,
+            decision_margin=float(d.decision_margin) if kind.decision_margin else float("nan"),
+            corners=corners - kind.pixel_offset(family),
+            family=family if kind.family else "",
+        ))
     return out
 
 
@@ -238,10 +226,11 @@ class BagSource(Source):
             self._counts: dict[str, int] = {t: sum(c.msgcount for c in cs)
                                             for t, cs in by_topic.items()}
             self.kind, self.topic = self._choose_topic(cfg)
-            if self._types[self.topic] == msgs.TAGSLAM_DETECTIONS:
-                log.info("%s: %s (TagSLAM) carries no decision margin, so min_decision_margin "
-                         "is not applied; corners are taken in OpenCV's convention (the MIT "
-                         "detector's)", self.path, self.topic)
+            self.detection_type = msgs.DETECTION_SOURCES.get(self._types[self.topic])
+            if self.detection_type is not None:
+                kind = self.detection_type
+                log.info("%s: %s is %s: %s%s", self.path, self.topic, kind.writer,
+                         kind.convention(), "; in the rectified image" * kind.rectified)
             self.camera_info_topic: str | None = None
             self._camera = camera
             if camera is not None:
@@ -253,6 +242,12 @@ class BagSource(Source):
                     self.camera_origin = f"CameraInfo of {self.camera_info_topic}"
         if self._counts[self.topic] == 0:
             raise SourceError(f"{self.path}: topic {self.topic} has no messages (empty bag?)")
+        if (self.detection_type is not None and self.detection_type.rectified
+                and self._camera is not None and np.any(np.asarray(self._camera.D) != 0)):
+            log.warning("%s: %s detects in the rectified image, but the camera (%s) has lens "
+                        "distortion %s: give the rectified camera (its K, no distortion) with "
+                        "`camera:` or topics.camera_info", self.path, self.detection_type.writer,
+                        self.camera_origin, np.round(self._camera.D, 6).tolist())
 
     @contextmanager
     def _reader(self, keep: bool = False) -> Iterator[AnyReader]:

@@ -29,6 +29,7 @@ import os
 import time
 from collections import Counter
 from collections.abc import Iterator
+from dataclasses import replace
 from typing import Any, Literal
 
 import numpy as np
@@ -42,7 +43,7 @@ from tagtrail.pool import shared_pool
 from tagtrail.schemas.artifacts import CORNER_COLS, POSE_COLS, columns
 from tagtrail.schemas.inputs import Frame, Source
 from tagtrail.stages.base import StageParams
-from tagtrail.vision.detector import DetectorConfig, filter_detections
+from tagtrail.vision.detector import FILTERS, DetectorConfig, explain_drops, filter_detections
 
 log = logging.getLogger("tagtrail.extract")
 
@@ -150,8 +151,10 @@ def _from_detection_msgs(
 ) -> tuple[Any, Any, Any, Any]:
     t_ns, frame_idx, n_det, ints, floats = [], [], [], [], []
     dropped: Counter[str] = Counter()
+    n_total = 0
     for idx, t, dets in src.iter_raw():
         kept = 0
+        n_total += len(dets)
         for d in filter_detections(dets, cfg, dropped, (camera.width, camera.height)):
             ints.append((t, idx, d.tag_id, d.hamming))
             floats.append((d.decision_margin, *d.corners.reshape(8)))
@@ -159,12 +162,34 @@ def _from_detection_msgs(
         t_ns.append(t)
         frame_idx.append(idx)
         n_det.append(kept)
-    if dropped:
-        log.warning("%s: kept %d detections, dropped %s", src.describe(), len(ints),
-                    ", ".join(f"{n} {why}" for why, n in sorted(dropped.items())))
+    report_filters(src, cfg, dropped, n_total, len(ints))
     i = np.array(ints, dtype=np.int64).reshape(-1, 4)
     det = (i[:, 0], i[:, 1], i[:, 2:4].astype(np.int32), np.array(floats).reshape(-1, 9))
     return t_ns, frame_idx, n_det, det
+
+
+def report_filters(
+    src: Source, cfg: DetectorConfig, dropped: Counter[str], n_total: int, n_kept: int
+) -> None:
+    """Say what the filters did: a filter the source's fields do not allow is not applied (said
+    once); one dropping most detections is named with the setting to change (a warning); when
+    they leave none of the source's detections, a :class:`SourceError` names the filters that
+    did it -- not the later "no tag observations"."""
+    most, unapplied = explain_drops(dropped, n_total, cfg)
+    for line in unapplied:
+        log.info("%s: %s", src.describe(), line)
+    if n_total and not n_kept:
+        causes = most or [f"the filters drop all {n_total} detections ({_counts(dropped)})"]
+        raise SourceError(f"{src.describe()}: no detection is left: {'; '.join(causes)}")
+    for line in most:
+        log.warning("%s: %s", src.describe(), line)
+    if not most and n_kept < n_total:
+        log.info("%s: kept %d of %d detections, dropped %s", src.describe(), n_kept, n_total,
+                 _counts(dropped))
+
+
+def _counts(dropped: Counter[str]) -> str:
+    return ", ".join(f"{dropped[k]} by {k}" for k in FILTERS if dropped.get(k))
 
 
 # --- image sources -----------------------------------------------------------------------------
@@ -187,16 +212,18 @@ def _detect_images(src: Source, params: Params, camera: CameraModel) -> tuple[An
             t_of.update((idx, t) for idx, t, _ in chunk)
             yield chunk
 
-    parts = list(_map_chunks(chunks(), params, camera, len(src)))
+    cfg = params.detector()
+    # The margin and id filters run here, counted, so that a filter dropping most detections can
+    # be named; with small_tags redetect the workers need them (their found tags steer the crops).
+    loose = cfg.small_tags == "off"
+    worker_cfg = replace(cfg, min_decision_margin=0.0, tag_ids=None) if loose else cfg
+    parts = list(_map_chunks(chunks(), worker_cfg, params, camera, len(src)))
     frame_idx = np.concatenate([p["frame_idx"] for p in parts]) if parts else np.zeros(0, int)
     order = np.argsort(frame_idx, kind="stable")
     frame_idx = frame_idx[order]
     n_det = np.concatenate([p["n_det"] for p in parts])[order] if parts else np.zeros(0, int)
     shapes = np.concatenate([p["shape"] for p in parts])[order] if parts else np.zeros((0, 2))
     n_cut = int(sum(int(p["n_truncated"]) for p in parts))
-    if n_cut:
-        log.info("%s: %d detection(s) of tags cut by the image border dropped "
-                 "(keep_truncated: true keeps them)", src.describe(), n_cut)
     t_ns = np.array([t_of[int(i)] for i in frame_idx], dtype=np.int64)
     det_frame = np.concatenate([p["det_frame"] for p in parts]) if parts else np.zeros(0, int)
     det_t = np.array([t_of[int(i)] for i in det_frame], dtype=np.int64)
@@ -208,6 +235,14 @@ def _detect_images(src: Source, params: Params, camera: CameraModel) -> tuple[An
         keep = ~np.isin(det_frame, frame_idx[wrong])
         det_t, det_frame, ints, floats = det_t[keep], det_frame[keep], ints[keep], floats[keep]
         t_ns, frame_idx, n_det = t_ns[~wrong], frame_idx[~wrong], n_det[~wrong]
+    dropped: Counter[str] = Counter({"keep_truncated": n_cut} if n_cut else {})
+    n_total = len(ints) + n_cut
+    if loose and len(ints):
+        keep = _margin_and_ids(ints, floats, cfg, dropped)
+        det_t, det_frame, ints, floats = det_t[keep], det_frame[keep], ints[keep], floats[keep]
+        n_det = np.bincount(np.searchsorted(frame_idx, det_frame),
+                            minlength=len(frame_idx)).astype(n_det.dtype)
+    report_filters(src, cfg, dropped, n_total, len(ints))
     return t_ns, frame_idx, n_det, (det_t, det_frame, ints, floats)
 
 
@@ -233,11 +268,25 @@ def _report_wrong_size(
                 ", ".join(names[:5]), more)  # fmt: skip
 
 
+def _margin_and_ids(
+    ints: NDArray[Any], floats: NDArray[Any], cfg: DetectorConfig, dropped: Counter[str]
+) -> NDArray[np.bool_]:
+    """The rows (``ints`` (m, 2) id/hamming, ``floats`` (m, 9) margin/corners) that pass the
+    ``min_decision_margin`` and ``tag_ids`` filters, counting what each drops."""
+    low = floats[:, 0] < cfg.min_decision_margin
+    other = np.zeros(len(ints), bool)
+    if cfg.tag_ids is not None:
+        other = ~low & ~np.isin(ints[:, 0], np.asarray(cfg.tag_ids, dtype=np.int64))
+    dropped.update({k: int(n) for k, n in (("min_decision_margin", low.sum()),
+                                            ("tag_ids", other.sum())) if n})
+    return np.asarray(~low & ~other)
+
+
 def _map_chunks(
-    chunks: Iterator[list[Frame]], params: Params, camera: CameraModel, n_frames: int
+    chunks: Iterator[list[Frame]], cfg: DetectorConfig, params: Params, camera: CameraModel,
+    n_frames: int,
 ) -> Iterator[dict[str, NDArray[Any]]]:
-    """``detect_chunk`` over ``chunks`` in worker processes (never in this one)."""
-    cfg = params.detector()
+    """``detect_chunk`` with ``cfg`` over ``chunks`` in worker processes (never in this one)."""
     workers = min(_n_workers(params.workers), max(1, -(-n_frames // params.chunk_size)))
     with shared_pool("tagtrail.vision.apriltag:detect_chunk", workers) as pool:
         yield from pool.imap_unordered((chunk, cfg, camera) for chunk in chunks)

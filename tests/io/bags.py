@@ -87,6 +87,35 @@ def detections_msg(t_ns: int, dets: Sequence[tuple[int, int, float, np.ndarray]]
     return ts.types[msgs.DETECTIONS](header=header(t_ns), detections=items)
 
 
+def isaac_msg(t_ns: int, dets: Sequence[tuple[int, np.ndarray, np.ndarray]],
+              family: str = "tag36h11") -> Any:
+    """``isaac_ros_apriltag_interfaces/AprilTagDetectionArray`` as the Isaac ROS node fills it:
+    ``dets`` = (id, corners (4, 2) px, cam_T_tag (4, 4)); centre = the diagonals' crossing
+    (here their mean), pose in a PoseWithCovarianceStamped with the image's header."""
+    from tagtrail.geometry.se3 import quat_xyzw_from_R
+
+    ts = _ts()
+    T = ts.types
+    items = []
+    for tag_id, corners, cam_T_tag in dets:
+        c = np.asarray(corners, np.float64)
+        q = quat_xyzw_from_R(cam_T_tag[:3, :3])
+        pose = T["geometry_msgs/msg/Pose"](
+            position=T["geometry_msgs/msg/Point"](x=cam_T_tag[0, 3], y=cam_T_tag[1, 3],
+                                                  z=cam_T_tag[2, 3]),
+            orientation=T["geometry_msgs/msg/Quaternion"](x=q[0], y=q[1], z=q[2], w=q[3]))
+        items.append(T["isaac_ros_apriltag_interfaces/msg/AprilTagDetection"](
+            family=family, id=tag_id,
+            center=T["geometry_msgs/msg/Point"](x=c[:, 0].mean(), y=c[:, 1].mean(), z=0.0),
+            corners=[T["geometry_msgs/msg/Point"](x=float(x), y=float(y), z=0.0) for x, y in c],
+            pose=T["geometry_msgs/msg/PoseWithCovarianceStamped"](
+                header=header(t_ns),
+                pose=T["geometry_msgs/msg/PoseWithCovariance"](pose=pose,
+                                                               covariance=np.zeros(36))),
+        ))
+    return T[msgs.ISAAC_DETECTIONS](header=header(t_ns), detections=items)
+
+
 def write_bag(path: Path, messages: Iterable[tuple[str, int, Any]], storage: str = "mcap",
               topics: dict[str, str] | None = None) -> Path:
     """A rosbag2 (version 9) folder from ``(topic, receive t_ns, msg)``; ``topics`` declares

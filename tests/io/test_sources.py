@@ -287,3 +287,70 @@ def test_image_folder_without_stamps_is_not_timed(realdata: Path, tmp_path: Path
     (folder / "stamps.csv").write_text("file,stamp_sec,stamp_nanosec\n" + "".join(
         f"{name},{100 + k},0\n" for k, name in enumerate(names)))
     assert open_source(DatasetConfig(source=folder)).timed
+
+
+def _isaac_bag(tmp_path: Path, cam: CameraModel, storage: str = "mcap") -> tuple[Path, list]:
+    """An Isaac ROS recording: ``/tag_detections`` (isaac_ros_apriltag_interfaces) of two tags
+    seen from a moving camera, corners in the C library's convention (+0.5 px), with the
+    rectified image's ``/camera_info_rect``."""
+    from tagtrail.geometry.rotations import R_from_rotvec
+    from tagtrail.geometry.se3 import make_T
+    from tests.vision.exact_tag import true_corners
+
+    out, truth = [("/camera_info_rect", bags.T0_NS, bags.camera_info_msg(cam))], []
+    for k in range(5):
+        t = bags.T0_NS + k * 33_333_333
+        dets = []
+        for tag_id, x in ((3, -0.15), (7, 0.2)):
+            cam_T_tag = make_T(R_from_rotvec([np.pi + 0.1 * k, 0.2, 0.0]),
+                               np.array([x + 0.02 * k, 0.05, 1.2]))
+            px = true_corners(cam, cam_T_tag, 0.16)
+            truth.append(px)
+            dets.append((tag_id, px + 0.5, cam_T_tag))
+        out.append(("/tag_detections", t, bags.isaac_msg(t, dets)))
+    return bags.write_bag(tmp_path / f"isaac_{storage}", out, storage), truth
+
+
+@pytest.mark.parametrize("storage", ["mcap", "sqlite3"])
+def test_isaac_ros_detections(tmp_path: Path, storage: str, caplog) -> None:
+    """isaac_ros_apriltag's detections (its .msg registered in the typestore: a Humble bag
+    carries no definitions): corners -0.5 px to OpenCV's, no hamming (-1) or margin (NaN), the
+    family as the message names it; the declared convention is logged."""
+    cam = CameraModel.from_dict({"width": 640, "height": 480, "distortion_model": "plumb_bob",
+                                 "K": [500, 0, 320, 0, 500, 240, 0, 0, 1], "D": [0] * 5})
+    bag, truth = _isaac_bag(tmp_path, cam, storage)
+    if storage == "sqlite3":
+        bags.make_humble(bag)
+    with caplog.at_level(logging.INFO, logger="tagtrail.sources"):
+        src = open_source(DatasetConfig(source=bag))
+    assert "isaac_ros_apriltag (NVIDIA Isaac ROS)" in caplog.text
+    assert "+0.5 px from OpenCV's" in caplog.text and "rectified image" in caplog.text
+    assert src.kind == "detections" and src.camera() is not None and len(src) == 5
+    dets = [d for _, _, ds in src.iter_raw() for d in ds]
+    assert [d.tag_id for d in dets] == [3, 7] * 5
+    assert all(d.hamming == -1 and np.isnan(d.decision_margin) for d in dets)
+    assert {d.family for d in dets} == {"tag36h11"}
+    assert np.abs(np.array([d.corners for d in dets]) - np.array(truth)).max() < 1e-9
+
+
+def test_isaac_ros_detections_warn_of_a_distorted_camera(tmp_path: Path, caplog) -> None:
+    cam = CameraModel.from_dict({"width": 640, "height": 480, "distortion_model": "plumb_bob",
+                                 "K": [500, 0, 320, 0, 500, 240, 0, 0, 1],
+                                 "D": [0.05, -0.02, 0, 0, 0]})
+    bag, _ = _isaac_bag(tmp_path, cam)
+    with caplog.at_level(logging.WARNING, logger="tagtrail.sources"):
+        open_source(DatasetConfig(source=bag))
+    assert "detects in the rectified image, but the camera (CameraInfo of /camera_info_rect) " \
+           "has lens distortion [0.05, -0.02, 0.0, 0.0, 0.0]" in caplog.text
+
+
+def test_detection_types_declare_convention_and_quality_fields() -> None:
+    kinds = msgs.DETECTION_SOURCES
+    assert set(kinds) == {msgs.DETECTIONS, msgs.TAGSLAM_DETECTIONS, msgs.ISAAC_DETECTIONS}
+    assert kinds[msgs.DETECTIONS].missing() == []
+    assert kinds[msgs.TAGSLAM_DETECTIONS].missing() == ["decision_margin"]
+    assert kinds[msgs.ISAAC_DETECTIONS].missing() == ["hamming", "decision_margin"]
+    tagslam = kinds[msgs.TAGSLAM_DETECTIONS]
+    assert (tagslam.pixel_offset("mit"), tagslam.pixel_offset(""),
+            tagslam.pixel_offset("umich")) == (0.0, 0.0, 0.5)
+    assert kinds[msgs.DETECTIONS].pixel_offset("tag36h11") == 0.5

@@ -184,8 +184,11 @@ def test_worker_count_and_chunking_do_not_change_output(upenn_dir: Path, tmp_pat
     b = extract_from(folder, extract.Params(workers=2, chunk_size=1))
     for k in ("frames", "detections", "observations"):
         pd.testing.assert_frame_equal(a[k], b[k])
-    c = extract_from(folder, extract.Params(tag_ids=(3,)))
-    assert len(c["detections"]) == 0 and len(c["frames"]) == 7
+    with pytest.raises(SourceError, match=r"\(7 images\): no detection is left: tag_ids \[3\] "
+                       r"drops 7 of 7 detections; set extract.tag_ids: null"):
+        extract_from(folder, extract.Params(tag_ids=(3,)))
+    c = extract_from(folder, extract.Params(tag_ids=(3, 12)))
+    pd.testing.assert_frame_equal(c["detections"], a["detections"])
 
 
 def test_params_and_missing_camera(upenn_dir: Path, tmp_path: Path) -> None:
