@@ -193,6 +193,7 @@ OPTIONAL = (
     ("stream", "tagtrail.stream.cli", "live relocalization over zenoh"),
     ("eval", "tagtrail.commands.eval", "the paper's evaluation tables from a run"),
     ("sweep", "tagtrail.commands.sweep", "run a grid of parameter overrides on the cache"),
+    ("export-mcap", "tagtrail.commands.export_mcap", "one run as an MCAP file for Foxglove"),
 )
 
 
