@@ -435,7 +435,9 @@ def export(run: Run, dataset: str, out: Path, images: bool = True) -> tuple[Chan
             layout_topics["camera_info"] = topic
     if camera is not None and images and not layout_topics["camera_info"]:
         layout_topics["camera_info"] = FOLDER_CAMERA_INFO
-        stamps = sorted({t for t, top, _ in made if top == TF}) or [t0]
+        # at each image of a folder, else at each pose
+        stamps = ([int(t) for t in getattr(source, "stamps_ns", ())]
+                  or sorted({t for t, top, _ in made if top == TF}) or [t0])  # fmt: skip
         made += [(t, FOLDER_CAMERA_INFO, camera_info_msg(camera, t, frame)) for t in stamps]
         copied[FOLDER_CAMERA_INFO] = "sensor_msgs/msg/CameraInfo"
     made.sort(key=lambda m: m[0])

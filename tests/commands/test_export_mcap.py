@@ -257,3 +257,58 @@ def test_errors_are_one_line_and_leave_nothing(project: Path, tmp_path: Path,
     finally:
         shutil.move(moved, project / "bags" / "query_1")
     assert sorted(p.name for p in tmp_path.iterdir()) == []
+
+
+def test_image_folder_as_compressed_images(tmp_path: Path) -> None:
+    """An image folder (PNGs of a simulated bag, its camera_info as camera.yaml, stamps.csv):
+    the files themselves as CompressedImage, the camera as CameraInfo at each image's stamp."""
+    import cv2
+    import yaml
+
+    simulate("room", tmp_path / "bags", frames=8, query_frames=3, detections=False)
+    folder = tmp_path / "images"
+    folder.mkdir()
+    reader = open_bag(tmp_path / "bags" / "reference")
+    stamps, info = [], None
+    try:
+        for conn, _, data in reader.messages():
+            msg = reader.deserialize(data, conn.msgtype)
+            t_ns = msg.header.stamp.sec * 10**9 + msg.header.stamp.nanosec
+            if conn.msgtype == "sensor_msgs/msg/CameraInfo":
+                info = msg
+            elif conn.msgtype == "sensor_msgs/msg/Image":
+                img = np.asarray(msg.data, np.uint8).reshape(msg.height, msg.width, -1)
+                name = f"frame_{len(stamps):03d}.png"
+                cv2.imwrite(str(folder / name), cv2.cvtColor(img, cv2.COLOR_RGB2BGR)
+                            if img.shape[2] == 3 else img)  # fmt: skip
+                stamps.append((name, t_ns))
+    finally:
+        reader.close()
+    assert info is not None and len(stamps) == 8
+    (folder / "stamps.csv").write_text("file,stamp_sec,stamp_nanosec\n" + "".join(
+        f"{n},{t // 10**9},{t % 10**9}\n" for n, t in stamps))  # fmt: skip
+    mat = {"rows": 3, "cols": 3, "data": [float(v) for v in info.k]}
+    (folder / "camera.yaml").write_text(yaml.safe_dump({
+        "image_width": int(info.width), "image_height": int(info.height),
+        "camera_matrix": mat, "distortion_model": str(info.distortion_model),
+        "distortion_coefficients": {"rows": 1, "cols": len(info.d),
+                                    "data": [float(v) for v in info.d]}}))  # fmt: skip
+    (tmp_path / "pipeline.yaml").write_text(
+        "datasets:\n  reference: {source: images}\nstages:\n  pnp: {tag_size: 0.16}\n")
+    assert tagtrail.cli.main(["run", "-p", str(tmp_path / "pipeline.yaml")]) == 0
+    out = tmp_path / "folder.mcap"
+    assert export(tmp_path, out) == 0
+    _, channels, msgs, raw = read_mcap(out)
+    assert channels["/camera/image/compressed"] == ("sensor_msgs/msg/CompressedImage", "ros2msg",
+                                                     "cdr")  # fmt: skip
+    imgs = msgs["/camera/image/compressed"]
+    assert [m.format for m in imgs] == ["png"] * 8
+    assert [bytes(m.data) for m in imgs] == [(folder / n).read_bytes() for n, _ in stamps]
+    assert [t for t, _ in raw["/camera/image/compressed"]] == [t for _, t in stamps]
+    cams = msgs["/camera/camera_info"]
+    assert [t for t, _ in raw["/camera/camera_info"]] == [t for _, t in stamps]
+    np.testing.assert_allclose(cams[0].k, info.k, rtol=0, atol=0)
+    assert (cams[0].width, cams[0].height, cams[0].header.frame_id) == (640, 480, "camera")
+    assert {m.transforms[0].child_frame_id for m in msgs["/tf"]} == {"camera"}
+    layout = (tmp_path / "folder.layout.json").read_text()
+    assert '"imageTopic": "/camera/image/compressed"' in layout
