@@ -1,12 +1,18 @@
-"""Pydantic models of ``pipeline.yaml`` (datasets and stage parameters)."""
+"""Pydantic models of ``pipeline.yaml`` (datasets, stage parameters, a surveyed world)."""
 
 from __future__ import annotations
 
+import json
 import re
 from pathlib import Path
-from typing import Any
+from typing import Any, Literal
 
-from pydantic import BaseModel, ConfigDict, Field, field_validator
+import numpy as np
+import yaml
+from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
+
+from tagtrail.geometry.se3 import R_from_quat_xyzw, quat_xyzw_from_R
+from tagtrail.geometry.survey import Survey, make_survey, parse_survey
 
 _DATASET_NAME = re.compile(r"[A-Za-z0-9_.-]+")
 
@@ -66,3 +72,90 @@ class PipelineConfig(BaseModel):
         for name in datasets:
             check_dataset_name(name)
         return datasets
+
+
+class KnownTag(BaseModel):
+    """A known tag pose (survey frame, SPEC tag frame): ``position`` (m), ``orientation``
+    quaternion (x, y, z, w; omitted = position only), ``size`` (m, optional)."""
+
+    model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)
+    position: tuple[float, float, float]
+    orientation: tuple[float, float, float, float] | None = None
+    size: float | None = Field(None, gt=0.0)
+
+
+class SurveyConfig(BaseModel):
+    """A surveyed world (``optimize.survey``): the map and trajectory are expressed in the frame
+    of known tag poses instead of the anchor tag's (``geometry.survey``).
+
+    ``file``: known poses from TagSLAM's ``tagslam.yaml``, a WPILib/PhotonVision field layout
+    JSON or a tagtrail ``tag_map.yaml`` (recognised by content; a relative path is taken from the
+    working directory); ``tags``: known poses inline, ``{<id>: {position: [x, y, z],
+    orientation: [qx, qy, qz, qw], size: m}}`` (over the file's); ``use``: only these ids;
+    ``position_only``: use only the positions (tape-measured tags); ``model``: ``rigid``
+    (default) or ``similarity`` (also a scale: the map's metres are the survey's after it).
+    The file is read when the parameters are validated: its known poses are part of them
+    (``known``), so editing the file changes the cache key."""
+
+    model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)
+    file: str | None = None
+    tags: dict[int, KnownTag] = Field(default_factory=dict)
+    use: tuple[int, ...] | None = None
+    position_only: bool = False
+    model: Literal["rigid", "similarity"] = "rigid"
+    format: str = ""
+    known: dict[int, KnownTag] = Field(default_factory=dict)
+
+    @model_validator(mode="after")
+    def _load(self) -> SurveyConfig:
+        """Fill ``known`` (and ``format``) from ``file`` and ``tags``; one-line errors naming
+        the file."""
+        if self.known:  # already loaded (a copy, or a dump validated again)
+            return self
+        known: dict[int, KnownTag] = {}
+        fmt = "inline"
+        if self.file is not None:
+            fmt, known = _read_known(Path(self.file))
+        known.update(self.tags)
+        if self.use is not None:
+            absent = sorted(set(self.use) - set(known))
+            if absent:
+                raise ValueError(f"survey.use names tags {absent} that no known pose gives "
+                                 f"(known: {sorted(known)})")
+            known = {k: v for k, v in known.items() if k in self.use}
+        if self.position_only:
+            known = {k: v.model_copy(update={"orientation": None}) for k, v in known.items()}
+        if not known:
+            raise ValueError("survey: no known tag pose (give file: or tags:)")
+        object.__setattr__(self, "known", dict(sorted(known.items())))
+        object.__setattr__(self, "format", fmt)
+        return self
+
+    def survey(self) -> Survey:
+        """The known poses as a :class:`~tagtrail.geometry.survey.Survey`."""
+        return make_survey([
+            (k, v.position, None if v.orientation is None else R_from_quat_xyzw(
+                np.asarray(v.orientation) / np.linalg.norm(v.orientation)), v.size)
+            for k, v in self.known.items()])
+
+
+def _read_known(path: Path) -> tuple[str, dict[int, KnownTag]]:
+    """``(format, known poses)`` of a known-poses file (:func:`geometry.survey.parse_survey`)."""
+    if not path.is_file():
+        raise ValueError(f"{path}: known-poses file not found (survey.file; a relative path is "
+                         "taken from the working directory)")
+    try:
+        text = path.read_text(encoding="utf-8")
+        doc = json.loads(text) if path.suffix.lower() == ".json" else yaml.safe_load(text)
+        fmt, sv = parse_survey(doc)
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError, yaml.YAMLError) as err:
+        raise ValueError(f"{path}: cannot read known poses: {str(err).splitlines()[0]}") from err
+    except (ValueError, TypeError) as err:
+        raise ValueError(f"{path}: {err}") from err
+    known = {}
+    for k, i in enumerate(sv.ids.tolist()):
+        q = None if not sv.full[k] else tuple(float(v) for v in quat_xyzw_from_R(sv.R[k]))
+        size = float(sv.size[k]) if np.isfinite(sv.size[k]) else None
+        known[int(i)] = KnownTag(position=tuple(float(v) for v in sv.position[k]),
+                                 orientation=q, size=size)
+    return fmt, known

@@ -50,7 +50,8 @@ from tagtrail.geometry.bundle import (
 from tagtrail.geometry.camera import CameraModel
 from tagtrail.geometry.posegraph import PoseGraph, relative_residuals, solve
 from tagtrail.geometry.robust import LossName
-from tagtrail.geometry.se3 import R_from_quat_xyzw, make_T, quat_xyzw_from_R
+from tagtrail.geometry.se3 import R_from_quat_xyzw, make_T, quat_xyzw_from_R, rotation_angle
+from tagtrail.geometry.survey import fit_survey
 from tagtrail.schemas.artifacts import (
     CORNER_COLS,
     POSE_COLS,
@@ -60,6 +61,7 @@ from tagtrail.schemas.artifacts import (
     timed,
 )
 from tagtrail.schemas.documents import OptimizeReport, TagGraph
+from tagtrail.schemas.pipeline import SurveyConfig
 from tagtrail.stages.base import StageParams
 
 log = logging.getLogger(__name__)
@@ -114,6 +116,12 @@ class Params(StageParams):
     link_tags: bool = True
     """Joint solve: place tags the pose graph left out (never seen together with the map without
     ambiguity) through the trajectory, then solve them with the rest (geometry.bundle.link_tags)."""
+
+    survey: SurveyConfig | None = None
+    """A surveyed world: known tag poses (a ``tagslam.yaml``, a WPILib/PhotonVision field
+    layout, a ``tag_map.yaml``, or inline; full or position-only); the map (and so the
+    trajectory) is expressed in their frame by a rigid fit (``model: similarity`` adds a scale),
+    the residuals at the known tags reported (schemas.pipeline.SurveyConfig)."""
 
     def prior(self) -> tuple[float, float] | None:
         """``(acc_sigma m/s^2/sqrt(Hz), ang_sigma rad/s^2/sqrt(Hz))``, None without a prior."""
@@ -171,6 +179,46 @@ def _per_tag_rms(idx_i: np.ndarray, idx_j: np.ndarray, sq: np.ndarray, n: int) -
     s = np.bincount(idx_i, sq, n) + np.bincount(idx_j, sq, n)
     c = np.bincount(idx_i, minlength=n) + np.bincount(idx_j, minlength=n)
     return np.where(c > 0, np.sqrt(s / np.maximum(c, 1)), np.nan)
+
+
+def surveyed_world(tag_map: pd.DataFrame, cfg: SurveyConfig) -> tuple[pd.DataFrame, dict[str, Any]]:
+    """The tag map (anchor frame) re-expressed in the surveyed world of ``cfg`` (geometry.survey:
+    rigid or similarity fit on the known tags it holds), and the report block: the fit and the
+    residuals at the known tags. :class:`DataError` when the known tags do not fix the world."""
+    ids = tag_map["tag_id"].to_numpy(np.int64)
+    vals = tag_map[POSE_COLS].to_numpy(np.float64)
+    map_T_tag = make_T(R_from_quat_xyzw(vals[:, 3:]), vals[:, :3])
+    try:
+        fit = fit_survey(ids, map_T_tag, cfg.survey(), cfg.model == "similarity",
+                         tag_map["size_m"].to_numpy(np.float64))
+    except ValueError as err:
+        raise DataError(f"optimize: surveyed world ({cfg.file or 'survey.tags'}): {err}") from err
+    W = fit.apply(map_T_tag)
+    out = tag_map.copy()
+    out[POSE_COLS] = np.concatenate([W[:, :3, 3], quat_xyzw_from_R(W[:, :3, :3])], axis=1)
+    out["std_pos_m"] = tag_map["std_pos_m"] * fit.scale
+    rot = np.nan_to_num(fit.res_rot_deg, nan=0.0)
+    full = np.isfinite(fit.res_rot_deg)
+    per_tag = [{"tag_id": int(i), "res_pos_m": float(p),
+                "res_rot_deg": float(r) if np.isfinite(r) else None}
+               for i, p, r in zip(fit.ids, fit.res_pos_m, fit.res_rot_deg, strict=True)]
+    block = {
+        "source": cfg.file or "inline", "format": cfg.format, "model": cfg.model,
+        "scale": fit.scale, "rotation_deg": float(np.degrees(rotation_angle(fit.R))),
+        "translation_m": [float(v) for v in fit.t], "tags": fit.ids.astype(int).tolist(),
+        "missing": fit.missing,
+        "res_pos_rms_m": float(np.sqrt(np.mean(fit.res_pos_m**2))),
+        "res_pos_max_m": float(fit.res_pos_m.max()),
+        "res_rot_rms_deg": float(np.sqrt(np.mean(rot[full] ** 2))) if full.any() else None,
+        "per_tag": per_tag,
+    }
+    rot_text = ("" if block["res_rot_rms_deg"] is None
+                else f", {block['res_rot_rms_deg']:.2f} deg rms")
+    log.info("optimize: surveyed world (%s, %s, %s) from known tags %s: residuals %.1f mm rms "
+             "(max %.1f mm)%s%s", block["source"], cfg.format, cfg.model, block["tags"],
+             1e3 * block["res_pos_rms_m"], 1e3 * block["res_pos_max_m"], rot_text,
+             f"; known tags not in the map: {fit.missing}" if fit.missing else "")
+    return out, block
 
 
 def refine_on_corners(
@@ -336,6 +384,9 @@ def run(
             "res_r_deg": np.rad2deg(e_r),
         }
     )
+    survey = None
+    if params.survey is not None:
+        tag_map, survey = surveyed_world(tag_map, params.survey)
     report = {
         "anchor_id": anchor,
         "loss": params.loss,
@@ -348,5 +399,7 @@ def run(
         "method": "joint" if bundle is not None else "pairwise",
         "bundle": bundle,
     }
+    if "survey" in OptimizeReport.model_fields:  # the report's survey block (when it has one)
+        report["survey"] = survey
     return {"tag_map": tag_map, "edge_residuals": residuals,
             "report": OptimizeReport.model_validate(report)}
