@@ -12,18 +12,22 @@ import yaml
 from tagtrail.errors import SourceError, SpecError
 from tagtrail.io.layouts import atomic_write_text
 from tagtrail.schemas.pipeline import DatasetConfig, Topics
+from tagtrail.schemas.profiles import PROFILES, Profile, describe, get_profile
 
 EXAMPLES = """examples:
   tagtrail init --reference bags/run1 --query bags/parked1
   tagtrail init --reference photos/ --camera photos/camera.yaml --tag-size 0.127
-  tagtrail init --reference run1.bag --anchor 0 -o lab.yaml"""
+  tagtrail init --reference run1.bag --anchor 0 -o lab.yaml
+  tagtrail init --profile limo --reference bags/reference      # the LIMO's topics and defaults
+  tagtrail init --list-profiles"""
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.epilog = EXAMPLES
     parser.formatter_class = argparse.RawDescriptionHelpFormatter
-    parser.add_argument("--reference", type=Path, required=True, metavar="SRC",
-                        help="the reference recording (rosbag2 folder, .bag, image folder)")
+    parser.add_argument("--reference", type=Path, default=None, metavar="SRC",
+                        help="the reference recording (rosbag2 folder, .bag, image folder); "
+                        "required")
     parser.add_argument("--query", type=Path, action="append", default=[], metavar="SRC",
                         help="a query recording (repeatable: query, query_2, …)")
     parser.add_argument("--camera", type=Path, default=None, metavar="FILE",
@@ -35,13 +39,21 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("-o", "--output", type=Path, default=Path("pipeline.yaml"),
                         help="pipeline file to write (pipeline.yaml)")
     parser.add_argument("--force", action="store_true", help="overwrite an existing file")
+    parser.add_argument("--profile", choices=list(PROFILES), default=None,
+                        help="fill topics and parameters for a robot or the simulator; they are "
+                        "written into the file (edit them there; --tag-size overrides)")
+    parser.add_argument("--list-profiles", action="store_true",
+                        help="list the profiles and what each sets, then exit")
 
 
-def inspect(source: Path, camera: Path | None) -> tuple[DatasetConfig, str]:
-    """Open a source as the pipeline will; return its dataset entry and a one-line description."""
+def inspect(source: Path, camera: Path | None,
+            topics_given: dict[str, str] | None = None) -> tuple[DatasetConfig, str]:  # fmt: skip
+    """Open a source as the pipeline will (with ``topics_given``, e.g. a profile's, else the
+    topics found by type); return its dataset entry and a one-line description."""
     from tagtrail.io.sources import BagSource, open_source
 
-    cfg = DatasetConfig(source=source.resolve(), camera=camera.resolve() if camera else None)
+    cfg = DatasetConfig(source=source.resolve(), camera=camera.resolve() if camera else None,
+                        topics=Topics(**(topics_given or {})))  # fmt: skip
     with open_source(cfg) as src:
         topics: dict[str, Any] = {}
         if isinstance(src, BagSource):  # the one source with topics
@@ -62,13 +74,16 @@ def _rel(path: Path, base: Path) -> str:
         return str(path)
 
 
-def _stage_params(tag_size: float | None) -> dict[str, Any]:
-    """The ``stages:`` block, validated by the stages' own models (a file ``run`` accepts)."""
+def _stage_params(tag_size: float | None, profile: Profile | None = None) -> dict[str, Any]:
+    """The ``stages:`` block (the profile's parameters, ``--tag-size`` over them), validated by
+    the stages' own models (a file ``run`` accepts)."""
     from pydantic import ValidationError
 
-    from tagtrail.stages import pnp
+    from tagtrail.stages import REGISTRY, pnp
 
-    size = pnp.Params().tag_size if tag_size is None else tag_size
+    stages = {s: dict(ps) for s, ps in (profile.stages if profile else {}).items()}
+    size = tag_size if tag_size is not None else stages.get("pnp", {}).get(
+        "tag_size", pnp.Params().tag_size)
     try:
         pnp.Params(tag_size=size)
     except ValidationError as err:
@@ -76,20 +91,35 @@ def _stage_params(tag_size: float | None) -> dict[str, Any]:
         raise SpecError(
             f"--tag-size {size}: {msg} (the edge of the black square, in metres)"
         ) from err
-    return {"pnp": {"tag_size": size}}
+    stages.setdefault("pnp", {})["tag_size"] = size
+    for stage, params in stages.items():  # a profile's own values must pass too
+        REGISTRY[stage].Params(**params)
+    return {"pnp": stages.pop("pnp"), **stages}
 
 
 def main(args: argparse.Namespace) -> int:
+    if args.list_profiles:
+        print("\n".join(describe(p) for p in PROFILES.values()))
+        return 0
+    if args.reference is None:
+        raise SpecError("tagtrail init needs --reference SRC (the reference recording)")
     out: Path = args.output
     if out.exists() and not args.force:
         raise SpecError(f"{out} exists already; use --force to overwrite it")
-    stages = _stage_params(args.tag_size)
+    profile = get_profile(args.profile)
+    stages = _stage_params(args.tag_size, profile)
     base = out.resolve().parent
     names = ["reference"] + [f"query{'' if i == 0 else f'_{i + 1}'}"
                              for i in range(len(args.query))]
     datasets: dict[str, Any] = {}
     for name, src in zip(names, [args.reference, *args.query], strict=True):
-        cfg, desc = inspect(src, args.camera)
+        try:
+            cfg, desc = inspect(src, args.camera, profile.topics if profile else None)
+        except SourceError as err:
+            if profile is None:
+                raise
+            raise SourceError(f"{err} (topics of --profile {profile.name}; see tagtrail init "
+                              "--list-profiles)") from err
         entry: dict[str, Any] = {"source": _rel(cfg.source, base)}
         topics = cfg.topics.model_dump(exclude_none=True)
         if topics:
@@ -103,6 +133,9 @@ def main(args: argparse.Namespace) -> int:
     doc = {"reference": "reference", "datasets": datasets, "stages": stages}
     header = ("# Written by `tagtrail init`. Stage parameters not listed keep their defaults;\n"
               "# see `tagtrail dag` and `tagtrail run --dry-run`.\n")
+    if profile is not None:
+        header += (f"# Profile {profile.name}: {profile.description}.\n# Its topics and "
+                   "parameters are written below as ordinary settings; edit them freely.\n")
     atomic_write_text(out, header + yaml.safe_dump(doc, sort_keys=False))
     print(f"wrote {out}; next: tagtrail run -p {out}")
     return 0

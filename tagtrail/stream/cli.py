@@ -1,4 +1,4 @@
-"""``tagtrail stream relocalize | replay | localize``: the live nodes over eclipse-zenoh.
+"""``tagtrail stream relocalize | replay | localize | record``: the live nodes over eclipse-zenoh.
 
 Thin shell: parse → load (files are read before any port is opened) → open the session → run
 the node until SIGINT/SIGTERM, ``--duration`` or ``--count`` → close → exit code. Runs standalone
@@ -15,6 +15,7 @@ from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any
 
+from tagtrail.errors import SourceError
 from tagtrail.geometry.reference_path import PLANES
 from tagtrail.stream.codec import POSE_TYPES
 from tagtrail.stream.session import add_session_arguments, config_from_args, open_session
@@ -27,6 +28,10 @@ EXAMPLES = """examples:
   tagtrail stream replay outputs/query/trajectory.csv --rate 2
   tagtrail stream replay recording/ --topics /detections /camera_info
   tagtrail stream localize --map outputs/reference/tag_map.yaml
+  tagtrail stream localize --profile limo --map outputs/reference/tag_map.yaml
+  tagtrail stream record bags/run1 --profile limo --mode client --connect tcp/192.168.1.10:7447
+  tagtrail stream record bags/run1 --topic /camera/color/image_raw:sensor_msgs/msg/Image \\
+      --topic /camera/color/camera_info:sensor_msgs/msg/CameraInfo --duration 60
 """
 
 
@@ -70,6 +75,13 @@ def _pipeline(p: argparse.ArgumentParser, what: str) -> None:
                    help="whose parameters (its `params:` applied; default: the reference)")
 
 
+def _profile(p: argparse.ArgumentParser, what: str) -> None:
+    from tagtrail.schemas.profiles import PROFILES
+
+    p.add_argument("--profile", choices=list(PROFILES), default=None,
+                   help=f"{what} of a profile (tagtrail init --list-profiles); flags override it")
+
+
 def _common(p: argparse.ArgumentParser, count_help: str, express: bool) -> None:
     add_session_arguments(p)
     g = p.add_argument_group("run")
@@ -100,7 +112,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> argparse.ArgumentParser:
     p.add_argument("--alignment", type=Path, default=None,
                    help="summary.json of `tagtrail relocalize`, an align-stage alignment JSON, "
                    "or JSON with a 4x4 'ref_A_query' (default: poses are in the reference frame)")
-    p.add_argument("--pose-key", default="tag_only_pose", help="input key (default: %(default)s)")
+    p.add_argument("--pose-key", default=None, help="input key (default: the profile's, else "
+                   "tag_only_pose)")
     p.add_argument("--pose-type", choices=list(POSE_TYPES), default="pose_stamped",
                    help="input message type (default: %(default)s)")
     p.add_argument("--prefix", default="relocalization", help="output key prefix (default: "
@@ -114,6 +127,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> argparse.ArgumentParser:
     p.add_argument("--path-max-points", type=COUNT, default=10_000, metavar="N",
                    help="decimate the published path to N poses (0: all; default 10000)")
     _pipeline(p, "report's plane")
+    _profile(p, "the pose key and report's plane (without a pipeline file)")
     _common(p, "stop after N input messages", express=True)
     g = p.add_argument_group("foxglove")
     g.add_argument("--foxglove", type=tcp_port, nargs="?", const=8765, default=None,
@@ -135,6 +149,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> argparse.ArgumentParser:
     p.add_argument("--topic", default=None, help="the bag's pose topic (default: the only one)")
     p.add_argument("--topics", nargs="+", default=None, metavar="TOPIC",
                    help="publish these bag topics unchanged, key = topic without '/'")
+    _profile(p, "--topics: the recorded topics")
     p.add_argument("--frame-id", default=None, help="frame of the poses (default: the bag's, "
                    "map for trajectory files)")
     p.add_argument("--wait", type=NON_NEGATIVE, default=10.0, metavar="S",
@@ -149,15 +164,20 @@ def add_arguments(parser: argparse.ArgumentParser) -> argparse.ArgumentParser:
                        description="Camera pose from apriltag detections (or compressed images) "
                        "and the tag map, published as PoseStamped.")
     p.add_argument("--map", type=Path, required=True, help="tag_map.yaml / tag_map.csv / folder")
-    p.add_argument("--detections-key", default="detections", help="default: %(default)s")
-    p.add_argument("--camera-info-key", default="camera_info", help="default: %(default)s")
+    p.add_argument("--detections-key", default=None, help="default: the profile's, else "
+                   "detections")
+    p.add_argument("--camera-info-key", default=None, help="default: the profile's, else "
+                   "camera_info")
     p.add_argument("--image-key", default=None,
-                   help="detect tags in images on this key instead of using detections")
-    p.add_argument("--image-type", choices=["compressed", "raw"], default="compressed")
-    p.add_argument("--pose-key", default="tag_only_pose", help="output key (default: "
-                   "%(default)s)")
+                   help="detect tags in images on this key instead of using detections "
+                   "(default: the profile's, else none)")
+    p.add_argument("--image-type", choices=["compressed", "raw"], default=None,
+                   help="default: the profile's, else compressed")
+    p.add_argument("--pose-key", default=None, help="output key (default: the profile's, else "
+                   "tag_only_pose)")
     p.add_argument("--frame-id", default="map", help="frame of the poses (default: map)")
     _pipeline(p, "extract's detector and filters, pnp's tag sizes and trajectory's method")
+    _profile(p, "the keys and stage parameters (without a pipeline file)")
     g = p.add_argument_group("overrides")
     g.add_argument("--tag-size", type=POSITIVE, default=None, metavar="M",
                    help="edge (m) of tags whose size neither the map nor pnp.tag_sizes gives "
@@ -170,7 +190,53 @@ def add_arguments(parser: argparse.ArgumentParser) -> argparse.ArgumentParser:
     g.add_argument("--max-hamming", type=COUNT, default=None, metavar="N",
                    help="drop detections with more corrected bits (default: extract.max_hamming)")
     _common(p, "stop after N input messages", express=True)
+    _record_arguments(sub, fmt)
+    _echo_arguments(sub, fmt)
     return parser
+
+
+def _echo_arguments(sub: Any, fmt: type[argparse.HelpFormatter]) -> None:
+    p = sub.add_parser("echo", help="print the messages of a key (e.g. relocalization/state)",
+                       formatter_class=fmt, description="Print each sample of a key: JSON "
+                       "(the state key) as it is, CDR as its size.")
+    p.add_argument("key", help="zenoh key, e.g. relocalization/state")
+    p.add_argument("--count", type=COUNT, default=None, metavar="N", help="stop after N")
+    p.add_argument("--wait", type=POSITIVE, default=30.0, metavar="S",
+                   help="error if nothing arrives within S seconds (default 30)")
+    add_session_arguments(p)
+
+
+def _record_arguments(sub: Any, fmt: type[argparse.HelpFormatter]) -> None:
+    p = sub.add_parser("record", help="record zenoh-bridge-ros2dds topics into a rosbag2",
+                       epilog=EXAMPLES, formatter_class=fmt,
+                       description="Subscribe to ROS topics forwarded over zenoh (key = topic "
+                       "without '/', CDR) and write them unchanged into a rosbag2 that ROS 2 and "
+                       "tagtrail read; log time = receive time. Kept readable while it grows: "
+                       "after kill -9 run --recover OUT.")
+    p.add_argument("out", type=Path, metavar="OUT", help="the bag folder to create")
+    p.add_argument("--topic", action="append", default=[], metavar="NAME[:TYPE]",
+                   help="a topic to record, e.g. /camera_info:sensor_msgs/msg/CameraInfo "
+                   "(repeatable; type optional when the profile or the bridge gives it)")
+    _profile(p, "the topics to record")
+    p.add_argument("--storage", choices=["mcap", "sqlite3"], default="mcap",
+                   help="bag storage (default: %(default)s)")
+    p.add_argument("--max-size", default=None, metavar="SIZE",
+                   help="stop when the messages written reach SIZE (500M, 2G)")
+    p.add_argument("--wait", type=NON_NEGATIVE, default=10.0, metavar="S",
+                   help="stop with an error if a topic has no message after S seconds "
+                   "(0: wait for ever; default 10)")
+    p.add_argument("--flush-period", type=POSITIVE, default=1.0, metavar="S",
+                   help="make the bag readable on disk every S seconds (default 1): at most "
+                   "that much is lost to a kill -9 or a power cut")
+    p.add_argument("--recover", action="store_true",
+                   help="do not record: finish the bag OUT left by a killed recorder")
+    add_session_arguments(p)
+    g = p.add_argument_group("run")
+    g.add_argument("--duration", type=NON_NEGATIVE, default=None, metavar="S",
+                   help="stop after S seconds (default: run until SIGINT/SIGTERM)")
+    g.add_argument("--stats-period", type=NON_NEGATIVE, default=2.0, metavar="S",
+                   help="print the live line (rates, drops) every S seconds (0: never; "
+                   "default 2)")
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -187,8 +253,32 @@ def main(args: argparse.Namespace | Sequence[str] | None = None) -> int:
     if cmd is None:
         build_parser().print_help()
         return 2
-    run = {"relocalize": _relocalize, "replay": _replay, "localize": _localize}[cmd]
-    return run_command(lambda: run(ns))
+    run = {"relocalize": _relocalize, "replay": _replay, "localize": _localize,
+           "record": _record, "echo": _echo}[cmd]
+    return run_command(lambda: run(with_profile(ns)))
+
+
+_BUILTIN_KEYS = {"pose_key": "tag_only_pose", "detections_key": "detections",
+                 "camera_info_key": "camera_info", "image_key": None, "image_type": "compressed"}
+
+
+def with_profile(ns: argparse.Namespace) -> argparse.Namespace:
+    """``ns`` with the keys left unset taken from ``--profile`` (else the built-in defaults),
+    and replay's ``--topics`` from the profile when a bag is replayed without them."""
+    from tagtrail.schemas.profiles import get_profile
+
+    profile = get_profile(getattr(ns, "profile", None))
+    out = argparse.Namespace(**vars(ns))
+    for name, default in _BUILTIN_KEYS.items():
+        if hasattr(out, name) and getattr(out, name) is None:
+            live = getattr(profile.live, name) if profile is not None else None
+            setattr(out, name, live if live is not None else default)
+    if (profile is not None and getattr(out, "stream_command", None) == "replay"
+            and not out.topics):
+        src = Path(out.source)
+        if src.suffix in (".mcap", ".db3", ".bag") or (src / "metadata.yaml").is_file():
+            out.topics = [t for t, _ in profile.record]
+    return out
 
 
 def _relocalize(ns: argparse.Namespace) -> int:
@@ -202,7 +292,8 @@ def _relocalize(ns: argparse.Namespace) -> int:
     # the alignment file's plane wins over the pipeline's: its planar transform acts in that plane
     plane = ns.plane
     if not plane:
-        report = stage_params(["report"], ns.pipeline, ns.dataset)["report"]
+        report = stage_params(["report"], ns.pipeline, ns.dataset,
+                              profile=ns.profile)["report"]  # fmt: skip
         assert isinstance(report, report_stage.Params)
         plane = report.plane
     alignment = None
@@ -262,7 +353,8 @@ def localize_params(ns: argparse.Namespace) -> Any:
     from tagtrail.stream.localize import Params
     from tagtrail.stream.params import override, stage_params
 
-    got = stage_params(["extract", "pnp", "trajectory"], ns.pipeline, ns.dataset)
+    got = stage_params(["extract", "pnp", "trajectory"], ns.pipeline, ns.dataset,
+                       profile=getattr(ns, "profile", None))  # fmt: skip
     ex, pn, tr = got["extract"], got["pnp"], got["trajectory"]
     assert isinstance(ex, extract.Params) and isinstance(pn, pnp.Params)
     assert isinstance(tr, trajectory.Params)
@@ -282,6 +374,7 @@ def _localize(ns: argparse.Namespace) -> int:
     from tagtrail.stream.session import leave_now, stop_on_signals
     from tagtrail.stream.stats import Stats
 
+    ns = with_profile(ns)
     tags, _ = read_tag_map(ns.map)
     stats = Stats("localize")
     loc = Localizer(tags, localize_params(ns), ns.pose_key, ns.frame_id, stats)
@@ -306,6 +399,63 @@ def _localize(ns: argparse.Namespace) -> int:
         # pupil-labs/apriltags#46), and a zenoh callback blocked in a put would hold the exit
         # for 5 s: the session is closed (or abandoned) and stats printed, so leave at once
         leave_now(0)
+    return 0
+
+
+def _record(ns: argparse.Namespace) -> int:
+    from tagtrail.schemas.profiles import get_profile
+    from tagtrail.stream.bagwriter import CrashSafeWriter, recover
+    from tagtrail.stream.record import Recorder, discover, parse_size, resolve_topics, summary_line
+    from tagtrail.stream.session import close_all, stop_on_signals
+
+    if ns.recover:
+        print(recover(ns.out), flush=True)
+        return 0
+    profile = get_profile(ns.profile)
+    max_size = parse_size(ns.max_size) if ns.max_size else None
+    if ns.out.exists():
+        raise SourceError(f"{ns.out} exists already; record into a new folder (or --recover "
+                          f"{ns.out} to finish a recording that was killed)")  # fmt: skip
+    session = open_session(config_from_args(ns, "connect"))
+    try:
+        # the bridge's admin space: topics when none are named, types for names without one,
+        # and a check of the types given
+        topics = resolve_topics(ns.topic, profile, discover(session))
+        writer = CrashSafeWriter(ns.out, ns.storage, flush_s=ns.flush_period)
+        rec = Recorder(session, topics, writer, wait_s=ns.wait, max_size=max_size)
+        with stop_on_signals() as stop:
+            done = rec.run(ns.duration, ns.stats_period, stop)
+        print(summary_line(done, writer), flush=True)
+    finally:
+        close_all(session, [])
+    return 0
+
+
+def _echo(ns: argparse.Namespace) -> int:
+    import queue
+    import time
+
+    from tagtrail.stream.session import close_all, stop_on_signals
+
+    got: queue.SimpleQueue[bytes] = queue.SimpleQueue()
+    session = open_session(config_from_args(ns, "connect"))
+    sub = session.declare_subscriber(ns.key, lambda s: got.put(s.payload.to_bytes()))
+    n, deadline = 0, time.monotonic() + ns.wait
+    try:
+        with stop_on_signals() as stop:
+            while not stop.is_set() and (ns.count is None or n < ns.count):
+                try:
+                    data = got.get(timeout=0.1)
+                except queue.Empty:
+                    if n == 0 and time.monotonic() > deadline:
+                        raise SourceError(f"no message on {ns.key} after {ns.wait:g} s") from None
+                    continue
+                n += 1
+                text = data.decode("utf-8", "replace") if data[:1] in (b"{", b"[") else (
+                    f"<{len(data)} bytes of CDR>")
+                print(f"{ns.key}: {text}", flush=True)
+    finally:
+        close_all(session, [sub])
     return 0
 
 

@@ -4,7 +4,8 @@
 and validated as ``tagtrail run`` does (:func:`tagtrail.runner.spec.load_pipeline`), and the
 parameters of ``--dataset`` (default: the pipeline's reference) are taken with that dataset's
 ``params:`` overrides (:meth:`~tagtrail.runner.spec.Pipeline.params_for`). Without a pipeline
-file, each stage's ``Params()`` defaults apply. Command-line flags override either
+file, each stage's ``Params()`` defaults apply (with a ``--profile``'s parameters over them: a
+profile is pipeline-file defaults). Command-line flags override either
 (:func:`override`).
 """
 
@@ -26,9 +27,13 @@ P = TypeVar("P", bound=StageParams)
 
 
 def stage_params(
-    stages: Sequence[str], pipeline: Path | None = None, dataset: str | None = None
+    stages: Sequence[str], pipeline: Path | None = None, dataset: str | None = None,
+    profile: str | None = None,
 ) -> dict[str, StageParams]:
-    """``{stage: params}`` for ``stages`` from ``pipeline`` (module docstring)."""
+    """``{stage: params}`` for ``stages`` from ``pipeline`` (module docstring); without a
+    pipeline file, ``profile``'s parameters (:mod:`tagtrail.schemas.profiles`) over the
+    defaults."""
+    from tagtrail.schemas.profiles import get_profile
     from tagtrail.stages import REGISTRY
 
     if pipeline is None and DEFAULT_PIPELINE.is_file():
@@ -37,7 +42,9 @@ def stage_params(
         if dataset is not None:
             raise SpecError(f"--dataset {dataset}: there is no pipeline file (no "
                             f"{DEFAULT_PIPELINE} here); name one with --pipeline FILE")
-        return {s: REGISTRY[s].Params() for s in stages}
+        prof = get_profile(profile)
+        given = prof.stages if prof is not None else {}
+        return {s: REGISTRY[s].Params(**given.get(s, {})) for s in stages}
     from tagtrail.runner.spec import did_you_mean, load_pipeline
 
     pipe = load_pipeline(Path(pipeline), REGISTRY, check_sources=False)
