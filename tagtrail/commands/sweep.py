@@ -28,6 +28,7 @@ EXAMPLES = """examples:
   tagtrail sweep -S extract.quad_decimate=1,2 --metric trajectory.rmse_m --metric map.rms_px
   tagtrail sweep -S optimize.f_scale=0.05,0.1 --metric D.mean_m --dataset query_1
   tagtrail sweep --points points.csv --name my-sweep
+  tagtrail sweep -S optimize.f_scale=0.05,0.1 --executor dask -j 2   # on a local Dask cluster
   tagtrail show optimize --point 4            # point 4's artifacts (the newest sweep)
 
 values: -S stage.param=v1,v2,... splits at the commas outside [] {} and quotes; each piece is
@@ -70,7 +71,15 @@ def add_arguments(parser: argparse.ArgumentParser) -> argparse.ArgumentParser:
                         "reference run)")  # fmt: skip
     parser.add_argument("--name", default=None,
                         help="the sweep's folder under sweeps/ (default: from the swept params)")
-    parser.add_argument("-j", "--jobs", type=int, default=1, help="stages run in parallel")
+    parser.add_argument("-j", "--jobs", type=int, default=1,
+                        help="stages run in parallel (dask: worker processes of the local "
+                        "cluster)")  # fmt: skip
+    parser.add_argument("--executor", choices=("local", "dask"), default=None,
+                        help="where stages run: local threads (default) or one Dask cluster for "
+                        "every point (pip install 'tagtrail[dask]')")  # fmt: skip
+    parser.add_argument("--scheduler", default=None, metavar="ADDRESS",
+                        help="an existing Dask scheduler (tcp://host:8786; implies --executor "
+                        "dask; default: start a local cluster)")  # fmt: skip
     parser.add_argument("--dry-run", action="store_true",
                         help="list the points and metric columns; run nothing")
     return parser
@@ -98,8 +107,9 @@ def _main(ns: argparse.Namespace) -> int:
 
     rows = sw.read_points(ns.points) if ns.points is not None else None
     points = sw.make_points(ns.set or (), rows)
+    executor = ns.executor or ("dask" if ns.scheduler else "local")
     sweep = sw.prepare(Path(ns.pipeline), REGISTRY, points, ns.metric or (), ns.dataset or (),
-                       ns.name, ns.points, ns.jobs)  # fmt: skip
+                       ns.name, ns.points, ns.jobs, executor, ns.scheduler)  # fmt: skip
     if ns.dry_run:
         print(f"sweep {sweep.name}: {len(points)} points into {sweep.folder}")
         for p in points:

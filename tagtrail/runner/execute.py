@@ -20,7 +20,13 @@ from tagtrail.runner.cache import (
     sha256_text,
 )
 from tagtrail.runner.dag import Graph, Node, build_graph, select
-from tagtrail.runner.executors import NodeTask, open_executor, run_node, run_remote
+from tagtrail.runner.executors import (
+    NodeTask,
+    open_executor,
+    run_node,
+    run_remote,
+    timed_call,
+)
 from tagtrail.runner.paths import inside
 from tagtrail.runner.spec import Pipeline
 from tagtrail.schemas.artifacts import VERSION as ARTIFACT_SCHEMA_VERSION
@@ -188,10 +194,13 @@ class Runner:
             log_level=logging.getLogger("tagtrail").getEffectiveLevel(),
         )
 
-    def _submit(self, pool: cf.Executor, task: NodeTask) -> cf.Future[int | None]:
+    def _submit(
+        self, pool: cf.Executor, task: NodeTask
+    ) -> cf.Future[tuple[int | None, float]]:
+        """Submit a node; its future gives (rows written, seconds the node took to compute)."""
         if getattr(pool, "remote", False):  # another process: it rebuilds the stage from names
-            return pool.submit(run_remote, task)
-        return pool.submit(run_node, task, self.pipe.stages[task.stage], self.store)
+            return pool.submit(timed_call, run_remote, task)
+        return pool.submit(timed_call, run_node, task, self.pipe.stages[task.stage], self.store)
 
     def run(self, stages: list[str] | None = None, force: bool = False) -> list[NodeState]:
         """Bring the selected nodes up to date; raise the first failure after others finish."""
@@ -202,7 +211,7 @@ class Runner:
         failure: BaseException | None = None
         with self.store.lock(), open_executor(self.executor, self.jobs, self.scheduler,
                                               self.echo, self.store.root.resolve()) as pool:
-            running: dict[cf.Future[int | None], tuple[Node, NodeState, float]] = {}
+            running: dict[cf.Future[tuple[int | None, float]], tuple[Node, NodeState, float]] = {}
             pending = list(order)
             while pending or running:
                 progressed = True
@@ -224,8 +233,9 @@ class Runner:
                             continue
                         why = "forced" if force else self.why_stale(node, record)
                         st = NodeState(node.stage, node.dataset, "ran", why, key)
+                        t0 = time.perf_counter()  # a failure's seconds (no timing comes back)
                         fut = self._submit(pool, self._task(node, key, record, keys))
-                        running[fut] = (node, st, time.perf_counter())
+                        running[fut] = (node, st, t0)
                 if not running:
                     break
                 done, _ = cf.wait(running, return_when=cf.FIRST_COMPLETED)
@@ -234,7 +244,7 @@ class Runner:
                     st.seconds = time.perf_counter() - t0
                     states[node] = st
                     try:
-                        st.rows = fut.result()
+                        st.rows, st.seconds = fut.result()
                         keys[node] = st.key or ""
                     except BaseException as err:  # noqa: BLE001 - reported below, with context
                         st.status = "failed"

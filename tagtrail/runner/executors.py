@@ -57,6 +57,7 @@ import os
 import pickle
 import socket
 import sys
+import time
 from collections.abc import Callable, Iterator
 from contextlib import ExitStack
 from dataclasses import dataclass
@@ -91,6 +92,15 @@ class SerialExecutor(cf.Executor):
         except BaseException as err:  # noqa: BLE001 - handed to the caller through the future
             fut.set_exception(err)
         return fut
+
+
+def timed_call(fn: Callable[..., T], /, *args: Any) -> tuple[T, float]:
+    """``(fn(*args), seconds it took)``, measured where it runs: a node's compute time, not
+    its wait in a queue nor, under the serial executor (which runs it inside ``submit``), the
+    runner's bookkeeping around it."""
+    t0 = time.perf_counter()
+    out = fn(*args)
+    return out, time.perf_counter() - t0
 
 
 def make_executor(kind: str = "local", jobs: int = 1) -> cf.Executor:

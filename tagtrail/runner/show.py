@@ -1,4 +1,9 @@
-"""``tagtrail show``: a stage artifact's schema, row count, head and statistics; CSV export."""
+"""``tagtrail show``: a stage artifact's schema, row count, head and statistics; CSV export.
+
+The artifact shown is the one the pipeline's current parameters (with the same ``-S`` as the
+run) make; when that one does not exist, the node's most recent artifact, with a one-line note
+of the parameters it was made with.
+"""
 
 from __future__ import annotations
 
@@ -10,6 +15,7 @@ import pandas as pd
 
 from tagtrail.errors import SpecError
 from tagtrail.io.layouts import atomic_write_text
+from tagtrail.runner.cache import canonical_json, sha256_text
 from tagtrail.runner.execute import Runner
 from tagtrail.runner.spec import did_you_mean
 from tagtrail.schemas import documents
@@ -24,6 +30,27 @@ def csv_frame(df: pd.DataFrame) -> pd.DataFrame:
         out.insert(0, "stamp_nanosec", nsec)
         out.insert(0, "stamp_sec", sec)
     return out
+
+
+def _value(v: object) -> str:
+    return json.dumps(v, sort_keys=True, separators=(",", ": "))
+
+
+def most_recent(runner: Runner, stage: str, dataset: str) -> tuple[str, str]:
+    """(key, one-line note) of the node's most recent artifact, when the current parameters'
+    one does not exist: the note names the parameters it was made with that differ now."""
+    last = runner.store.last_record(dataset, stage)
+    key = sha256_text(canonical_json(last)) if last is not None else None
+    if last is None or key is None or runner.store.lookup(stage, key) is None:
+        raise SpecError(f"{stage} [{dataset}] is not up to date: run `tagtrail run {stage}` first "
+                        "(with the same -S overrides, if any)")
+    made = last.get("params") or {}
+    now = runner.pipe.params_for(stage, dataset).key_dump()
+    diff = [f"-S {stage}.{k}={_value(made.get(k))}" for k in sorted(set(made) | set(now))
+            if made.get(k) != now.get(k)]  # fmt: skip
+    why = (f"made with {' '.join(diff)}" if diff
+           else "made with the same parameters, before its code or inputs changed")
+    return key, f"note: not up to date; showing the most recent artifact, {why}"
 
 
 def show(
@@ -53,10 +80,12 @@ def show(
                 f"stage {stage} has no output {name!r} (outputs: {', '.join(spec.outputs)})"
             )
     key = runner.key_of(stage, dataset)
+    note = None
     if key is None:
-        raise SpecError(f"{stage} [{dataset}] is not up to date: run `tagtrail run {stage}` first "
-                        "(with the same -S overrides, if any)")
+        key, note = most_recent(runner, stage, dataset)
     print(f"{stage} [{dataset}]  artifact {key[:12]}  ({runner.store.entry(stage, key)})")
+    if note:
+        print(note)
     for name in names:
         value = runner.store.load(stage, key, name)
         print(f"\n== {stage}.{name}")

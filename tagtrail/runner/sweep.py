@@ -29,6 +29,7 @@ stages' runtimes).
 
 from __future__ import annotations
 
+import contextlib
 import csv
 import dataclasses
 import io
@@ -45,11 +46,12 @@ from typing import Any
 import yaml
 
 from tagtrail import faults
-from tagtrail.errors import DataError, SpecError, StageError, one_line
+from tagtrail.errors import DataError, SourceError, SpecError, StageError, one_line
 from tagtrail.io.layouts import atomic_write_text
 from tagtrail.runner.cache import SourceHasher, Store, pretty_json
 from tagtrail.runner.dag import Graph, Node, build_graph, select
 from tagtrail.runner.execute import NodeState, Runner
+from tagtrail.runner.executors import KINDS, dask_session
 from tagtrail.runner.paths import inside
 from tagtrail.runner.spec import Pipeline, did_you_mean, load_pipeline, load_yaml, parse_override
 from tagtrail.schemas import documents
@@ -390,6 +392,8 @@ class Sweep:
     stages: list[str]
     nodes: list[Node]
     jobs: int = 1
+    executor: str = "local"  # as `run --executor`: local threads, or dask (one cluster for all)
+    scheduler: str | None = None
     results: list[PointResult] = field(default_factory=list)
 
     @property
@@ -463,8 +467,20 @@ class Sweep:
         echo: Callable[[str], None] | None = None,
     ) -> list[PointResult]:
         """Bring every point up to date in turn; the table and logs are rewritten after each.
-        A point whose stage fails on its data (DataError, StageError) is a ``failed`` row and
-        the sweep goes on; any other error stops it (the finished rows stay)."""
+        A point whose stage fails on its data (DataError, StageError, SourceError: e.g. a
+        filter leaving no detection) is a ``failed`` row and the sweep goes on; any other error
+        stops it (the finished rows stay). With the dask executor every point runs on one
+        cluster (started once, or ``scheduler``'s)."""
+        with contextlib.ExitStack() as stack:
+            if self.executor == "dask":
+                stack.enter_context(dask_session(self.scheduler, self.jobs, progress))
+            elif self.scheduler is not None:
+                raise SpecError("--scheduler needs --executor dask")
+            return self._run(progress, echo)
+
+    def _run(
+        self, progress: Callable[[str], None], echo: Callable[[str], None] | None
+    ) -> list[PointResult]:
         folder = self.folder
         atomic_write_text(folder / DEFINITION, pretty_json(self.definition()))
         times = self._load_times(folder, self.pipes[0].artifacts)
@@ -478,13 +494,14 @@ class Sweep:
             left = n - point.index + 1
             eta = f" … ETA {_duration(sum(busy) / len(busy) * left)}" if busy else ""
             progress(f"sweep: point {point.index}/{n} ({point.label or 'no overrides'}){eta}")
-            runner = Runner(pipe, jobs=self.jobs, echo=echo)
+            runner = Runner(pipe, jobs=self.jobs, echo=echo, executor=self.executor,
+                            scheduler=self.scheduler)  # fmt: skip
             runner.store, runner.hasher = store, hasher  # verified entries stay verified
             t0 = time.perf_counter()
             status = "ok"
             try:
                 states = runner.run(self.targets)
-            except (DataError, StageError) as err:
+            except (DataError, SourceError, StageError) as err:
                 status = f"failed: {one_line(err)}"
                 states = _last_run(pipe)
             wall = time.perf_counter() - t0
@@ -584,9 +601,16 @@ def prepare(
     name: str | None = None,
     points_file: Path | None = None,
     jobs: int = 1,
+    executor: str = "local",
+    scheduler: str | None = None,
 ) -> Sweep:
     """Validate a sweep before anything runs: every point's pipeline (so a bad value in the
-    last point fails now, not after the others ran), the datasets, the metrics, the name."""
+    last point fails now, not after the others ran), the datasets, the metrics, the name, the
+    executor."""
+    if executor not in KINDS:
+        raise SpecError(f"unknown executor {executor!r} (choose from {', '.join(KINDS)})")
+    if scheduler is not None and executor != "dask":
+        raise SpecError("--scheduler needs --executor dask")
     pipes: list[Pipeline] = []
     for p in points:
         try:
@@ -609,7 +633,7 @@ def prepare(
     run_stages = list(dict.fromkeys(n.stage for n in nodes))
     sweep_name = check_name(name) if name is not None else default_name(points, points_file)
     return Sweep(Path(pipeline), sweep_name, points, pipes, columns, stages, run_stages, nodes,
-                 jobs)
+                 jobs, executor, scheduler)
 
 
 # --- reading a sweep back (``tagtrail show --point``) ---------------------------------------

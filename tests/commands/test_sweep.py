@@ -6,6 +6,7 @@ bad input is one error line."""
 
 from __future__ import annotations
 
+import importlib.util
 import json
 import os
 import re
@@ -188,6 +189,41 @@ def test_show_opens_a_points_artifacts(swept: tuple[Path, str, str], capsys: Cap
     assert f"artifact {row['key.optimize[reference]'][:12]}" in capsys.readouterr().out
 
 
+@pytest.mark.skipif(importlib.util.find_spec("distributed") is None,
+                    reason="dask.distributed not installed (pip install -e '.[test]')")
+def test_a_sweep_on_a_2_worker_dask_cluster_matches_the_local_one(
+    swept: tuple[Path, str, str], data: Path, tmp_path: Path, capsys: Capsys
+) -> None:
+    """`sweep --executor dask`: every point on one LocalCluster, the same keys and metrics as
+    the local sweep's points (nothing cached in the fresh project)."""
+    project, _, _ = swept
+    fresh = new_project(tmp_path / "dask", data)
+    rc, _, err = sweep(fresh, capsys, "-S", "optimize.loss=soft_l1", "-S",
+                       "optimize.f_scale=0.05,0.1", "--dataset", "reference",
+                       "--executor", "dask", "-j", "2")  # fmt: skip
+    assert rc == 0, err
+    assert err.count("dask: a local cluster of 2 worker processes, dashboard") == 1
+    (folder,) = (fresh / "sweeps").iterdir()
+    rows = read_table(folder / "sweep.csv")
+    local = {(r["optimize.loss"], r["optimize.f_scale"]): r for r in table(project)}
+    assert [(r["optimize.loss"], r["optimize.f_scale"]) for r in rows] == [
+        ("soft_l1", "0.05"), ("soft_l1", "0.1")]
+    for r in rows:
+        ref = local[(r["optimize.loss"], r["optimize.f_scale"])]
+        shared = [c for c in r if c.startswith("key.") or c == FIRST]
+        assert len(shared) > 5 and {c: r[c] for c in shared} == {c: ref[c] for c in shared}
+        assert float(r["time_s.extract"]) > 0
+
+
+def test_a_sweep_scheduler_needs_the_dask_executor(swept: tuple[Path, str, str],
+                                                   capsys: Capsys) -> None:  # fmt: skip
+    project, _, _ = swept
+    rc, _, err = sweep(project, capsys, "-S", "optimize.f_scale=0.1", "--executor", "local",
+                       "--scheduler", "tcp://127.0.0.1:1")  # fmt: skip
+    assert rc == 2
+    assert err.strip().splitlines() == ["error: --scheduler needs --executor dask"]
+
+
 def test_rerun_of_a_finished_sweep_runs_nothing(swept: tuple[Path, str, str], capsys: Capsys,
                                                 tmp_path: Path) -> None:  # fmt: skip
     project, _, _ = swept
@@ -275,7 +311,8 @@ def test_a_point_that_fails_on_its_data_is_a_failed_row(swept: tuple[Path, str, 
                          "--metric", "map.rms_t_m", "--dataset", "reference")  # fmt: skip
     assert rc == 1, err
     failed, good = table(project, "extract.min_decision_margin")
-    assert failed["status"].startswith("failed: edges [reference]: no tag observations")
+    assert failed["status"].startswith("failed: extract [reference]: ")
+    assert "no detection is left: min_decision_margin 100000 drops" in failed["status"]
     assert failed["map.rms_t_m[reference]"] == "" and failed["best"] == "false"
     assert good["status"] == "ok" and good["best"] == "true" and good["ran"] == "0"
     assert float(good["time_s.extract"]) > 0  # timed by the first sweep
