@@ -29,7 +29,7 @@ from tagtrail.schemas.profiles import PROFILES
 from tagtrail.sim.simulate import simulate
 from tagtrail.stream.bagwriter import TAIL, recover
 from tagtrail.stream.record import normalize_type, parse_size, parse_topic, resolve_topics
-from tests.stream.helpers import REPO, Proc, free_port, loopback, running
+from tests.stream.helpers import REPO, Proc, free_port, loopback
 
 IMAGE, INFO = "/camera/color/image_raw", "/camera/color/camera_info"
 DET, DET_INFO = "/detections", "/camera_info"
@@ -125,21 +125,20 @@ def test_30hz_images_recorded_into_mcap_and_sqlite3(images: Path, bridge: Any,
     assert len(src[IMAGE]) == len(src[INFO]) == 300
     out = {"mcap": tmp_path / "rec_mcap", "sqlite3": tmp_path / "rec_db3"}
     t_start = time.time_ns()
-    if True:
-        recs = {k: record(o, port, "--storage", k, "--profile", "limo-images")
-                for k, o in out.items()}  # fmt: skip
-        try:
-            for r in recs.values():
-                r.wait_for("record: recording")
-            rep = Proc(replay(images, port, [IMAGE, INFO]))
-            assert rep.p.wait(60) == 0, rep.output
-            assert "published 600 messages" in rep.output
-            time.sleep(1.0)  # the last samples cross the router
-            assert recs["mcap"].stop(sig=signal.SIGINT) == 0, recs["mcap"].output
-            assert recs["sqlite3"].stop(sig=signal.SIGTERM) == 0, recs["sqlite3"].output
-        finally:
-            for r in recs.values():
-                r.kill()
+    recs = {k: record(o, port, "--storage", k, "--profile", "limo-images")
+            for k, o in out.items()}  # fmt: skip
+    try:
+        for r in recs.values():
+            r.wait_for("record: recording")
+        rep = Proc(replay(images, port, [IMAGE, INFO]))
+        assert rep.p.wait(60) == 0, rep.output
+        assert "published 600 messages" in rep.output
+        time.sleep(1.0)  # the last samples cross the router
+        assert recs["mcap"].stop(sig=signal.SIGINT) == 0, recs["mcap"].output
+        assert recs["sqlite3"].stop(sig=signal.SIGTERM) == 0, recs["sqlite3"].output
+    finally:
+        for r in recs.values():
+            r.kill()
     t_end = time.time_ns()
     for kind, bag in out.items():
         outp = recs[kind].output
@@ -199,24 +198,23 @@ def test_kill_9_leaves_a_readable_bag(detections: Path, bridge: Any, tmp_path: P
     src = source_messages(detections, [DET, DET_INFO])
     for kind in ("mcap", "sqlite3"):
         bag = tmp_path / f"killed_{kind}"
-        with running() as _:
-            rec = record(bag, port, "--profile", "limo", "--storage", kind,
-                         "--flush-period", "0.2")  # fmt: skip
-            try:
-                rec.wait_for("record: recording")
-                rep = Proc(replay(detections, port, [DET, DET_INFO], rate="0.5"))
-                rec.wait_for(f"{DET} ", 20)  # a live line with messages: some flushed
-                deadline = time.monotonic() + 20
-                while not any(f"{DET}" in ln and f"{DET} 0.0 Hz 0 " not in ln
-                              and " Hz " in ln for ln in rec.lines[-1:]):  # fmt: skip
-                    assert time.monotonic() < deadline, rec.output
-                    time.sleep(0.05)
-                time.sleep(0.5)
-                rec.p.send_signal(signal.SIGKILL)
-                rec.p.wait(5)
-            finally:
-                rec.kill()
-                rep.kill()
+        rec = record(bag, port, "--profile", "limo", "--storage", kind,
+                     "--flush-period", "0.2")  # fmt: skip
+        try:
+            rec.wait_for("record: recording")
+            rep = Proc(replay(detections, port, [DET, DET_INFO], rate="0.5"))
+            rec.wait_for(f"{DET} ", 20)  # a live line with messages: some flushed
+            deadline = time.monotonic() + 20
+            while not any(f"{DET}" in ln and f"{DET} 0.0 Hz 0 " not in ln
+                          and " Hz " in ln for ln in rec.lines[-1:]):  # fmt: skip
+                assert time.monotonic() < deadline, rec.output
+                time.sleep(0.05)
+            time.sleep(0.5)
+            rec.p.send_signal(signal.SIGKILL)
+            rec.p.wait(5)
+        finally:
+            rec.kill()
+            rep.kill()
         data, _, _ = read_rosbags(bag)  # as the kill left it
         n = len(data.get(DET, []))
         assert 0 < n < len(src[DET]), n
@@ -238,16 +236,15 @@ def test_wrong_type_and_silent_key_stop_in_one_line(detections: Path, bridge: An
                                                     tmp_path: Path) -> None:  # fmt: skip
     _, port = bridge
     wrong = tmp_path / "wrong"
-    with running() as _:
-        rec = record(wrong, port, "--topic", f"{DET}:apriltag_msgs/msg/AprilTagDetectionArray",
-                     "--topic", f"{DET_INFO}:sensor_msgs/msg/Image")  # fmt: skip
-        try:
-            rec.wait_for("record: recording")
-            rep = Proc(replay(detections, port, [DET, DET_INFO], rate="0"))
-            assert rec.p.wait(30) == 2, rec.output
-        finally:
-            rec.kill()
-            rep.kill()
+    rec = record(wrong, port, "--topic", f"{DET}:apriltag_msgs/msg/AprilTagDetectionArray",
+                 "--topic", f"{DET_INFO}:sensor_msgs/msg/Image")  # fmt: skip
+    try:
+        rec.wait_for("record: recording")
+        rep = Proc(replay(detections, port, [DET, DET_INFO], rate="0"))
+        assert rec.p.wait(30) == 2, rec.output
+    finally:
+        rec.kill()
+        rep.kill()
     errors = [ln for ln in rec.lines if ln.startswith("error:")]
     assert len(errors) == 1 and "key camera_info: the messages are not sensor_msgs/msg/Image" \
         in errors[0] and f"kept in {wrong}" in errors[0], rec.output
@@ -255,9 +252,8 @@ def test_wrong_type_and_silent_key_stop_in_one_line(detections: Path, bridge: An
     assert DET_INFO not in data or not data[DET_INFO]
 
     silent = tmp_path / "silent"
-    with running() as _:
-        rec = record(silent, port, "--topic", "/nobody:std_msgs/msg/Float64", "--wait", "1")
-        assert rec.p.wait(20) == 2, rec.output
+    rec = record(silent, port, "--topic", "/nobody:std_msgs/msg/Float64", "--wait", "1")
+    assert rec.p.wait(20) == 2, rec.output
     errors = [ln for ln in rec.lines if ln.startswith("error:")]
     assert len(errors) == 1 and "no message on nobody after 1 s" in errors[0], rec.output
     assert read_rosbags(silent)[0] == {}  # an empty, readable bag
@@ -279,22 +275,21 @@ def test_topics_discovered_from_the_bridge_admin_space(bridge: Any, tmp_path: Pa
     enc = codec.PoseStampedEncoder("map")
     bag = tmp_path / "discovered"
     try:
-        with running() as _:
-            rec = record(bag, port)
-            rec.wait_for("record: recording")
-            assert "/tag_only_pose (geometry_msgs/msg/PoseStamped)" in rec.output
-            assert "rosout" not in rec.lines[-1]
-            pub = session.declare_publisher("tag_only_pose")
-            deadline = time.monotonic() + 10
-            while not pub.matching_status.matching:  # type: ignore[attr-defined]
-                assert time.monotonic() < deadline
-                time.sleep(0.02)
-            sent = [enc(100 + i, 0, float(i), 0.0, 0.0, 0.0, 0.0, 0.0, 1.0) for i in range(50)]
-            for p in sent:
-                pub.put(p)
-            time.sleep(0.5)
-            assert rec.stop() == 0, rec.output
-            pub.undeclare()
+        rec = record(bag, port)
+        rec.wait_for("record: recording")
+        assert "/tag_only_pose (geometry_msgs/msg/PoseStamped)" in rec.output
+        assert "rosout" not in rec.lines[-1]
+        pub = session.declare_publisher("tag_only_pose")
+        deadline = time.monotonic() + 10
+        while not pub.matching_status.matching:  # type: ignore[attr-defined]
+            assert time.monotonic() < deadline
+            time.sleep(0.02)
+        sent = [enc(100 + i, 0, float(i), 0.0, 0.0, 0.0, 0.0, 0.0, 1.0) for i in range(50)]
+        for p in sent:
+            pub.put(p)
+        time.sleep(0.5)
+        assert rec.stop() == 0, rec.output
+        pub.undeclare()
     finally:
         for t in tokens:
             t.undeclare()
@@ -315,16 +310,15 @@ def test_full_disk_keeps_the_bag_up_to_its_last_flush(detections: Path, bridge: 
     try:
         for kind in ("mcap", "sqlite3"):
             bag = mnt / f"full_{kind}"
-            with running() as _:
-                rec = record(bag, port, "--profile", "limo", "--storage", kind,
-                             "--flush-period", "0.1", "--duration", "40")  # fmt: skip
-                try:
-                    rec.wait_for("record: recording")
-                    rep = Proc(replay(detections, port, [DET, DET_INFO], rate="2"))
-                    assert rec.p.wait(60) == 2, rec.output
-                finally:
-                    rec.kill()
-                    rep.kill()
+            rec = record(bag, port, "--profile", "limo", "--storage", kind,
+                         "--flush-period", "0.1", "--duration", "40")  # fmt: skip
+            try:
+                rec.wait_for("record: recording")
+                rep = Proc(replay(detections, port, [DET, DET_INFO], rate="2"))
+                assert rec.p.wait(60) == 2, rec.output
+            finally:
+                rec.kill()
+                rep.kill()
             errors = [ln for ln in rec.lines if ln.startswith("error:")]
             assert len(errors) == 1 and "No space left on device" in errors[0], rec.output
             data, _, _ = read_rosbags(bag)
@@ -360,3 +354,25 @@ def test_topic_arguments() -> None:
         resolve_topics([f"{DET_INFO}:{msgs.IMAGE}"], None, {DET_INFO: msgs.CAMERA_INFO})
     with pytest.raises(SourceError):
         recover(Path("/nonexistent/bag"))
+
+
+def test_max_size_and_duration_stop_cleanly(detections: Path, bridge: Any,
+                                            tmp_path: Path) -> None:  # fmt: skip
+    _, port = bridge
+    bag = tmp_path / "capped"
+    rec = record(bag, port, "--profile", "limo", "--max-size", "20k", "--duration", "60")
+    try:
+        rec.wait_for("record: recording")
+        rep = Proc(replay(detections, port, [DET, DET_INFO], rate="1"))
+        assert rec.p.wait(60) == 0, rec.output
+    finally:
+        rec.kill()
+        rep.kill()
+    assert "record: --max-size reached" in rec.output, rec.output
+    data, _, _ = read_rosbags(bag)
+    size = sum(len(p) for msgs_ in data.values() for p in msgs_)
+    assert 20_000 <= size < 40_000 and data[DET] == source_messages(detections, [DET])[DET][
+        :len(data[DET])]
+    timed = record(tmp_path / "timed", port, "--topic", "/nobody:std_msgs/msg/Float64",
+                   "--wait", "0", "--duration", "1")
+    assert timed.p.wait(20) == 0 and "record: --duration 1 s: 0 messages" in timed.output
