@@ -175,3 +175,47 @@ def test_sparse_hall_from_detections_with_the_defaults(tmp_path: Path,
     print(f"hall, pairwise: trajectory {mm(ev_paper, 'trajectory'):.1f} mm, tags "
           f"{mm(ev_paper, 'tags'):.1f} mm")
     assert mm(ev_paper, "trajectory") > mm(ev, "trajectory")
+
+
+def test_sparse_corridor_images_mirrored_pairs_decided_by_continuity(
+        tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """The corridor (``tagtrail simulate corridor``: 9 tags on alternate walls, a chain: each
+    pair the only link) rendered with twice the default image noise and blur: three pairs are
+    seen only while the view hardly changes, and for them the mirrored IPPE solution of one tag
+    is the lower-reprojection one in 60-70 % of the frames -- a consistent wrong edge that bent
+    the map by 1.4 m (tags) whatever the pose graph's loss. ``edges`` keeps the runner-up
+    combination of such pairs and ``optimize`` takes it where the frames' continuity agrees
+    better. Measured: trajectory 4.3 cm mean / 7.0 cm max, tags 3.0 cm (issue 12's sparse
+    target, 2 cm for the tags, is not met at this noise; 0.5 cm at the default noise), gauge-free:
+    the anchor sits at one end of the 8 m chain, where its own yaw error levers."""
+    from dataclasses import replace
+
+    from tagtrail.cli import main
+    from tagtrail.sim.render import Realism
+
+    rec = simulate("corridor", tmp_path / "data",
+                   realism=replace(Realism(), noise_sigma=4.0, blur_sigma=1.0))["corridor"]
+    monkeypatch.chdir(tmp_path)
+    assert main(["init", "--reference", str(rec)]) == 0
+    assert main(["run"]) == 0
+    runner = Runner(load_pipeline(tmp_path / "pipeline.yaml", REGISTRY))
+    ev = artifact(runner, "eval", "evaluation", "reference")
+
+    def free(e: Any) -> dict[str, Any]:
+        return e["gauge_free"]
+
+    graph = artifact(runner, "edges", "graph", "reference")
+    report = artifact(runner, "optimize", "report", "reference")
+    print(f"\ncorridor, images x2 noise: trajectory {mm(free(ev), 'trajectory'):.1f} mm (max "
+          f"{mm(free(ev), 'trajectory', 'max'):.1f}), tags {mm(free(ev), 'tags'):.1f} mm; "
+          f"rival pairs {[(p.tag_i, p.tag_j) for p in graph.rival_pairs]}, flipped "
+          f"{report['bundle']['rival_pairs_flipped']}")
+    assert graph.n_components == 1 and len(graph.tags) == 9
+    assert report["bundle"]["rival_pairs_flipped"]
+    assert mm(free(ev), "trajectory", "max") <= 100.0 and mm(free(ev), "tags") <= 40.0
+
+    blind = Runner(load_pipeline(tmp_path / "pipeline.yaml", REGISTRY,
+                                 ["optimize.rival_search=false"]))
+    blind.run()
+    ev_blind = artifact(blind, "eval", "evaluation", "reference")
+    assert mm(free(ev_blind), "tags") > 10 * mm(free(ev), "tags")  # the bent map

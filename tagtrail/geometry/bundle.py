@@ -452,9 +452,10 @@ def initial_cameras(
     world_T_tag: F64, cam_T_tag: F64, ob: CornerObservations, t_s: F64, *,
     px_per_unit: float, max_gap_s: float, speed_mps: float = 1.5, turn_dps: float = 120.0,
     cap_px: float = 8.0,
-) -> tuple[F64, I64]:
+) -> tuple[F64, I64, float]:
     """A start for :func:`solve_joint`: each frame's ``cam_T_world`` ``(F, 4, 4)`` chosen among
-    its tags' IPPE solutions, and the choice ``(F,)`` (the observation index * 2 + solution).
+    its tags' IPPE solutions, the choice ``(F,)`` (the observation index * 2 + solution) and the
+    sequence's total cost (the map's fit to the frames and their continuity).
 
     ``world_T_tag (O, 4, 4)`` is each observation's tag in the current map, ``cam_T_tag
     (O, 2, 4, 4)`` both IPPE solutions (NaN where absent). Every solution of every tag of a frame
@@ -492,10 +493,14 @@ def initial_cameras(
     prev = np.zeros(0, np.int64)
     idx_of: list[I64] = []
 
+    total = 0.0
+
     def finish(upto: int) -> None:  # backtrack the chain ending at frame upto - 1
+        nonlocal total
         if not idx_of:
             return
         j = int(np.argmin(cost))
+        total += float(cost[j])
         for fr in range(upto - 1, upto - 1 - len(idx_of), -1):
             c = idx_of[fr - (upto - len(idx_of))][j]
             choice[fr] = c
@@ -527,7 +532,7 @@ def initial_cameras(
         idx_of.append(ids)
         prev = ids
     finish(n_f)
-    return out, choice
+    return out, choice, total
 
 
 

@@ -11,7 +11,7 @@ by the tag's size (IPPE is scale-covariant).
 
 from __future__ import annotations
 
-from typing import Any
+from typing import Any, NamedTuple
 
 import cv2
 import numpy as np
@@ -93,3 +93,90 @@ def best_pose(pose: F64, alt_pose: F64 | None = None, reproj_px: F64 | None = No
         use_alt = (np.asarray(alt_reproj_px) < np.asarray(reproj_px)) & np.isfinite(alt).all(1)
         vals = np.where(use_alt[:, None], alt, vals)
     return T_from_xyz_quat(vals[:, :3], vals[:, 3:])
+
+
+class Branches(NamedTuple):
+    """:func:`consistent_branches`' answer per co-observation row: the chosen solution
+    combination (``2 * branch_i + branch_j``) and its ``i_T_j``, the same for the runner-up
+    hypothesis of the row's pair (``-1`` and NaN where the row has no candidate near it), and the
+    pair's support ratio runner-up / winner (0: no runner-up)."""
+
+    choice: NDArray[np.int64]
+    T_ij: F64
+    alt_choice: NDArray[np.int64]
+    alt_T_ij: F64
+    ratio: F64
+
+
+def consistent_branches(
+    group: NDArray[np.int64], T_i: F64, T_j: F64, w_i: F64, w_j: F64, *,
+    max_deg: float = 10.0, max_rel: float = 0.1, max_abs_m: float = 0.05, seeds: int = 64,
+) -> Branches:
+    """The IPPE solutions of co-observed tags that agree across frames.
+
+    A tag pair's relative pose ``i_T_j`` is fixed, but each co-observation offers four: the two
+    solutions of each tag. The correct one is the same in every frame; a wrong one (a mirrored
+    tag) moves with the viewpoint, so per pair the candidate with the most support wins:
+    support = the sum over frames of the best prior weight among that frame's candidates within
+    ``max_deg`` and ``max_rel`` x distance + ``max_abs_m`` of it. A solution's prior weight is 1
+    for the lower-reprojection one and its ``ambiguity`` for the other (a clear second
+    solution counts for little; a parked camera's frames all agree on the best one). Each row
+    then takes the candidate nearest the winner; one with none within the bounds keeps both
+    best solutions (an outlier either way: the robust loss of the pose graph deals with it).
+
+    When the view hardly changes while both tags are in sight, a mirrored solution agrees with
+    itself too: the best-supported candidate outside the winner's bounds is the runner-up, and
+    the support ratio says how close the call was (the joint solve decides such pairs on the
+    frames' continuity, ``stages.optimize``).
+
+    ``group`` (m,): the pair of each row; ``T_i``, ``T_j`` (m, 2, 4, 4): ``cam_T_tag`` of both
+    solutions; ``w_i``, ``w_j`` (m, 2): their prior weights (0 = no such solution). Seeds: up
+    to ``seeds`` frames per pair, evenly spaced, propose the candidates.
+    """
+    m = len(group)
+    inv_i = np.linalg.inv(np.where(np.isfinite(T_i), T_i, np.eye(4)))
+    Tj = np.where(np.isfinite(T_j), T_j, np.eye(4))
+    cand = np.einsum("mbij,mcjk->mbcik", inv_i, Tj).reshape(m, 4, 4, 4)  # combo = 2*bi + bj
+    w = (w_i[:, :, None] * w_j[:, None, :]).reshape(m, 4)
+    out = Branches(np.full(m, -1, np.int64), np.full((m, 4, 4), np.nan),
+                   np.full(m, -1, np.int64), np.full((m, 4, 4), np.nan), np.zeros(m))
+    cos_max = np.cos(np.radians(max_deg))
+    order = np.argsort(group, kind="stable")
+    starts = np.flatnonzero(np.r_[True, np.diff(group[order]) != 0])
+    for rows in np.split(order, starts[1:]):
+        C = cand[rows]  # (n, 4, 4, 4)
+        R = C[:, :, :3, :3].reshape(-1, 9)
+        t = C[:, :, :3, 3].reshape(-1, 3)
+        wr = w[rows].reshape(-1)
+        valid = wr > 0
+        pick = np.unique(np.linspace(0, len(rows) - 1, min(seeds, len(rows))).round().astype(int))
+        seed = (pick[:, None] * 4 + np.arange(4)).reshape(-1)
+        seed = seed[valid[seed]]
+
+        def near(s: NDArray[np.int64], R: F64 = R, t: F64 = t,
+                 valid: NDArray[np.bool_] = valid) -> tuple[F64, NDArray[np.bool_]]:
+            cos = (R[s] @ R.T - 1.0) / 2.0  # cos of the angle between rotations
+            dist = np.linalg.norm(t[s][:, None, :] - t[None, :, :], axis=2)
+            scale = max_rel * np.linalg.norm(t[s], axis=1)[:, None] + max_abs_m
+            return cos, (cos >= cos_max) & (dist <= scale) & valid[None, :]
+
+        _, ok = near(seed)
+        support = (np.where(ok, wr[None, :], 0.0)
+                   .reshape(len(seed), len(rows), 4).max(axis=2).sum(axis=1))
+        best = int(np.argmax(support))
+        rival = ~ok[best, seed]  # seeds outside the winner's bounds
+        for which, s in (("win", best), ("alt", int(np.argmax(np.where(rival, support, -1.0))))):
+            if which == "alt":
+                if not rival.any():
+                    break
+                out.ratio[rows] = support[s] / support[best]
+            c, k_ok = near(seed[[s]])
+            score = np.where(k_ok[0], c[0], -np.inf).reshape(len(rows), 4)
+            k = np.argmax(score, axis=1)
+            hit = np.isfinite(score[np.arange(len(rows)), k])
+            if which == "win":  # rows agreeing with no solution keep the best ones
+                k[~hit], hit[:] = 0, True
+            ch, T = (out.choice, out.T_ij) if which == "win" else (out.alt_choice, out.alt_T_ij)
+            ch[rows[hit]] = k[hit]
+            T[rows[hit]] = C[hit, k[hit]]
+    return out

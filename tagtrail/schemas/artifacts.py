@@ -15,7 +15,7 @@ from numpy.typing import NDArray
 
 from tagtrail.geometry.se3 import R_from_quat_xyzw, T_from_xyz_quat
 
-VERSION = 3
+VERSION = 4
 
 I32, I64, F64 = pa.int32(), pa.int64(), pa.float64()
 POSE = [("x_m", F64), ("y_m", F64), ("z_m", F64), ("qx", F64), ("qy", F64), ("qz", F64),
@@ -37,7 +37,8 @@ SCHEMAS: dict[str, pa.Schema] = {
          ("reproj_px", F64), *ALT_POSE, ("alt_reproj_px", F64), ("ambiguity", F64)]  # fmt: skip
     ),
     "edges.edges": pa.schema(
-        [("t_ns", I64), ("tag_i", I32), ("tag_j", I32), *POSE, ("weight", F64)]
+        [("t_ns", I64), ("tag_i", I32), ("tag_j", I32), *POSE, ("weight", F64),
+         ("hypothesis", I32)]
     ),
     "optimize.tag_map": pa.schema(
         [("tag_id", I32), *POSE, ("n_obs", I64), ("size_m", F64), ("res_t_rms_m", F64),

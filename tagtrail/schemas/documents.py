@@ -64,6 +64,14 @@ class WeakLink(Document):
     n_frames: int
 
 
+class RivalPair(Document):
+    """A tag pair whose second-best solution combination is supported nearly as well."""
+
+    tag_i: int
+    tag_j: int
+    support_ratio: float
+
+
 class TagGraph(Document):
     """``edges.graph``: the anchor (world) tag, the mapped tags, what was dropped and why."""
 
@@ -72,6 +80,10 @@ class TagGraph(Document):
     dropped: list[DroppedTag]
     n_components: int
     weak_links: list[WeakLink]
+    second_solution_edges: int = 0
+    """Co-observations whose edge uses a tag's second IPPE solution (``edges.branches``)."""
+    rival_pairs: list[RivalPair] = []
+    """Pairs with a close second hypothesis (edges rows with ``hypothesis`` 1)."""
 
 
 class BundleSummary(Document):
@@ -88,6 +100,8 @@ class BundleSummary(Document):
     motion_prior_frames: int
     ippe_second_solution: int
     linked_tags: list[int]
+    rival_pairs_flipped: list[list[int]] = []
+    """Tag pairs whose rival hypothesis the frames' continuity preferred (``edges.rival_pairs``)."""
     iterations: int
     converged: bool
     cost: float

@@ -30,6 +30,7 @@ Old parameter names (``refine: corners|none``, ``ba_*``) still work with a depre
 from __future__ import annotations
 
 import logging
+from collections.abc import Callable
 from typing import Any, Literal
 
 import numpy as np
@@ -48,7 +49,7 @@ from tagtrail.geometry.bundle import (
     solve_joint,
 )
 from tagtrail.geometry.camera import CameraModel
-from tagtrail.geometry.posegraph import PoseGraph, relative_residuals, solve
+from tagtrail.geometry.posegraph import PoseGraph, PoseGraphResult, relative_residuals, solve
 from tagtrail.geometry.robust import LossName
 from tagtrail.geometry.se3 import R_from_quat_xyzw, make_T, quat_xyzw_from_R, rotation_angle
 from tagtrail.geometry.survey import fit_survey
@@ -60,7 +61,7 @@ from tagtrail.schemas.artifacts import (
     corner_rows,
     timed,
 )
-from tagtrail.schemas.documents import OptimizeReport, TagGraph
+from tagtrail.schemas.documents import OptimizeReport, RivalPair, TagGraph
 from tagtrail.schemas.pipeline import SurveyConfig
 from tagtrail.stages.base import StageParams
 
@@ -113,6 +114,11 @@ class Params(StageParams):
     """Angular acceleration noise density of the motion prior (deg/s^2/sqrt(Hz))."""
     max_gap_s: float = Field(0.5, gt=0.0)
     """Frames further apart than this are not linked by the motion prior (gaps stay gaps)."""
+    rival_search: bool = True
+    """Joint solve: decide the tag pairs with a close rival hypothesis (``edges.rival_pairs``)
+    by the frames' continuity (``choose_hypotheses``)."""
+    rival_max_pairs: int = Field(16, ge=0)
+    """At most this many rival pairs are tried, closest calls first."""
     link_tags: bool = True
     """Joint solve: place tags the pose graph left out (never seen together with the map without
     ambiguity) through the trajectory, then solve them with the rest (geometry.bundle.link_tags)."""
@@ -262,7 +268,7 @@ def refine_on_corners(
         m[CORNER_COLS].to_numpy(np.float64).reshape(-1, 4, 2), m["size_m"].to_numpy(np.float64),
         camera)
     t_s = (t_ns - t_ns[0]) * 1e-9
-    cam_T_world, choice = initial_cameras(W[k], cam_T_tag, ob, t_s, px_per_unit=camera.focal_px,
+    cam_T_world, choice, _ = initial_cameras(W[k], cam_T_tag, ob, t_s, px_per_unit=camera.focal_px,
                                           max_gap_s=params.max_gap_s)
     prior = params.prior()
     mp = None if prior is None else MotionPrior(t_s, *prior, params.max_gap_s)
@@ -301,6 +307,51 @@ def refine_on_corners(
     return ids, res.R_tag, res.t_tag, std, block
 
 
+def choose_hypotheses(
+    edges: pd.DataFrame, hyp: np.ndarray, rivals: list[RivalPair],
+    graph_of: Callable[[np.ndarray], PoseGraph], res: PoseGraphResult, tags: np.ndarray,
+    observations: pd.DataFrame, detections: pd.DataFrame, camera: CameraModel, params: Params,
+) -> tuple[np.ndarray, PoseGraphResult, list[list[int]]]:
+    """Decide the tag pairs with a rival hypothesis (``edges.rival_pairs``) by the frames'
+    continuity: for each, closest call first (at most ``rival_max_pairs``), the pose graph is
+    solved with the pair's rival edges instead and kept if the start of the joint solve --
+    the frames' best IPPE sequence through the map (``initial_cameras``: reprojection of every
+    frame's tags plus the jumps between frames) -- costs less. A mirrored tag seen only while
+    the view hardly changes agrees with itself across those frames; the frames before and after
+    do not agree with it. Returns the edge rows to use, the pose graph's solution and the
+    flipped pairs."""
+    m = corner_rows(observations, detections, tags)
+    k = np.searchsorted(tags, m["tag_id"].to_numpy(np.int64))
+    ob, t_ns = corner_observations(
+        m["frame_idx"].to_numpy(np.int64), m["t_ns"].to_numpy(np.int64), k,
+        m[CORNER_COLS].to_numpy(np.float64).reshape(-1, 4, 2), m["size_m"].to_numpy(np.float64),
+        camera)
+    t_s = (t_ns - t_ns[0]) * 1e-9
+    cam_T_tag = both_solutions(m)
+
+    def cost(r: PoseGraphResult) -> float:
+        return initial_cameras(make_T(r.R, r.t)[k], cam_T_tag, ob, t_s,
+                               px_per_unit=camera.focal_px, max_gap_s=params.max_gap_s)[2]
+
+    key = edges["tag_i"].to_numpy(np.int64) * (1 << 32) + edges["tag_j"].to_numpy(np.int64)
+    ranked = sorted(rivals, key=lambda p: -p.support_ratio)[:params.rival_max_pairs]
+    order = [p.tag_i * (1 << 32) + p.tag_j for p in ranked]
+    use, best = hyp == 0, cost(res)
+    flipped: list[list[int]] = []
+    for r in order:
+        trial = np.where(key == r, hyp == 1, use)
+        r_res = solve(graph_of(trial), loss=params.loss, f_scale=params.f_scale,
+                      max_nfev=params.max_nfev)  # afresh: a flip turns a whole branch
+        c = cost(r_res)
+        if c < best:
+            use, res, best = trial, r_res, c
+            flipped.append([int(r >> 32), int(r & 0xFFFFFFFF)])
+    if flipped:
+        log.info("optimize: tag pairs %s take their rival solution (the frames' continuity "
+                 "agrees better)", flipped)
+    return use, res, flipped
+
+
 def run(
     edges: pd.DataFrame,
     graph: TagGraph,
@@ -327,23 +378,35 @@ def run(
             f"optimize: tags {lost.tolist()} share no edge path with anchor tag {anchor}"
             " (the edges and graph artifacts disagree; re-run the edges stage)"
         )
-    vals = edges[POSE_COLS].to_numpy(np.float64)
-    g = PoseGraph(
-        n_tags=len(tags),
-        anchor=int(np.searchsorted(tags, anchor)),
-        idx_i=ii,
-        idx_j=jj,
-        R_obs=R_from_quat_xyzw(vals[:, 3:]),
-        t_obs=vals[:, :3],
-        weight=edges["weight"].to_numpy(np.float64),
-        rot_weight_m=params.rot_weight_m,
-    )
+    hyp = (edges["hypothesis"].to_numpy(np.int64) if "hypothesis" in edges.columns
+           else np.zeros(len(edges), np.int64))
+    use = hyp == 0
+
+    def graph_of(use: np.ndarray) -> PoseGraph:
+        vals = edges[POSE_COLS].to_numpy(np.float64)[use]
+        return PoseGraph(
+            n_tags=len(tags), anchor=int(np.searchsorted(tags, anchor)), idx_i=ii[use],
+            idx_j=jj[use], R_obs=R_from_quat_xyzw(vals[:, 3:]), t_obs=vals[:, :3],
+            weight=edges["weight"].to_numpy(np.float64)[use], rot_weight_m=params.rot_weight_m)
+
+    g = graph_of(use)
     res = solve(g, loss=params.loss, f_scale=params.f_scale, max_nfev=params.max_nfev)
+    joint = (params.method == "joint" and detections is not None and len(detections) > 0
+             and camera is not None)
+    flipped: list[list[int]] = []
+    if joint and (hyp > 0).any() and params.rival_search and timed(frames):
+        assert detections is not None and camera is not None
+        use, res, flipped = choose_hypotheses(edges, hyp, graph.rival_pairs, graph_of, res,
+                                              tags, observations, detections, camera, params)
+        g = graph_of(use)
+    edges = edges[use]
+    ti, tj = ti[use], tj[use]
+    ii, jj = ii[use], jj[use]
     R_map, t_map, res_t, res_r = res.R, res.t, res.res_t, res.res_r
     bundle, std = None, np.full((len(tags), 2), np.nan)
     std[g.anchor] = 0.0
-    if (params.method == "joint" and detections is not None and len(detections) > 0
-            and camera is not None):
+    if joint:
+        assert detections is not None and camera is not None
         if not timed(frames) and params.motion != "none":
             log.info("optimize: the stamps are the files' order, not capture times: no motion "
                      "prior, no tags linked through the trajectory")
@@ -353,6 +416,7 @@ def run(
                                 params)
         if out is not None:
             ids, R_map, t_map, std, bundle = out
+            bundle["rival_pairs_flipped"] = flipped
             sel = np.searchsorted(ids, tags)
             res_t, res_r = relative_residuals(R_map[sel], t_map[sel], g)
             tags = ids

@@ -126,7 +126,7 @@ def joint_trajectory(rows: pd.DataFrame, ids: np.ndarray, W_map: np.ndarray,
         rows[CORNER_COLS].to_numpy(np.float64).reshape(-1, 4, 2),
         rows["size_m"].to_numpy(np.float64), camera)
     t_s = (t_ns - t_ns[0]) * 1e-9
-    cam_T_world, _ = initial_cameras(W_map[k], both_solutions(rows), ob, t_s,
+    cam_T_world, _, _ = initial_cameras(W_map[k], both_solutions(rows), ob, t_s,
                                      px_per_unit=camera.focal_px, max_gap_s=params.max_gap_s)
     prior = None
     if params.motion != "none":

@@ -211,7 +211,7 @@ def test_single_tag_stretch_is_held_by_its_neighbours() -> None:
         ob = CornerObservations(frame, tag, pts, uv)
         per_frame = np.linalg.norm((W[tag] @ inv(sol[:, 0]))[:, :3, 3] - centre[frame], axis=1)
         assert per_frame.max() > 1.0
-        start, _ = initial_cameras(W[tag], sol, ob, t_s, px_per_unit=FOCAL_PX, max_gap_s=0.5)
+        start, _, _ = initial_cameras(W[tag], sol, ob, t_s, px_per_unit=FOCAL_PX, max_gap_s=0.5)
         err = {}
         for name, pr in (("none", None), ("prior", prior)):
             res = solve_joint(W[:, :3, :3], W[:, :3, 3], start[:, :3, :3], start[:, :3, 3], ob,
@@ -253,7 +253,7 @@ def test_tags_never_seen_together_are_linked_through_the_trajectory() -> None:
         assert bool(known[1]) is linked
     Wl, known = link_tags(start, np.array([True, False]), sol, ob, t_s, px_per_unit=FOCAL_PX,
                           max_gap_s=0.5)
-    C0, _ = initial_cameras(Wl[tag], sol, ob, t_s, px_per_unit=FOCAL_PX, max_gap_s=0.5)
+    C0, _, _ = initial_cameras(Wl[tag], sol, ob, t_s, px_per_unit=FOCAL_PX, max_gap_s=0.5)
     res = solve_joint(Wl[:, :3, :3], Wl[:, :3, 3], C0[:, :3, :3], C0[:, :3, 3], ob,
                       np.array([False, True]), px_per_unit=FOCAL_PX, sigma_px=0.2,
                       prior=MotionPrior(t_s, 0.1, np.radians(30.0), 0.5))

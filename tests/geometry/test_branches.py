@@ -1,0 +1,86 @@
+"""``geometry.ippe.consistent_branches``: the IPPE solutions of a tag pair that agree across
+frames, on a pair whose second solutions are mirrored tags (the normal reflected about the line
+of sight, as IPPE's ambiguity does)."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from tagtrail.geometry.ippe import consistent_branches
+from tagtrail.geometry.se3 import R_from_rotvec, inv, make_T, rotation_angle
+
+W_I = make_T(np.eye(3), [0.0, 0.0, 0.0])
+W_J = make_T(R_from_rotvec([0.0, np.radians(-70.0), 0.0]), [1.2, 0.0, -0.6])
+
+
+def look_at(centre: np.ndarray, target: np.ndarray) -> np.ndarray:
+    """``world_T_cam`` at ``centre`` with its z axis through ``target`` (y down)."""
+    z = (target - centre) / np.linalg.norm(target - centre)
+    x = np.cross([0.0, -1.0, 0.0], z)
+    x /= np.linalg.norm(x)
+    return make_T(np.stack([x, np.cross(z, x), z], axis=1), centre)
+
+
+def mirrored(cam_T_tag: np.ndarray) -> np.ndarray:
+    """The tag turned so its normal is reflected about the line of sight to its centre."""
+    ray = -cam_T_tag[:3, 3] / np.linalg.norm(cam_T_tag[:3, 3])  # tag -> camera
+    n = cam_T_tag[:3, 2]
+    axis = np.cross(n, ray)
+    ang = 2.0 * np.arctan2(np.linalg.norm(axis), n @ ray)
+    turn = R_from_rotvec(axis / np.linalg.norm(axis) * ang)
+    return make_T(turn @ cam_T_tag[:3, :3], cam_T_tag[:3, 3])
+
+
+def frames(centres: np.ndarray, wrong_j: np.ndarray) -> tuple[np.ndarray, ...]:
+    """Both solutions of both tags per frame; tag j's lower-reprojection one is the mirror
+    where ``wrong_j``; weights: 1 for the best, 0.8 for the second (a close call)."""
+    target = (W_I[:3, 3] + W_J[:3, 3]) / 2
+    T_i, T_j = [], []
+    for c, bad in zip(centres, wrong_j, strict=True):
+        cam_T_w = inv(look_at(c, target))
+        ci, cj = cam_T_w @ W_I, cam_T_w @ W_J
+        T_i.append([ci, mirrored(ci)])
+        T_j.append([mirrored(cj), cj] if bad else [cj, mirrored(cj)])
+    w = np.tile([1.0, 0.8], (len(centres), 1))
+    return np.array(T_i), np.array(T_j), w, w.copy()
+
+
+def test_a_moving_view_outvotes_a_majority_of_mirrored_solutions() -> None:
+    rng = np.random.default_rng(0)
+    n = 60
+    centres = np.stack([np.linspace(-1.5, 2.5, n), np.zeros(n), np.full(n, 2.5)], axis=1)
+    wrong = rng.random(n) < 0.6
+    T_i, T_j, w_i, w_j = frames(centres, wrong)
+    out = consistent_branches(np.zeros(n, np.int64), T_i, T_j, w_i, w_j)
+    true = inv(W_I) @ W_J
+    assert (out.choice == np.where(wrong, 1, 0)).all()  # tag j's other solution where it is wrong
+    assert np.abs(out.T_ij - true).max() < 1e-9
+    assert out.ratio.max() < 0.3  # the mirrored poses move with the view: no close rival
+
+
+def test_a_still_view_keeps_the_rival_it_cannot_tell_apart() -> None:
+    """Seen from (nearly) one place, the mirrored pose agrees with itself too: whichever wins,
+    the other is the runner-up with a close ratio, so the joint solve can decide."""
+    rng = np.random.default_rng(1)
+    n = 40
+    centres = np.array([0.5, 0.0, 2.5]) + rng.normal(0.0, 0.005, (n, 3))
+    wrong = rng.random(n) < 0.7
+    T_i, T_j, w_i, w_j = frames(centres, wrong)
+    out = consistent_branches(np.zeros(n, np.int64), T_i, T_j, w_i, w_j)
+    true = inv(W_I) @ W_J
+    err_win = rotation_angle(inv(true)[None, :3, :3] @ out.T_ij[:, :3, :3])
+    err_alt = rotation_angle(inv(true)[None, :3, :3] @ out.alt_T_ij[:, :3, :3])
+    assert (np.minimum(err_win, err_alt) < np.radians(1.0)).all()
+    assert (np.maximum(err_win, err_alt) > np.radians(10.0)).all()
+    assert out.ratio.min() > 0.3
+
+
+def test_pairs_are_decided_separately() -> None:
+    n = 30
+    centres = np.stack([np.linspace(-1.0, 2.0, n), np.zeros(n), np.full(n, 2.5)], axis=1)
+    a = frames(centres, np.zeros(n, bool))
+    b = frames(centres, np.ones(n, bool))
+    both = [np.concatenate([x, y]) for x, y in zip(a, b, strict=True)]
+    group = np.r_[np.zeros(n, np.int64), np.ones(n, np.int64)]
+    out = consistent_branches(group, *both)
+    assert (out.choice[:n] == 0).all() and (out.choice[n:] == 1).all()
