@@ -151,7 +151,8 @@ def test_detection_bag_humble_sqlite3(upenn_dir: Path, tmp_path: Path) -> None:
     out.append(("/detections", T0 + 9 * DT, bags.detections_msg(T0 + 9 * DT, [
         (12, 0, 90.0, corners[0])], family="tag25h9")))
     bag = bags.make_humble(bags.write_bag(tmp_path / "bag", out, "sqlite3"))
-    got = extract_from(bag, extract.Params())
+    assert extract_from(bag)["frames"]["n_det"].tolist() == [2] * 5 + [0]  # hamming 1 kept
+    got = extract_from(bag, extract.Params(max_hamming=0))
     check_tables(got)
     det = got["detections"]
     assert got["frames"]["n_det"].tolist() == [1] * 5 + [0]  # hamming 1, margin 10, 25h9 dropped

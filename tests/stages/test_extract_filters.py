@@ -43,13 +43,23 @@ def test_a_filter_dropping_every_detection_stops_naming_it(tmp_path: Path) -> No
 def test_a_filter_dropping_most_detections_is_named(tmp_path: Path, caplog) -> None:
     bag = _ros2_bag(tmp_path, [(2, 60.0)] * 6 + [(1, 60.0)] + [(0, 60.0)] * 3)
     with caplog.at_level(logging.INFO, logger="tagtrail.extract"):
-        det = extract_from(bag)["detections"]
+        det = extract_from(bag, extract.Params(max_hamming=0))["detections"]
     assert len(det) == 3
     assert "max_hamming 0 drops 7 of 10 detections; set extract.max_hamming: 2" in caplog.text
     caplog.clear()
     with caplog.at_level(logging.INFO, logger="tagtrail.extract"):
-        det = extract_from(bag, extract.Params(max_hamming=2))["detections"]
+        det = extract_from(bag)["detections"]  # max_hamming auto: 2 for detection messages
     assert len(det) == 10 and " drops " not in caplog.text and " dropped " not in caplog.text
+
+
+def test_max_hamming_auto_resolves_per_source_kind() -> None:
+    params = extract.Params()
+    assert params.max_hamming == "auto"
+    assert params.detector().max_hamming == 0 and params.detector("images").max_hamming == 0
+    assert params.detector("detections").max_hamming == 2
+    assert extract.Params(max_hamming=1).detector("detections").max_hamming == 1
+    with pytest.raises(ValueError, match="max_hamming is 0-3 or auto"):
+        extract.Params(max_hamming=4)
 
 
 def test_unapplied_quality_filters_are_said_once(tmp_path: Path, caplog) -> None:
