@@ -119,6 +119,8 @@ class Params(StageParams):
     by the frames' continuity (``choose_hypotheses``)."""
     rival_max_pairs: int = Field(16, ge=0)
     """At most this many rival pairs are tried, closest calls first."""
+    rival_max_iter: int = Field(10, ge=1)
+    """Iterations of the joint solve that scores each hypothesis."""
     link_tags: bool = True
     """Joint solve: place tags the pose graph left out (never seen together with the map without
     ambiguity) through the trajectory, then solve them with the rest (geometry.bundle.link_tags)."""
@@ -310,13 +312,14 @@ def refine_on_corners(
 def choose_hypotheses(
     edges: pd.DataFrame, hyp: np.ndarray, rivals: list[RivalPair],
     graph_of: Callable[[np.ndarray], PoseGraph], res: PoseGraphResult, tags: np.ndarray,
-    observations: pd.DataFrame, detections: pd.DataFrame, camera: CameraModel, params: Params,
+    edges_anchor: int, observations: pd.DataFrame, detections: pd.DataFrame,
+    camera: CameraModel, params: Params,
 ) -> tuple[np.ndarray, PoseGraphResult, list[list[int]]]:
     """Decide the tag pairs with a rival hypothesis (``edges.rival_pairs``) by the frames'
     continuity: for each, closest call first (at most ``rival_max_pairs``), the pose graph is
-    solved with the pair's rival edges instead and kept if the start of the joint solve --
-    the frames' best IPPE sequence through the map (``initial_cameras``: reprojection of every
-    frame's tags plus the jumps between frames) -- costs less. A mirrored tag seen only while
+    solved with the pair's rival edges instead and kept if the joint solve from there (corners
+    and motion prior, ``rival_max_iter`` iterations from ``initial_cameras``' start) costs
+    less. A mirrored tag seen only while
     the view hardly changes agrees with itself across those frames; the frames before and after
     do not agree with it. Returns the edge rows to use, the pose graph's solution and the
     flipped pairs."""
@@ -329,9 +332,21 @@ def choose_hypotheses(
     t_s = (t_ns - t_ns[0]) * 1e-9
     cam_T_tag = both_solutions(m)
 
+    prior = params.prior()
+    mp = None if prior is None else MotionPrior(t_s, *prior, params.max_gap_s)
+    anchor = int(np.searchsorted(tags, edges_anchor))
+    free = (np.arange(len(tags)) != anchor) & (np.bincount(k, minlength=len(tags)) > 0)
+    sigma = (params.corner_sigma_px if params.corner_weighting == "none" else
+             corner_sigma(m[CORNER_COLS].to_numpy(np.float64), params.corner_sigma_px))
+
     def cost(r: PoseGraphResult) -> float:
-        return initial_cameras(make_T(r.R, r.t)[k], cam_T_tag, ob, t_s,
-                               px_per_unit=camera.focal_px, max_gap_s=params.max_gap_s)[2]
+        W = make_T(r.R, r.t)
+        cams = initial_cameras(W[k], cam_T_tag, ob, t_s, px_per_unit=camera.focal_px,
+                               max_gap_s=params.max_gap_s)[0]
+        return solve_joint(
+            r.R, r.t, cams[:, :3, :3], cams[:, :3, 3], ob, free, px_per_unit=camera.focal_px,
+            loss=params.joint_loss, sigma_px=sigma, f_scale_px=params.joint_f_scale_px,
+            max_iter=params.rival_max_iter, prior=mp).cost
 
     key = edges["tag_i"].to_numpy(np.int64) * (1 << 32) + edges["tag_j"].to_numpy(np.int64)
     ranked = sorted(rivals, key=lambda p: -p.support_ratio)[:params.rival_max_pairs]
@@ -397,7 +412,8 @@ def run(
     if joint and (hyp > 0).any() and params.rival_search and timed(frames):
         assert detections is not None and camera is not None
         use, res, flipped = choose_hypotheses(edges, hyp, graph.rival_pairs, graph_of, res,
-                                              tags, observations, detections, camera, params)
+                                              tags, anchor, observations, detections, camera,
+                                              params)
         g = graph_of(use)
     edges = edges[use]
     ti, tj = ti[use], tj[use]
