@@ -8,9 +8,7 @@ cached, the source hashed again) and runs ``tagtrail run`` (extract .. smooth an
 process; wall time is measured around it, peak RSS is the child's ``ru_maxrss`` from
 ``os.wait4`` (the largest resident set of the child and any process it waited for).
 
-Per-stage times come from the run log (``artifacts/runs/last_run.json``) of one more run with
-``-j 2``: with the default ``-j 1`` it reports ~0 s per stage (the serial executor runs a node
-inside ``submit``, before the runner starts its clock).
+Per-stage times come from the last repeat's run log (``artifacts/runs/last_run.json``).
 Run: ``.venv/bin/python bench/bench_scale.py [--frames 9000] [--repeats 3] [--keep DIR]``.
 """
 
@@ -72,10 +70,9 @@ def main() -> None:
             walls.append(wall)
             rss.append(gb)
             print(f"  run {i + 1}: {wall:6.2f} s, peak RSS {gb:.3f} GB", flush=True)
-        timed_run(work, "-j", "2")
         stages = json.loads((work / "artifacts" / "runs" / "last_run.json").read_text())
         wall, gb = statistics.median(walls), statistics.median(rss)
-        print("per stage (-j 2 run): " + ", ".join(
+        print("per stage (last run): " + ", ".join(
             f"{s['stage']} {s['seconds']:.2f} s" for s in stages))
         print(f"recording phase, median of {args.repeats}: {wall:.2f} s "
               f"(target < {TARGET_S:.0f} s: {'yes' if wall < TARGET_S else 'no'}), "
