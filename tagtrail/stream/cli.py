@@ -28,6 +28,7 @@ EXAMPLES = """examples:
   tagtrail stream replay outputs/query/trajectory.csv --rate 2
   tagtrail stream replay recording/ --topics /detections /camera_info
   tagtrail stream localize --map outputs/reference/tag_map.yaml
+  tagtrail stream relocalize --reference outputs/reference --foxglove   # ws://127.0.0.1:8765
   tagtrail stream localize --profile limo --map outputs/reference/tag_map.yaml
   tagtrail stream record bags/run1 --profile limo --mode client --connect tcp/192.168.1.10:7447
   tagtrail stream record bags/run1 --topic /camera/color/image_raw:sensor_msgs/msg/Image \\
