@@ -110,7 +110,7 @@ class Branches(NamedTuple):
 
 def consistent_branches(
     group: NDArray[np.int64], T_i: F64, T_j: F64, w_i: F64, w_j: F64, *,
-    max_deg: float = 10.0, max_rel: float = 0.1, max_abs_m: float = 0.05, seeds: int = 64,
+    max_deg: float = 10.0, max_rel: float = 0.1, max_abs_m: float = 0.05, seeds: int = 24,
 ) -> Branches:
     """The IPPE solutions of co-observed tags that agree across frames.
 

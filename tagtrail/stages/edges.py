@@ -11,8 +11,9 @@ are within 10 deg made it worse: 3.8 cm on the circle.)
 Which IPPE solution forms an edge (``branches="consistent"``): per tag pair the combination of
 the two tags' solutions that agrees across frames (``geometry.ippe.consistent_branches``), not
 each frame's lower-reprojection one; a pair seen only while the view hardly changes can agree
-with a mirrored solution too, so a close runner-up is kept as rival edges (``hypothesis`` 1)
-and ``optimize`` decides on the frames' continuity. On the corridor rendered at twice the
+with a mirrored solution too, so where such a pair is a bridge of the tag graph (nothing else
+can check it) a close runner-up is kept as rival edges (``hypothesis`` 1) and ``optimize``
+decides on the frames' continuity. On the corridor rendered at twice the
 default noise, three of its eight chain links were mirrored in 60-70 % of their frames: tags
 1.4 m off with the best solutions, 3.0 cm with this.
 
@@ -67,8 +68,9 @@ class Params(StageParams):
     combination that agrees across frames, ``geometry.ippe.consistent_branches``), ``best``
     (the lower reprojection error, the paper)."""
     rival_ratio: float = Field(0.3, gt=0.0, le=1.0)
-    """A pair whose runner-up combination has at least this share of the winner's support
-    keeps it as a rival hypothesis (edges rows with ``hypothesis`` 1) for optimize to test."""
+    """A bridge of the tag graph (the only link between two parts of the map) whose runner-up
+    combination has at least this share of the winner's support keeps it as a rival hypothesis
+    (edges rows with ``hypothesis`` 1) for optimize to test."""
     on_disconnected: Literal["drop", "fail"] = "drop"
 
 
@@ -176,18 +178,17 @@ def edge_weights(d_i: np.ndarray, d_j: np.ndarray, s_i: np.ndarray, s_j: np.ndar
     return out_
 
 
-def _weak_links(
+def _bridge_pairs(
     keys: np.ndarray, counts: np.ndarray, ids: np.ndarray, in_map: np.ndarray
 ) -> list[dict[str, int]]:
-    """Bridges among the mapped tags seen together in < ``WEAK_LINK_OBS`` frames; ``keys``:
+    """Bridges among the mapped tags (``tag_i``, ``tag_j``, ``n_frames`` seen together); ``keys``:
     ``i * len(ids) + j`` of the tag pairs (indices into ``ids``) with their frame ``counts``."""
     i, j = keys // len(ids), keys % len(ids)
     m = in_map[i] & in_map[j]
     pairs = np.stack([i[m], j[m]], axis=1)
     n_of = {(u, v): c for (u, v), c in zip(pairs.tolist(), counts[m].tolist(), strict=True)}
-    found = bridges(pairs, len(ids))
     return [{"tag_i": int(ids[u]), "tag_j": int(ids[v]), "n_frames": int(n_of[(u, v)])}
-            for u, v in sorted(found) if n_of[(u, v)] < WEAK_LINK_OBS]
+            for u, v in sorted(bridges(pairs, len(ids)))]
 
 
 def run(observations: pd.DataFrame, params: Params) -> dict[str, Any]:
@@ -265,10 +266,16 @@ def run(observations: pd.DataFrame, params: Params) -> dict[str, Any]:
     edges[POSE_COLS] = np.concatenate([xyz, q], axis=1)
     edges["weight"] = w
     edges["hypothesis"] = np.zeros(len(edges), np.int32)
+    strong = cnt >= params.min_edge_obs
+    bridge = _bridge_pairs(ukey[strong], cnt[strong], ids, in_map)
+    weak = [b for b in bridge if b["n_frames"] < WEAK_LINK_OBS]
     rivals: list[dict[str, Any]] = []
     if alt is not None:
+        # rivals only where nothing else can tell: a pair in a loop of the tag graph is checked
+        # by the loop (the pose graph's robust loss); a bridge is the only link of its parts
         ra, rb, rT, ratio = alt
-        on = np.isin(tag[ra], ids[in_map]) & np.isin(tag[rb], ids[in_map])
+        on = np.isin(tag[ra] * (1 << 32) + tag[rb],
+                     [b["tag_i"] * (1 << 32) + b["tag_j"] for b in bridge])
         ra, rb, rT, ratio = ra[on], rb[on], rT[on], ratio[on]
         rxyz, rq = xyz_quat_from_T(rT)
         rw = (edge_weights(dist[ra], dist[rb], size[ra], size[rb]) if params.weighting == "distance"
@@ -282,8 +289,6 @@ def run(observations: pd.DataFrame, params: Params) -> dict[str, Any]:
         first = ~rival.duplicated(["tag_i", "tag_j"]).to_numpy()
         rivals = [{"tag_i": int(i), "tag_j": int(j), "support_ratio": float(r)}
                   for i, j, r in zip(tag[ra][first], tag[rb][first], ratio[first], strict=True)]
-    weak = _weak_links(ukey[cnt >= params.min_edge_obs], cnt[cnt >= params.min_edge_obs], ids,
-                       in_map)
     if weak:
         log.warning("edges: weak links in the tag graph (the only connection between two parts "
                     "of the map, seen together in < %d frames): %s", WEAK_LINK_OBS,
