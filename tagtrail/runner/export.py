@@ -170,7 +170,9 @@ def diagnostics(get: Getter, folder: Path, dataset: str) -> bool:
                  ("joint_ippe_second_solution", bundle.ippe_second_solution),
                  ("joint_corner_rms_px", bundle.rms_px),
                  ("joint_variance_factor", bundle.variance_factor),
-                 ("joint_corner_sigma_px", bundle.corner_sigma_px)]
+                 ("joint_corner_sigma_px", bundle.corner_sigma_px),
+                 ("joint_rival_pairs_flipped", " ".join(
+                     f"tag36h11:{i}-tag36h11:{j}" for i, j in bundle.rival_pairs_flipped))]
     elif report is not None:
         rows.append(("map_method", report.method))
     if tags is not None and "std_pos_m" in tags.columns:
@@ -178,6 +180,14 @@ def diagnostics(get: Getter, folder: Path, dataset: str) -> bool:
         rows += [("tag_std_pos_m_median", float(tags["std_pos_m"].median())),
                  ("tag_std_pos_m_max", float(tags["std_pos_m"].max())),
                  ("poorly_constrained_tags", " ".join(f"tag36h11:{t}" for t in weak))]
+    survey = report.survey if report is not None else None
+    if survey is not None:  # the surveyed world and its residuals at the known tags
+        rows += [("survey_source", survey.source), ("survey_model", survey.model),
+                 ("survey_tags", " ".join(f"tag36h11:{t}" for t in survey.tags)),
+                 ("survey_res_pos_rms_m", survey.res_pos_rms_m),
+                 ("survey_res_pos_max_m", survey.res_pos_max_m),
+                 ("survey_res_rot_rms_deg", "" if survey.res_rot_rms_deg is None
+                  else survey.res_rot_rms_deg)]
     if graph is not None:
         rows.append(("weak_links", " ".join(f"tag36h11:{w.tag_i}-tag36h11:{w.tag_j}"
                                             f"({w.n_frames})" for w in graph.weak_links)))

@@ -111,6 +111,32 @@ class BundleSummary(Document):
     p95_px: float
 
 
+class SurveyTag(Document):
+    """A known tag's residual after the survey fit (rotation None: position-only)."""
+
+    tag_id: int
+    res_pos_m: float
+    res_rot_deg: float | None
+
+
+class SurveySummary(Document):
+    """``optimize.report.survey``: the fit that put the map in the surveyed world and the
+    residuals at the known tags."""
+
+    source: str
+    format: str
+    model: str
+    scale: float
+    rotation_deg: float
+    translation_m: list[float]
+    tags: list[int]
+    missing: list[int]
+    res_pos_rms_m: float
+    res_pos_max_m: float
+    res_rot_rms_deg: float | None
+    per_tag: list[SurveyTag]
+
+
 class OptimizeReport(Document):
     """``optimize.report``: the pose graph solve (Eq. 3.4-3.7) and the optional refinement."""
 
@@ -124,6 +150,7 @@ class OptimizeReport(Document):
     rms_r_deg: float
     method: Literal["joint", "pairwise"]
     bundle: BundleSummary | None
+    survey: SurveySummary | None = None
 
 
 class ErrorStats(Document):

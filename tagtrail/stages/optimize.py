@@ -478,8 +478,7 @@ def run(
         "rms_r_deg": float(np.rad2deg(np.sqrt(np.mean(e_r**2)))) if len(e_r) else 0.0,
         "method": "joint" if bundle is not None else "pairwise",
         "bundle": bundle,
+        "survey": survey,
     }
-    if "survey" in OptimizeReport.model_fields:  # the report's survey block (when it has one)
-        report["survey"] = survey
     return {"tag_map": tag_map, "edge_residuals": residuals,
             "report": OptimizeReport.model_validate(report)}

@@ -100,6 +100,7 @@ class Localizer:
         self.size_m = np.where(np.isfinite(size) & (size > 0), size,
                                self.params.pnp.sizes(self.ids))  # fmt: skip
         self.detector = self.params.extract.detector()
+        self.msg_detector = self.params.extract.detector("detections")  # recorded detections
         self.camera: CameraModel | None = None
         self.pose_key = pose_key
         self.stats = stats
@@ -155,7 +156,8 @@ class Localizer:
         # the extract stage's conversion (−0.5 px) and filters, so live = offline
         assert self.camera is not None
         size = (self.camera.width, self.camera.height)
-        dets = list(filter_detections(detections_from_msg(msg), self.detector, Counter(), size))
+        dets = list(filter_detections(detections_from_msg(msg), self.msg_detector, Counter(),
+                                      size))
         ids = np.array([d.tag_id for d in dets], dtype=np.int64)
         px = np.array([d.corners for d in dets], dtype=np.float64)
         return self._publish(msg.header.stamp, px.reshape(-1, 4, 2), ids)

@@ -155,6 +155,10 @@ def test_field_layout_puts_the_field_photos_map_in_the_field_frame(realdata: Pat
     assert block["tags"] == [3, 4] and block["format"] == "wpilib" and block["model"] == "rigid"
     assert len(block["missing"]) == 14 and block["res_pos_max_m"] < 0.01
     assert 0.1 < block["res_rot_rms_deg"] < 2.0  # single photos, an approximate calibration
+    report = _artifact(runner, "optimize", "report")  # the residuals, in the run's report
+    assert report.survey is not None and report.survey.tags == [3, 4]
+    assert report.survey.res_pos_max_m == pytest.approx(block["res_pos_max_m"])
+    assert [t.tag_id for t in report.survey.per_tag] == [3, 4]
     traj = _artifact(runner, "smooth", "trajectory")
     cams = traj[["x_m", "y_m", "z_m"]].to_numpy()
     # the photos were taken on the field, in front of the speaker wall's tags (x = 16.58 m),
