@@ -112,6 +112,7 @@ class CrashSafeWriter:
         self.t_min, self.t_max = 2**63 - 1, 0
         self.size = 0  # bytes of message data written
         self._tail_at: int | None = None  # MCAP: offset of the provisional end
+        self._good_at: int | None = None  # MCAP: offset of the last end written out in full
         self._chunks = 0
         self._next_flush = time.monotonic() + flush_s
         self._dirty = False
@@ -158,6 +159,7 @@ class CrashSafeWriter:
         st.bio.flush()
         if sync:
             os.fsync(st.bio.fileno())
+        self._good_at = self._tail_at  # everything before it is on disk, not just buffered
         st.bio.seek(self._tail_at)  # the next chunk overwrites this end
 
     def flush(self) -> None:
@@ -193,8 +195,8 @@ class CrashSafeWriter:
     def abort(self) -> None:
         """After a failed write (a full disk): keep the bag as of the last flush.
 
-        MCAP: the file is cut where the last provisional end began and that end written again
-        (the same bytes, so no new space is needed); sqlite3: the open transaction is rolled
+        MCAP: the file is cut where the last end written out in full began and that end written
+        again (the same bytes, so no new space is needed); sqlite3: the open transaction is rolled
         back. ``metadata.yaml`` of that flush stays as it was.
         """
         st: Any = self.writer.storage
@@ -206,10 +208,10 @@ class CrashSafeWriter:
                 st.bio.close()
             except OSError:
                 pass  # the buffered bytes that did not fit are dropped below
-            with open(self.file, "r+b") as f:
-                f.truncate(self._tail_at if self._tail_at is not None else 0)
-                if self._tail_at is not None:
-                    f.seek(self._tail_at)
+            with open(self.file, "r+b") as f:  # a chunk only buffered when the disk filled
+                f.truncate(self._good_at if self._good_at is not None else 0)  # is not kept
+                if self._good_at is not None:
+                    f.seek(self._good_at)
                     f.write(TAIL)
         else:
             try:
