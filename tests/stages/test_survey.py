@@ -49,8 +49,8 @@ def _poses(df: pd.DataFrame) -> np.ndarray:
 
 
 def _tagslam_reference(bag: Path, root: Path) -> tuple[dict[int, np.ndarray], dict]:
-    """TagSLAM's solution in its reference.bag: ``map_T_tag`` per tag (from /tf: map->lab,
-    lab->tag_<id>) and ``map_T_cam0`` per stamp (the rig's odometry @ camera_poses.yaml)."""
+    """TagSLAM's solution in its reference.bag: ``map_T_tag`` per tag (from /tf: map->body,
+    body->tag_<id>, the body static: lab, perch, ...) and ``map_T_cam0`` per stamp (the rig's odometry @ camera_poses.yaml)."""
     from rosbags.highlevel import AnyReader
 
     cam = yaml.safe_load((root / "camera_poses.yaml").read_text())["cam0"]["pose"]
@@ -73,8 +73,9 @@ def _tagslam_reference(bag: Path, root: Path) -> tuple[dict[int, np.ndarray], di
                     tr, q = t.transform.translation, t.transform.rotation
                     tf[(t.header.frame_id, t.child_frame_id)] = T_from_xyz_quat(
                         [tr.x, tr.y, tr.z], [q.x, q.y, q.z, q.w])
-    tags = {int(child[4:]): tf[("map", "lab")] @ T for (parent, child), T in tf.items()
-            if parent == "lab" and child.startswith("tag_")}
+    body = {parent for (parent, child) in tf if child.startswith("tag_")}  # lab, perch, ...
+    tags = {int(child[4:]): tf[("map", parent)] @ T for (parent, child), T in tf.items()
+            if parent in body and child.startswith("tag_")}
     return tags, cams
 
 
