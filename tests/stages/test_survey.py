@@ -50,7 +50,8 @@ def _poses(df: pd.DataFrame) -> np.ndarray:
 
 def _tagslam_reference(bag: Path, root: Path) -> tuple[dict[int, np.ndarray], dict]:
     """TagSLAM's solution in its reference.bag: ``map_T_tag`` per tag (from /tf: map->body,
-    body->tag_<id>, the body static: lab, perch, ...) and ``map_T_cam0`` per stamp (the rig's odometry @ camera_poses.yaml)."""
+    body->tag_<id>, the body static: lab, perch, ...) and ``map_T_cam0`` per stamp (the rig's
+    odometry @ camera_poses.yaml)."""
     from rosbags.highlevel import AnyReader
 
     cam = yaml.safe_load((root / "camera_poses.yaml").read_text())["cam0"]["pose"]
