@@ -375,13 +375,16 @@ def solve(
         H, grad = prob.system(lin)
         dH = H.diagonal()
         A = (H + diags(lam * np.maximum(dH, 1e-12 * max(float(dH.max()), 1e-300)))).tocsc()
-        lu = splu(A, permc_spec="MMD_AT_PLUS_A", diag_pivot_thresh=0.0,
-                  options={"SymmetricMode": True})  # fmt: skip
-        dx = -lu.solve(grad)
-        R_new, t_new = prob.retract(R, t, dx)
+        try:
+            lu = splu(A, permc_spec="MMD_AT_PLUS_A", diag_pivot_thresh=0.0,
+                      options={"SymmetricMode": True})  # fmt: skip
+            dx = -lu.solve(grad)
+        except RuntimeError:  # an exactly singular factor (e.g. zero weights): damp more
+            dx = np.full(prob.n_params, np.nan)
+        R_new, t_new = prob.retract(R, t, np.nan_to_num(dx))
         cost_new, lin_new = prob.evaluate(R_new, t_new)
         nfev += 1
-        if not cost_new <= cost:  # also refuses NaN
+        if not np.isfinite(dx).all() or not cost_new <= cost:  # also refuses NaN
             lam *= 10.0
             if lam > 1e12:
                 status, message = 2, "no step decreases the cost"
