@@ -42,21 +42,26 @@ def _registry() -> dict[str, StageModule]:  # imported lazily so `tagtrail --hel
     return REGISTRY
 
 
-def _runner(args: argparse.Namespace) -> Runner:
+def _runner(args: argparse.Namespace, echo: Callable[[str], None] = print) -> Runner:
     from tagtrail.runner.execute import Runner
     from tagtrail.runner.spec import load_pipeline
 
     pipe = load_pipeline(Path(args.pipeline), _registry(), getattr(args, "set", None) or ())
     scheduler = getattr(args, "scheduler", None)  # `run --executor/--scheduler`
     executor = getattr(args, "executor", None) or ("dask" if scheduler else "local")
-    return Runner(pipe, jobs=getattr(args, "jobs", 1), echo=print, executor=executor,
+    return Runner(pipe, jobs=getattr(args, "jobs", 1), echo=echo, executor=executor,
                   scheduler=scheduler)
+
+
+def _stderr(line: str) -> None:
+    print(line, file=sys.stderr)
 
 
 def cmd_run(args: argparse.Namespace) -> int:
     from tagtrail.runner.export import export_outputs
 
-    runner = _runner(args)
+    say = _stderr if args.json else print  # with --json, stdout is the JSON alone
+    runner = _runner(args, echo=say)
     if args.dry_run:
         for st in runner.plan(args.stages, force=args.force):
             what = "would run" if st.status == "stale" else "cached"
@@ -66,9 +71,9 @@ def cmd_run(args: argparse.Namespace) -> int:
     states = runner.run(args.stages, force=args.force)
     written = export_outputs(runner, force=args.force)
     ran = sum(s.status == "ran" for s in states)
-    print(f"{ran} ran, {len(states) - ran} cached in {time.perf_counter() - t0:.2f}s")
+    say(f"{ran} ran, {len(states) - ran} cached in {time.perf_counter() - t0:.2f}s")
     for ds, folder in written.items():
-        print(f"outputs [{ds}]: {folder}")
+        say(f"outputs [{ds}]: {folder}")
     if args.json:
         from dataclasses import asdict
 

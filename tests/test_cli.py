@@ -109,3 +109,15 @@ def test_show_and_dag_take_the_same_overrides_as_run(bags, tmp_path, monkeypatch
     assert main(["dag", *override]) == 0
     assert main(["dag", "-S", "extract.min_decision_margin=-1"]) == 2
     assert "min_decision_margin" in one_error_line(capsys)
+
+
+def test_run_json_prints_the_json_alone(bags, tmp_path, monkeypatch, capsys):
+    """`run --json`: stdout is the run log as JSON (for scripts), the status lines go to stderr."""
+    import json
+
+    monkeypatch.chdir(tmp_path)
+    Path("pipeline.yaml").write_text(f"datasets:\n  reference: {{source: {bags / 'reference'}}}\n")
+    assert main(["run", "pnp", "--json"]) == 0
+    out = capsys.readouterr()
+    log = json.loads(out.out)
+    assert {s["stage"] for s in log} == {"extract", "pnp"} and "ran" in out.err

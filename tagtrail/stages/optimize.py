@@ -3,8 +3,9 @@
 The anchor tag is fixed at the identity (gauge); every other mapped tag has a rotation vector and
 a translation. Residual per edge observation: ``[t_pred - t_obs ; rot_weight_m * Log(R_pred^T
 R_obs)]`` scaled by ``sqrt(weight)``; the robust ``loss`` acts on its norm with scale ``f_scale``
-(m). Initialised from a spanning tree of robust per-pair means; solved by scipy's ``trf`` with an
-analytic sparse Jacobian. See :mod:`tagtrail.geometry.posegraph` for the maths.
+(m). Initialised from a spanning tree of robust per-pair means; solved by Levenberg-Marquardt on
+the pair-accumulated normal equations (sparse LU). See :mod:`tagtrail.geometry.posegraph` for the
+maths.
 
 ``method="joint"`` (the default; datasets with detections and a camera) then solves the tag poses
 and the camera pose of every frame that sees a mapped tag jointly on the corner reprojection
