@@ -197,10 +197,12 @@ def load_pipeline(
     for name in raw:
         if name not in stages:
             raise SpecError(f"{path}: unknown stage {name!r}{did_you_mean(name, stages)}")
+    root = path.resolve().parent
+    ctx = {"root": root}  # files named by parameters (optimize.survey.file) are taken from here
     params: dict[str, StageParams] = {}
     for name, spec in stages.items():
         try:
-            params[name] = spec.params_model.model_validate(raw.get(name, {}))
+            params[name] = spec.params_model.model_validate(raw.get(name, {}), context=ctx)
         except ValidationError as err:
             where = f"{path}: stages.{name}"
             raise SpecError(_fmt_validation(where, err, spec.params_model.model_fields)) from err
@@ -213,13 +215,13 @@ def load_pipeline(
                                 f"{did_you_mean(name, stages)}")
             merged = {**raw.get(name, {}), **(extra or {})}
             try:
-                dataset_params[(name, ds_name)] = stages[name].params_model.model_validate(merged)
+                dataset_params[(name, ds_name)] = stages[name].params_model.model_validate(
+                    merged, context=ctx)
             except ValidationError as err:
                 where = f"{path}: datasets.{ds_name}.params.{name}"
                 fields = stages[name].params_model.model_fields
                 raise SpecError(_fmt_validation(where, err, fields)) from err
 
-    root = path.resolve().parent
     datasets = {n: _resolve_dataset(n, ds, root, check_sources)
                 for n, ds in config.datasets.items()}
     for n, ds in datasets.items():

@@ -9,7 +9,14 @@ from typing import Any, Literal
 
 import numpy as np
 import yaml
-from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
+from pydantic import (
+    BaseModel,
+    ConfigDict,
+    Field,
+    ValidationInfo,
+    field_validator,
+    model_validator,
+)
 
 from tagtrail.geometry.se3 import R_from_quat_xyzw, quat_xyzw_from_R
 from tagtrail.geometry.survey import Survey, make_survey, parse_survey
@@ -90,7 +97,7 @@ class SurveyConfig(BaseModel):
 
     ``file``: known poses from TagSLAM's ``tagslam.yaml``, a WPILib/PhotonVision field layout
     JSON or a tagtrail ``tag_map.yaml`` (recognised by content; a relative path is taken from the
-    working directory); ``tags``: known poses inline, ``{<id>: {position: [x, y, z],
+    pipeline file's folder); ``tags``: known poses inline, ``{<id>: {position: [x, y, z],
     orientation: [qx, qy, qz, qw], size: m}}`` (over the file's); ``use``: only these ids;
     ``position_only``: use only the positions (tape-measured tags); ``model``: ``rigid``
     (default) or ``similarity`` (also a scale: the map's metres are the survey's after it).
@@ -107,15 +114,20 @@ class SurveyConfig(BaseModel):
     known: dict[int, KnownTag] = Field(default_factory=dict)
 
     @model_validator(mode="after")
-    def _load(self) -> SurveyConfig:
+    def _load(self, info: ValidationInfo) -> SurveyConfig:
         """Fill ``known`` (and ``format``) from ``file`` and ``tags``; one-line errors naming
-        the file."""
+        the file. A relative ``file`` is taken from the validation context's ``root`` (the
+        pipeline file's folder, as the datasets' sources are), else the working directory."""
         if self.known:  # already loaded (a copy, or a dump validated again)
             return self
         known: dict[int, KnownTag] = {}
         fmt = "inline"
         if self.file is not None:
-            fmt, known = _read_known(Path(self.file))
+            where = Path(self.file)
+            root = (info.context or {}).get("root") if info is not None else None
+            if root is not None and not where.is_absolute():
+                where = Path(root) / where
+            fmt, known = _read_known(where)
         known.update(self.tags)
         if self.use is not None:
             absent = sorted(set(self.use) - set(known))

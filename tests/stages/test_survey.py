@@ -211,3 +211,25 @@ def test_bad_known_pose_files_are_one_line(tmp_path: Path, name: str, text: str 
     with pytest.raises(SpecError, match=message) as err:
         load_pipeline(path, REGISTRY)
     assert "\n" not in str(err.value)
+
+
+def test_a_relative_survey_file_is_taken_from_the_pipeline_folder(
+        realdata: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """As the datasets' sources are: `tagtrail -p lab/pipeline.yaml run` from anywhere."""
+    import shutil
+
+    from tagtrail.errors import SpecError as Spec
+
+    lab = tmp_path / "lab"
+    lab.mkdir()
+    shutil.copy(realdata / "photonvision_frc2024_field" / "2024-crescendo.json", lab / "field.json")
+    (lab / "pipeline.yaml").write_text(yaml.safe_dump({
+        "datasets": {"reference": {"source": "images"}},
+        "stages": {"optimize": {"survey": {"file": "field.json"}}}}))
+    monkeypatch.chdir(tmp_path)  # not the pipeline's folder
+    pipe = load_pipeline(lab / "pipeline.yaml", REGISTRY, check_sources=False)
+    survey = pipe.params_for("optimize", "reference").survey  # type: ignore[attr-defined]
+    assert survey.format == "wpilib" and len(survey.known) == 16 and survey.file == "field.json"
+    (lab / "field.json").unlink()
+    with pytest.raises(Spec, match="field.json"):
+        load_pipeline(lab / "pipeline.yaml", REGISTRY, check_sources=False)
