@@ -25,33 +25,20 @@ import time  # noqa: E402
 
 import numpy as np  # noqa: E402
 import pandas as pd  # noqa: E402
+from bench_gtsam import make_graph  # noqa: E402
 
-from tagtrail.geometry.se3 import R_from_rotvec, make_T, pose_error, quat_xyzw_from_R  # noqa: E402
+from tagtrail.geometry.se3 import make_T, pose_error, quat_xyzw_from_R  # noqa: E402
+from tagtrail.schemas.documents import TagGraph  # noqa: E402
 from tagtrail.stages import optimize  # noqa: E402
 
 POSE = ["x_m", "y_m", "z_m", "qx", "qy", "qz", "qw"]
 TARGET_S = 2.0
 
 
-def graph(n_tags: int, n_edges: int, seed: int = 0) -> tuple[pd.DataFrame, dict, np.ndarray]:
+def graph(n_tags: int, n_edges: int, seed: int = 0) -> tuple[pd.DataFrame, TagGraph, np.ndarray]:
     """Edges frame, graph dict and ground-truth ``anchor_T_tag`` ``(n, 4, 4)`` (anchor = 0)."""
-    rng = np.random.default_rng(seed)
-    R = R_from_rotvec(rng.normal(scale=1.0, size=(n_tags, 3)))
-    t = rng.uniform([-5, -1.5, -5], [5, 1.5, 5], size=(n_tags, 3))
-    R[0], t[0] = np.eye(3), 0.0
-    d = np.linalg.norm(t[:, None] - t[None], axis=-1)
-    near = np.argsort(d, axis=1)[:, 1:7]
-    i = rng.integers(0, n_tags, n_edges)
-    j = near[i, rng.integers(0, 6, n_edges)]
-    i, j = np.minimum(i, j), np.maximum(i, j)
-    dR = R_from_rotvec(rng.normal(scale=np.deg2rad(0.5), size=(n_edges, 3)))
-    R_obs = np.swapaxes(R[i], -1, -2) @ R[j] @ dR
-    t_obs = np.einsum("eba,eb->ea", R[i], t[j] - t[i]) + rng.normal(scale=0.01, size=(n_edges, 3))
-    bad = rng.random(n_edges) < 0.02
-    axis = rng.normal(size=(bad.sum(), 3))
-    axis *= np.deg2rad(30) / np.linalg.norm(axis, axis=1, keepdims=True)
-    R_obs[bad] = R_obs[bad] @ R_from_rotvec(axis)
-    t_obs[bad] += rng.normal(scale=0.3, size=(bad.sum(), 3))
+    g, R, t = make_graph(n_tags, n_edges, seed)  # the scene bench_gtsam compares on
+    i, j, R_obs, t_obs = g.idx_i, g.idx_j, g.R_obs, g.t_obs
     edges = pd.DataFrame(
         {"t_ns": np.arange(n_edges, dtype=np.int64), "tag_i": i.astype(np.int32),
          "tag_j": j.astype(np.int32)}
@@ -59,8 +46,8 @@ def graph(n_tags: int, n_edges: int, seed: int = 0) -> tuple[pd.DataFrame, dict,
     edges[POSE] = np.concatenate([t_obs, quat_xyzw_from_R(R_obs)], axis=1)
     edges["weight"] = 1.0
     ids = sorted(set(i.tolist()) | set(j.tolist()))
-    g = {"anchor_id": 0, "tags": ids, "dropped": [], "n_components": 1}
-    return edges, g, make_T(R, t)
+    doc = TagGraph(anchor_id=0, tags=ids, dropped=[], n_components=1, weak_links=[])
+    return edges, doc, make_T(R, t)
 
 
 def main() -> None:

@@ -56,13 +56,13 @@ from tagtrail.geometry.rotations import (
     log_so3,
     right_jacobian,
     right_jacobian_inv,
+    right_jacobian_inv_coefficient,
 )
 from tagtrail.geometry.se3 import R_from_rotvec
 
 BLOCK = 6
 FTOL = 1e-12  # relative cost decrease at which solve() stops
 XTOL = 1e-10  # largest step component (m, rad) at which solve() stops
-_SMALL = 1e-4  # rad: below, J_r^-1's coefficient by its Taylor series
 
 
 def block_loss(name: LossName, block: int = BLOCK) -> str | Callable[[F64], F64]:
@@ -249,12 +249,7 @@ def _jr_inv_gram_coefficient(th: F64) -> F64:
     With ``J_r^-1 = I + K/2 + c K^2`` (``K = hat(phi)``, ``K^4 = -th^2 K^2``):
     ``a = 2c - 1/4 - c^2 th^2``.
     """
-    small = th < _SMALL
-    ths = np.where(small, 1.0, th)
-    s = np.sin(ths)
-    s = np.where(np.abs(s) < 1e-12, 1e-12, s)
-    c = np.where(small, 1.0 / 12.0 + th * th / 720.0,
-                 1.0 / (ths * ths) - (1.0 + np.cos(ths)) / (2.0 * ths * s))
+    c = right_jacobian_inv_coefficient(th)
     out: F64 = 2.0 * c - 0.25 - c * c * th * th
     return out
 

@@ -60,16 +60,23 @@ def right_jacobian_inv(rv: ArrayLike) -> F64:
     ``J_r^{-1} = I + hat(phi)/2 + (1/t^2 - (1 + cos t)/(2 t sin t)) hat(phi)^2``.
     """
     rv = np.asarray(rv, dtype=np.float64)
-    th = np.linalg.norm(rv, axis=-1)
+    c = right_jacobian_inv_coefficient(np.linalg.norm(rv, axis=-1))
+    K = hat(rv)
+    return np.eye(3) + 0.5 * K + c[..., None, None] * (K @ K)
+
+
+def right_jacobian_inv_coefficient(th: ArrayLike) -> F64:
+    """``c(t) = 1/t^2 - (1 + cos t)/(2 t sin t)`` of :func:`right_jacobian_inv` at angles ``th``
+    (its Taylor series below ``_SMALL``)."""
+    th = np.asarray(th, dtype=np.float64)
     small = th < _SMALL
     ths = np.where(small, 1.0, th)
     # sin(t) -> 0 at t = pi: the coefficient stays finite (1/pi^2) but the formula divides 0/0.
     s = np.sin(ths)
     s = np.where(np.abs(s) < 1e-12, 1e-12, s)
-    c = np.where(small, 1.0 / 12.0 + th * th / 720.0,
-                 1.0 / (ths * ths) - (1.0 + np.cos(ths)) / (2.0 * ths * s))
-    K = hat(rv)
-    return np.eye(3) + 0.5 * K + c[..., None, None] * (K @ K)
+    out: F64 = np.where(small, 1.0 / 12.0 + th * th / 720.0,
+                        1.0 / (ths * ths) - (1.0 + np.cos(ths)) / (2.0 * ths * s))
+    return out
 
 
 def _log_via_quaternion(R: F64) -> F64:
