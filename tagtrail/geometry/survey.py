@@ -13,7 +13,8 @@ The file layouts are parsed here from their decoded documents (no file I/O): Tag
 (``bodies:`` of static bodies, each ``pose`` and its ``tags`` with poses in the body's frame,
 rotations as rotation vectors), WPILib / PhotonVision field layout JSON (``tags: [{ID, pose:
 {translation, rotation: {quaternion: {W, X, Y, Z}}}}]``, the tag's +X out of its face, Z up),
-and tagtrail's ``tag_map.yaml`` (SPEC). :func:`parse_survey` tells them apart by content.
+and tagtrail's ``tag_map.yaml`` (SPEC). :func:`parse_survey` tells them apart by content;
+:func:`parse_tag_sizes` reads the tag sizes the same files give (for pnp).
 """
 
 from __future__ import annotations
@@ -188,19 +189,102 @@ def from_tag_map(doc: dict[str, Any]) -> Survey:
     return make_survey(entries)
 
 
-def parse_survey(doc: Any) -> tuple[str, Survey]:
-    """``(format, survey)`` of a decoded document, recognised by content: ``bodies`` → TagSLAM,
-    ``tags`` as a list with ``ID`` → WPILib field layout, ``tags`` as a mapping → tagtrail tag
-    map. ``ValueError`` (one line) otherwise."""
+def file_format(doc: Any) -> str:
+    """The layout of a decoded known-poses document, by content: ``bodies`` → ``tagslam``,
+    ``tags`` as a list → ``wpilib`` (field layout), ``tags`` as a mapping → ``tag_map``.
+    ``ValueError`` (one line) otherwise."""
     if isinstance(doc, dict) and "bodies" in doc:
-        return "tagslam", from_tagslam(doc)
+        return "tagslam"
     if isinstance(doc, dict) and isinstance(doc.get("tags"), list):
-        return "wpilib", from_wpilib(doc)
+        return "wpilib"
     if isinstance(doc, dict) and isinstance(doc.get("tags"), dict):
-        return "tag_map", from_tag_map(doc)
+        return "tag_map"
     raise ValueError("not a known-poses file (expected TagSLAM's tagslam.yaml with bodies:, a "
                      "WPILib/PhotonVision field layout JSON with tags: [...], or a tagtrail "
                      "tag_map.yaml)")
+
+
+def parse_survey(doc: Any) -> tuple[str, Survey]:
+    """``(format, survey)`` of a decoded document (:func:`file_format`)."""
+    fmt = file_format(doc)
+    parse = {"tagslam": from_tagslam, "wpilib": from_wpilib, "tag_map": from_tag_map}[fmt]
+    return fmt, parse(doc)
+
+
+# --- tag sizes from the same files -------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class TagSizes:
+    """Tag edge lengths (m) a known-poses file gives: ``per_id``, and ``default`` for every
+    other tag (TagSLAM: the ``default_body``'s ``default_tag_size``, which it gives the tags it
+    discovers; None when the file has none)."""
+
+    per_id: dict[int, float]
+    default: float | None
+
+
+def _size(value: Any, what: str) -> float:
+    try:
+        size = float(value)
+    except (TypeError, ValueError):
+        size = float("nan")
+    if not (np.isfinite(size) and size > 0):
+        raise ValueError(f"{what}: expected a size > 0 m, got {value!r}")
+    return size
+
+
+def _tagslam_sizes(doc: dict[str, Any]) -> TagSizes:
+    """Every tag of every body (static or not: a rig's tags are seen too) with its ``size`` or
+    its body's ``default_tag_size``; the default from ``default_body``."""
+    per_id: dict[int, float] = {}
+    default = None
+    bodies = doc.get("bodies")
+    if not isinstance(bodies, list):
+        raise ValueError("bodies: expected a list of bodies")
+    for item in bodies:
+        if not isinstance(item, dict) or len(item) != 1:
+            raise ValueError("bodies: each entry is '- <name>: {...}'")
+        name, body = next(iter(item.items()))
+        if not isinstance(body, dict):
+            continue
+        body_size = body.get("default_tag_size")
+        if body_size is not None:
+            body_size = _size(body_size, f"bodies.{name}.default_tag_size")
+            if name == doc.get("default_body"):
+                default = body_size
+        for k, tag in enumerate(body.get("tags") or []):
+            if not isinstance(tag, dict) or "id" not in tag:
+                raise ValueError(f"bodies.{name}.tags[{k}]: expected {{id, size, pose}}")
+            size = tag.get("size", body_size)
+            if size is None:
+                continue
+            i = int(tag["id"])
+            if i in per_id:
+                raise ValueError(f"tag {i} is given twice")
+            per_id[i] = _size(size, f"bodies.{name}.tags[{k}].size")
+    return TagSizes(per_id, default)
+
+
+def parse_tag_sizes(doc: Any) -> tuple[str, TagSizes]:
+    """``(format, sizes)`` of a decoded known-poses document (:func:`file_format`): TagSLAM's
+    tag ``size`` / body ``default_tag_size``, a tag map's ``size``. ``ValueError`` when it
+    gives none (a WPILib field layout has no size field)."""
+    fmt = file_format(doc)
+    if fmt == "wpilib":
+        raise ValueError("a WPILib/PhotonVision field layout gives no tag sizes (set "
+                         "pnp.tag_size or pnp.tag_sizes)")
+    if fmt == "tagslam":
+        sizes = _tagslam_sizes(doc)
+    else:
+        sv = from_tag_map(doc)
+        sizes = TagSizes({int(i): _size(float(s), f"tag {int(i)}: size")
+                          for i, s in zip(sv.ids, sv.size, strict=True) if not np.isnan(s)},
+                         None)
+    if not sizes.per_id and sizes.default is None:
+        raise ValueError(f"no tag size given (a {fmt} file sizes tags with "
+                         f"{'size: or default_tag_size:' if fmt == 'tagslam' else 'size:'})")
+    return fmt, sizes
 
 
 # --- the fit -----------------------------------------------------------------------------------

@@ -55,9 +55,18 @@ class NodeState:
         return f"{node:<28} {self.status:<7}{took}{rows}  ({self.reason})"
 
 
-def _param_diff(old: dict[str, Any], new: dict[str, Any]) -> str:
-    keys = sorted(set(old) | set(new))
-    parts = [f"{k}: {old.get(k)!r} → {new.get(k)!r}" for k in keys if old.get(k) != new.get(k)]
+def _param_diff(old: dict[str, Any], new: dict[str, Any], prefix: str = "") -> str:
+    """The changed parameters, nested ones by their dotted name (a file's tag sizes or known
+    poses: ``tag_sizes_from.sizes.2: 0.16 → 0.2``, not the whole block twice)."""
+    parts = []
+    for k in sorted(set(old) | set(new)):
+        a, b = old.get(k), new.get(k)
+        if a == b:
+            continue
+        if isinstance(a, dict) and isinstance(b, dict):
+            parts.append(_param_diff(a, b, f"{prefix}{k}."))
+        else:
+            parts.append(f"{prefix}{k}: {a!r} → {b!r}")
     return ", ".join(parts)
 
 

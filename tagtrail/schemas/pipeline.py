@@ -1,4 +1,5 @@
-"""Pydantic models of ``pipeline.yaml`` (datasets, stage parameters, a surveyed world)."""
+"""Pydantic models of ``pipeline.yaml`` (datasets, stage parameters, a surveyed world, tag sizes
+from its files)."""
 
 from __future__ import annotations
 
@@ -19,7 +20,7 @@ from pydantic import (
 )
 
 from tagtrail.geometry.se3 import R_from_quat_xyzw, quat_xyzw_from_R
-from tagtrail.geometry.survey import Survey, make_survey, parse_survey
+from tagtrail.geometry.survey import Survey, make_survey, parse_survey, parse_tag_sizes
 
 _DATASET_NAME = re.compile(r"[A-Za-z0-9_.-]+")
 
@@ -116,18 +117,13 @@ class SurveyConfig(BaseModel):
     @model_validator(mode="after")
     def _load(self, info: ValidationInfo) -> SurveyConfig:
         """Fill ``known`` (and ``format``) from ``file`` and ``tags``; one-line errors naming
-        the file. A relative ``file`` is taken from the validation context's ``root`` (the
-        pipeline file's folder, as the datasets' sources are), else the working directory."""
+        the file (a relative one is taken from the pipeline file's folder: :func:`_resolve`)."""
         if self.known:  # already loaded (a copy, or a dump validated again)
             return self
         known: dict[int, KnownTag] = {}
         fmt = "inline"
         if self.file is not None:
-            where = Path(self.file)
-            root = (info.context or {}).get("root") if info is not None else None
-            if root is not None and not where.is_absolute():
-                where = Path(root) / where
-            fmt, known = _read_known(where)
+            fmt, known = _read_known(_resolve(self.file, info))
         known.update(self.tags)
         if self.use is not None:
             absent = sorted(set(self.use) - set(known))
@@ -151,17 +147,36 @@ class SurveyConfig(BaseModel):
             for k, v in self.known.items()])
 
 
-def _read_known(path: Path) -> tuple[str, dict[int, KnownTag]]:
-    """``(format, known poses)`` of a known-poses file (:func:`geometry.survey.parse_survey`)."""
+def _resolve(file: str, info: ValidationInfo | None) -> Path:
+    """A file named by a parameter: a relative path is taken from the validation context's
+    ``root`` (the pipeline file's folder, as the datasets' sources are), else the working
+    directory."""
+    where = Path(file)
+    root = (info.context or {}).get("root") if info is not None else None
+    if root is not None and not where.is_absolute():
+        where = Path(root) / where
+    return where
+
+
+def _read_doc(path: Path, kind: str, param: str) -> Any:
+    """The decoded document of a YAML or JSON (``.json``) file; one-line ``ValueError``s
+    naming the file, its ``kind`` and the ``param`` that names it."""
     if not path.is_file():
-        raise ValueError(f"{path}: known-poses file not found (survey.file; a relative path is "
-                         "taken from the working directory)")
+        raise ValueError(f"{path}: {kind} file not found ({param}; a relative path is taken "
+                         "from the pipeline file's folder)")
     try:
         text = path.read_text(encoding="utf-8")
-        doc = json.loads(text) if path.suffix.lower() == ".json" else yaml.safe_load(text)
-        fmt, sv = parse_survey(doc)
+        return json.loads(text) if path.suffix.lower() == ".json" else yaml.safe_load(text)
     except (OSError, UnicodeDecodeError, json.JSONDecodeError, yaml.YAMLError) as err:
-        raise ValueError(f"{path}: cannot read known poses: {str(err).splitlines()[0]}") from err
+        raise ValueError(f"{path}: cannot read the {kind} file: {str(err).splitlines()[0]}"
+                         ) from err
+
+
+def _read_known(path: Path) -> tuple[str, dict[int, KnownTag]]:
+    """``(format, known poses)`` of a known-poses file (:func:`geometry.survey.parse_survey`)."""
+    doc = _read_doc(path, "known-poses", "survey.file")
+    try:
+        fmt, sv = parse_survey(doc)
     except (ValueError, TypeError) as err:
         raise ValueError(f"{path}: {err}") from err
     known = {}
@@ -171,3 +186,41 @@ def _read_known(path: Path) -> tuple[str, dict[int, KnownTag]]:
         known[int(i)] = KnownTag(position=tuple(float(v) for v in sv.position[k]),
                                  orientation=q, size=size)
     return fmt, known
+
+
+class TagSizesFile(BaseModel):
+    """Tag sizes from a known-poses file (``pnp.tag_sizes_from: tagslam.yaml``): TagSLAM's
+    ``tagslam.yaml`` (each tag's ``size`` or its body's ``default_tag_size``; ``default``: the
+    ``default_body``'s, which TagSLAM gives every tag it discovers) or a tagtrail
+    ``tag_map.yaml`` (``size``); a WPILib field layout gives none. Written as the file's name (a
+    relative path is taken from the pipeline file's folder); the sizes are read when the
+    parameters are validated and are part of them, so editing a size in the file changes the
+    cache key (and editing anything else in it does not)."""
+
+    model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)
+    file: str
+    format: str = ""
+    sizes: dict[int, float] = Field(default_factory=dict)
+    default: float | None = None
+
+    @model_validator(mode="before")
+    @classmethod
+    def _name(cls, data: Any) -> Any:
+        """``tag_sizes_from: FILE`` is ``{file: FILE}``."""
+        return {"file": data} if isinstance(data, str) else data
+
+    @model_validator(mode="after")
+    def _load(self, info: ValidationInfo) -> TagSizesFile:
+        """Fill ``format``, ``sizes`` and ``default`` from ``file`` (one-line errors naming it)."""
+        if self.format:  # already loaded (a copy, or a dump validated again)
+            return self
+        path = _resolve(self.file, info)
+        doc = _read_doc(path, "tag-sizes", "pnp.tag_sizes_from")
+        try:
+            fmt, sizes = parse_tag_sizes(doc)
+        except (ValueError, TypeError) as err:
+            raise ValueError(f"{path}: {err}") from err
+        object.__setattr__(self, "format", fmt)
+        object.__setattr__(self, "sizes", dict(sorted(sizes.per_id.items())))
+        object.__setattr__(self, "default", sizes.default)
+        return self

@@ -193,7 +193,10 @@ def _per_tag_rms(idx_i: np.ndarray, idx_j: np.ndarray, sq: np.ndarray, n: int) -
 def surveyed_world(tag_map: pd.DataFrame, cfg: SurveyConfig) -> tuple[pd.DataFrame, dict[str, Any]]:
     """The tag map (anchor frame) re-expressed in the surveyed world of ``cfg`` (geometry.survey:
     rigid or similarity fit on the known tags it holds), and the report block: the fit and the
-    residuals at the known tags. :class:`DataError` when the known tags do not fix the world."""
+    residuals at the known tags. A similarity scales every length of the map (positions,
+    ``size_m``, ``std_pos_m``, ``res_t_rms_m``: the tags' printed size in the survey's metres);
+    the edge residuals stay in the measurements'. :class:`DataError` when the known tags do not
+    fix the world."""
     ids = tag_map["tag_id"].to_numpy(np.int64)
     vals = tag_map[POSE_COLS].to_numpy(np.float64)
     map_T_tag = make_T(R_from_quat_xyzw(vals[:, 3:]), vals[:, :3])
@@ -205,7 +208,9 @@ def surveyed_world(tag_map: pd.DataFrame, cfg: SurveyConfig) -> tuple[pd.DataFra
     W = fit.apply(map_T_tag)
     out = tag_map.copy()
     out[POSE_COLS] = np.concatenate([W[:, :3, 3], quat_xyzw_from_R(W[:, :3, :3])], axis=1)
-    out["std_pos_m"] = tag_map["std_pos_m"] * fit.scale
+    for c in ("size_m", "std_pos_m", "res_t_rms_m"):  # lengths in the survey's metres, too
+        if c in tag_map.columns:
+            out[c] = tag_map[c] * fit.scale
     rot = np.nan_to_num(fit.res_rot_deg, nan=0.0)
     full = np.isfinite(fit.res_rot_deg)
     per_tag = [{"tag_id": int(i), "res_pos_m": float(p),

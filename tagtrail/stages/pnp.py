@@ -30,6 +30,7 @@ from tagtrail.geometry.camera import CameraModel
 from tagtrail.geometry.ippe import ambiguity, solve_ippe
 from tagtrail.schemas.artifacts import ALT_POSE_COLS as ALT_COLS
 from tagtrail.schemas.artifacts import CORNER_COLS, POSE_COLS, columns
+from tagtrail.schemas.pipeline import TagSizesFile
 from tagtrail.stages.base import StageParams
 
 log = logging.getLogger("tagtrail.pnp")
@@ -44,10 +45,17 @@ COLUMNS = columns("pnp.observations")
 
 
 class Params(StageParams):
-    """Tag edge length (black square, metres), with per-id overrides."""
+    """Tag edge length (black square, metres), with per-id overrides, from a known-poses file
+    too."""
 
     tag_size: float = Field(0.16, gt=0.0)
+    """The size of tags that neither ``tag_sizes`` nor ``tag_sizes_from`` gives."""
     tag_sizes: dict[int, float] = Field(default_factory=dict)
+    """Per-id sizes, over the file's."""
+    tag_sizes_from: TagSizesFile | None = None
+    """A ``tagslam.yaml`` or ``tag_map.yaml`` whose sizes are used (its per-tag sizes, then
+    its default for the other tags: TagSLAM's ``default_body``'s ``default_tag_size``);
+    schemas.pipeline.TagSizesFile."""
 
     @field_validator("tag_sizes")
     @classmethod
@@ -58,9 +66,13 @@ class Params(StageParams):
         return v
 
     def sizes(self, tag_ids: NDArray[Any]) -> NDArray[np.float64]:
-        """Edge length per tag id, (n,) m."""
+        """Edge length per tag id, (n,) m: ``tag_sizes``, else the file's size of the id, else
+        the file's default, else ``tag_size``."""
+        file = self.tag_sizes_from
+        sizes = {**(file.sizes if file is not None else {}), **self.tag_sizes}
+        fallback = file.default if file is not None and file.default is not None else self.tag_size
         ids, inv = np.unique(np.asarray(tag_ids, dtype=np.int64), return_inverse=True)
-        per_id = np.array([self.tag_sizes.get(int(t), self.tag_size) for t in ids], np.float64)
+        per_id = np.array([sizes.get(int(t), fallback) for t in ids], np.float64)
         return per_id[inv.reshape(-1)]
 
 

@@ -16,6 +16,7 @@ from tagtrail.geometry.survey import (
     from_wpilib,
     make_survey,
     parse_survey,
+    parse_tag_sizes,
 )
 
 
@@ -110,6 +111,26 @@ def test_tagslam_known_poses_compose_body_and_tag() -> None:
     assert np.allclose(sv.R[0], expect)
     with pytest.raises(ValueError, match="no tag with a pose"):
         from_tagslam({"bodies": [{"rig": {"is_static": False}}]})
+
+
+def test_tagslam_sizes_of_every_body_and_the_default_bodys_default() -> None:
+    """Sizes of tags with or without a pose, on static bodies or not (a rig's tags are seen too);
+    the default is the ``default_body``'s ``default_tag_size`` only (another body's sizes its
+    own tags); an id twice is refused."""
+    doc = {"default_body": "lab", "bodies": [
+        {"lab": {"is_static": True, "default_tag_size": 0.2,
+                 "tags": [{"id": 2, "size": 0.16}, {"id": 6}]}},
+        {"rig": {"is_static": False, "default_tag_size": 0.05, "tags": [{"id": 9}]}},
+        {"cart": {"is_static": False, "tags": [{"id": 11, "size": 0.3}, {"id": 12}]}}]}
+    fmt, sizes = parse_tag_sizes(doc)
+    assert fmt == "tagslam" and sizes.default == 0.2
+    assert sizes.per_id == {2: 0.16, 6: 0.2, 9: 0.05, 11: 0.3}  # 12: the default's
+    sizes = parse_tag_sizes({**doc, "default_body": "rig"})[1]
+    assert sizes.default == 0.05
+    assert parse_tag_sizes({"bodies": doc["bodies"]})[1].default is None
+    doc["bodies"][1]["rig"]["tags"].append({"id": 2})
+    with pytest.raises(ValueError, match="tag 2 is given twice"):
+        parse_tag_sizes(doc)
 
 
 def test_wpilib_layout_tag_frame_is_turned_to_spec() -> None:

@@ -193,7 +193,8 @@ def test_position_only_and_inline_known_tags(tmp_path: Path) -> None:
 
 @pytest.mark.parametrize(("name", "text", "message"), [
     ("layout.json", '{"tags": [{"ID": 1}]}', r"layout.json: tags\[0\]: expected \{ID, pose"),
-    ("layout.json", '{"tags": [', r"layout.json: cannot read known poses: Expecting value"),
+    ("layout.json", '{"tags": [',
+     r"layout.json: cannot read the known-poses file: Expecting value"),
     ("tagslam.yaml", "bodies:\n - rig: {is_static: false}\n",
      r"tagslam.yaml: no tag with a pose on a static body"),
     ("cameras.yaml", "cam0: {intrinsics: [1, 1, 1, 1]}\n", r"cameras.yaml: not a known-poses"),
