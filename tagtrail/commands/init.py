@@ -18,6 +18,7 @@ EXAMPLES = """examples:
   tagtrail init --reference bags/run1 --query bags/parked1
   tagtrail init --reference photos/ --camera photos/camera.yaml --tag-size 0.127
   tagtrail init --reference run1.bag --anchor 0 -o lab.yaml
+  tagtrail init --reference tag_detections.bag --camera cameras.yaml --survey tagslam.yaml
   tagtrail init --profile limo --reference bags/reference      # the LIMO's topics and defaults
   tagtrail init --list-profiles"""
 
@@ -36,6 +37,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="edge of the tags' black square in metres (default: pnp.tag_size)")
     parser.add_argument("--anchor", type=int, default=None, metavar="ID",
                         help="anchor (world) tag id (default: the most observed tag)")
+    parser.add_argument("--survey", type=Path, default=None, metavar="FILE",
+                        help="known tag poses (tagslam.yaml, a WPILib/PhotonVision layout JSON, "
+                        "a tag_map.yaml): the map in their world (optimize.survey.file), and "
+                        "the tag sizes the file gives (pnp.tag_sizes_from)")
     parser.add_argument("-o", "--output", type=Path, default=Path("pipeline.yaml"),
                         help="pipeline file to write (pipeline.yaml)")
     parser.add_argument("--force", action="store_true", help="overwrite an existing file")
@@ -97,6 +102,35 @@ def _stage_params(tag_size: float | None, profile: Profile | None = None) -> dic
     return {"pnp": stages.pop("pnp"), **stages}
 
 
+def _survey_params(survey: Path, base: Path, stages: dict[str, Any]) -> str:
+    """Name the known-poses file ``survey`` (relative to ``base``, the pipeline's folder) in
+    ``stages``: ``optimize.survey.file``, and ``pnp.tag_sizes_from`` when it gives tag sizes;
+    read as ``run`` will (one-line errors naming the file). Returns a one-line description."""
+    from pydantic import ValidationError
+
+    from tagtrail.schemas.pipeline import SurveyConfig, TagSizesFile
+
+    def first(err: ValidationError) -> str:
+        return str(err.errors()[0]["msg"]).removeprefix("Value error, ")
+
+    path = survey.resolve()
+    try:
+        known = SurveyConfig(file=str(path))
+    except ValidationError as err:
+        raise SpecError(f"--survey: {first(err)}") from err
+    name = _rel(path, base)
+    stages.setdefault("optimize", {})["survey"] = {"file": name}
+    desc = f"survey: {known.format}, known tags {sorted(known.known)}"
+    try:
+        sizes = TagSizesFile(file=str(path))
+    except ValidationError as err:  # the file is read above: it gives no (valid) size
+        reason = first(err).removeprefix(f"{path}: ")
+        return f"{desc}; tag size {stages['pnp']['tag_size']} m for every tag: {reason}"
+    stages["pnp"]["tag_sizes_from"] = name
+    other = "" if sizes.default is None else f", {sizes.default} m for the others"
+    return f"{desc}; tag sizes from it: {sizes.sizes}{other}"
+
+
 def main(args: argparse.Namespace) -> int:
     if args.list_profiles:
         print("\n".join(describe(p) for p in PROFILES.values()))
@@ -109,6 +143,7 @@ def main(args: argparse.Namespace) -> int:
     profile = get_profile(args.profile)
     stages = _stage_params(args.tag_size, profile)
     base = out.resolve().parent
+    survey = _survey_params(args.survey, base, stages) if args.survey is not None else None
     names = ["reference"] + [f"query{'' if i == 0 else f'_{i + 1}'}"
                              for i in range(len(args.query))]
     datasets: dict[str, Any] = {}
@@ -128,6 +163,8 @@ def main(args: argparse.Namespace) -> int:
             entry["camera"] = _rel(cfg.camera, base)
         datasets[name] = entry
         print(f"{name}: {desc}")
+    if survey is not None:
+        print(survey)
     if args.anchor is not None:  # the reference's gauge; queries may never see that tag
         datasets["reference"]["params"] = {"edges": {"anchor_id": args.anchor}}
     doc = {"reference": "reference", "datasets": datasets, "stages": stages}
