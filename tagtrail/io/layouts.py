@@ -24,7 +24,7 @@ from numpy.typing import NDArray
 
 from tagtrail import faults
 from tagtrail.errors import SourceError, one_line
-from tagtrail.schemas.artifacts import POSE_COLS
+from tagtrail.schemas.artifacts import EVIDENCE_COLS, POSE_COLS
 
 TRAJ_COLS = ["t_ns", *POSE_COLS]
 TAG_COLS = ["tag_id", *POSE_COLS, "n_obs"]
@@ -308,6 +308,20 @@ def trajectory_std_csv_text(traj: pd.DataFrame) -> str:
     n = traj["n_tags"].to_numpy(np.int64)
     for s_, n_, (p, r), k in zip(sec, nsec, std, n, strict=True):
         lines.append(f"{int(s_)},{int(n_)},{_opt(p)},{_opt(r)},{int(k)}")
+    return "\n".join(lines) + "\n"
+
+
+def trajectory_evidence_csv_text(traj: pd.DataFrame) -> str:
+    """``trajectory_evidence.csv``: ``stamp_sec,stamp_nanosec,n_tags`` and ``EVIDENCE_COLS`` per
+    frame of the trajectory CSV -- its corner RMS, that of the frame on its own corners, and
+    how far any temporal step moved it from there (empty cells: unknown)."""
+    t_ns = traj["t_ns"].to_numpy(np.int64)
+    sec, nsec = np.divmod(t_ns, 1_000_000_000)
+    lines = ["stamp_sec,stamp_nanosec,n_tags," + ",".join(EVIDENCE_COLS)]
+    vals = traj[EVIDENCE_COLS].to_numpy(np.float64)
+    n = traj["n_tags"].to_numpy(np.int64)
+    for s_, n_, k, v in zip(sec, nsec, n, vals, strict=True):
+        lines.append(f"{int(s_)},{int(n_)},{int(k)}," + ",".join(_opt(x) for x in v))
     return "\n".join(lines) + "\n"
 
 

@@ -20,6 +20,7 @@ import numpy as np
 import pandas as pd
 
 from tagtrail import faults
+from tagtrail.geometry.bundle import SHIFT_SIGMA_BOUND
 from tagtrail.geometry.reference_path import reference_plane
 from tagtrail.io import layouts, reloc_files
 from tagtrail.io.layouts import atomic_write_text
@@ -32,7 +33,7 @@ from tagtrail.runner.cache import (
 from tagtrail.runner.execute import Runner
 from tagtrail.runner.paths import clean_temp_files, inside
 from tagtrail.runner.stage import code_fingerprint
-from tagtrail.schemas.artifacts import columns, poses
+from tagtrail.schemas.artifacts import EVIDENCE_COLS, columns, poses
 from tagtrail.stages import optimize
 
 STAMP = ".tagtrail-export.json"
@@ -112,23 +113,50 @@ Getter = Callable[..., Any]
 
 def trajectories(get: Getter, folder: Path, dataset: str) -> bool:
     """``trajectory.csv``, ``trajectory.tum`` (smoothed) and ``trajectory_raw.csv``; with them
-    ``trajectory_std.csv`` (each frame's standard deviation) when the trajectory has one."""
+    ``trajectory_std.csv`` (each frame's standard deviation) and ``trajectory_evidence.csv``
+    (each frame's fit to its own corners) when the trajectory has them."""
     wrote = False
     smooth = get("smooth", "trajectory")
     if smooth is not None:
         layouts.write_trajectory_csv(folder / "trajectory.csv", smooth)
         layouts.write_trajectory_tum(folder / "trajectory.tum", smooth)
-        std = folder / "trajectory_std.csv"
-        if all(c in smooth.columns for c in layouts.STD_COLS) and smooth["std_pos_m"].notna().any():
-            layouts.atomic_write_text(std, layouts.trajectory_std_csv_text(smooth))
-        else:
-            std.unlink(missing_ok=True)  # not a stale one from another method's run
+        for name, cols, text in (
+                ("trajectory_std.csv", layouts.STD_COLS, layouts.trajectory_std_csv_text),
+                ("trajectory_evidence.csv", EVIDENCE_COLS,
+                 layouts.trajectory_evidence_csv_text)):
+            if all(c in smooth.columns for c in cols) and smooth[cols[0]].notna().any():
+                layouts.atomic_write_text(folder / name, text(smooth))
+            else:
+                (folder / name).unlink(missing_ok=True)  # not a stale one from another run
         wrote = True
     raw = get("trajectory", "trajectory")
     if raw is not None:
         layouts.write_trajectory_csv(folder / "trajectory_raw.csv", raw)
         wrote = True
     return wrote
+
+
+def _evidence_rows(traj: pd.DataFrame) -> list[tuple[str, Any]]:
+    """The reference trajectory against its evidence: corner RMS of the output and of the
+    frames on their own corners (medians, and their ratio), the temporal step's change, and the
+    frames it moved beyond their own uncertainty."""
+    def med(c: str) -> Any:
+        v = traj[c].to_numpy(np.float64)
+        return float(np.nanmedian(v)) if np.isfinite(v).any() else ""
+
+    def top(c: str) -> Any:
+        v = traj[c].to_numpy(np.float64)
+        return float(np.nanmax(v)) if np.isfinite(v).any() else ""
+
+    rp, ar = med("reproj_px"), med("alone_reproj_px")
+    sig = traj["shift_sigma"].to_numpy(np.float64)
+    beyond = int(np.sum(sig > SHIFT_SIGMA_BOUND)) if np.isfinite(sig).any() else ""
+    return [("frame_reproj_px_median", rp), ("frame_alone_reproj_px_median", ar),
+            ("frame_reproj_ratio", rp / ar if rp != "" and ar != "" and ar > 0 else ""),
+            ("frame_shift_m_median", med("shift_m")), ("frame_shift_m_max", top("shift_m")),
+            ("frame_shift_deg_max", top("shift_deg")),
+            ("frame_shift_sigma_max", top("shift_sigma")),
+            ("frames_moved_beyond_evidence", beyond)]
 
 
 def tag_map(get: Getter, folder: Path, dataset: str) -> bool:
@@ -194,6 +222,8 @@ def diagnostics(get: Getter, folder: Path, dataset: str) -> bool:
     if traj is not None and "std_pos_m" in traj.columns and traj["std_pos_m"].notna().any():
         rows += [("frame_std_pos_m_median", float(traj["std_pos_m"].median())),
                  ("frame_std_pos_m_max", float(traj["std_pos_m"].max()))]
+    if traj is not None and "shift_m" in traj.columns:
+        rows += _evidence_rows(traj)
     text = "metric,value\n" + "".join(f"{k},{v}\n" for k, v in rows)
     layouts.atomic_write_text(folder / "diagnostics.csv", text)
     return True

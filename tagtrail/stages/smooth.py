@@ -11,7 +11,10 @@ trajectory already held together by the motion prior of the joint solve (rows wi
 ``motion_prior``: smoothing it again would only move it away from its evidence) and ``lsq``
 otherwise (frame-by-frame trajectories: pairwise maps, observation-only datasets). The defaults
 favour the heading of short segments (what ``report``'s point mode compares a parked query with)
-without cutting the corners of a room loop.
+without cutting the corners of a room loop. The change it makes is added to each row's
+``shift_m`` / ``shift_deg`` (the distance from the frame's own evidence, when the trajectory
+carries it); its ``reproj_px`` and ``shift_sigma`` become unknown (NaN): the smoother sees no
+corners.
 """
 
 from __future__ import annotations
@@ -23,6 +26,7 @@ import pandas as pd
 from pydantic import Field
 
 from tagtrail.geometry.robust import LossName
+from tagtrail.geometry.rotations import geodesic_angle
 from tagtrail.geometry.se3 import R_from_quat_xyzw, quat_xyzw_from_R
 from tagtrail.geometry.smoothing import smooth_poses
 from tagtrail.schemas.artifacts import POSE_COLS, timed
@@ -64,9 +68,10 @@ def run(trajectory: pd.DataFrame, params: Params, frames: pd.DataFrame | None = 
     t_ns = traj["t_ns"].to_numpy(np.int64)
     t_s = (t_ns - t_ns[0]).astype(np.float64) * 1e-9
     vals = traj[POSE_COLS].to_numpy(np.float64)
+    R0 = R_from_quat_xyzw(vals[:, 3:])
     R, p = smooth_poses(
         t_s,
-        R_from_quat_xyzw(vals[:, 3:]),
+        R0,
         vals[:, :3],
         pos_sigma_m=params.pos_sigma_m,
         rot_sigma_rad=np.deg2rad(params.rot_sigma_deg),
@@ -78,4 +83,8 @@ def run(trajectory: pd.DataFrame, params: Params, frames: pd.DataFrame | None = 
     )
     out = traj.copy()
     out[POSE_COLS] = np.concatenate([p, quat_xyzw_from_R(R)], axis=1)
+    if "shift_m" in out.columns:  # camera centre and orientation moved by the smoothing
+        out["shift_m"] += np.linalg.norm(p - vals[:, :3], axis=1)
+        out["shift_deg"] += np.degrees(geodesic_angle(R, R0))
+        out["reproj_px"] = out["shift_sigma"] = np.nan
     return {"trajectory": out}

@@ -7,7 +7,11 @@ map fixed, so on the reference recording with the same settings it is the joint 
 trajectory). Each frame starts from the IPPE solution its neighbours agree with; a single-tag
 frame is held by its neighbours; frames further apart than ``max_gap_s`` are not linked, and
 frames without a tag get no pose. Rows carry ``std_pos_m`` / ``std_rot_deg`` (the frame's
-standard deviation given the map) and ``motion_prior`` (True: the smoother adds nothing).
+standard deviation given the map), ``motion_prior`` (True: the smoother adds nothing) and the
+frame's evidence (:class:`tagtrail.geometry.bundle.FrameEvidence`): ``reproj_px`` (its RMS
+corner error), ``alone_reproj_px`` (that of the frame on its own corners, the per-frame
+solution), ``shift_m`` / ``shift_deg`` / ``shift_sigma`` (how far the motion prior moved it from
+there, in metres, degrees and the per-frame solution's standard deviations).
 
 The frame-by-frame methods: every mapped tag ``i`` seen in a frame gives ``world_T_cam^(i) =
 world_T_tag_i (cam_T_tag_i)^-1`` (of its two IPPE solutions, the one with the lower reprojection
@@ -37,7 +41,10 @@ from tagtrail.geometry.bundle import (
     MotionPrior,
     corner_observations,
     corner_sigma,
+    frame_evidence,
+    frame_rms_px,
     initial_cameras,
+    observation_rms_px,
     solve_joint,
 )
 from tagtrail.geometry.camera import CameraModel
@@ -46,7 +53,9 @@ from tagtrail.geometry.ippe import best_pose
 from tagtrail.geometry.robust import LossName
 from tagtrail.geometry.se3 import T_from_xyz_quat, inv, make_T, xyz_quat_from_T
 from tagtrail.schemas.artifacts import (
+    ALT_POSE_COLS,
     CORNER_COLS,
+    EVIDENCE_COLS,
     POSE_COLS,
     both_solutions,
     columns,
@@ -108,12 +117,14 @@ def _empty() -> pd.DataFrame:
     return _extra(out)
 
 
-def _extra(out: pd.DataFrame, std: np.ndarray | None = None, prior: bool = False
-           ) -> pd.DataFrame:
+def _extra(out: pd.DataFrame, std: np.ndarray | None = None, prior: bool = False,
+           evidence: dict[str, np.ndarray] | None = None) -> pd.DataFrame:
     std = np.full((len(out), 2), np.nan) if std is None else std
     out["std_pos_m"] = std[:, 0]
     out["std_rot_deg"] = np.rad2deg(std[:, 1])
     out["motion_prior"] = np.full(len(out), prior)
+    for c in EVIDENCE_COLS:  # unknown (NaN) without corners
+        out[c] = np.full(len(out), np.nan) if evidence is None else evidence[c]
     return out
 
 
@@ -132,14 +143,24 @@ def joint_trajectory(rows: pd.DataFrame, ids: np.ndarray, W_map: np.ndarray,
     if params.motion != "none":
         prior = MotionPrior(t_s, params.motion_acc_sigma, np.radians(params.motion_ang_sigma_deg),
                             params.max_gap_s)
+    sigma = (params.corner_sigma_px if params.corner_weighting == "none" else
+             corner_sigma(rows[CORNER_COLS].to_numpy(np.float64), params.corner_sigma_px))
+    estimate = params.corner_noise == "estimated"
     res = solve_joint(
         W_map[:, :3, :3], W_map[:, :3, 3], cam_T_world[:, :3, :3], cam_T_world[:, :3, 3], ob,
-        np.zeros(len(ids), bool), px_per_unit=camera.focal_px,
-        sigma_px=(params.corner_sigma_px if params.corner_weighting == "none" else
-                  corner_sigma(rows[CORNER_COLS].to_numpy(np.float64), params.corner_sigma_px)),
+        np.zeros(len(ids), bool), px_per_unit=camera.focal_px, sigma_px=sigma,
         loss=params.joint_loss, f_scale_px=params.joint_f_scale_px,
-        max_iter=params.joint_max_iter, prior=prior, covariance=True,
-        estimate_noise=params.corner_noise == "estimated")
+        max_iter=params.joint_max_iter, prior=prior, covariance=True, estimate_noise=estimate)
+    if prior is not None:
+        ev = frame_evidence(res, ob, px_per_unit=camera.focal_px, sigma_px=sigma,
+                            loss=params.joint_loss, f_scale_px=params.joint_f_scale_px,
+                            estimate_noise=estimate, max_iter=params.joint_max_iter)
+        evidence = {c: getattr(ev, c) for c in EVIDENCE_COLS}
+    else:  # each frame on its own corners: it is its own evidence
+        rms = frame_rms_px(res.res_px, ob.frame, len(t_ns))
+        zero = np.zeros(len(t_ns))
+        evidence = dict(reproj_px=rms, alone_reproj_px=rms, shift_m=zero, shift_deg=zero,
+                        shift_sigma=zero)
     if not res.converged:
         log.warning("trajectory: the joint solve stopped after %d iterations (joint_max_iter) "
                     "before converging", res.iters)
@@ -149,7 +170,52 @@ def joint_trajectory(rows: pd.DataFrame, ids: np.ndarray, W_map: np.ndarray,
     out["n_tags"] = np.bincount(ob.frame, minlength=len(t_ns)).astype(np.int32)
     log.info("trajectory: joint solve of %d frames (%d held by the motion prior), corner RMS "
              "%.2f px", len(t_ns), res.prior_terms, float(np.sqrt(np.mean(res.res_px**2))))
-    return _extra(out, res.cam_std, prior is not None)
+    return _extra(out, res.cam_std, prior is not None, evidence)
+
+
+def _own_evidence(out: pd.DataFrame, frame_idx: np.ndarray, rows: pd.DataFrame,
+                  ids: np.ndarray, W_map: np.ndarray, camera: CameraModel | None) -> pd.DataFrame:
+    """Frame-by-frame poses ``out`` (of frames ``frame_idx``, sorted) are their own evidence:
+    their corner RMS (``reproj_px`` = ``alone_reproj_px``; NaN without corners), no shift."""
+    rms = np.full(len(out), np.nan)
+    rows = rows[rows["frame_idx"].isin(frame_idx)]
+    if len(rows) and camera is not None:
+        k = np.searchsorted(ids, rows["tag_id"].to_numpy(np.int64))
+        ob, _ = corner_observations(
+            rows["frame_idx"].to_numpy(np.int64), rows["t_ns"].to_numpy(np.int64), k,
+            rows[CORNER_COLS].to_numpy(np.float64).reshape(-1, 4, 2),
+            rows["size_m"].to_numpy(np.float64), camera)
+        frames, first = np.unique(rows["frame_idx"].to_numpy(np.int64), return_index=True)
+        order = np.argsort(rows["t_ns"].to_numpy(np.int64)[first], kind="stable")
+        where = np.searchsorted(frame_idx, frames[order])  # ob's frames are in time order
+        pose = out[POSE_COLS].to_numpy(np.float64)[where]
+        cam_T_world = inv(T_from_xyz_quat(pose[:, :3], pose[:, 3:]))
+        res = observation_rms_px(cam_T_world[:, :3, :3], cam_T_world[:, :3, 3], W_map[:, :3, :3],
+                                 W_map[:, :3, 3], ob, camera.focal_px)
+        rms[where] = frame_rms_px(res, ob.frame, len(where))
+    zero = np.zeros(len(out))
+    return _extra(out, evidence=dict(reproj_px=rms, alone_reproj_px=rms, shift_m=zero,
+                                     shift_deg=zero, shift_sigma=zero))
+
+
+def _at_map_scale(obs: pd.DataFrame, size: np.ndarray, ids: np.ndarray) -> pd.DataFrame:
+    """Observations at the map's tag sizes ``size`` (of the sorted ``ids``; NaN: unknown), where
+    they differ from the sizes pnp solved with: a surveyed similarity rescales the map, and a
+    query's tags are the reference map's. IPPE is scale-covariant, so a pose's translation scales
+    with the size."""
+    if "size_m" not in obs.columns or not len(obs):
+        return obs
+    own = obs["size_m"].to_numpy(np.float64)
+    new = size[np.searchsorted(ids, obs["tag_id"].to_numpy(np.int64))]
+    ratio = np.where(np.isfinite(new) & (new > 0) & np.isfinite(own) & (own > 0), new / own, 1.0)
+    if np.allclose(ratio, 1.0, rtol=1e-9, atol=0.0):
+        return obs
+    obs = obs.copy()
+    obs["size_m"] = own * ratio
+    for cols in (POSE_COLS[:3], ALT_POSE_COLS[:3]):
+        if all(c in obs.columns for c in cols):
+            obs[cols] = obs[cols].to_numpy(np.float64) * ratio[:, None]
+    return obs
 
 
 def run(
@@ -174,15 +240,17 @@ def run(
     W_map = T_from_xyz_quat(mv[:, :3], mv[:, 3:])
     obs = observations[observations["tag_id"].isin(ids)]
     obs = obs[~obs.duplicated(["frame_idx", "tag_id"], keep=False)]
+    if "size_m" in tag_map.columns:
+        obs = _at_map_scale(obs, tag_map["size_m"].to_numpy(np.float64)[order], ids)
     if obs.empty:
         log.warning("trajectory: no frame sees a mapped tag; the trajectory is empty")
         return {"trajectory": _empty()}
     obs = obs.sort_values(["frame_idx", "tag_id"], kind="stable")
     has_pix = detections is not None and len(detections) > 0 and camera is not None
     parts = []
+    rows = corner_rows(obs, detections, ids) if has_pix else pd.DataFrame(columns=["frame_idx"])
     if has_pix and params.method in ("auto", "joint"):
         assert camera is not None
-        rows = corner_rows(obs, detections, ids)
         if len(rows):
             parts.append(joint_trajectory(rows, ids, W_map, camera, params))
             # frames without usable corners fall back to the frame-by-frame fusion
@@ -223,5 +291,6 @@ def run(
     out = pd.DataFrame({"t_ns": t_ns})
     out[POSE_COLS] = np.concatenate([xyz, q], axis=1)
     out["n_tags"] = res.n_tags.astype(np.int32)
-    out = pd.concat([*parts, _extra(out)], ignore_index=True)
+    out = pd.concat([*parts, _own_evidence(out, uframe, rows, ids, W_map, camera)],
+                    ignore_index=True)
     return {"trajectory": out.sort_values("t_ns", kind="stable").reset_index(drop=True)}

@@ -3,12 +3,16 @@ its effect, the IPPE choice by continuity, and standard deviations that match th
 
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 
 from tagtrail.geometry.bundle import (
+    SHIFT_SIGMA_BOUND,
     CornerObservations,
     MotionPrior,
     _Prior,
+    frame_evidence,
     initial_cameras,
     left_update,
     link_tags,
@@ -267,3 +271,34 @@ def test_corner_noise_is_estimated_from_the_residuals() -> None:
                 prior=MotionPrior(t_s, 1.0, 1.0, 1.0))
     given = solve(ob, W, C, anchor, sigma_px=2.0, prior=MotionPrior(t_s, 1.0, 1.0, 1.0))
     assert given.sigma_px == 2.0 and abs(res.sigma_px - 0.5) < 0.05
+
+
+def test_frame_evidence_measures_a_move_in_the_frames_own_standard_deviations() -> None:
+    """Frames of a solution displaced from their own corners' optimum by a known number of their
+    standard deviations (along each frame's own covariance) read back as that many; the others
+    as nothing; the displaced frames' corner RMS grows, the per-frame solution's does not."""
+    ob, W, C, _, _ = corner_problem(noise_px=0.3, n_frames=60)
+    fixed = np.zeros(len(W), bool)
+    alone = solve_joint(W[:, :3, :3], W[:, :3, 3], C[:, :3, :3], C[:, :3, 3], ob, fixed,
+                        px_per_unit=FOCAL_PX, sigma_px=0.3, covariance=True)
+    assert alone.cam_cov is not None
+    moved, k_sigma = np.arange(0, 60, 7), 8.0
+    rng = np.random.default_rng(3)
+    d = np.zeros((60, 6))
+    for f in moved:  # a random direction scaled to k_sigma under that frame's covariance
+        u = rng.normal(size=6)
+        L = np.linalg.cholesky(alone.cam_cov[f])
+        d[f] = k_sigma * (L @ u) / np.linalg.norm(u)
+    Rc, tc = left_update(alone.R_cam, alone.t_cam, d)
+    res = dataclasses.replace(alone, R_cam=Rc, t_cam=tc, res_px=solve_joint(
+        W[:, :3, :3], W[:, :3, 3], Rc, tc, ob, fixed, px_per_unit=FOCAL_PX, sigma_px=0.3,
+        max_iter=0).res_px)
+    ev = frame_evidence(res, ob, px_per_unit=FOCAL_PX, sigma_px=0.3, loss="huber",
+                        f_scale_px=1.0)
+    rest = np.setdiff1d(np.arange(60), moved)
+    np.testing.assert_allclose(ev.shift_sigma[moved], k_sigma, rtol=0.1)
+    assert (ev.shift_sigma[moved] > SHIFT_SIGMA_BOUND).all()
+    assert ev.shift_sigma[rest].max() < 0.05 and ev.shift_m[rest].max() < 1e-5
+    assert (ev.reproj_px[moved] > ev.alone_reproj_px[moved]).all()
+    np.testing.assert_allclose(ev.alone_reproj_px, np.sqrt(
+        np.bincount(ob.frame, alone.res_px**2) / np.bincount(ob.frame)), rtol=1e-3)

@@ -112,3 +112,22 @@ def test_untimed_frames_are_neither_smoothed_nor_held_by_the_prior() -> None:
     moved = smooth_stage.run(traj, smooth_stage.Params(method="lsq"),
                              frames.assign(timed=True))["trajectory"]
     assert moved["x_m"].tolist() != traj["x_m"].tolist()
+
+
+def test_the_change_it_makes_is_added_to_the_frames_shift_from_their_evidence() -> None:
+    """A frame-by-frame trajectory is its own evidence (shift 0, its corner RMS known): after
+    smoothing each row's shift is what the smoothing moved it, and its corner RMS is unknown."""
+    t_s = np.arange(0.0, 20.0, 0.1)
+    raw = noisy(t_s, 4)
+    raw["reproj_px"] = raw["alone_reproj_px"] = 0.2
+    raw["shift_m"] = raw["shift_deg"] = raw["shift_sigma"] = 0.0
+    out = smooth.run(raw, smooth.Params())["trajectory"]
+    moved = np.linalg.norm(out[POSE[:3]].to_numpy() - raw[POSE[:3]].to_numpy(), axis=1)
+    turned = np.degrees(Rotation.from_matrix(
+        R_from_quat_xyzw(out[POSE[3:]].to_numpy()).transpose(0, 2, 1)
+        @ R_from_quat_xyzw(raw[POSE[3:]].to_numpy())).magnitude())
+    assert moved.mean() > 0.005  # the 2 cm noise was smoothed
+    np.testing.assert_allclose(out["shift_m"], moved, atol=1e-12)
+    np.testing.assert_allclose(out["shift_deg"], turned, atol=1e-9)
+    assert out["reproj_px"].isna().all() and out["shift_sigma"].isna().all()
+    assert (out["alone_reproj_px"] == 0.2).all()
