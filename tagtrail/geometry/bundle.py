@@ -424,13 +424,16 @@ class FrameEvidence:
     fixed, no motion prior: the per-frame solution), ``shift_m`` / ``shift_deg`` the change of
     the camera centre and orientation the motion prior made, ``shift_sigma`` that change in the
     per-frame solution's standard deviations (Mahalanobis distance over the 6 pose parameters:
-    below 4.74 in 99.9 % of frames when the prior only removes noise of the assumed size)."""
+    below 4.74 in 99.9 % of frames when the prior only removes noise of the assumed size);
+    ``R_alone (F, 3, 3)``, ``t_alone (F, 3)``: the per-frame solution's ``cam_T_world``."""
 
     reproj_px: F64
     alone_reproj_px: F64
     shift_m: F64
     shift_deg: F64
     shift_sigma: F64
+    R_alone: F64
+    t_alone: F64
 
 
 SHIFT_SIGMA_BOUND = 4.74  # sqrt of chi^2 with 6 dof at 99.9 %
@@ -475,7 +478,7 @@ def frame_evidence(res: JointResult, ob: CornerObservations, *, px_per_unit: flo
         alone_reproj_px=frame_rms_px(alone.res_px, ob.frame, n_f),
         shift_m=np.linalg.norm(centre - centre_alone, axis=1),
         shift_deg=np.degrees(np.linalg.norm(w, axis=1)),
-        shift_sigma=np.sqrt(np.maximum(maha, 0.0)))
+        shift_sigma=np.sqrt(np.maximum(maha, 0.0)), R_alone=alone.R_cam, t_alone=alone.t_cam)
 
 
 def same_frame_pairs(frame: I64) -> tuple[I64, I64]:

@@ -33,7 +33,7 @@ from tagtrail.runner.cache import (
 from tagtrail.runner.execute import Runner
 from tagtrail.runner.paths import clean_temp_files, inside
 from tagtrail.runner.stage import code_fingerprint
-from tagtrail.schemas.artifacts import EVIDENCE_COLS, columns, poses
+from tagtrail.schemas.artifacts import EVIDENCE_COLS, columns, per_frame, poses
 from tagtrail.stages import optimize
 
 STAMP = ".tagtrail-export.json"
@@ -112,7 +112,8 @@ Getter = Callable[..., Any]
 
 
 def trajectories(get: Getter, folder: Path, dataset: str) -> bool:
-    """``trajectory.csv``, ``trajectory.tum`` (smoothed) and ``trajectory_raw.csv``; with them
+    """``trajectory.csv``, ``trajectory.tum`` (smoothed) and ``trajectory_raw.csv`` (each frame on
+    its own: before the motion prior or the smoother); with them
     ``trajectory_std.csv`` (each frame's standard deviation) and ``trajectory_evidence.csv``
     (each frame's fit to its own corners) when the trajectory has them."""
     wrote = False
@@ -130,8 +131,8 @@ def trajectories(get: Getter, folder: Path, dataset: str) -> bool:
                 (folder / name).unlink(missing_ok=True)  # not a stale one from another run
         wrote = True
     raw = get("trajectory", "trajectory")
-    if raw is not None:
-        layouts.write_trajectory_csv(folder / "trajectory_raw.csv", raw)
+    if raw is not None:  # before any temporal step: each frame on its own corners
+        layouts.write_trajectory_csv(folder / "trajectory_raw.csv", per_frame(raw))
         wrote = True
     return wrote
 

@@ -63,6 +63,16 @@ ALT_POSE_COLS = [n for n, _ in ALT_POSE]  # pnp's second IPPE solution
 CORNER_COLS = [n for n, _ in CORNERS]  # c0x, c0y, ..., c3x, c3y (px)
 # a trajectory frame's evidence (geometry.bundle.FrameEvidence), when the trajectory carries it
 EVIDENCE_COLS = ["reproj_px", "alone_reproj_px", "shift_m", "shift_deg", "shift_sigma"]
+ALONE_POSE_COLS = [f"alone_{n}" for n in POSE_COLS]  # the frame on its own corners (world_T_cam)
+
+
+def per_frame(traj: pd.DataFrame) -> pd.DataFrame:
+    """A trajectory table with each frame's own pose (its ``ALONE_POSE_COLS``, when it has
+    them) as its pose: the trajectory before any temporal step."""
+    if not all(c in traj.columns for c in ALONE_POSE_COLS):
+        return traj
+    return traj.drop(columns=POSE_COLS).rename(
+        columns=dict(zip(ALONE_POSE_COLS, POSE_COLS, strict=True)))
 
 
 def columns(name: str) -> list[str]:

@@ -29,7 +29,7 @@ import pandas as pd
 from tagtrail.errors import DataError
 from tagtrail.geometry.registration import umeyama
 from tagtrail.geometry.se3 import T_from_xyz_quat, inv, make_T, pose_error
-from tagtrail.schemas.artifacts import POSE_COLS
+from tagtrail.schemas.artifacts import POSE_COLS, per_frame
 from tagtrail.schemas.documents import Evaluation
 from tagtrail.schemas.inputs import GroundTruth
 from tagtrail.stages.base import StageParams
@@ -152,7 +152,7 @@ def run(
         "anchor_id": anchor,
         "gt_anchor_id": gt_anchor,
         "trajectory": trajectory_errors(trajectory, gt_traj, gt_T_world),
-        "trajectory_raw": trajectory_errors(raw_trajectory, gt_traj, gt_T_world),
+        "trajectory_raw": trajectory_errors(per_frame(raw_trajectory), gt_traj, gt_T_world),
         "tags": _block(T_tag, T_tag_gt, n_tags),
         "gauge_free": gauge_free,
     }

@@ -11,7 +11,9 @@ standard deviation given the map), ``motion_prior`` (True: the smoother adds not
 frame's evidence (:class:`tagtrail.geometry.bundle.FrameEvidence`): ``reproj_px`` (its RMS
 corner error), ``alone_reproj_px`` (that of the frame on its own corners, the per-frame
 solution), ``shift_m`` / ``shift_deg`` / ``shift_sigma`` (how far the motion prior moved it from
-there, in metres, degrees and the per-frame solution's standard deviations).
+there, in metres, degrees and the per-frame solution's standard deviations) and that per-frame
+pose itself (``alone_*`` pose columns: ``trajectory_raw.csv``, the trajectory before any temporal
+step).
 
 The frame-by-frame methods: every mapped tag ``i`` seen in a frame gives ``world_T_cam^(i) =
 world_T_tag_i (cam_T_tag_i)^-1`` (of its two IPPE solutions, the one with the lower reprojection
@@ -53,6 +55,7 @@ from tagtrail.geometry.ippe import best_pose
 from tagtrail.geometry.robust import LossName
 from tagtrail.geometry.se3 import T_from_xyz_quat, inv, make_T, xyz_quat_from_T
 from tagtrail.schemas.artifacts import (
+    ALONE_POSE_COLS,
     ALT_POSE_COLS,
     CORNER_COLS,
     EVIDENCE_COLS,
@@ -118,13 +121,17 @@ def _empty() -> pd.DataFrame:
 
 
 def _extra(out: pd.DataFrame, std: np.ndarray | None = None, prior: bool = False,
-           evidence: dict[str, np.ndarray] | None = None) -> pd.DataFrame:
+           evidence: dict[str, np.ndarray] | None = None, alone: np.ndarray | None = None
+           ) -> pd.DataFrame:
+    """The columns after the pose: std, ``motion_prior``, the evidence (NaN: unknown, without
+    corners) and the frame's own pose ``alone (N, 7)`` (default: the pose itself)."""
     std = np.full((len(out), 2), np.nan) if std is None else std
     out["std_pos_m"] = std[:, 0]
     out["std_rot_deg"] = np.rad2deg(std[:, 1])
     out["motion_prior"] = np.full(len(out), prior)
-    for c in EVIDENCE_COLS:  # unknown (NaN) without corners
+    for c in EVIDENCE_COLS:
         out[c] = np.full(len(out), np.nan) if evidence is None else evidence[c]
+    out[ALONE_POSE_COLS] = out[POSE_COLS].to_numpy(np.float64) if alone is None else alone
     return out
 
 
@@ -156,11 +163,13 @@ def joint_trajectory(rows: pd.DataFrame, ids: np.ndarray, W_map: np.ndarray,
                             loss=params.joint_loss, f_scale_px=params.joint_f_scale_px,
                             estimate_noise=estimate, max_iter=params.joint_max_iter)
         evidence = {c: getattr(ev, c) for c in EVIDENCE_COLS}
+        alone = np.concatenate(xyz_quat_from_T(inv(make_T(ev.R_alone, ev.t_alone))), axis=1)
     else:  # each frame on its own corners: it is its own evidence
         rms = frame_rms_px(res.res_px, ob.frame, len(t_ns))
         zero = np.zeros(len(t_ns))
         evidence = dict(reproj_px=rms, alone_reproj_px=rms, shift_m=zero, shift_deg=zero,
                         shift_sigma=zero)
+        alone = None
     if not res.converged:
         log.warning("trajectory: the joint solve stopped after %d iterations (joint_max_iter) "
                     "before converging", res.iters)
@@ -170,7 +179,7 @@ def joint_trajectory(rows: pd.DataFrame, ids: np.ndarray, W_map: np.ndarray,
     out["n_tags"] = np.bincount(ob.frame, minlength=len(t_ns)).astype(np.int32)
     log.info("trajectory: joint solve of %d frames (%d held by the motion prior), corner RMS "
              "%.2f px", len(t_ns), res.prior_terms, float(np.sqrt(np.mean(res.res_px**2))))
-    return _extra(out, res.cam_std, prior is not None, evidence)
+    return _extra(out, res.cam_std, prior is not None, evidence, alone)
 
 
 def _own_evidence(out: pd.DataFrame, frame_idx: np.ndarray, rows: pd.DataFrame,

@@ -13,7 +13,7 @@ from tagtrail.errors import DataError
 from tagtrail.geometry.bundle import SHIFT_SIGMA_BOUND
 from tagtrail.geometry.se3 import T_from_xyz_quat, make_T, pose_error
 from tagtrail.runner.stage import stage_spec
-from tagtrail.schemas.artifacts import EVIDENCE_COLS
+from tagtrail.schemas.artifacts import ALONE_POSE_COLS, EVIDENCE_COLS
 from tagtrail.stages import trajectory
 from tests.stages.mapping_scene import (
     CAMERA,
@@ -62,7 +62,7 @@ def test_stage_contract() -> None:
     assert str(spec.inputs["camera"]) == "extract.camera"
 
 
-EXTRA = ["std_pos_m", "std_rot_deg", "motion_prior", *EVIDENCE_COLS]
+EXTRA = ["std_pos_m", "std_rot_deg", "motion_prior", *EVIDENCE_COLS, *ALONE_POSE_COLS]
 
 
 @pytest.mark.parametrize("method", ["avg", "lsq", "pnp", "joint-none"])
@@ -153,6 +153,8 @@ def test_joint_frames_report_how_far_the_motion_prior_moved_them(scene: Scene) -
     moved = np.linalg.norm(traj[POSE[:3]].to_numpy() - alone[POSE[:3]].to_numpy(), axis=1)
     np.testing.assert_allclose(traj["shift_m"], moved, atol=1e-6)
     np.testing.assert_allclose(traj["alone_reproj_px"], alone["reproj_px"], atol=1e-6)
+    np.testing.assert_allclose(traj[ALONE_POSE_COLS[:3]], alone[POSE[:3]], atol=1e-6)
+    np.testing.assert_allclose(alone[ALONE_POSE_COLS], alone[POSE])
     # the prior holds the frames nearer the truth, and within what their corners allow
     assert np.median(frame_errors(scene, traj)[0]) < np.median(frame_errors(scene, alone)[0])
     assert np.median(traj["reproj_px"]) <= 1.2 * np.median(traj["alone_reproj_px"])
