@@ -194,11 +194,14 @@ def bench_posegraph(repeats: int) -> list[Row]:
                         f"{c.ours_s:.3f} s ({c.nfev} evaluations) vs {c.gtsam_s:.3f} s (its LM "
                         f"alone {c.gtsam_lm_s:.3f} s, {c.gtsam_iters} iterations)",
                         c.time_ratio, "<= 1.5x", c.time_ratio <= 1.5))  # fmt: skip
-        rows.append(Row("posegraph", f"pose graph vs GTSAM, {size}: error",
-                        f"{c.ours_err_m * 1e3:.3f} vs {c.gtsam_err_m * 1e3:.3f} mm mean tag "
-                        f"position error (soft_l1 vs Huber); same Huber kernel "
-                        f"{c.huber_err_m * 1e3:.3f} mm = {c.same_kernel_error_ratio:.3f}x",
-                        c.error_ratio, "<= 1.0x", c.error_ratio <= 1.0))  # fmt: skip
+        # the solvers compared on the same cost: both with GTSAM's Huber kernel; the default
+        # soft_l1 beside it (a different cost, so a different minimum)
+        rows.append(Row("posegraph", f"pose graph vs GTSAM, {size}: error (same Huber kernel)",
+                        f"{c.huber_err_m * 1e3:.3f} vs {c.gtsam_err_m * 1e3:.3f} mm mean tag "
+                        f"position error; with the default soft_l1 {c.ours_err_m * 1e3:.3f} mm "
+                        f"= {c.error_ratio:.3f}x",
+                        c.same_kernel_error_ratio, "<= 1.0x",
+                        c.same_kernel_error_ratio <= 1.0))  # fmt: skip
     return rows
 
 
@@ -530,8 +533,8 @@ def write(path: Path, rows: dict[str, list[Row]], took: dict[str, float],
         "- The pose graph: tagtrail's default kernel is soft_l1, which GTSAM does not have; "
         "GTSAM runs Huber at the same scale (0.1). Both start from the same spanning-tree "
         "guess, timed on both sides; GTSAM's time includes building its factor graph from "
-        "Python (its LM alone is given). The error with the same Huber kernel on both sides "
-        "is in the measured column.",
+        "Python (its LM alone is given). The error ratio compares the solvers on the same "
+        "cost (Huber on both sides); the default soft_l1's error is in the measured column.",
         "- The recording phase: `tagtrail run` (extract .. smooth, eval; the joint solve) in a "
         "child process from an empty store; peak RSS is the largest resident set of that "
         "process and the ones it waited for (`ru_maxrss`).",
