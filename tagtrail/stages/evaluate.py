@@ -3,8 +3,9 @@
 Ground truth is a SPEC folder (``trajectory.csv`` of ``world_T_cam`` with world = the GT anchor
 tag's frame, ``tag_map.yaml``/``.csv`` with every tag). The estimate's world is its anchor's frame
 (the tag at the identity pose); when it differs from the GT anchor, GT is re-expressed in it first:
-``a_T_x = (gt_T_a)^-1 gt_T_x``. Trajectory poses are matched by exact stamp; tags by id (the
-anchor itself, exact by construction, is left out of the tag statistics). Errors: position
+``a_T_x = (gt_T_a)^-1 gt_T_x``; a map with no tag at the identity (``optimize.survey``: a surveyed
+world) is taken to be in ground truth's world. Trajectory poses are matched by exact stamp; tags by
+id (the anchor itself, exact by construction, is left out of the tag statistics). Errors: position
 ``|p - p_gt|`` (m) and rotation angle of ``R_gt^T R`` (deg); statistics mean, median, rmse, p95,
 max, min.
 
@@ -120,7 +121,8 @@ def run(
     anchor = estimated_anchor(tag_map)
     if anchor is None:
         anchor = gt_anchor
-        log.warning("eval: the tag map has no tag at the identity; assuming GT's world frame")
+        log.warning("eval: no tag of the map is at the identity (a surveyed world?): the "
+                    "anchored errors take it to be ground truth's world")
     if anchor is not None and anchor != gt_anchor:
         if anchor not in gt_tags.index:
             raise DataError(
