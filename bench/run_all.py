@@ -41,6 +41,7 @@ import time  # noqa: E402
 from collections.abc import Callable  # noqa: E402
 from dataclasses import dataclass  # noqa: E402
 from pathlib import Path  # noqa: E402
+from typing import Any  # noqa: E402
 
 import yaml  # noqa: E402
 
@@ -504,17 +505,27 @@ def read_rows(path: Path) -> dict[str, list[Row]]:
         return {}
 
 
-def write(path: Path, rows: dict[str, list[Row]], took: dict[str, float],
-          loads: dict[str, float], load: float) -> None:  # fmt: skip
+def read_runs(path: Path) -> dict[str, dict[str, Any]]:
+    """How each section of an existing RESULTS.md was run (seconds, load, commit, date)."""
+    try:
+        block = path.read_text().split("<!-- runs\n", 1)[1].split("\n-->", 1)[0]
+        runs: dict[str, dict[str, Any]] = json.loads(block)
+        return runs
+    except (OSError, IndexError, ValueError):
+        return {}
+
+
+def write(path: Path, rows: dict[str, list[Row]], runs: dict[str, dict[str, Any]]) -> None:
     ordered = [r for s in SECTIONS for r in rows.get(s, [])]
-    total = sum(took.values())
-    ran = ", ".join(f"{s} {t:.0f} s (load {loads[s]:.1f})" for s, t in took.items())
+    total = sum(r["s"] for r in runs.values())
+    ran = ", ".join(f"{s} {r['s']:.0f} s (load {r['load']:.1f}, {r['commit']}, {r['date']})"
+                    for s, r in sorted(runs.items(), key=lambda kv: list(SECTIONS).index(kv[0])))
     text = "\n".join([
         "# tagtrail benchmarks",
         "",
-        f"Written by `make bench` (`bench/run_all.py`) at commit {commit()} on "
-        f"{time.strftime('%Y-%m-%d')}; this run took {total / 60:.1f} min, load average "
-        f"{load:.2f} at its start; per section (1-min load average at its start): {ran}.",
+        f"Written by `make bench` (`bench/run_all.py`; `--only SECTION` reruns one section and "
+        f"keeps the others); the sections took {total / 60:.1f} min in all; per section (its "
+        f"1-min load average at its start, the commit and the date it ran at): {ran}.",
         "",
         f"Machine: {machine()}.",
         "",
@@ -548,6 +559,9 @@ def write(path: Path, rows: dict[str, list[Row]], took: dict[str, float],
         "<!-- rows",
         json.dumps({s: [r.__dict__ for r in rs] for s, rs in rows.items()}, indent=1),
         "-->",
+        "<!-- runs",
+        json.dumps(runs, indent=1),
+        "-->",
         "",
     ])  # fmt: skip
     atomic_write_text(path, text)
@@ -559,25 +573,25 @@ def main() -> None:
     ap.add_argument("--out", type=Path, default=RESULTS)
     args = ap.parse_args()
     logging.basicConfig(level=logging.WARNING)
-    load = os.getloadavg()[0]
     rows = read_rows(args.out) if args.only else {}
-    took: dict[str, float] = {}
-    loads: dict[str, float] = {}
+    runs = read_runs(args.out) if args.only else {}
     for name, (fn, repeats) in SECTIONS.items():
         if args.only and name not in args.only:
             continue
-        loads[name] = os.getloadavg()[0]
-        print(f"[{name}] … (load average {loads[name]:.1f})", flush=True)
+        load = os.getloadavg()[0]
+        print(f"[{name}] … (load average {load:.1f})", flush=True)
         t0 = time.perf_counter()
         rows[name] = fn(repeats)
-        took[name] = time.perf_counter() - t0
+        took = time.perf_counter() - t0
+        runs[name] = {"s": took, "load": load, "commit": commit(),
+                      "date": time.strftime("%Y-%m-%d %H:%M")}
         for r in rows[name]:
             print(f"  {r.figure}: {r.measured}"
                   + ("" if r.ratio is None else f" -> {r.ratio:.2f}x")
                   + ("" if r.met is None else f" ({'met' if r.met else 'NOT met'})"), flush=True)
-        print(f"  ({took[name]:.0f} s)", flush=True)
-    write(args.out, rows, took, loads, load)
-    print(f"wrote {args.out} in {sum(took.values()) / 60:.1f} min")
+        print(f"  ({took:.0f} s)", flush=True)
+    write(args.out, rows, runs)
+    print(f"wrote {args.out}")
 
 
 if __name__ == "__main__":
