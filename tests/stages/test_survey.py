@@ -17,11 +17,13 @@ import yaml
 from tagtrail.errors import DataError, SpecError
 from tagtrail.geometry.registration import umeyama
 from tagtrail.geometry.rotations import geodesic_angle
-from tagtrail.geometry.se3 import R_from_rotvec, T_from_xyz_quat, make_T, rotation_angle
+from tagtrail.geometry.se3 import rotation_angle
 from tagtrail.runner.execute import Runner
 from tagtrail.runner.spec import load_pipeline
 from tagtrail.schemas.artifacts import POSE_COLS
 from tagtrail.stages import REGISTRY, optimize
+from tests.tagslam import poses as _poses
+from tests.tagslam import tagslam_reference as _tagslam_reference
 
 
 def _pipeline(tmp_path: Path, dataset: str, stages: dict) -> Path:
@@ -41,43 +43,6 @@ def _artifact(runner: Runner, stage: str, output: str) -> pd.DataFrame:
     key = next(s.key for s in runner.plan([stage]) if s.stage == stage)
     out: pd.DataFrame = runner.store.load(stage, key, output)
     return out
-
-
-def _poses(df: pd.DataFrame) -> np.ndarray:
-    v = df[POSE_COLS].to_numpy(np.float64)
-    return T_from_xyz_quat(v[:, :3], v[:, 3:])
-
-
-def _tagslam_reference(bag: Path, root: Path) -> tuple[dict[int, np.ndarray], dict]:
-    """TagSLAM's solution in its reference.bag: ``map_T_tag`` per tag (from /tf: map->body,
-    body->tag_<id>, the body static: lab, perch, ...) and ``map_T_cam0`` per stamp (the rig's
-    odometry @ camera_poses.yaml)."""
-    from rosbags.highlevel import AnyReader
-
-    cam = yaml.safe_load((root / "camera_poses.yaml").read_text())["cam0"]["pose"]
-    rig_T_cam = make_T(R_from_rotvec([cam["rotation"][k] for k in "xyz"]),
-                       [cam["position"][k] for k in "xyz"])
-    tf: dict[tuple[str, str], np.ndarray] = {}
-    cams: dict[int, np.ndarray] = {}
-    with AnyReader([bag]) as reader:
-        for conn, _, raw in reader.messages():
-            msg = reader.deserialize(raw, conn.msgtype)
-            if conn.msgtype == "nav_msgs/msg/Odometry":
-                p = msg.pose.pose
-                T = T_from_xyz_quat([p.position.x, p.position.y, p.position.z],
-                                    [p.orientation.x, p.orientation.y, p.orientation.z,
-                                     p.orientation.w])
-                stamp = msg.header.stamp
-                cams[stamp.sec * 10**9 + stamp.nanosec] = T @ rig_T_cam
-            else:
-                for t in msg.transforms:
-                    tr, q = t.transform.translation, t.transform.rotation
-                    tf[(t.header.frame_id, t.child_frame_id)] = T_from_xyz_quat(
-                        [tr.x, tr.y, tr.z], [q.x, q.y, q.z, q.w])
-    body = {parent for (parent, child) in tf if child.startswith("tag_")}  # lab, perch, ...
-    tags = {int(child[4:]): tf[("map", parent)] @ T for (parent, child), T in tf.items()
-            if parent in body and child.startswith("tag_")}
-    return tags, cams
 
 
 def test_tagslam_yaml_reproduces_tagslams_world_on_test_16(realdata: Path, tmp_path: Path,
