@@ -19,6 +19,7 @@ run. A worker that dies *while* holding a task is an error.
 from __future__ import annotations
 
 import atexit
+import contextvars
 import importlib
 import os
 import pickle
@@ -27,7 +28,7 @@ import signal
 import subprocess
 import sys
 import threading
-from collections.abc import Iterable, Iterator
+from collections.abc import Callable, Iterable, Iterator
 from contextlib import contextmanager
 from pathlib import Path
 from typing import Any, BinaryIO
@@ -181,6 +182,40 @@ def shared_pool(func: str, workers: int) -> Iterator[WorkerPool]:
                 pool.close()
         else:
             pool.close(kill=True)
+
+
+Mapper = Callable[[str, Iterable[tuple[Any, ...]]], Iterator[Any]]
+_MAPPER: contextvars.ContextVar[Mapper | None] = contextvars.ContextVar("tagtrail_mapper",
+                                                                       default=None)
+
+
+@contextmanager
+def task_mapper(mapper: Mapper) -> Iterator[None]:
+    """Within the block (this thread), :func:`map_tasks` hands its tasks to ``mapper`` instead
+    of a local pool: an executor's, e.g. the dask one, which runs each as a task of the cluster."""
+    token = _MAPPER.set(mapper)
+    try:
+        yield
+    finally:
+        _MAPPER.reset(token)
+
+
+def map_tasks(func: str, tasks: Iterable[tuple[Any, ...]], workers: int) -> Iterator[Any]:
+    """``func`` (``"package.module:function"``) over ``tasks``, results in any order: through the
+    :func:`task_mapper` in effect, else in a :func:`shared_pool` of ``workers`` processes."""
+    mapper = _MAPPER.get()
+    if mapper is not None:
+        yield from mapper(func, tasks)
+        return
+    with shared_pool(func, workers) as pool:
+        yield from pool.imap_unordered(tasks)
+
+
+def run_one(func: str, args: tuple[Any, ...]) -> Any:
+    """``func(*args)`` in a worker process of this process (a pool of one, kept for reuse): how
+    a task handed out by a :func:`task_mapper` runs where it lands."""
+    with shared_pool(func, 1) as pool:
+        return next(iter(pool.imap_unordered([args])))
 
 
 @atexit.register

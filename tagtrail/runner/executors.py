@@ -58,14 +58,15 @@ import pickle
 import socket
 import sys
 import time
-from collections.abc import Callable, Iterator
+import uuid
+from collections.abc import Callable, Iterable, Iterator
 from contextlib import ExitStack
 from dataclasses import dataclass
 from pathlib import Path
 from types import ModuleType
 from typing import Any, TypeVar
 
-from tagtrail import faults
+from tagtrail import faults, pool
 from tagtrail.errors import SpecError
 from tagtrail.runner.cache import Store
 from tagtrail.runner.inputs import resolve
@@ -205,7 +206,40 @@ def run_remote(task: NodeTask) -> int | None:
             f"{task.stage} ({task.module}) than `tagtrail run` does; install the same tagtrail "
             "on every worker and restart the workers"
         )
-    return run_node(task, spec, Store(task.artifacts))
+    with pool.task_mapper(_cluster_tasks):  # extract's frame chunks: tasks of the cluster
+        return run_node(task, spec, Store(task.artifacts))
+
+
+def _cluster_tasks(func: str, tasks: Iterable[tuple[Any, ...]]) -> Iterator[Any]:
+    """``pool.run_one(func, args)`` for each of ``tasks`` as a task of the cluster this worker
+    belongs to (so one long recording's chunks spread over every worker), at most two per worker
+    thread in flight; results as they complete. Each chunk goes from this worker to the one that
+    runs it directly (scattered), not through the scheduler."""
+    distributed: Any = importlib.import_module("distributed")
+    name = func.rsplit(":", 1)[-1].replace("_", "-")
+    here = distributed.get_worker().address
+    with distributed.worker_client(separate_thread=True) as client:
+        limit = 2 * max(1, sum(client.nthreads().values()))
+        pending = iter(tasks)
+        running = distributed.as_completed()
+
+        def submit() -> bool:
+            args = next(pending, None)
+            if args is None:
+                return False
+            [data] = client.scatter([args], hash=False, workers=[here])  # lost only with us
+            running.add(client.submit(pool.run_one, func, data, pure=False,
+                                      key=f"{name}-{uuid.uuid4().hex}"))
+            return True
+
+        for _ in range(limit):
+            if not submit():
+                break
+        for future in running:
+            result = future.result()
+            future.release()
+            yield result
+            submit()
 
 
 # --- dask -------------------------------------------------------------------------------------

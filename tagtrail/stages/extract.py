@@ -39,7 +39,7 @@ from pydantic import Field, field_validator
 
 from tagtrail.errors import SourceError
 from tagtrail.geometry.camera import CameraModel
-from tagtrail.pool import shared_pool
+from tagtrail.pool import map_tasks
 from tagtrail.schemas.artifacts import CORNER_COLS, POSE_COLS, columns
 from tagtrail.schemas.inputs import Frame, Source
 from tagtrail.stages.base import StageParams
@@ -308,10 +308,11 @@ def _map_chunks(
     chunks: Iterator[list[Frame]], cfg: DetectorConfig, params: Params, camera: CameraModel,
     n_frames: int,
 ) -> Iterator[dict[str, NDArray[Any]]]:
-    """``detect_chunk`` with ``cfg`` over ``chunks`` in worker processes (never in this one)."""
+    """``detect_chunk`` with ``cfg`` over ``chunks`` in worker processes (never in this one), or
+    as tasks of the cluster the node runs on (``pool.task_mapper``)."""
     workers = min(_n_workers(params.workers), max(1, -(-n_frames // params.chunk_size)))
-    with shared_pool("tagtrail.vision.apriltag:detect_chunk", workers) as pool:
-        yield from pool.imap_unordered((chunk, cfg, camera) for chunk in chunks)
+    yield from map_tasks("tagtrail.vision.apriltag:detect_chunk",
+                         ((chunk, cfg, camera) for chunk in chunks), workers)
 
 
 # --- tables ------------------------------------------------------------------------------------

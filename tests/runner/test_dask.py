@@ -177,6 +177,27 @@ def test_a_worker_killed_by_a_signal_is_replaced_and_the_run_matches(
 
 
 @needs_dask
+def test_a_recordings_frame_chunks_are_tasks_of_the_cluster(
+    tmp_path: Path, data: Path, local: Path, cluster: Any
+) -> None:
+    """extract's chunks of frames run as tasks of their own (``detect-chunk-*``) wherever the
+    cluster puts them, not only in the worker that runs the node; the outputs do not change."""
+    from distributed import Client, get_task_stream
+
+    f = project(tmp_path / "f", data)
+    with Client(cluster.scheduler_address) as client, get_task_stream(client) as stream:
+        runner = Runner(load_pipeline(f / "pipeline.yaml", REGISTRY,
+                                      overrides=["extract.chunk_size=8"]),
+                        jobs=2, executor="dask", scheduler=cluster.scheduler_address)
+        assert all(s.status == "ran" for s in runner.run())
+    chunks = [t for t in stream.data if t["key"].startswith("detect-chunk-")]
+    assert len(chunks) == -(-60 // 8) + 3  # reference: 60 frames; each query: 5
+    exported = tagtrail(f, "run")
+    assert exported.returncode == 0 and "0 ran" in exported.stdout, exported.stderr
+    assert files(f / "outputs") == files(local / "outputs")
+
+
+@needs_dask
 def test_an_existing_scheduler_from_the_command_line(
     tmp_path: Path, data: Path, local: Path, cluster: Any
 ) -> None:
