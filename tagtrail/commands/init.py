@@ -39,8 +39,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="anchor (world) tag id (default: the most observed tag)")
     parser.add_argument("--survey", type=Path, default=None, metavar="FILE",
                         help="known tag poses (tagslam.yaml, a WPILib/PhotonVision layout JSON, "
-                        "a tag_map.yaml): the map in their world (optimize.survey.file), and "
-                        "the tag sizes the file gives (pnp.tag_sizes_from)")
+                        "a tag_map.yaml): the map in their world (optimize.survey.file), every "
+                        "part of the tag graph placed by its known tags "
+                        "(edges.on_disconnected: keep), and the tag sizes the file gives "
+                        "(pnp.tag_sizes_from)")
     parser.add_argument("-o", "--output", type=Path, default=Path("pipeline.yaml"),
                         help="pipeline file to write (pipeline.yaml)")
     parser.add_argument("--force", action="store_true", help="overwrite an existing file")
@@ -104,7 +106,9 @@ def _stage_params(tag_size: float | None, profile: Profile | None = None) -> dic
 
 def _survey_params(survey: Path, base: Path, stages: dict[str, Any]) -> str:
     """Name the known-poses file ``survey`` (relative to ``base``, the pipeline's folder) in
-    ``stages``: ``optimize.survey.file``, and ``pnp.tag_sizes_from`` when it gives tag sizes;
+    ``stages``: ``optimize.survey.file``, ``edges.on_disconnected: keep`` (parts of the tag
+    graph never seen together are placed by their known tags), and ``pnp.tag_sizes_from`` when
+    it gives tag sizes;
     read as ``run`` will (one-line errors naming the file). Returns a one-line description."""
     from pydantic import ValidationError
 
@@ -120,6 +124,7 @@ def _survey_params(survey: Path, base: Path, stages: dict[str, Any]) -> str:
         raise SpecError(f"--survey: {first(err)}") from err
     name = _rel(path, base)
     stages.setdefault("optimize", {})["survey"] = {"file": name}
+    stages.setdefault("edges", {})["on_disconnected"] = "keep"  # each part placed by its tags
     desc = f"survey: {known.format}, known tags {sorted(known.known)}"
     try:
         sizes = TagSizesFile(file=str(path))

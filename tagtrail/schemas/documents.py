@@ -137,8 +137,18 @@ class SurveySummary(Document):
     per_tag: list[SurveyTag]
 
 
+class PlacedComponent(Document):
+    """A part of the tag graph not linked to the anchor, solved on its own and placed in the
+    surveyed world by the known tags it holds."""
+
+    anchor_id: int
+    tags: list[int]
+    survey: SurveySummary | None
+
+
 class OptimizeReport(Document):
-    """``optimize.report``: the pose graph solve (Eq. 3.4-3.7) and the optional refinement."""
+    """``optimize.report``: the pose graph solve (Eq. 3.4-3.7) and the optional refinement (of
+    the anchor's component), and the other components a surveyed world placed."""
 
     anchor_id: int
     loss: str
@@ -151,6 +161,7 @@ class OptimizeReport(Document):
     method: Literal["joint", "pairwise"]
     bundle: BundleSummary | None
     survey: SurveySummary | None = None
+    components: list[PlacedComponent] = []
 
 
 class ErrorStats(Document):

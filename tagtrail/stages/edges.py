@@ -24,7 +24,8 @@ of 1 (so ``optimize.f_scale`` keeps its meaning in metres for a typical edge) an
 uniform 3.3 / 5.2 / 12.9 cm.
 
 Only the anchor's connected component is mapped; other tags are dropped with a warning
-(``on_disconnected="drop"``) or fail the stage (``"fail"``: :class:`DisconnectedTagGraph`).
+(``on_disconnected="drop"``) or fail the stage (``"fail"``: :class:`DisconnectedTagGraph`), or
+every component is kept (``"keep"``) for ``optimize`` to place by a surveyed world's known tags.
 Weak links are reported too (warning + ``graph["weak_links"]``): tag pairs that are the only
 connection between two parts of the map (bridges of the tag graph) and are seen together in fewer
 than ``WEAK_LINK_OBS`` frames -- one bad frame there moves a whole part of the map, and no
@@ -71,7 +72,7 @@ class Params(StageParams):
     """A bridge of the tag graph (the only link between two parts of the map) whose runner-up
     combination has at least this share of the winner's support keeps it as a rival hypothesis
     (edges rows with ``hypothesis`` 1) for optimize to test."""
-    on_disconnected: Literal["drop", "fail"] = "drop"
+    on_disconnected: Literal["drop", "fail", "keep"] = "drop"
 
 
 INPUTS = {"observations": "pnp.observations"}
@@ -234,6 +235,8 @@ def run(observations: pd.DataFrame, params: Params) -> dict[str, Any]:
     )
     n_comp, label = connected_components(adj, directed=False)
     in_map = label == label[np.searchsorted(ids, anchor)]
+    if params.on_disconnected == "keep":
+        in_map[:] = True
     dropped = [{"tag_id": int(t), "n_obs": int(n_obs[t])} for t in ids[~in_map]]
     if dropped:
         names = ", ".join(f"{d['tag_id']} ({d['n_obs']} obs)" for d in dropped)
@@ -242,12 +245,14 @@ def run(observations: pd.DataFrame, params: Params) -> dict[str, Any]:
             f" {anchor} by unambiguous co-observations (frames showing two tags together,"
             " directly or through other tags)"
         )
+        msg_keep = ("; with known tag poses (optimize.survey), edges.on_disconnected=keep "
+                    "places each part by its known tags")
         if params.on_disconnected == "fail":
             raise DisconnectedTagGraph(
                 msg + "; record frames showing them together with mapped tags, choose another"
                 " edges.anchor_id, or set edges.on_disconnected=drop"
             )
-        log.warning("edges: %s; dropping them from the map", msg)
+        log.warning("edges: %s; dropping them from the map%s", msg, msg_keep)
 
     mapped = np.isin(ti, ids[in_map])
     a, b, ti, tj, T_ij = a[mapped], b[mapped], ti[mapped], tj[mapped], T_ij[mapped]

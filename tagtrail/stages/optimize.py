@@ -62,7 +62,7 @@ from tagtrail.schemas.artifacts import (
     corner_rows,
     timed,
 )
-from tagtrail.schemas.documents import OptimizeReport, RivalPair, TagGraph
+from tagtrail.schemas.documents import OptimizeReport, PlacedComponent, RivalPair, TagGraph
 from tagtrail.schemas.pipeline import SurveyConfig
 from tagtrail.stages.base import StageParams
 
@@ -373,6 +373,30 @@ def choose_hypotheses(
     return use, res, flipped
 
 
+def components(edges: pd.DataFrame, graph: TagGraph) -> list[np.ndarray]:
+    """The tag graph's connected components (tag ids), the anchor's first, then by size."""
+    tags = np.asarray(sorted(int(t) for t in graph.get("tags", [])), dtype=np.int64)
+    if graph.anchor_id not in tags:
+        raise DataError(f"optimize: anchor tag {graph.anchor_id} is not among the mapped tags "
+                        f"{tags}")
+    ti, tj = edges["tag_i"].to_numpy(np.int64), edges["tag_j"].to_numpy(np.int64)
+    if not (np.isin(ti, tags).all() and np.isin(tj, tags).all()):
+        raise DataError("optimize: edges name tags missing from the graph's tag list")
+    ii, jj = np.searchsorted(tags, ti), np.searchsorted(tags, tj)
+    adj = coo_matrix((np.ones(len(ii)), (ii, jj)), shape=(len(tags), len(tags)))
+    n, label = connected_components(adj, directed=False)
+    first = label[np.searchsorted(tags, graph.anchor_id)]
+    if n > 1 and n != graph.n_components:  # edges keeps one component, or all of them
+        lost = tags[label != first]
+        raise DataError(
+            f"optimize: tags {lost.tolist()} share no edge path with anchor tag "
+            f"{graph.anchor_id} (the edges and graph artifacts disagree; re-run the edges stage)"
+        )
+    order = sorted(range(n), key=lambda c: (c != first, -int((label == c).sum()),
+                                            int(tags[label == c].min())))
+    return [tags[label == c] for c in order]
+
+
 def run(
     edges: pd.DataFrame,
     graph: TagGraph,
@@ -382,23 +406,76 @@ def run(
     camera: CameraModel | None = None,
     frames: pd.DataFrame | None = None,
 ) -> dict[str, Any]:
-    """Tag map (``TAG_MAP_COLS``), per-edge residuals (``RESIDUAL_COLS``) and a report dict."""
+    """Tag map (``TAG_MAP_COLS``), per-edge residuals (``RESIDUAL_COLS``) and a report dict.
+
+    A tag graph of several components (``edges.on_disconnected: keep``): the anchor's is solved
+    as one graph; with a surveyed world, each other component is solved on its own (its most
+    observed tag its anchor, only its tags' observations) and placed by the known tags it holds
+    (``report.components``); a component no known tag places is left out with a warning, as all
+    of them are without a survey."""
+    comps = components(edges, graph)
+    if len(comps) == 1:
+        return _solve(edges, graph, observations, detections, params, camera, frames)
+    rest = np.concatenate(comps[1:])
+    if params.survey is None:
+        log.warning("optimize: tags %s are not linked to anchor tag %d by co-observations and "
+                    "there is no surveyed world (optimize.survey) to place them: left out",
+                    rest.tolist(), graph.anchor_id)
+
+    def part(tags: np.ndarray, anchor: int, obs_all: bool
+             ) -> tuple[pd.DataFrame, TagGraph, pd.DataFrame, pd.DataFrame | None]:
+        e = edges[edges["tag_i"].isin(tags).to_numpy()]
+        g = graph.model_copy(update={
+            "anchor_id": anchor, "tags": [int(t) for t in tags],
+            "rival_pairs": [r for r in graph.rival_pairs if r.tag_i in tags]})
+        if obs_all:  # the anchor's solve keeps every observation: the trajectory may link tags
+            return e, g, observations, detections
+        return (e, g, observations[observations["tag_id"].isin(tags).to_numpy()],
+                None if detections is None else
+                detections[detections["tag_id"].isin(tags).to_numpy()])
+
+    out = _solve(*part(comps[0], graph.anchor_id, True), params, camera=camera, frames=frames)
+    if params.survey is None:
+        return out
+    maps, residuals, placed = [out["tag_map"]], [out["edge_residuals"]], []
+    done = set(out["tag_map"]["tag_id"].tolist())
+    n_obs = observations.groupby("tag_id").size()
+    for tags in comps[1:]:
+        if done.issuperset(tags.tolist()):
+            continue  # the anchor's joint solve linked it through the trajectory
+        counts = n_obs.reindex(tags, fill_value=0).to_numpy()
+        anchor = int(tags[int(np.argmax(counts))])
+        try:
+            sub = _solve(*part(tags, anchor, False), params, camera=camera, frames=frames)
+        except DataError as err:
+            log.warning("optimize: tags %s (not linked to anchor tag %d) left out: %s",
+                        tags.tolist(), graph.anchor_id, err)
+            continue
+        new = ~sub["tag_map"]["tag_id"].isin(list(done)).to_numpy()
+        maps.append(sub["tag_map"][new])
+        residuals.append(sub["edge_residuals"])
+        done.update(sub["tag_map"]["tag_id"][new].tolist())
+        placed.append(PlacedComponent(anchor_id=anchor, tags=[int(t) for t in tags],
+                                      survey=sub["report"].survey))
+    tag_map = pd.concat(maps, ignore_index=True).sort_values("tag_id", ignore_index=True)
+    return {"tag_map": tag_map, "edge_residuals": pd.concat(residuals, ignore_index=True),
+            "report": out["report"].model_copy(update={"components": placed})}
+
+
+def _solve(
+    edges: pd.DataFrame,
+    graph: TagGraph,
+    observations: pd.DataFrame,
+    detections: pd.DataFrame | None,
+    params: Params,
+    camera: CameraModel | None = None,
+    frames: pd.DataFrame | None = None,
+) -> dict[str, Any]:
+    """:func:`run` on one connected tag graph."""
     tags = np.asarray(sorted(int(t) for t in graph.get("tags", [])), dtype=np.int64)
     anchor = graph.anchor_id
-    if anchor not in tags:
-        raise DataError(f"optimize: anchor tag {anchor} is not among the mapped tags {tags}")
     ti, tj = edges["tag_i"].to_numpy(np.int64), edges["tag_j"].to_numpy(np.int64)
-    if not (np.isin(ti, tags).all() and np.isin(tj, tags).all()):
-        raise DataError("optimize: edges name tags missing from the graph's tag list")
     ii, jj = np.searchsorted(tags, ti), np.searchsorted(tags, tj)
-    adj = coo_matrix((np.ones(len(ii)), (ii, jj)), shape=(len(tags), len(tags)))
-    _, label = connected_components(adj, directed=False)
-    lost = tags[label != label[np.searchsorted(tags, anchor)]]
-    if len(lost):
-        raise DataError(
-            f"optimize: tags {lost.tolist()} share no edge path with anchor tag {anchor}"
-            " (the edges and graph artifacts disagree; re-run the edges stage)"
-        )
     hyp = (edges["hypothesis"].to_numpy(np.int64) if "hypothesis" in edges.columns
            else np.zeros(len(edges), np.int64))
     use = hyp == 0

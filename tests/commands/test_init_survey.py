@@ -37,6 +37,7 @@ def test_init_survey_tagslam_yaml_then_run(realdata: Path, tmp_path: Path,
         "others" in out
     stages = yaml.safe_load((lab / "pipeline.yaml").read_text())["stages"]
     assert stages == {"pnp": {"tag_size": 0.5, "tag_sizes_from": "tagslam.yaml"},
+                      "edges": {"on_disconnected": "keep"},
                       "optimize": {"survey": {"file": "tagslam.yaml"}}}
     assert main(["run", "-p", "lab/pipeline.yaml", "optimize"]) == 0
     from tagtrail.runner.execute import Runner
@@ -65,6 +66,7 @@ def test_init_survey_field_layout_and_bad_files(realdata: Path, tmp_path: Path,
         "tag sizes" in capsys.readouterr().out
     stages = yaml.safe_load(Path("pipeline.yaml").read_text())["stages"]
     assert stages["pnp"] == {"tag_size": 0.1651}
+    assert stages["edges"] == {"on_disconnected": "keep"}
     assert Path(stages["optimize"]["survey"]["file"]).resolve() == \
         (photos / "2024-crescendo.json").resolve()
     cameras = realdata / "tagslam_test_16" / "cameras.yaml"

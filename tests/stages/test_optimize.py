@@ -25,7 +25,7 @@ TAG_MAP_COLS = ["tag_id", *POSE, "n_obs", "size_m", "res_t_rms_m", "res_r_rms_de
                 "std_rot_deg"]
 CORNERS = [f"c{k}{a}" for k in range(4) for a in "xy"]
 REPORT_KEYS = {"anchor_id", "loss", "f_scale", "cost", "nfev", "status", "rms_t_m", "rms_r_deg",
-               "method", "bundle", "survey"}
+               "method", "bundle", "survey", "components"}
 
 
 def paper_scene() -> Scene:
