@@ -84,6 +84,8 @@ class TagGraph(Document):
     """Co-observations whose edge uses a tag's second IPPE solution (``edges.branches``)."""
     rival_pairs: list[RivalPair] = []
     """Pairs with a close second hypothesis (edges rows with ``hypothesis`` 1)."""
+    ambiguous_kept: int = 0
+    """Ambiguous observations kept (down-weighted) because without them the graph splits."""
 
 
 class BundleSummary(Document):

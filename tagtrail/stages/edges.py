@@ -73,6 +73,9 @@ class Params(StageParams):
     combination has at least this share of the winner's support keeps it as a rival hypothesis
     (edges rows with ``hypothesis`` 1) for optimize to test."""
     on_disconnected: Literal["drop", "fail", "keep"] = "drop"
+    ambiguous_weight: float = Field(0.1, gt=0.0, le=1.0)
+    """Weight factor of the edges of ambiguous observations kept because, left out, they would
+    split the tag graph (the pose graph's start; the joint solve uses every observation)."""
 
 
 INPUTS = {"observations": "pnp.observations"}
@@ -101,6 +104,40 @@ def _unambiguous(obs: pd.DataFrame, p: Params) -> np.ndarray:
     if p.max_ambiguity is None or "ambiguity" not in obs.columns:
         return np.ones(len(obs), dtype=bool)
     return ~(obs["ambiguity"].to_numpy(np.float64) > p.max_ambiguity)
+
+
+def _bridging(obs: pd.DataFrame, keep: np.ndarray, amb: np.ndarray, ids: np.ndarray,
+              min_edge_obs: int) -> np.ndarray:
+    """Mask of the ambiguous observations (``amb``) seen in a frame with a tag that the
+    unambiguous ones (``keep``) leave in another part of the tag graph: dropped, they would
+    split the graph (issue 12: kept and down-weighted instead), where the two parts are seen
+    together in ``WEAK_LINK_OBS`` frames or more."""
+    out = np.zeros(len(obs), bool)
+    if not amb.any():
+        return out
+    frame = obs["frame_idx"].to_numpy(np.int64)
+    tag = np.searchsorted(ids, obs["tag_id"].to_numpy(np.int64))
+    k = np.flatnonzero(keep)
+    k = k[np.argsort(frame[k], kind="stable")]
+    a, b = pair_indices(frame[k])
+    key, cnt = np.unique(tag[k[a]] * len(ids) + tag[k[b]], return_counts=True)
+    key = key[cnt >= min_edge_obs]
+    adj = coo_matrix((np.ones(len(key)), (key // len(ids), key % len(ids))), shape=(len(ids),) * 2)
+    _, label = connected_components(adj, directed=False)
+    u = np.flatnonzero(keep | amb)
+    u = u[np.argsort(frame[u], kind="stable")]
+    a, b = pair_indices(frame[u])
+    ra, rb = u[a], u[b]
+    cross = (label[tag[ra]] != label[tag[rb]]) & (amb[ra] | amb[rb])
+    ra, rb = ra[cross], rb[cross]
+    # a link seen in a frame or two (a photo) is as likely mirrored as not: left out
+    parts = np.sort(np.stack([label[tag[ra]], label[tag[rb]]], axis=1), axis=1)
+    link = parts[:, 0] * len(ids) + parts[:, 1]
+    frames = pd.Series(frame[ra]).groupby(link).nunique()
+    ok = np.isin(link, frames.index[frames.to_numpy() >= WEAK_LINK_OBS])
+    out[ra[ok & amb[ra]]] = True
+    out[rb[ok & amb[rb]]] = True
+    return out
 
 
 def pair_indices(frame: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -202,15 +239,21 @@ def run(observations: pd.DataFrame, params: Params) -> dict[str, Any]:
     if dup.any():
         log.warning("edges: %d observations of a tag seen twice in one frame ignored", dup.sum())
     keep = ~dup & _unambiguous(obs, params)
-    n_amb = int((~keep).sum() - dup.sum())
-    if n_amb:
-        log.info("edges: %d ambiguous observations left out of the graph", n_amb)
-    ob = obs[keep].sort_values(["frame_idx", "tag_id"], kind="stable")
+    amb = ~dup & ~keep
+    ids = n_obs.index.to_numpy(np.int64)  # sorted
+    back = _bridging(obs, keep, amb, ids, params.min_edge_obs)
+    if amb.any():
+        log.info("edges: %d ambiguous observations left out of the graph", int((amb & ~back).sum()))
+    if back.any():
+        log.warning("edges: %d ambiguous observations kept (their edges weighted x%g): without "
+                    "them the tag graph splits", int(back.sum()), params.ambiguous_weight)
+    ob = obs[keep | back].assign(_back=back[keep | back])
+    ob = ob.sort_values(["frame_idx", "tag_id"], kind="stable")
 
     a, b = pair_indices(ob["frame_idx"].to_numpy())
     tag = ob["tag_id"].to_numpy(np.int64)
     T = T_from_xyz_quat(ob[POSE_COLS[:3]].to_numpy(np.float64), ob[POSE_COLS[3:]].to_numpy())
-    ids = n_obs.index.to_numpy(np.int64)  # sorted
+    weak_row = ob["_back"].to_numpy(bool)
     ni, nj = np.searchsorted(ids, tag[a]), np.searchsorted(ids, tag[b])
     alt = None
     if params.branches == "consistent" and len(a):
@@ -264,6 +307,7 @@ def run(observations: pd.DataFrame, params: Params) -> dict[str, Any]:
         w = edge_weights(dist[a], dist[b], size[a], size[b])
     else:
         w = np.ones(len(a))
+    w = np.where(weak_row[a] | weak_row[b], w * params.ambiguous_weight, w)
     edges = pd.DataFrame(
         {"t_ns": ob["t_ns"].to_numpy(np.int64)[a], "tag_i": ti.astype(np.int32),
          "tag_j": tj.astype(np.int32)}
@@ -285,6 +329,7 @@ def run(observations: pd.DataFrame, params: Params) -> dict[str, Any]:
         rxyz, rq = xyz_quat_from_T(rT)
         rw = (edge_weights(dist[ra], dist[rb], size[ra], size[rb]) if params.weighting == "distance"
               else np.ones(len(ra)))
+        rw = np.where(weak_row[ra] | weak_row[rb], rw * params.ambiguous_weight, rw)
         rival = pd.DataFrame({"t_ns": ob["t_ns"].to_numpy(np.int64)[ra],
                               "tag_i": tag[ra].astype(np.int32), "tag_j": tag[rb].astype(np.int32)})
         rival[POSE_COLS] = np.concatenate([rxyz, rq], axis=1)
@@ -307,5 +352,6 @@ def run(observations: pd.DataFrame, params: Params) -> dict[str, Any]:
         "weak_links": weak,
         "second_solution_edges": n_alt,
         "rival_pairs": rivals,
+        "ambiguous_kept": int(back.sum()),
     }
     return {"edges": edges.reset_index(drop=True), "graph": TagGraph.model_validate(graph)}

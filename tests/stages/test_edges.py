@@ -118,6 +118,41 @@ def test_ambiguous_observations_are_left_out() -> None:
     assert len(used(edges.Params(), obs.assign(ambiguity=np.nan))) == len(all_)  # NaN: kept
 
 
+def test_ambiguous_observations_that_hold_the_graph_together_are_kept_down_weighted(
+        caplog: pytest.LogCaptureFixture) -> None:
+    """Every observation of tags 6-11 in a frame that also shows one of tags 0-5 is ambiguous:
+    left out, the ring would split in two; they are kept instead (and only they: other
+    ambiguous observations are left out), their edges weighted ``ambiguous_weight``, and the
+    map is whole (and, noise-free, exact)."""
+    from tagtrail.stages import optimize
+
+    scene = ring_scene()
+    obs = observations(scene)
+    frame, tag = obs["frame_idx"].to_numpy(), obs["tag_id"].to_numpy()
+    low = pd.Series(tag < 6).groupby(frame).transform("any").to_numpy()
+    inner = ~low & (tag >= 6) & (np.arange(len(obs)) % 3 == 0)  # ambiguous, linking nothing
+    amb = np.where(low & (tag >= 6) | inner, 0.9, 0.2)
+    alt = scene.cam_T_tag() @ make_T(Rotation.from_euler("x", 40, degrees=True).as_matrix(),
+                                     np.zeros(3))
+    obs = observations(scene, ambiguity=amb, alt_cam_T_tag=alt)
+    with caplog.at_level(logging.WARNING, logger="tagtrail.stages.edges"):
+        out = edges.run(obs, edges.Params(weighting="uniform"))
+    g, e = out["graph"], out["edges"]
+    assert g["tags"] == list(range(12)) and g["dropped"] == [] and g["n_components"] == 1
+    assert g["ambiguous_kept"] == (low & (tag >= 6)).sum()  # those bridging the two halves
+    assert "ambiguous observations kept" in caplog.text
+    cross = (e["tag_i"] < 6) & (e["tag_j"] >= 6)
+    assert cross.any() and (e.loc[cross, "weight"] == 0.1).all()
+    assert (e.loc[(e["tag_j"] < 6), "weight"] == 1.0).all()
+    tag_map = optimize.run(e, g, obs, optimize.Params(method="pairwise"))["tag_map"]
+    T = T_from_xyz_quat(tag_map[POSE[:3]].to_numpy(), tag_map[POSE[3:]].to_numpy())
+    W = inv(scene.world_T_tag[g["anchor_id"]]) @ scene.world_T_tag
+    assert np.abs(T - W[tag_map["tag_id"].to_numpy()]).max() < 1e-6
+    without = edges.run(obs[~(low & (tag >= 6))].reset_index(drop=True), edges.Params())
+    assert without["graph"]["n_components"] == 2  # the premise: they alone link the halves
+    assert edges.run(obs, edges.Params(max_ambiguity=0.95))["graph"]["ambiguous_kept"] == 0
+
+
 def test_distance_weights_favour_close_tags() -> None:
     w = edges.edge_weights(np.array([1.0, 1.0, 3.0]), np.array([1.0, 2.0, 3.0]),
                            np.full(3, 0.16), np.full(3, 0.16))
