@@ -61,6 +61,8 @@ _MAX_TURN_COS = float(np.cos(np.radians(10)))
 _GRID_PX = 4  # spacing of the cached undistortion grid
 _MAX_STEPS = 64  # columns (rows) sampled along an edge
 # the intensity-profile fit (_model_fit)
+_MODEL_MAX_CELL_PX = 10.0  # larger cells: the neighbours' lobes stay clear of the band (blur
+# under ~1.6 px), the centroid alone is kept
 _MODEL_PASSES = 2  # fits, each from the corners of the one before
 _MODEL_ITERATIONS = (3, 1)  # Levenberg-Marquardt steps of the first fit, of the later ones
 _MODEL_FIT_ITERATIONS = 2  # centroid iterations per pass, the neighbours taken out
@@ -140,7 +142,7 @@ def refine_many(
         if len(edge):
             refined, good = _fit(edge, px, g, c[sel], half[sel], camera)
             out[sel[good]] = refined[good]
-            sel = sel[good]
+            sel = sel[good & (side[sel] / CELLS < _MODEL_MAX_CELL_PX)]
             if len(sel):
                 wide = np.clip(side[sel] / CELLS * _MODEL_HALF_CELLS, 1.5, _MODEL_HALF_MAX_PX)
                 out[sel] = _model_fit([grays[f] for f in frame[sel]], out[sel], c[sel], wide,
