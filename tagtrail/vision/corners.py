@@ -53,7 +53,9 @@ from tagtrail.geometry.arrays import F64
 from tagtrail.geometry.camera import CameraModel
 
 CELLS = 8  # tag36h11: the black square is 8 cells wide (6 data + the 1-cell border each side)
-MIN_CELL_PX = 2.5
+# the shortest side's cells: oblique tags' foreshortened sides at 2-2.5 px re-fit to 0.13 px
+# against the detector's 0.19 px (rendered hall); under 2 px the re-fit does worse
+MIN_CELL_PX = 2.0
 MAX_SHIFT_PX = 1.0
 _ITERATIONS = 2
 _MIN_SUPPORT = 12  # pixels per edge
