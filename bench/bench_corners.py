@@ -35,7 +35,7 @@ from tagtrail.sim.camera import tag_visibility
 from tagtrail.sim.render import Realism, Renderer
 from tagtrail.sim.scenarios import SimOptions, build
 from tagtrail.stages import extract
-from tagtrail.vision.apriltag import _detect_filtered
+from tagtrail.vision.apriltag import detect
 from tagtrail.vision.corners import refine_many
 
 LEVELS = {
@@ -75,7 +75,7 @@ def measure(scenario: str, level: str, step: int, seed: int) -> dict[str, np.nda
                                                  "tag")}
     for k, i in enumerate(frames):
         gray = renderer.render(scene.scene_T_cam[i], rng)[..., 0].copy()
-        ints, floats, _ = _detect_filtered(gray, cfg)
+        ints, floats = detect(gray, cfg)  # the detector's corners (re-fit off), filtered
         if not len(ints):
             continue
         det = floats[:, 1:].reshape(-1, 4, 2)
