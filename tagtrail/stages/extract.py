@@ -3,8 +3,9 @@
 Image sources are decoded and detected by worker processes over chunks of frames
 (:mod:`tagtrail.pool`): the parent only reads the bag (raw message bytes / file paths),
 workers decode and run pupil-apriltags (tag36h11), then re-fit each tag's corners to its border's
-edges (:mod:`tagtrail.vision.corners`, ``refit_corners``; ~20 % of the detector's time, corners
-3-6x closer to the truth). No detector is ever built in the calling
+edges (:mod:`tagtrail.vision.corners`, ``refit_corners``; corners 3-6x closer to the truth; ~20 %
+of the detector's time for tags with cells over 10 px, 1.5-1.7x for small tags, whose
+neighbouring edges it models). No detector is ever built in the calling
 process, and workers' exit status is not trusted (see :mod:`tagtrail.vision.apriltag` for the
 upstream exit-time segfault this avoids); idle workers are kept for the next extract run.
 Tags whose white quiet zone runs off the image are dropped (``keep_truncated``): the detector
