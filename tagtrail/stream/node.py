@@ -32,12 +32,22 @@ CONGESTION = {"block": zenoh.CongestionControl.BLOCK, "drop": zenoh.CongestionCo
 
 
 def peak_rss_mb() -> float | None:
-    """This process's peak resident memory (MiB; None where ``resource`` is missing)."""
+    """This process's peak resident memory (MiB; None where it cannot be read): Linux's
+    ``VmHWM``, the high-water mark of this process's own memory. Not ``ru_maxrss``: Linux
+    carries the parent's peak across fork and exec into it, so a node started by a large
+    process (a test runner) would report that process's memory."""
+    try:
+        with open("/proc/self/status", encoding="ascii") as f:
+            for line in f:
+                if line.startswith("VmHWM:"):
+                    return round(int(line.split()[1]) / 1024, 1)  # kB
+    except (OSError, ValueError):
+        pass
     try:
         import resource
     except ImportError:
         return None
-    kib = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss  # KiB on Linux
+    kib = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss  # KiB on Linux, bytes on macOS
     return round(kib / (1 << 20 if sys.platform == "darwin" else 1024), 1)
 
 

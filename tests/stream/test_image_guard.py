@@ -140,3 +140,18 @@ def test_huge_png_over_zenoh_is_dropped_and_counted(rec: Path, huge_png: bytes) 
     assert stats["processed"] == 2, stats  # the CameraInfo and the good frame
     assert stats["peak_rss_mb"] < RSS_LIMIT_MB, stats
     assert "Traceback" not in node.output
+
+
+def test_peak_rss_is_the_nodes_own_not_its_parents() -> None:
+    """Linux carries a parent's peak resident memory across fork and exec into ``ru_maxrss``:
+    a node started by a large process (this test runner, ~700 MB late in a full run) reported
+    that process's peak. ``peak_rss_mb`` reads the node's own high-water mark."""
+    import subprocess
+    import sys
+
+    ballast = np.ones(300_000_000 // 8)  # 300 MB touched in this (the parent) process
+    code = "from tagtrail.stream.node import peak_rss_mb; print(peak_rss_mb())"
+    child = float(subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                                 check=True).stdout)
+    assert ballast.sum() > 0 and child < 250, child  # the imports alone: ~100 MB
+
