@@ -5,8 +5,10 @@ The recording: ``tagtrail simulate room --detections --frames 9000`` (one slow l
 ~4 tags per frame, ~36k detections), mapped with the pipeline ``tagtrail init`` writes. Each
 repeat starts from an empty artifact store (``artifacts/`` and ``outputs/`` removed: nothing
 cached, the source hashed again) and runs ``tagtrail run`` (extract .. smooth and eval) in a child
-process; wall time is measured around it, peak RSS is the child's ``ru_maxrss`` from
-``os.wait4`` (the largest resident set of the child and any process it waited for).
+process; wall time is measured around it. Peak RSS is the largest resident set of that process
+(its own high-water mark, ``VmHWM``) and of the detector workers it waited for (their
+``ru_maxrss``), reported by the child at its exit: not the child's ``ru_maxrss`` seen from here,
+which Linux seeds with this (large, long-running) process's peak across fork and exec.
 
 Per-stage times come from the last repeat's run log (``artifacts/runs/last_run.json``).
 Run: ``.venv/bin/python bench/bench_scale.py [--frames 9000] [--repeats 3] [--keep DIR]``.
@@ -16,7 +18,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
 import shutil
 import statistics
 import subprocess
@@ -29,22 +30,39 @@ BIN = Path(sys.executable).parent
 TARGET_S, TARGET_GB = 30.0, 1.5
 
 
+# `tagtrail ARGS` (its console script's entry) that prints, at exit, the peak resident set of
+# itself (VmHWM) and of the workers it waited for (the idle detector pool closed first).
+PEAK = """
+import resource, sys
+from tagtrail import pool
+from tagtrail.cli import main_entry
+try:
+    main_entry()
+finally:
+    pool._close_idle()
+    hwm = next(int(s.split()[1]) for s in open("/proc/self/status") if s.startswith("VmHWM:"))
+    kids = resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss
+    print(f"PEAK_KIB {max(hwm, kids)}", file=sys.stderr)
+"""
+
+
 def timed_run(project: Path, *args: str) -> tuple[float, float, str]:
     """(wall s, peak RSS GB, stdout) of ``tagtrail run ARGS`` in ``project`` from scratch."""
     for d in ("artifacts", "outputs"):
         shutil.rmtree(project / d, ignore_errors=True)
     with tempfile.TemporaryFile() as out, tempfile.TemporaryFile() as err:
         t0 = time.perf_counter()
-        proc = subprocess.Popen([str(BIN / "tagtrail"), "run", *args], cwd=project,
+        proc = subprocess.Popen([sys.executable, "-c", PEAK, "run", *args], cwd=project,
                                 stdout=out, stderr=err)
-        _, status, usage = os.wait4(proc.pid, 0)
+        proc.wait()
         wall = time.perf_counter() - t0
-        proc.returncode = os.waitstatus_to_exitcode(status)
         out.seek(0)
         err.seek(0)
+        log = err.read().decode()
         if proc.returncode != 0:
-            raise RuntimeError(f"tagtrail run failed ({proc.returncode}):\n{err.read().decode()}")
-        return wall, usage.ru_maxrss / 2**20, out.read().decode()  # ru_maxrss: KiB on Linux
+            raise RuntimeError(f"tagtrail run failed ({proc.returncode}):\n{log}")
+        kib = int(log.rsplit("PEAK_KIB ", 1)[1].split()[0])
+        return wall, kib / 2**20, out.read().decode()
 
 
 def main() -> None:

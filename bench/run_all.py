@@ -548,7 +548,8 @@ def write(path: Path, rows: dict[str, list[Row]], runs: dict[str, dict[str, Any]
         "cost (Huber on both sides); the default soft_l1's error is in the measured column.",
         "- The recording phase: `tagtrail run` (extract .. smooth, eval; the joint solve) in a "
         "child process from an empty store; peak RSS is the largest resident set of that "
-        "process and the ones it waited for (`ru_maxrss`).",
+        "process (its `VmHWM`) and of the workers it waited for, reported by the child (not "
+        "its `ru_maxrss` seen from here, which Linux seeds with this process's own peak).",
         "- The runner rows time the runner itself (a `Runner` in this process); the `tagtrail` "
         "processes add Python's start-up and the imports.",
         "- dask: a fresh `LocalCluster` per run (its start included), on the same 2 cores.",
