@@ -106,6 +106,14 @@ def _unambiguous(obs: pd.DataFrame, p: Params) -> np.ndarray:
     return ~(obs["ambiguity"].to_numpy(np.float64) > p.max_ambiguity)
 
 
+def _components(key: np.ndarray, n: int) -> tuple[int, np.ndarray]:
+    """Connected components (count, label per tag) of ``n`` tags linked by the pair keys
+    ``key = i * n + j``."""
+    adj = coo_matrix((np.ones(len(key)), (key // n, key % n)), shape=(n, n))
+    n_comp, label = connected_components(adj, directed=False)
+    return int(n_comp), label
+
+
 def _bridging(obs: pd.DataFrame, keep: np.ndarray, amb: np.ndarray, ids: np.ndarray,
               min_edge_obs: int) -> np.ndarray:
     """Mask of the ambiguous observations (``amb``) seen in a frame with a tag that the
@@ -121,9 +129,7 @@ def _bridging(obs: pd.DataFrame, keep: np.ndarray, amb: np.ndarray, ids: np.ndar
     k = k[np.argsort(frame[k], kind="stable")]
     a, b = pair_indices(frame[k])
     key, cnt = np.unique(tag[k[a]] * len(ids) + tag[k[b]], return_counts=True)
-    key = key[cnt >= min_edge_obs]
-    adj = coo_matrix((np.ones(len(key)), (key // len(ids), key % len(ids))), shape=(len(ids),) * 2)
-    _, label = connected_components(adj, directed=False)
+    _, label = _components(key[cnt >= min_edge_obs], len(ids))
     u = np.flatnonzero(keep | amb)
     u = u[np.argsort(frame[u], kind="stable")]
     a, b = pair_indices(frame[u])
@@ -272,11 +278,7 @@ def run(observations: pd.DataFrame, params: Params) -> dict[str, Any]:
     ukey, pair, cnt = np.unique(ni * len(ids) + nj, return_inverse=True, return_counts=True)
     ok = cnt[pair] >= params.min_edge_obs
     a, b, ti, tj, T_ij = a[ok], b[ok], ti[ok], tj[ok], T_ij[ok]
-    strong = ukey[cnt >= params.min_edge_obs]
-    adj = coo_matrix(
-        (np.ones(len(strong)), (strong // len(ids), strong % len(ids))), shape=(len(ids),) * 2
-    )
-    n_comp, label = connected_components(adj, directed=False)
+    n_comp, label = _components(ukey[cnt >= params.min_edge_obs], len(ids))
     in_map = label == label[np.searchsorted(ids, anchor)]
     if params.on_disconnected == "keep":
         in_map[:] = True

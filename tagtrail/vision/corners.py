@@ -147,8 +147,7 @@ def refine_many(
             sel = sel[good & (side[sel] / CELLS < _MODEL_MAX_CELL_PX)]
             if len(sel):
                 wide = np.clip(side[sel] / CELLS * _MODEL_HALF_CELLS, 1.5, _MODEL_HALF_MAX_PX)
-                out[sel] = _model_fit([grays[f] for f in frame[sel]], out[sel], c[sel], wide,
-                                      camera)
+                out[sel] = _model_fit(grays, frame[sel], out[sel], c[sel], wide, camera)
     return np.split(out, np.cumsum(sizes)[:-1]) if sizes else []
 
 
@@ -214,9 +213,9 @@ def _fit(
     return out, ok
 
 
-def _model_fit(grays: list[NDArray[np.uint8]], quads: F64, start: F64, half: F64,
-               camera: CameraModel | None) -> F64:
-    """Corners ``(m, 4, 2)`` of the tags ``quads`` (raw pixels; ``grays[j]``: tag j's image;
+def _model_fit(grays: list[NDArray[np.uint8]], frame: NDArray[np.intp], quads: F64, start: F64,
+               half: F64, camera: CameraModel | None) -> F64:
+    """Corners ``(m, 4, 2)`` of the tags ``quads`` (raw pixels; ``grays[frame[j]]``: tag j's image;
     ``start``: the detector's corners, for ``MAX_SHIFT_PX``; ``half``: the band) re-fitted by
     :func:`_fit` once the gradient of each edge's neighbouring edges — the border's inner edge
     and the quiet zone's outer edge, from a fit of the edge's intensity profile — is taken out
@@ -224,8 +223,7 @@ def _model_fit(grays: list[NDArray[np.uint8]], quads: F64, start: F64, half: F64
     m = len(quads)
     out = quads.copy()
     ok = np.ones(m, dtype=bool)
-    keys = np.array([id(g) for g in grays])
-    groups = [np.flatnonzero(keys == key) for key in dict.fromkeys(keys.tolist())]
+    groups = [np.flatnonzero(frame == f) for f in np.unique(frame)]
     sigma = np.full(4 * m, _MODEL_SIGMA0_PX)
     for k in range(_MODEL_PASSES):
         geo = _edge_geometry(_to_undistorted(out.reshape(-1, 2), camera).reshape(m, 4, 2))
@@ -234,7 +232,7 @@ def _model_fit(grays: list[NDArray[np.uint8]], quads: F64, start: F64, half: F64
         parts, grads = [], []
         for tags in groups:
             rows = (4 * tags[:, None] + np.arange(4)).ravel()
-            gray = grays[tags[0]]
+            gray = grays[frame[tags[0]]]
             e_rel, xs, ys = _edge_pixels(gray.shape, out[tags], end[rows], band[rows] + 1.0, 0.0,
                                          _MODEL_STEPS)
             parts.append((rows[e_rel], np.stack([xs, ys], axis=1).astype(np.float64),
