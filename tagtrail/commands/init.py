@@ -117,7 +117,7 @@ def _survey_params(survey: Path, base: Path, stages: dict[str, Any]) -> str:
     def first(err: ValidationError) -> str:
         return str(err.errors()[0]["msg"]).removeprefix("Value error, ")
 
-    path = survey.resolve()
+    path = Path(os.path.abspath(survey))  # named as given (a symlinked folder stays one)
     try:
         known = SurveyConfig(file=str(path))
     except ValidationError as err:
