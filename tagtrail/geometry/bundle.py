@@ -38,7 +38,9 @@ a-posteriori variance factor) give each tag's and each frame's standard deviatio
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 from scipy.linalg import LinAlgError, cho_factor, cho_solve, cho_solve_banded, cholesky_banded
@@ -47,6 +49,14 @@ from scipy.sparse import coo_matrix
 from tagtrail.geometry.arrays import F64, I64
 from tagtrail.geometry.camera import CameraModel
 from tagtrail.geometry.fusion import tag_corners
+from tagtrail.geometry.ground import (
+    PLANAR_BOUND,
+    GroundPrior,
+    Plane,
+    planarity,
+    plane_terms,
+    robust_weights,
+)
 from tagtrail.geometry.robust import LossName, rho
 from tagtrail.geometry.rotations import hat, log_so3, right_jacobian_inv
 from tagtrail.geometry.se3 import R_from_rotvec, inv
@@ -111,6 +121,7 @@ class JointResult:
     tag_std: F64 | None = None
     cam_std: F64 | None = None
     cam_cov: F64 | None = None
+    plane: Plane | None = None
 
 
 def _project(R_cam: F64, t_cam: F64, R_tag: F64, t_tag: F64, ob: CornerObservations
@@ -240,6 +251,8 @@ def solve_joint(
     prior: MotionPrior | None = None,
     covariance: bool = False,
     estimate_noise: bool = False,
+    ground: GroundPrior | None = None,
+    plane: Plane | None = None,
 ) -> JointResult:
     """Minimise the module's cost over the free tags (``free (T,)`` bool) and every camera,
     from the given start; cameras must be in time order when ``prior`` is given. ``sigma_px``:
@@ -247,7 +260,8 @@ def solve_joint(
     ``f_scale_px`` is taken at its median. ``estimate_noise``: after the first solve, rescale the
     corner noise to what the residuals show (clamped to 0.05-5 px) and solve again, so that
     precise corners are not outweighed by the motion prior (nor noisy ones by it overruled);
-    ``JointResult.sigma_px`` reports the median noise used."""
+    ``JointResult.sigma_px`` reports the median noise used. ``ground``: the ground-plane
+    prior (:mod:`tagtrail.geometry.ground`), its plane free from the start ``plane``."""
     n_f, n_t, n_o = len(R_cam), len(R_tag), len(ob.frame)
     free = np.asarray(free, bool)
     free_idx = np.flatnonzero(free)
@@ -261,6 +275,14 @@ def solve_joint(
                            (len(of), 6, 6)).reshape(-1)
     pr = _Prior(prior, n_f)
     kp = pr.k
+    if ground is not None and plane is None:
+        raise ValueError("solve_joint: a ground prior needs a start plane")
+    has_plane = ground is not None and n_f > 0
+    n_dense = n_free + int(has_plane)
+    frames_all = np.arange(n_f)
+    prow = np.broadcast_to((6 * frames_all)[:, None, None] + np.arange(6)[:, None],
+                           (n_f, 6, 6)).reshape(-1)
+    pcol = np.broadcast_to(6 * n_free + np.arange(6)[None, :], (n_f, 6, 6)).reshape(-1)
     bidx = _band_index(n_f)
     eye3 = np.broadcast_to(np.eye(3), (n_o, 4, 3, 3))
     # normalised coordinates -> units of each observation's corner noise
@@ -269,8 +291,8 @@ def solve_joint(
     f = f_scale_px / float(np.median(sig)) if n_o else 1.0
     f2 = f * f
 
-    def evaluate(Rc: F64, tc: F64, Rt: F64, tt: F64
-                 ) -> tuple[float, F64, F64, F64, F64, F64, F64]:
+    def evaluate(Rc: F64, tc: F64, Rt: F64, tt: F64, pl: Plane | None
+                 ) -> tuple[float, F64, F64, F64, F64, F64, F64, tuple[F64, F64, F64] | None]:
         r, pw, pc = _project(Rc, tc, Rt, tt, ob)
         sq = np.sum(r * r, axis=(1, 2)) * scale**2
         bad = (pc[..., 2] <= 1e-6).any(axis=1)  # behind the camera: an outlier, no gradient
@@ -278,10 +300,19 @@ def solve_joint(
         m, Jm = pr.evaluate(Rc, tc)
         val_m, w_m = rho(pr.loss, np.sum(m * m, axis=1) / pr.f2)
         cost = float(f2 * val.sum() + pr.f2 * val_m.sum())
+        g = None
+        if has_plane:
+            assert ground is not None and pl is not None
+            p, Jpc, Jpg = plane_terms(Rc, tc, pl, ground)
+            val_p, w_p = robust_weights(p, ground)
+            cost += float(val_p.sum())
+            s = np.sqrt(w_p)
+            g = (p * s[:, None], Jpc * s[:, None, None], Jpg * s[:, None, None])
         return cost, r, pw, pc, np.where(bad, 0.0, w), m * np.sqrt(w_m)[:, None], Jm * np.sqrt(
-            w_m)[:, None, None, None]
+            w_m)[:, None, None, None], g
 
-    def normal_equations(Rc: F64, r: F64, pw: F64, pc: F64, w: F64, m: F64, Jm: F64
+    def normal_equations(Rc: F64, r: F64, pw: F64, pc: F64, w: F64, m: F64, Jm: F64,
+                         g: tuple[F64, F64, F64] | None
                          ) -> tuple[F64, F64, F64, F64, coo_matrix]:
         z = pc[..., 2]
         Jp = np.zeros((n_o, 4, 2, 3))
@@ -303,23 +334,33 @@ def solve_joint(
         Htt = sum_blocks(np.einsum("oki,okj->oij", Jt, Jt) * W, ob.tag, n_t)[free_idx]
         gt = sum_blocks(np.einsum("oki,ok->oi", Jt, rv) * w[:, None], ob.tag, n_t)[free_idx]
         Hct = (np.einsum("oki,okj->oij", Jc, Jt) * W)[of]
-        B = coo_matrix((Hct.reshape(-1), (brow, bcol)), shape=(6 * n_f, 6 * n_free)).tocsc()
+        vals, rows, cols = Hct.reshape(-1), brow, bcol
+        if g is not None:  # the plane: one more dense block, coupled to every frame
+            p, Jpc, Jpg = g
+            Ablk[:, 0] += np.einsum("fki,fkj->fij", Jpc, Jpc)
+            gc += np.einsum("fki,fk->fi", Jpc, p)
+            Htt = np.concatenate([Htt, np.einsum("fki,fkj->ij", Jpg, Jpg)[None]])
+            gt = np.concatenate([gt, np.einsum("fki,fk->i", Jpg, p)[None]])
+            vals = np.concatenate([vals, np.einsum("fki,fkj->fij", Jpc, Jpg).reshape(-1)])
+            rows, cols = np.concatenate([rows, prow]), np.concatenate([cols, pcol])
+        B = coo_matrix((vals, (rows, cols)), shape=(6 * n_f, 6 * n_dense)).tocsc()
         return Ablk, gc, Htt, gt, B
 
     def schur(cb: F64, Htt: F64, B: coo_matrix, lam: float) -> F64:
-        C = np.zeros((6 * n_free, 6 * n_free))
+        C = np.zeros((6 * n_dense, 6 * n_dense))
         eps = 1e-9 * max(float(np.mean(np.trace(Htt, axis1=1, axis2=2))), 1e-300)
-        for i in range(n_free):  # eps: a tag nothing constrains gets no step, not a NaN
+        for i in range(n_dense):  # eps: a tag nothing constrains gets no step, not a NaN
             C[6 * i:6 * i + 6, 6 * i:6 * i + 6] = Htt[i] * (1.0 + lam * np.eye(6)) + eps * np.eye(6)
         step = max(6, (_CHUNK // max(6 * n_f, 1)) // 6 * 6)
-        for c0 in range(0, 6 * n_free, step):
+        for c0 in range(0, 6 * n_dense, step):
             Bc = B[:, c0:c0 + step]
             X = cho_solve_banded((cb, True), Bc.toarray())
             C[:, c0:c0 + step] -= (B.T @ X)
         return C
 
     it = 0
-    cost, r, pw, pc, w, m, Jm = evaluate(R_cam, t_cam, R_tag, t_tag)
+    pl = plane if has_plane else None
+    cost, r, pw, pc, w, m, Jm, g = evaluate(R_cam, t_cam, R_tag, t_tag, pl)
     for round_ in range(2 if estimate_noise and n_o else 1):
         if round_:  # the corner noise the residuals show, then the solve again from there
             sq0 = np.sum(r * r, axis=(1, 2)) * scale**2
@@ -331,30 +372,34 @@ def solve_joint(
             scale = px_per_unit / sig
             f = f_scale_px / float(np.median(sig))
             f2 = f * f
-            cost, r, pw, pc, w, m, Jm = evaluate(R_cam, t_cam, R_tag, t_tag)
+            cost, r, pw, pc, w, m, Jm, g = evaluate(R_cam, t_cam, R_tag, t_tag, pl)
         lam, converged = 1e-4, n_o == 0
         while it < max_iter * (round_ + 1) and n_o:
-            Ablk, gc, Htt, gt, B = normal_equations(R_cam, r, pw, pc, w, m, Jm)
+            Ablk, gc, Htt, gt, B = normal_equations(R_cam, r, pw, pc, w, m, Jm, g)
             while True:
                 try:
                     cb = cholesky_banded(_band(Ablk, bidx, lam), lower=True)
                     dt = np.zeros((n_t, 6))
-                    if n_free:
+                    dg = np.zeros(6)
+                    if n_dense:
                         y = cho_solve_banded((cb, True), gc.reshape(-1))
                         S = schur(cb, Htt, B, lam)
                         rhs = -gt.reshape(-1) + B.T @ y
-                        dt[free_idx] = cho_solve(cho_factor(S), rhs).reshape(n_free, 6)
-                        dcv = -y - cho_solve_banded((cb, True), B @ dt[free_idx].reshape(-1))
+                        dd = cho_solve(cho_factor(S), rhs).reshape(n_dense, 6)
+                        dt[free_idx], dg = dd[:n_free], (dd[n_free] if has_plane else dg)
+                        dcv = -y - cho_solve_banded((cb, True), B @ dd.reshape(-1))
                     else:
                         dcv = -cho_solve_banded((cb, True), gc.reshape(-1))
                     dc = dcv.reshape(n_f, 6)
-                    ok = bool(np.isfinite(dc).all() and np.isfinite(dt).all())
+                    ok = bool(np.isfinite(dc).all() and np.isfinite(dt).all()
+                              and np.isfinite(dg).all())
                 except (LinAlgError, ValueError):
                     ok = False
                 if ok:
                     Rc, tc = left_update(R_cam, t_cam, dc)
                     Rt, tt = left_update(R_tag, t_tag, dt)
-                    new = evaluate(Rc, tc, Rt, tt)
+                    pl_new = pl.update(dg) if pl is not None else None
+                    new = evaluate(Rc, tc, Rt, tt, pl_new)
                     if new[0] <= cost:
                         break
                 if lam > 1e8:
@@ -363,10 +408,11 @@ def solve_joint(
             if not ok or new[0] > cost:
                 converged = True  # no descent left at any damping: a (local) minimum
                 break
-            step_size = max(np.abs(dt).max(initial=0.0), np.abs(dc).max(initial=0.0))
+            step_size = max(np.abs(dt).max(initial=0.0), np.abs(dc).max(initial=0.0),
+                            np.abs(dg).max(initial=0.0))
             done = cost - new[0] <= 1e-10 * max(cost, 1e-300) or step_size < 1e-12
-            R_cam, t_cam, R_tag, t_tag = Rc, tc, Rt, tt
-            cost, r, pw, pc, w, m, Jm = new
+            R_cam, t_cam, R_tag, t_tag, pl = Rc, tc, Rt, tt, pl_new
+            cost, r, pw, pc, w, m, Jm, g = new
             it, lam = it + 1, max(lam / 10.0, 1e-9)
             if done:
                 converged = True
@@ -374,15 +420,19 @@ def solve_joint(
     sq = np.sum(r * r, axis=(1, 2)) * scale**2
     dof = 8 * n_o + 6 * len(kp) - 6 * (n_f + n_free)
     chi2 = float(np.sum(w * sq) + np.sum(m * m))
+    if g is not None:  # height and two tilt angles per frame; the plane's 5 degrees of freedom
+        dof += 3 * n_f - 5
+        chi2 += float(np.sum(g[0] ** 2))
     vf = chi2 / dof if dof > 0 else float("nan")
     res_px = observation_rms_px(R_cam, t_cam, R_tag, t_tag, ob, px_per_unit)
     tag_std = cam_std = cam_cov = None
     if covariance and n_o:
         tag_std, cam_std, cam_cov = _std(
-            normal_equations(R_cam, r, pw, pc, w, m, Jm), bidx, free_idx, t_tag, n_t,
+            normal_equations(R_cam, r, pw, pc, w, m, Jm, g), bidx, free_idx, t_tag, n_t,
             max(vf, 1.0) if np.isfinite(vf) else 1.0, schur)
     return JointResult(R_tag, t_tag, R_cam, t_cam, res_px, cost, it, converged, vf, len(kp),
-                       float(np.median(sig)) if n_o else float("nan"), tag_std, cam_std, cam_cov)
+                       float(np.median(sig)) if n_o else float("nan"), tag_std, cam_std, cam_cov,
+                       pl)
 
 
 def _std(ne: tuple[F64, F64, F64, F64, coo_matrix], bidx: tuple[I64, ...], free_idx: I64,
@@ -398,16 +448,18 @@ def _std(ne: tuple[F64, F64, F64, F64, coo_matrix], bidx: tuple[I64, ...], free_
     else:  # independent frames: each block's own inverse
         cam_cov = np.asarray(np.linalg.inv(Ablk[:, 0] + 1e-12 * np.eye(6)), np.float64)
     tag_std = np.zeros((n_t, 2))
-    if len(free_idx):
+    if len(Htt):  # the free tags, then the ground plane if any
         S = schur(cb, Htt, B, 0.0)  # type: ignore[operator]
         Sinv = cho_solve(cho_factor(S), np.eye(len(S)))
-        blocks = np.stack([Sinv[6 * i:6 * i + 6, 6 * i:6 * i + 6] for i in range(len(free_idx))])
-        J = np.zeros((len(free_idx), 3, 6))
-        J[:, :, :3] = -hat(t_tag[free_idx])  # d t = -hat(t) w + v
-        J[:, :, 3:] = np.eye(3)
-        pos = np.einsum("nij,njk,nlk->nil", J, blocks, J)
-        tag_std[free_idx, 0] = np.sqrt(np.trace(pos, axis1=1, axis2=2) * vf / 3)
-        tag_std[free_idx, 1] = np.sqrt(np.trace(blocks[:, :3, :3], axis1=1, axis2=2) * vf / 3)
+        if len(free_idx):
+            blocks = np.stack([Sinv[6 * i:6 * i + 6, 6 * i:6 * i + 6]
+                               for i in range(len(free_idx))])
+            J = np.zeros((len(free_idx), 3, 6))
+            J[:, :, :3] = -hat(t_tag[free_idx])  # d t = -hat(t) w + v
+            J[:, :, 3:] = np.eye(3)
+            pos = np.einsum("nij,njk,nlk->nil", J, blocks, J)
+            tag_std[free_idx, 0] = np.sqrt(np.trace(pos, axis1=1, axis2=2) * vf / 3)
+            tag_std[free_idx, 1] = np.sqrt(np.trace(blocks[:, :3, :3], axis1=1, axis2=2) * vf / 3)
         if 6 * n_f * len(S) <= _CHUNK:  # the map's share: X S^-1 X^T, X = A^-1 B
             X = cho_solve_banded((cb, True), B.toarray()).reshape(n_f, 6, -1)
             cam_cov = cam_cov + np.einsum("fik,fjk->fij", X @ Sinv, X)
@@ -415,6 +467,38 @@ def _std(ne: tuple[F64, F64, F64, F64, coo_matrix], bidx: tuple[I64, ...], free_
     cam_std = np.stack([np.sqrt(np.trace(cam_cov[:, 3:, 3:], axis1=1, axis2=2) / 3),
                         np.sqrt(np.trace(cam_cov[:, :3, :3], axis1=1, axis2=2) / 3)], axis=1)
     return tag_std, cam_std, cam_cov
+
+
+def solve_grounded(
+    res: JointResult, resolve: Callable[[JointResult, GroundPrior, Plane], JointResult],
+    ground: GroundPrior, mode: str,
+) -> tuple[JointResult, dict[str, Any]]:
+    """The ground-plane prior on a solution ``res`` solved without it (with ``cam_cov``):
+    ``mode`` ``plane`` applies it, ``auto`` only when the motion is planar
+    (:func:`tagtrail.geometry.ground.planarity` below ``PLANAR_BOUND``). ``resolve(start,
+    ground, plane)`` solves again from ``start`` with the prior. Returns the solution and a
+    report block: applied, the planarity figure, the plane's normal (world), the camera's tilt
+    to it (deg from its y axis), the camera centres' RMS height off it (m), the RMS tilt off
+    the mean (deg) and the frames the robust loss let go (beyond 3 sigma)."""
+    assert res.cam_cov is not None
+    plane, stat = planarity(res.R_cam, res.t_cam, res.cam_cov, ground)
+    applied = mode == "plane" or stat < PLANAR_BOUND
+    if applied:
+        res = resolve(res, ground, plane)
+        assert res.plane is not None
+        plane = res.plane
+    p, _, _ = plane_terms(res.R_cam, res.t_cam, plane, ground)
+    u = plane.u / max(float(np.linalg.norm(plane.u)), 1e-300)
+    block = {
+        "mode": mode, "applied": bool(applied), "planarity": stat,
+        "normal": [float(v) for v in plane.n],
+        "camera_tilt_deg": float(np.degrees(np.arccos(np.clip(-u[1], -1.0, 1.0)))),
+        "height_rms_m": float(np.sqrt(np.mean(p[:, 0] ** 2))) * ground.height_sigma_m,
+        "tilt_rms_deg": float(np.degrees(np.sqrt(np.mean(np.sum(p[:, 1:] ** 2, axis=1)))
+                                         * ground.tilt_sigma_rad)),
+        "frames_off": int((np.sum(p * p, axis=1) > ground.f_scale**2).sum()),
+    }
+    return res, block
 
 
 @dataclass(frozen=True)

@@ -88,6 +88,23 @@ class TagGraph(Document):
     """Ambiguous observations kept (down-weighted) because without them the graph splits."""
 
 
+class GroundSummary(Document):
+    """The ground-plane prior (``optimize.report.bundle.ground``, geometry.ground): the mode,
+    whether it was applied, the planarity figure that decided ``auto`` (median normalised
+    chi^2 per degree of freedom of the solution without it; planar below 2), the plane's
+    normal in the world, the camera's tilt to it (deg from its y axis), the RMS height (m) and
+    tilt (deg) of the frames off it, and the frames beyond the robust loss's scale."""
+
+    mode: Literal["auto", "plane"]
+    applied: bool
+    planarity: float
+    normal: list[float]
+    camera_tilt_deg: float
+    height_rms_m: float
+    tilt_rms_deg: float
+    frames_off: int
+
+
 class BundleSummary(Document):
     """The joint solve's figures (``optimize.report.bundle``): frames posed (of them with a single
     tag, and held by the motion prior), frames started from a tag's second IPPE solution, tags
@@ -111,6 +128,7 @@ class BundleSummary(Document):
     corner_sigma_px: float
     rms_px: float
     p95_px: float
+    ground: GroundSummary | None = None
 
 
 class SurveyTag(Document):

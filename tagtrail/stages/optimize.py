@@ -32,6 +32,7 @@ from __future__ import annotations
 
 import logging
 from collections.abc import Callable
+from functools import partial
 from typing import Any, Literal
 
 import numpy as np
@@ -47,9 +48,11 @@ from tagtrail.geometry.bundle import (
     corner_sigma,
     initial_cameras,
     link_tags,
+    solve_grounded,
     solve_joint,
 )
 from tagtrail.geometry.camera import CameraModel
+from tagtrail.geometry.ground import PLANAR_BOUND, GroundPrior
 from tagtrail.geometry.posegraph import PoseGraph, PoseGraphResult, relative_residuals, solve
 from tagtrail.geometry.robust import LossName
 from tagtrail.geometry.se3 import R_from_quat_xyzw, make_T, quat_xyzw_from_R, rotation_angle
@@ -115,6 +118,16 @@ class Params(StageParams):
     """Angular acceleration noise density of the motion prior (deg/s^2/sqrt(Hz))."""
     max_gap_s: float = Field(0.5, gt=0.0)
     """Frames further apart than this are not linked by the motion prior (gaps stay gaps)."""
+    ground: Literal["auto", "plane", "none"] = "auto"
+    """Ground-plane prior of the joint solve (geometry.ground): ``plane``: the camera rides at a
+    fixed height and tilt above a plane (a ground robot), the plane solved with the map;
+    ``auto`` (default): the same when the solution without it moves in a plane (a robot, a
+    panning tripod), not for a hand-held camera (``geometry.ground.planarity``); ``none``:
+    free 6-dof motion."""
+    ground_height_sigma_m: float = Field(0.01, gt=0.0)
+    """How far the camera rises or sinks from its plane (m, per frame)."""
+    ground_tilt_sigma_deg: float = Field(1.0, gt=0.0)
+    """How far the camera rolls or pitches from its mean tilt to the plane (deg, per frame)."""
     rival_search: bool = True
     """Joint solve: decide the tag pairs with a close rival hypothesis (``edges.rival_pairs``)
     by the frames' continuity (``choose_hypotheses``)."""
@@ -131,6 +144,13 @@ class Params(StageParams):
     layout, a ``tag_map.yaml``, or inline; full or position-only); the map (and so the
     trajectory) is expressed in their frame by a rigid fit (``model: similarity`` adds a scale),
     the residuals at the known tags reported (schemas.pipeline.SurveyConfig)."""
+
+    def ground_prior(self) -> GroundPrior | None:
+        """The ground-plane prior, None without."""
+        if self.ground == "none":
+            return None
+        return GroundPrior(self.ground_height_sigma_m,
+                           float(np.radians(self.ground_tilt_sigma_deg)))
 
     def prior(self) -> tuple[float, float] | None:
         """``(acc_sigma m/s^2/sqrt(Hz), ang_sigma rad/s^2/sqrt(Hz))``, None without a prior."""
@@ -282,14 +302,23 @@ def refine_on_corners(
     mp = None if prior is None else MotionPrior(t_s, *prior, params.max_gap_s)
     a = int(np.searchsorted(ids, tags[anchor]))
     free = (np.arange(len(ids)) != a) & (np.bincount(k, minlength=len(ids)) > 0)
-    res = solve_joint(
-        W[:, :3, :3], W[:, :3, 3], cam_T_world[:, :3, :3], cam_T_world[:, :3, 3], ob, free,
-        px_per_unit=camera.focal_px, loss=params.joint_loss,
-        sigma_px=(params.corner_sigma_px if params.corner_weighting == "none" else
-                  corner_sigma(m[CORNER_COLS].to_numpy(np.float64), params.corner_sigma_px)),
-        f_scale_px=params.joint_f_scale_px, max_iter=params.joint_max_iter, prior=mp,
-        covariance=True, estimate_noise=params.corner_noise == "estimated",
-    )
+    sigma = (params.corner_sigma_px if params.corner_weighting == "none" else
+             corner_sigma(m[CORNER_COLS].to_numpy(np.float64), params.corner_sigma_px))
+    solve = partial(solve_joint, ob=ob, free=free, px_per_unit=camera.focal_px,
+                    loss=params.joint_loss, sigma_px=sigma, f_scale_px=params.joint_f_scale_px,
+                    max_iter=params.joint_max_iter, prior=mp, covariance=True,
+                    estimate_noise=params.corner_noise == "estimated")
+    res = solve(W[:, :3, :3], W[:, :3, 3], cam_T_world[:, :3, :3], cam_T_world[:, :3, 3])
+    ground, ground_block = params.ground_prior(), None
+    if ground is not None:
+        res, ground_block = solve_grounded(
+            res, lambda r, g, p: solve(r.R_tag, r.t_tag, r.R_cam, r.t_cam, ground=g, plane=p),
+            ground, params.ground)
+        log.info("optimize: ground plane %s (planarity %.2f, bound %.1f): camera %.1f deg "
+                 "from level, %.1f mm / %.2f deg RMS off the plane",
+                 "applied" if ground_block["applied"] else "not applied",
+                 ground_block["planarity"], PLANAR_BOUND, ground_block["camera_tilt_deg"],
+                 1e3 * ground_block["height_rms_m"], ground_block["tilt_rms_deg"])
     if not res.converged:
         log.warning("optimize: the joint solve stopped after %d iterations (joint_max_iter) "
                     "before converging", res.iters)
@@ -308,6 +337,7 @@ def refine_on_corners(
         "corner_sigma_px": res.sigma_px,
         "rms_px": float(np.sqrt(np.mean(res.res_px**2))),
         "p95_px": float(np.percentile(res.res_px, 95)),
+        "ground": ground_block,
     }
     assert res.tag_std is not None
     fixed = np.where(np.arange(len(ids)) == a, 0.0, np.nan)[:, None]  # the anchor; unobserved

@@ -47,10 +47,12 @@ from tagtrail.geometry.bundle import (
     frame_rms_px,
     initial_cameras,
     observation_rms_px,
+    solve_grounded,
     solve_joint,
 )
 from tagtrail.geometry.camera import CameraModel
 from tagtrail.geometry.fusion import frame_poses
+from tagtrail.geometry.ground import GroundPrior
 from tagtrail.geometry.ippe import best_pose
 from tagtrail.geometry.robust import LossName
 from tagtrail.geometry.se3 import T_from_xyz_quat, inv, make_T, xyz_quat_from_T
@@ -99,6 +101,12 @@ class Params(StageParams):
     """``joint``: angular acceleration noise density (deg/s^2/sqrt(Hz)), as optimize's."""
     max_gap_s: float = Field(0.5, gt=0.0)
     """``joint``: frames further apart than this are not linked (gaps stay gaps)."""
+    ground: Literal["auto", "plane", "none"] = "auto"
+    """``joint``: the ground-plane prior, as optimize's (``auto``: decided on this dataset)."""
+    ground_height_sigma_m: float = Field(0.01, gt=0.0)
+    """``joint``: as optimize's (m)."""
+    ground_tilt_sigma_deg: float = Field(1.0, gt=0.0)
+    """``joint``: as optimize's (deg)."""
 
 
 INPUTS = {
@@ -158,6 +166,16 @@ def joint_trajectory(rows: pd.DataFrame, ids: np.ndarray, W_map: np.ndarray,
         np.zeros(len(ids), bool), px_per_unit=camera.focal_px, sigma_px=sigma,
         loss=params.joint_loss, f_scale_px=params.joint_f_scale_px,
         max_iter=params.joint_max_iter, prior=prior, covariance=True, estimate_noise=estimate)
+    if params.ground != "none":
+        ground = GroundPrior(params.ground_height_sigma_m,
+                             float(np.radians(params.ground_tilt_sigma_deg)))
+        res, block = solve_grounded(res, lambda r, g, p: solve_joint(
+            W_map[:, :3, :3], W_map[:, :3, 3], r.R_cam, r.t_cam, ob, np.zeros(len(ids), bool),
+            px_per_unit=camera.focal_px, sigma_px=sigma, loss=params.joint_loss,
+            f_scale_px=params.joint_f_scale_px, max_iter=params.joint_max_iter, prior=prior,
+            covariance=True, estimate_noise=estimate, ground=g, plane=p), ground, params.ground)
+        log.info("trajectory: ground plane %s (planarity %.2f)",
+                 "applied" if block["applied"] else "not applied", block["planarity"])
     if prior is not None:
         ev = frame_evidence(res, ob, px_per_unit=camera.focal_px, sigma_px=sigma,
                             loss=params.joint_loss, f_scale_px=params.joint_f_scale_px,

@@ -1,0 +1,143 @@
+"""The ground-plane prior: a camera on a ground vehicle moves in a plane at a fixed tilt.
+
+A camera bolted to a robot driving on a floor keeps its height above the floor and its roll and
+pitch to it; only ``x, y`` on the floor and the heading change. Written in the world frame (the
+anchor tag's) the floor is unknown, so the prior carries its own unknowns, a :class:`Plane`:
+``n (3,)`` the unit normal in the world, ``d`` (m) the camera centres' offset along it
+(``n . c = d``; the plane of the camera centres, not the floor itself) and ``u (3,)`` the same
+normal in the camera frame (the mount's tilt). Per frame ``k`` with ``cam_T_world = (R_k, t_k)``
+and centre ``c_k = -R_k^T t_k`` (whitened, so the terms read as a negative log-likelihood)::
+
+    p_k = [ (n . c_k - d) / height_sigma ;  (R_k n - u) / tilt_sigma ]        (4,)
+
+``height_sigma`` (m) is how far the camera rises and sinks (floor unevenness, suspension),
+``tilt_sigma`` (rad) how far it rolls and pitches; a robust loss per frame lets a ramp or a bump
+stop counting instead of bending the map. It is what holds the far end of a long chain of tags
+level: without it a corridor's tag map and trajectory bend out of the floor by several cm per
+10 m (the pitch error of each tag pair adding up).
+
+Plane updates: ``n <- Exp(B a) n`` with ``B (3, 2)`` a basis orthogonal to ``n`` (2 parameters),
+``d <- d + dd``, ``u <- u + du``: 6 parameters, as a tag's. Camera perturbations are the joint
+solve's left ones, ``R <- Exp(w) R``, ``t <- Exp(w) t + v`` (so ``c <- c - R^T v``).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from tagtrail.geometry.arrays import F64
+from tagtrail.geometry.robust import LossName, rho
+from tagtrail.geometry.rotations import hat
+from tagtrail.geometry.se3 import R_from_rotvec
+
+
+@dataclass(frozen=True)
+class GroundPrior:
+    """How planar the camera's motion is: ``height_sigma_m`` (m) and ``tilt_sigma_rad`` (rad)
+    per frame, a robust ``loss`` on each frame's whitened 4-vector with scale ``f_scale``
+    (standard deviations)."""
+
+    height_sigma_m: float
+    tilt_sigma_rad: float
+    loss: LossName = "cauchy"
+    f_scale: float = 3.0
+
+
+@dataclass(frozen=True)
+class Plane:
+    """``n (3,)``: unit normal (world), ``d`` (m): ``n . c`` of the camera centres, ``u (3,)``:
+    the normal seen from the camera (``cam_R_world n``)."""
+
+    n: F64
+    d: float
+    u: F64
+
+    def basis(self) -> F64:
+        """Two unit vectors ``(3, 2)`` orthogonal to ``n`` (the normal's 2 update directions)."""
+        a = np.eye(3)[int(np.argmin(np.abs(self.n)))]
+        b1 = np.cross(self.n, a)
+        b1 /= np.linalg.norm(b1)
+        return np.stack([b1, np.cross(self.n, b1)], axis=1)
+
+    def update(self, step: F64) -> Plane:
+        """The plane after the step ``[a (2) ; dd ; du (3)]``."""
+        n = R_from_rotvec((self.basis() @ step[:2])[None])[0] @ self.n
+        return Plane(n / np.linalg.norm(n), self.d + float(step[2]), self.u + step[3:])
+
+
+def centres(R_cam: F64, t_cam: F64) -> F64:
+    """Camera centres in the world ``(F, 3)`` of ``cam_T_world`` ``(F, 3, 3), (F, 3)``."""
+    return np.asarray(-np.einsum("fji,fj->fi", R_cam, t_cam))
+
+
+def fit_plane(R_cam: F64, t_cam: F64, prior: GroundPrior, weight: F64 | None = None) -> Plane:
+    """The plane that minimises the prior's cost for fixed cameras (``weight (F,)``: each
+    frame's, default 1): with ``d`` and ``u`` at their optima the cost is ``n^T M n``, ``M`` the
+    weighted scatter of the centres over ``height_sigma^2`` plus that of the rotations over
+    ``tilt_sigma^2``, so ``n`` is ``M``'s least eigenvector."""
+    w = np.ones(len(R_cam)) if weight is None else np.asarray(weight, np.float64)
+    w = w / max(float(w.sum()), 1e-300)
+    c = centres(R_cam, t_cam)
+    dc = c - w @ c
+    Rm = np.einsum("f,fij->ij", w, R_cam)
+    dR = R_cam - Rm
+    M = (np.einsum("f,fi,fj->ij", w, dc, dc) / prior.height_sigma_m**2
+         + np.einsum("f,fki,fkj->ij", w, dR, dR) / prior.tilt_sigma_rad**2)
+    n = np.linalg.eigh(M)[1][:, 0]
+    n = n if n @ (Rm.T @ np.array([0.0, -1.0, 0.0])) >= 0 else -n  # camera y points down
+    return Plane(n, float(n @ (w @ c)), Rm @ n)
+
+
+def plane_terms(R_cam: F64, t_cam: F64, plane: Plane, prior: GroundPrior
+                ) -> tuple[F64, F64, F64]:
+    """Whitened residuals ``p (F, 4)`` and their Jacobians on each camera's ``[w ; v]``
+    ``(F, 4, 6)`` and on the plane's 6 parameters ``(F, 4, 6)``."""
+    n_f = len(R_cam)
+    sh, st = prior.height_sigma_m, prior.tilt_sigma_rad
+    c = centres(R_cam, t_cam)
+    Rn = R_cam @ plane.n
+    p = np.concatenate([((c @ plane.n - plane.d) / sh)[:, None], (Rn - plane.u) / st], axis=1)
+    Jc = np.zeros((n_f, 4, 6))
+    Jc[:, 0, 3:] = -Rn / sh  # d c / d v = -R^T
+    Jc[:, 1:, :3] = -hat(Rn) / st  # R n <- Exp(w) R n
+    B = plane.basis()
+    bxn = np.cross(B.T, plane.n)  # (2, 3): d n / d a_i
+    Jg = np.zeros((n_f, 4, 6))
+    Jg[:, 0, :2] = np.cross(plane.n, c) @ B / sh
+    Jg[:, 0, 2] = -1.0 / sh
+    Jg[:, 1:, :2] = np.einsum("fij,kj->fik", R_cam, bxn) / st
+    Jg[:, 1:, 3:] = -np.eye(3) / st
+    return p, Jc, Jg
+
+
+def robust_weights(p: F64, prior: GroundPrior) -> tuple[F64, F64]:
+    """Per-frame loss values and IRLS weights ``(F,)`` of whitened residuals ``p (F, 4)``."""
+    f2 = prior.f_scale**2
+    val, w = rho(prior.loss, np.sum(p * p, axis=1) / f2)
+    return f2 * val, w
+
+
+PLANAR_BOUND = 2.0  # median normalised chi^2 per degree of freedom below which motion is planar
+
+
+def planarity(R_cam: F64, t_cam: F64, cam_cov: F64, prior: GroundPrior) -> tuple[Plane, float]:
+    """The plane fitted to a solution solved without the prior and how well the motion fits it:
+    the median over frames of each frame's squared distance from the plane (height, tilt) over
+    its variance (the prior's plus the frame's own from ``cam_cov (F, 6, 6)``, the covariance of
+    ``cam_T_world``'s left perturbation ``[w ; v]``), per degree of freedom (3). About 0.8 when
+    the camera rides a plane as the prior says; a hand-held camera's metres and degrees of
+    motion off any plane give hundreds. The median: a ramp, a bump or a flipped frame does not
+    decide it."""
+    plane = fit_plane(R_cam, t_cam, prior)
+    p, _, _ = plane_terms(R_cam, t_cam, plane, prior)
+    Rn = R_cam @ plane.n
+    var_h = np.einsum("fi,fij,fj->f", Rn, cam_cov[:, 3:, 3:], Rn)
+    K = hat(Rn)
+    var_g = np.einsum("fij,fjk,flk->fil", K, cam_cov[:, :3, :3], K)  # of R n - u, (F, 3, 3)
+    sh2, st2 = prior.height_sigma_m**2, prior.tilt_sigma_rad**2
+    chi2 = (p[:, 0] ** 2 * sh2 / (sh2 + var_h)
+            + np.einsum("fi,fij,fj->f", p[:, 1:],
+                        np.linalg.inv(np.eye(3) + var_g / st2 + 1e-9 * np.eye(3)), p[:, 1:]))
+    return plane, float(np.median(chi2) / 3.0) if len(chi2) else float("inf")
