@@ -25,6 +25,9 @@ import pandas as pd
 import pytest
 
 from tagtrail.io.layouts import read_trajectory
+from tagtrail.runner.execute import Runner
+from tagtrail.runner.spec import load_pipeline
+from tagtrail.stages import REGISTRY
 from tests.tagslam import (
     TAG_SIZES,
     agreement,
@@ -73,6 +76,11 @@ def test_tagslam_recordings_with_nothing_but_init(name: str, realdata: Path, tmp
           f"{ang:.3f} deg, frames alone (trajectory_raw.csv) {1e3 * pos_a:.2f} mm / "
           f"{ang_a:.3f} deg")
     assert posed >= 0.95 and posed_a == posed
+    # a hand-held camera: the ground-plane prior's auto leaves it alone
+    runner = Runner(load_pipeline(tmp_path / "pipeline.yaml", REGISTRY))
+    key = next(s.key for s in runner.plan() if s.stage == "optimize")
+    ground = runner.store.load("optimize", key, "report")["bundle"]["ground"]
+    assert not ground["applied"] and ground["planarity"] > 2.0
     assert 1e3 * pos <= d_mm and ang <= d_deg
     assert 1e3 * pos_a <= a_mm and ang_a <= a_deg
     # the evidence: the default's corner RMS beside the frames alone's, and the change it made
