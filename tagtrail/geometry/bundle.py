@@ -339,7 +339,11 @@ def solve_joint(
             p, Jpc, Jpg = g
             Ablk[:, 0] += np.einsum("fki,fkj->fij", Jpc, Jpc)
             gc += np.einsum("fki,fk->fi", Jpc, p)
-            Htt = np.concatenate([Htt, np.einsum("fki,fkj->ij", Jpg, Jpg)[None]])
+            Hgg = np.einsum("fki,fkj->ij", Jpg, Jpg)
+            # a plane the frames leave undetermined (a parked robot: its normal; a straight
+            # drive: its roll about the path) takes no step that way, instead of crawling
+            Hgg += 1e-6 * np.trace(Hgg) / 6 * np.eye(6)
+            Htt = np.concatenate([Htt, Hgg[None]])
             gt = np.concatenate([gt, np.einsum("fki,fk->i", Jpg, p)[None]])
             vals = np.concatenate([vals, np.einsum("fki,fkj->fij", Jpc, Jpg).reshape(-1)])
             rows, cols = np.concatenate([rows, prow]), np.concatenate([cols, pcol])
@@ -410,7 +414,9 @@ def solve_joint(
                 break
             step_size = max(np.abs(dt).max(initial=0.0), np.abs(dc).max(initial=0.0),
                             np.abs(dg).max(initial=0.0))
-            done = cost - new[0] <= 1e-10 * max(cost, 1e-300) or step_size < 1e-12
+            # a decrease of the whitened cost (a chi^2) under 1e-6 changes nothing: a flat
+            # direction (a parked robot's undetermined ground plane) is not crawled along
+            done = (cost - new[0] <= max(1e-10 * cost, 1e-6) or step_size < 1e-12)
             R_cam, t_cam, R_tag, t_tag, pl = Rc, tc, Rt, tt, pl_new
             cost, r, pw, pc, w, m, Jm, g = new
             it, lam = it + 1, max(lam / 10.0, 1e-9)

@@ -123,7 +123,7 @@ class Params(StageParams):
     fixed height and tilt above a plane (a ground robot), the plane solved with the map;
     ``auto`` (default): the same when the solution without it moves in a plane (a robot, a
     panning tripod), not for a hand-held camera (``geometry.ground.planarity``); ``none``:
-    free 6-dof motion."""
+    free 6-dof motion. Only with the motion prior (frames on their own get neither)."""
     ground_height_sigma_m: float = Field(0.01, gt=0.0)
     """How far the camera rises or sinks from its plane (m, per frame)."""
     ground_tilt_sigma_deg: float = Field(1.0, gt=0.0)
@@ -310,7 +310,7 @@ def refine_on_corners(
                     estimate_noise=params.corner_noise == "estimated")
     res = solve(W[:, :3, :3], W[:, :3, 3], cam_T_world[:, :3, :3], cam_T_world[:, :3, 3])
     ground, ground_block = params.ground_prior(), None
-    if ground is not None:
+    if ground is not None and mp is not None:  # frames held together: in time, and on a plane
         res, ground_block = solve_grounded(
             res, lambda r, g, p: solve(r.R_tag, r.t_tag, r.R_cam, r.t_cam, ground=g, plane=p),
             ground, params.ground)

@@ -166,7 +166,7 @@ def joint_trajectory(rows: pd.DataFrame, ids: np.ndarray, W_map: np.ndarray,
         np.zeros(len(ids), bool), px_per_unit=camera.focal_px, sigma_px=sigma,
         loss=params.joint_loss, f_scale_px=params.joint_f_scale_px,
         max_iter=params.joint_max_iter, prior=prior, covariance=True, estimate_noise=estimate)
-    if params.ground != "none":
+    if params.ground != "none" and prior is not None:  # frames on their own get neither
         ground = GroundPrior(params.ground_height_sigma_m,
                              float(np.radians(params.ground_tilt_sigma_deg)))
         res, block = solve_grounded(res, lambda r, g, p: solve_joint(
