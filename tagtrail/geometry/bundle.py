@@ -53,6 +53,7 @@ from tagtrail.geometry.ground import (
     PLANAR_BOUND,
     GroundPrior,
     Plane,
+    centres,
     planarity,
     plane_terms,
     robust_weights,
@@ -171,7 +172,7 @@ class _Prior:
         k = self.k
         if not len(k):
             return np.zeros((0, 6)), np.zeros((0, 3, 6, 6))
-        c = -np.einsum("fji,fj->fi", R, t)  # camera centres in the world
+        c = centres(R, t)
         E = R[:-1] @ np.swapaxes(R[1:], 1, 2)  # world_R_cam_j^T world_R_cam_{j+1}
         e = log_so3(E)
         Jinv = right_jacobian_inv(e)
@@ -279,10 +280,10 @@ def solve_joint(
         raise ValueError("solve_joint: a ground prior needs a start plane")
     has_plane = ground is not None and n_f > 0
     n_dense = n_free + int(has_plane)
-    frames_all = np.arange(n_f)
-    prow = np.broadcast_to((6 * frames_all)[:, None, None] + np.arange(6)[:, None],
-                           (n_f, 6, 6)).reshape(-1)
-    pcol = np.broadcast_to(6 * n_free + np.arange(6)[None, :], (n_f, 6, 6)).reshape(-1)
+    if has_plane:  # the plane's block column in B: every frame's 6 rows x its 6 parameters
+        prow = np.broadcast_to((6 * np.arange(n_f))[:, None, None] + np.arange(6)[:, None],
+                               (n_f, 6, 6)).reshape(-1)
+        pcol = np.broadcast_to(6 * n_free + np.arange(6)[None, :], (n_f, 6, 6)).reshape(-1)
     bidx = _band_index(n_f)
     eye3 = np.broadcast_to(np.eye(3), (n_o, 4, 3, 3))
     # normalised coordinates -> units of each observation's corner noise
@@ -561,8 +562,7 @@ def frame_evidence(res: JointResult, ob: CornerObservations, *, px_per_unit: flo
     vf = alone.variance_factor if np.isfinite(alone.variance_factor) else 1.0
     cov = alone.cam_cov * (vf / max(vf, 1.0))  # at the noise the residuals show, not above it
     maha = np.einsum("ni,ni->n", d, np.linalg.solve(cov, d[..., None])[..., 0])
-    centre = -np.einsum("nji,nj->ni", res.R_cam, res.t_cam)
-    centre_alone = -np.einsum("nji,nj->ni", alone.R_cam, alone.t_cam)
+    centre, centre_alone = centres(res.R_cam, res.t_cam), centres(alone.R_cam, alone.t_cam)
     return FrameEvidence(
         reproj_px=frame_rms_px(res.res_px, ob.frame, n_f),
         alone_reproj_px=frame_rms_px(alone.res_px, ob.frame, n_f),

@@ -44,6 +44,11 @@ class GroundPrior:
     loss: LossName = "cauchy"
     f_scale: float = 3.0
 
+    @classmethod
+    def of(cls, height_sigma_m: float, tilt_sigma_deg: float) -> GroundPrior:
+        """The prior from a pipeline's ``ground_height_sigma_m`` and ``ground_tilt_sigma_deg``."""
+        return cls(height_sigma_m, float(np.radians(tilt_sigma_deg)))
+
 
 @dataclass(frozen=True)
 class Plane:
@@ -72,22 +77,19 @@ def centres(R_cam: F64, t_cam: F64) -> F64:
     return np.asarray(-np.einsum("fji,fj->fi", R_cam, t_cam))
 
 
-def fit_plane(R_cam: F64, t_cam: F64, prior: GroundPrior, weight: F64 | None = None) -> Plane:
-    """The plane that minimises the prior's cost for fixed cameras (``weight (F,)``: each
-    frame's, default 1): with ``d`` and ``u`` at their optima the cost is ``n^T M n``, ``M`` the
-    weighted scatter of the centres over ``height_sigma^2`` plus that of the rotations over
-    ``tilt_sigma^2``, so ``n`` is ``M``'s least eigenvector."""
-    w = np.ones(len(R_cam)) if weight is None else np.asarray(weight, np.float64)
-    w = w / max(float(w.sum()), 1e-300)
+def fit_plane(R_cam: F64, t_cam: F64, prior: GroundPrior) -> Plane:
+    """The plane that minimises the prior's cost for fixed cameras: with ``d`` and ``u`` at
+    their optima the cost is ``n^T M n``, ``M`` the scatter of the centres over
+    ``height_sigma^2`` plus that of the rotations over ``tilt_sigma^2``, so ``n`` is ``M``'s
+    least eigenvector."""
     c = centres(R_cam, t_cam)
-    dc = c - w @ c
-    Rm = np.einsum("f,fij->ij", w, R_cam)
-    dR = R_cam - Rm
-    M = (np.einsum("f,fi,fj->ij", w, dc, dc) / prior.height_sigma_m**2
-         + np.einsum("f,fki,fkj->ij", w, dR, dR) / prior.tilt_sigma_rad**2)
+    c_mean, R_mean = c.mean(axis=0), R_cam.mean(axis=0)
+    dc, dR = c - c_mean, R_cam - R_mean
+    M = (np.einsum("fi,fj->ij", dc, dc) / prior.height_sigma_m**2
+         + np.einsum("fki,fkj->ij", dR, dR) / prior.tilt_sigma_rad**2) / len(R_cam)
     n = np.linalg.eigh(M)[1][:, 0]
-    n = n if n @ (Rm.T @ np.array([0.0, -1.0, 0.0])) >= 0 else -n  # camera y points down
-    return Plane(n, float(n @ (w @ c)), Rm @ n)
+    n = n if n @ (R_mean.T @ np.array([0.0, -1.0, 0.0])) >= 0 else -n  # camera y points down
+    return Plane(n, float(n @ c_mean), R_mean @ n)
 
 
 def plane_terms(R_cam: F64, t_cam: F64, plane: Plane, prior: GroundPrior

@@ -149,8 +149,7 @@ class Params(StageParams):
         """The ground-plane prior, None without."""
         if self.ground == "none":
             return None
-        return GroundPrior(self.ground_height_sigma_m,
-                           float(np.radians(self.ground_tilt_sigma_deg)))
+        return GroundPrior.of(self.ground_height_sigma_m, self.ground_tilt_sigma_deg)
 
     def prior(self) -> tuple[float, float] | None:
         """``(acc_sigma m/s^2/sqrt(Hz), ang_sigma rad/s^2/sqrt(Hz))``, None without a prior."""

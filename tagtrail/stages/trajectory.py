@@ -32,6 +32,7 @@ Frames without a mapped tag get no pose. Output rows are sorted by ``t_ns``.
 from __future__ import annotations
 
 import logging
+from functools import partial
 from typing import Any, Literal
 
 import numpy as np
@@ -161,19 +162,17 @@ def joint_trajectory(rows: pd.DataFrame, ids: np.ndarray, W_map: np.ndarray,
     sigma = (params.corner_sigma_px if params.corner_weighting == "none" else
              corner_sigma(rows[CORNER_COLS].to_numpy(np.float64), params.corner_sigma_px))
     estimate = params.corner_noise == "estimated"
-    res = solve_joint(
-        W_map[:, :3, :3], W_map[:, :3, 3], cam_T_world[:, :3, :3], cam_T_world[:, :3, 3], ob,
-        np.zeros(len(ids), bool), px_per_unit=camera.focal_px, sigma_px=sigma,
-        loss=params.joint_loss, f_scale_px=params.joint_f_scale_px,
-        max_iter=params.joint_max_iter, prior=prior, covariance=True, estimate_noise=estimate)
+    solve = partial(solve_joint, W_map[:, :3, :3], W_map[:, :3, 3], ob=ob,
+                    free=np.zeros(len(ids), bool), px_per_unit=camera.focal_px, sigma_px=sigma,
+                    loss=params.joint_loss, f_scale_px=params.joint_f_scale_px,
+                    max_iter=params.joint_max_iter, prior=prior, covariance=True,
+                    estimate_noise=estimate)
+    res = solve(R_cam=cam_T_world[:, :3, :3], t_cam=cam_T_world[:, :3, 3])
     if params.ground != "none" and prior is not None:  # frames on their own get neither
-        ground = GroundPrior(params.ground_height_sigma_m,
-                             float(np.radians(params.ground_tilt_sigma_deg)))
-        res, block = solve_grounded(res, lambda r, g, p: solve_joint(
-            W_map[:, :3, :3], W_map[:, :3, 3], r.R_cam, r.t_cam, ob, np.zeros(len(ids), bool),
-            px_per_unit=camera.focal_px, sigma_px=sigma, loss=params.joint_loss,
-            f_scale_px=params.joint_f_scale_px, max_iter=params.joint_max_iter, prior=prior,
-            covariance=True, estimate_noise=estimate, ground=g, plane=p), ground, params.ground)
+        ground = GroundPrior.of(params.ground_height_sigma_m, params.ground_tilt_sigma_deg)
+        res, block = solve_grounded(
+            res, lambda r, g, p: solve(R_cam=r.R_cam, t_cam=r.t_cam, ground=g, plane=p),
+            ground, params.ground)
         log.info("trajectory: ground plane %s (planarity %.2f)",
                  "applied" if block["applied"] else "not applied", block["planarity"])
     if prior is not None:
