@@ -48,6 +48,17 @@ from scipy.sparse import coo_matrix
 
 from tagtrail.geometry.arrays import F64, I64
 from tagtrail.geometry.camera import CameraModel
+from tagtrail.geometry.drive import (
+    N_MOUNT,
+    WHEELED_BOUND,
+    DrivePrior,
+    Mount,
+    cost_ratio,
+    drive_terms,
+    fit_mount,
+    steps,
+)
+from tagtrail.geometry.drive import robust_weights as drive_weights
 from tagtrail.geometry.fusion import tag_corners
 from tagtrail.geometry.ground import (
     PLANAR_BOUND,
@@ -123,6 +134,8 @@ class JointResult:
     cam_std: F64 | None = None
     cam_cov: F64 | None = None
     plane: Plane | None = None
+    mount: Mount | None = None
+    dof: int = 0
 
 
 def _project(R_cam: F64, t_cam: F64, R_tag: F64, t_tag: F64, ob: CornerObservations
@@ -254,6 +267,8 @@ def solve_joint(
     estimate_noise: bool = False,
     ground: GroundPrior | None = None,
     plane: Plane | None = None,
+    drive: DrivePrior | None = None,
+    mount: Mount | None = None,
 ) -> JointResult:
     """Minimise the module's cost over the free tags (``free (T,)`` bool) and every camera,
     from the given start; cameras must be in time order when ``prior`` is given. ``sigma_px``:
@@ -262,7 +277,9 @@ def solve_joint(
     corner noise to what the residuals show (clamped to 0.05-5 px) and solve again, so that
     precise corners are not outweighed by the motion prior (nor noisy ones by it overruled);
     ``JointResult.sigma_px`` reports the median noise used. ``ground``: the ground-plane
-    prior (:mod:`tagtrail.geometry.ground`), its plane free from the start ``plane``."""
+    prior (:mod:`tagtrail.geometry.ground`), its plane free from the start ``plane``;
+    ``drive``: the wheeled-drive prior on top of it (:mod:`tagtrail.geometry.drive`, the steps
+    those of ``prior``), the camera's mount free from ``mount``."""
     n_f, n_t, n_o = len(R_cam), len(R_tag), len(ob.frame)
     free = np.asarray(free, bool)
     free_idx = np.flatnonzero(free)
@@ -279,11 +296,16 @@ def solve_joint(
     if ground is not None and plane is None:
         raise ValueError("solve_joint: a ground prior needs a start plane")
     has_plane = ground is not None and n_f > 0
-    n_dense = n_free + int(has_plane)
-    if has_plane:  # the plane's block column in B: every frame's 6 rows x its 6 parameters
+    if drive is not None and (not has_plane or prior is None or mount is None):
+        raise ValueError("solve_joint: a drive prior needs a ground prior, a motion prior and "
+                         "a start mount")
+    js = steps(prior.t_s, prior.max_gap_s) if drive is not None and prior is not None else None
+    n_g = (6 + (N_MOUNT if js is not None else 0)) if has_plane else 0  # the global unknowns
+    n_dense = 6 * n_free + n_g  # columns of B: the free tags', then the plane's and mount's
+    if has_plane:  # the globals' block column in B: every frame's 6 rows x the n_g parameters
         prow = np.broadcast_to((6 * np.arange(n_f))[:, None, None] + np.arange(6)[:, None],
-                               (n_f, 6, 6)).reshape(-1)
-        pcol = np.broadcast_to(6 * n_free + np.arange(6)[None, :], (n_f, 6, 6)).reshape(-1)
+                               (n_f, 6, n_g)).reshape(-1)
+        pcol = np.broadcast_to(6 * n_free + np.arange(n_g)[None, :], (n_f, 6, n_g)).reshape(-1)
     bidx = _band_index(n_f)
     eye3 = np.broadcast_to(np.eye(3), (n_o, 4, 3, 3))
     # normalised coordinates -> units of each observation's corner noise
@@ -292,8 +314,8 @@ def solve_joint(
     f = f_scale_px / float(np.median(sig)) if n_o else 1.0
     f2 = f * f
 
-    def evaluate(Rc: F64, tc: F64, Rt: F64, tt: F64, pl: Plane | None
-                 ) -> tuple[float, F64, F64, F64, F64, F64, F64, tuple[F64, F64, F64] | None]:
+    def evaluate(Rc: F64, tc: F64, Rt: F64, tt: F64, pl: Plane | None, mt: Mount | None
+                 ) -> tuple[float, F64, F64, F64, F64, F64, F64, tuple[F64, ...] | None]:
         r, pw, pc = _project(Rc, tc, Rt, tt, ob)
         sq = np.sum(r * r, axis=(1, 2)) * scale**2
         bad = (pc[..., 2] <= 1e-6).any(axis=1)  # behind the camera: an outlier, no gradient
@@ -301,7 +323,7 @@ def solve_joint(
         m, Jm = pr.evaluate(Rc, tc)
         val_m, w_m = rho(pr.loss, np.sum(m * m, axis=1) / pr.f2)
         cost = float(f2 * val.sum() + pr.f2 * val_m.sum())
-        g = None
+        g: tuple[F64, ...] | None = None
         if has_plane:
             assert ground is not None and pl is not None
             p, Jpc, Jpg = plane_terms(Rc, tc, pl, ground)
@@ -309,12 +331,19 @@ def solve_joint(
             cost += float(val_p.sum())
             s = np.sqrt(w_p)
             g = (p * s[:, None], Jpc * s[:, None, None], Jpg * s[:, None, None])
+            if js is not None:
+                assert drive is not None and mt is not None and prior is not None
+                q, Jqc, Jqg = drive_terms(Rc, tc, prior.t_s, js, pl, mt, drive)
+                val_q, w_q = drive_weights(q, drive)
+                cost += float(val_q.sum())
+                s = np.sqrt(w_q)
+                g = (*g[:3], q * s, Jqc * s[:, None, None], Jqg * s[:, None])
         return cost, r, pw, pc, np.where(bad, 0.0, w), m * np.sqrt(w_m)[:, None], Jm * np.sqrt(
             w_m)[:, None, None, None], g
 
     def normal_equations(Rc: F64, r: F64, pw: F64, pc: F64, w: F64, m: F64, Jm: F64,
-                         g: tuple[F64, F64, F64] | None
-                         ) -> tuple[F64, F64, F64, F64, coo_matrix]:
+                         g: tuple[F64, ...] | None
+                         ) -> tuple[F64, F64, F64, F64, F64 | None, F64 | None, coo_matrix]:
         z = pc[..., 2]
         Jp = np.zeros((n_o, 4, 2, 3))
         Jp[..., 0, 0] = Jp[..., 1, 1] = scale[:, None] / z
@@ -336,28 +365,47 @@ def solve_joint(
         gt = sum_blocks(np.einsum("oki,ok->oi", Jt, rv) * w[:, None], ob.tag, n_t)[free_idx]
         Hct = (np.einsum("oki,okj->oij", Jc, Jt) * W)[of]
         vals, rows, cols = Hct.reshape(-1), brow, bcol
-        if g is not None:  # the plane: one more dense block, coupled to every frame
-            p, Jpc, Jpg = g
+        Hgg = gg = None
+        if g is not None:  # the plane (and mount): one more dense block, coupled to every frame
+            p, Jpc, Jpg = g[:3]
             Ablk[:, 0] += np.einsum("fki,fkj->fij", Jpc, Jpc)
             gc += np.einsum("fki,fk->fi", Jpc, p)
-            Hgg = np.einsum("fki,fkj->ij", Jpg, Jpg)
-            # a plane the frames leave undetermined (a parked robot: its normal; a straight
-            # drive: its roll about the path) takes no step that way, instead of crawling
-            Hgg += 1e-6 * np.trace(Hgg) / 6 * np.eye(6)
-            Htt = np.concatenate([Htt, Hgg[None]])
-            gt = np.concatenate([gt, np.einsum("fki,fk->i", Jpg, p)[None]])
-            vals = np.concatenate([vals, np.einsum("fki,fkj->fij", Jpc, Jpg).reshape(-1)])
+            Hgg = np.zeros((n_g, n_g))
+            Hgg[:6, :6] = np.einsum("fki,fkj->ij", Jpg, Jpg)
+            gg = np.zeros(n_g)
+            gg[:6] = np.einsum("fki,fk->i", Jpg, p)
+            Bg = np.zeros((n_f, 6, n_g))
+            Bg[:, :, :6] = np.einsum("fki,fkj->fij", Jpc, Jpg)
+            if len(g) > 3:  # the drive's steps: frames j and j + 1, the plane and the mount
+                q, Jqc, Jqg = g[3:]
+                a, b = js, js + 1  # type: ignore[operator]
+                Ablk[a, 0] += np.einsum("pi,pj->pij", Jqc[:, 0], Jqc[:, 0])
+                Ablk[b, 0] += np.einsum("pi,pj->pij", Jqc[:, 1], Jqc[:, 1])
+                Ablk[a, 1] += np.einsum("pi,pj->pij", Jqc[:, 1], Jqc[:, 0])  # row j+1, column j
+                gc[a] += Jqc[:, 0] * q[:, None]
+                gc[b] += Jqc[:, 1] * q[:, None]
+                Hgg += Jqg.T @ Jqg
+                gg += Jqg.T @ q
+                Bg[a] += np.einsum("pi,pj->pij", Jqc[:, 0], Jqg)
+                Bg[b] += np.einsum("pi,pj->pij", Jqc[:, 1], Jqg)
+            # globals the frames leave undetermined (a parked robot: the plane's normal; a
+            # straight drive: its roll about the path, the lever arm) take no step that way,
+            # instead of crawling
+            Hgg += 1e-6 * np.trace(Hgg) / n_g * np.eye(n_g)
+            vals = np.concatenate([vals, Bg.reshape(-1)])
             rows, cols = np.concatenate([rows, prow]), np.concatenate([cols, pcol])
-        B = coo_matrix((vals, (rows, cols)), shape=(6 * n_f, 6 * n_dense)).tocsc()
-        return Ablk, gc, Htt, gt, B
+        B = coo_matrix((vals, (rows, cols)), shape=(6 * n_f, n_dense)).tocsc()
+        return Ablk, gc, Htt, gt, Hgg, gg, B
 
-    def schur(cb: F64, Htt: F64, B: coo_matrix, lam: float) -> F64:
-        C = np.zeros((6 * n_dense, 6 * n_dense))
-        eps = 1e-9 * max(float(np.mean(np.trace(Htt, axis1=1, axis2=2))), 1e-300)
-        for i in range(n_dense):  # eps: a tag nothing constrains gets no step, not a NaN
-            C[6 * i:6 * i + 6, 6 * i:6 * i + 6] = Htt[i] * (1.0 + lam * np.eye(6)) + eps * np.eye(6)
+    def schur(cb: F64, Htt: F64, Hgg: F64 | None, B: coo_matrix, lam: float) -> F64:
+        C = np.zeros((n_dense, n_dense))
+        blocks = [*Htt, *([] if Hgg is None else [Hgg])]
+        eps = 1e-9 * max(float(np.mean([np.trace(H) / len(H) * 6 for H in blocks])), 1e-300)
+        for i, H in enumerate(blocks):  # eps: a tag nothing constrains gets no step, not a NaN
+            sl = slice(6 * i, 6 * i + len(H))
+            C[sl, sl] = H * (1.0 + lam * np.eye(len(H))) + eps * np.eye(len(H))
         step = max(6, (_CHUNK // max(6 * n_f, 1)) // 6 * 6)
-        for c0 in range(0, 6 * n_dense, step):
+        for c0 in range(0, n_dense, step):
             Bc = B[:, c0:c0 + step]
             X = cho_solve_banded((cb, True), Bc.toarray())
             C[:, c0:c0 + step] -= (B.T @ X)
@@ -365,7 +413,8 @@ def solve_joint(
 
     it = 0
     pl = plane if has_plane else None
-    cost, r, pw, pc, w, m, Jm, g = evaluate(R_cam, t_cam, R_tag, t_tag, pl)
+    mt = mount if js is not None else None
+    cost, r, pw, pc, w, m, Jm, g = evaluate(R_cam, t_cam, R_tag, t_tag, pl, mt)
     for round_ in range(2 if estimate_noise and n_o else 1):
         if round_:  # the corner noise the residuals show, then the solve again from there
             sq0 = np.sum(r * r, axis=(1, 2)) * scale**2
@@ -377,22 +426,22 @@ def solve_joint(
             scale = px_per_unit / sig
             f = f_scale_px / float(np.median(sig))
             f2 = f * f
-            cost, r, pw, pc, w, m, Jm, g = evaluate(R_cam, t_cam, R_tag, t_tag, pl)
+            cost, r, pw, pc, w, m, Jm, g = evaluate(R_cam, t_cam, R_tag, t_tag, pl, mt)
         lam, converged = 1e-4, n_o == 0
         while it < max_iter * (round_ + 1) and n_o:
-            Ablk, gc, Htt, gt, B = normal_equations(R_cam, r, pw, pc, w, m, Jm, g)
+            Ablk, gc, Htt, gt, Hgg, gg, B = normal_equations(R_cam, r, pw, pc, w, m, Jm, g)
             while True:
                 try:
                     cb = cholesky_banded(_band(Ablk, bidx, lam), lower=True)
                     dt = np.zeros((n_t, 6))
-                    dg = np.zeros(6)
+                    dg = np.zeros(n_g)
                     if n_dense:
                         y = cho_solve_banded((cb, True), gc.reshape(-1))
-                        S = schur(cb, Htt, B, lam)
-                        rhs = -gt.reshape(-1) + B.T @ y
-                        dd = cho_solve(cho_factor(S), rhs).reshape(n_dense, 6)
-                        dt[free_idx], dg = dd[:n_free], (dd[n_free] if has_plane else dg)
-                        dcv = -y - cho_solve_banded((cb, True), B @ dd.reshape(-1))
+                        S = schur(cb, Htt, Hgg, B, lam)
+                        rhs = -np.concatenate([gt.reshape(-1), [] if gg is None else gg]) + B.T @ y
+                        dd = cho_solve(cho_factor(S), rhs)
+                        dt[free_idx], dg = dd[:6 * n_free].reshape(n_free, 6), dd[6 * n_free:]
+                        dcv = -y - cho_solve_banded((cb, True), B @ dd)
                     else:
                         dcv = -cho_solve_banded((cb, True), gc.reshape(-1))
                     dc = dcv.reshape(n_f, 6)
@@ -403,8 +452,9 @@ def solve_joint(
                 if ok:
                     Rc, tc = left_update(R_cam, t_cam, dc)
                     Rt, tt = left_update(R_tag, t_tag, dt)
-                    pl_new = pl.update(dg) if pl is not None else None
-                    new = evaluate(Rc, tc, Rt, tt, pl_new)
+                    pl_new = pl.update(dg[:6]) if pl is not None else None
+                    mt_new = mt.update(dg[6:], pl.u) if mt is not None and pl is not None else None
+                    new = evaluate(Rc, tc, Rt, tt, pl_new, mt_new)
                     if new[0] <= cost:
                         break
                 if lam > 1e8:
@@ -418,7 +468,7 @@ def solve_joint(
             # a decrease of the whitened cost (a chi^2) under 1e-6 changes nothing: a flat
             # direction (a parked robot's undetermined ground plane) is not crawled along
             done = (cost - new[0] <= max(1e-10 * cost, 1e-6) or step_size < 1e-12)
-            R_cam, t_cam, R_tag, t_tag, pl = Rc, tc, Rt, tt, pl_new
+            R_cam, t_cam, R_tag, t_tag, pl, mt = Rc, tc, Rt, tt, pl_new, mt_new
             cost, r, pw, pc, w, m, Jm, g = new
             it, lam = it + 1, max(lam / 10.0, 1e-9)
             if done:
@@ -430,6 +480,9 @@ def solve_joint(
     if g is not None:  # height and two tilt angles per frame; the plane's 5 degrees of freedom
         dof += 3 * n_f - 5
         chi2 += float(np.sum(g[0] ** 2))
+        if len(g) > 3:  # one lateral step per pair of frames; the mount's 2
+            dof += len(g[3]) - N_MOUNT
+            chi2 += float(np.sum(g[3] ** 2))
     vf = chi2 / dof if dof > 0 else float("nan")
     res_px = observation_rms_px(R_cam, t_cam, R_tag, t_tag, ob, px_per_unit)
     tag_std = cam_std = cam_cov = None
@@ -439,15 +492,16 @@ def solve_joint(
             max(vf, 1.0) if np.isfinite(vf) else 1.0, schur)
     return JointResult(R_tag, t_tag, R_cam, t_cam, res_px, cost, it, converged, vf, len(kp),
                        float(np.median(sig)) if n_o else float("nan"), tag_std, cam_std, cam_cov,
-                       pl)
+                       pl, mt, dof)
 
 
-def _std(ne: tuple[F64, F64, F64, F64, coo_matrix], bidx: tuple[I64, ...], free_idx: I64,
-         t_tag: F64, n_t: int, vf: float, schur: object) -> tuple[F64, F64, F64]:
+def _std(ne: tuple[F64, F64, F64, F64, F64 | None, F64 | None, coo_matrix],
+         bidx: tuple[I64, ...], free_idx: I64, t_tag: F64, n_t: int, vf: float, schur: object
+         ) -> tuple[F64, F64, F64]:
     """Per-tag and per-frame ``(position m, rotation rad)`` standard deviations (RMS over the
     axes) and each frame's 6x6 covariance, from the inverse normal matrix, scaled by the
     variance factor ``vf`` (>= 1)."""
-    Ablk, _, Htt, _, B = ne
+    Ablk, _, Htt, _, Hgg, _, B = ne
     n_f = len(Ablk)
     cb = cholesky_banded(_band(Ablk, bidx, 0.0), lower=True)  # type: ignore[arg-type]
     if np.any(Ablk[:, 1:]):  # frames coupled by the prior: the band's selected inverse
@@ -455,8 +509,8 @@ def _std(ne: tuple[F64, F64, F64, F64, coo_matrix], bidx: tuple[I64, ...], free_
     else:  # independent frames: each block's own inverse
         cam_cov = np.asarray(np.linalg.inv(Ablk[:, 0] + 1e-12 * np.eye(6)), np.float64)
     tag_std = np.zeros((n_t, 2))
-    if len(Htt):  # the free tags, then the ground plane if any
-        S = schur(cb, Htt, B, 0.0)  # type: ignore[operator]
+    if len(Htt) or Hgg is not None:  # the free tags, then the ground plane (and mount) if any
+        S = schur(cb, Htt, Hgg, B, 0.0)  # type: ignore[operator]
         Sinv = cho_solve(cho_factor(S), np.eye(len(S)))
         if len(free_idx):
             blocks = np.stack([Sinv[6 * i:6 * i + 6, 6 * i:6 * i + 6]
@@ -477,26 +531,32 @@ def _std(ne: tuple[F64, F64, F64, F64, coo_matrix], bidx: tuple[I64, ...], free_
 
 
 def solve_grounded(
-    res: JointResult, resolve: Callable[[JointResult, GroundPrior, Plane], JointResult],
-    ground: GroundPrior, mode: str,
+    res: JointResult, resolve: Callable[..., JointResult], ground: GroundPrior, mode: str,
+    drive: DrivePrior | None = None, drive_mode: str = "auto",
+    motion: MotionPrior | None = None,
 ) -> tuple[JointResult, dict[str, Any]]:
     """The ground-plane prior on a solution ``res`` solved without it (with ``cam_cov``):
     ``mode`` ``plane`` applies it, ``auto`` only when the motion is planar
-    (:func:`tagtrail.geometry.ground.planarity` below ``PLANAR_BOUND``). ``resolve(start,
-    ground, plane)`` solves again from ``start`` with the prior. Returns the solution and a
-    report block: applied, the planarity figure, the plane's normal (world), the camera's tilt
-    to it (deg from its y axis), the camera centres' RMS height off it (m), the RMS tilt off
-    the mean (deg) and the frames the robust loss let go (beyond 3 sigma)."""
+    (:func:`tagtrail.geometry.ground.planarity` below ``PLANAR_BOUND``); then, with ``drive``
+    and the ``motion`` prior whose steps it constrains, the wheeled-drive prior on top:
+    ``drive_mode`` ``wheeled`` applies it, ``auto`` only when the grounded solution's motion
+    costs the corners little (:func:`tagtrail.geometry.drive.cost_ratio` of the solutions with and
+    without it below ``WHEELED_BOUND``).
+    ``resolve(start, ground=, plane=[, drive=, mount=])`` solves again from ``start`` with the
+    priors. Returns the solution and a report block: applied, the planarity figure, the
+    plane's normal (world), the camera's tilt to it (deg from its y axis), the camera centres'
+    RMS height off it (m), the RMS tilt off the mean (deg), the frames the robust loss let go
+    (beyond 3 sigma), and ``drive`` (:func:`_drive_block`, None without a drive prior)."""
     assert res.cam_cov is not None
     plane, stat = planarity(res.R_cam, res.t_cam, res.cam_cov, ground)
     applied = mode == "plane" or stat < PLANAR_BOUND
     if applied:
-        res = resolve(res, ground, plane)
+        res = resolve(res, ground=ground, plane=plane)
         assert res.plane is not None
         plane = res.plane
     p, _, _ = plane_terms(res.R_cam, res.t_cam, plane, ground)
     u = plane.u / max(float(np.linalg.norm(plane.u)), 1e-300)
-    block = {
+    block: dict[str, Any] = {
         "mode": mode, "applied": bool(applied), "planarity": stat,
         "normal": [float(v) for v in plane.n],
         "camera_tilt_deg": float(np.degrees(np.arccos(np.clip(-u[1], -1.0, 1.0)))),
@@ -504,8 +564,40 @@ def solve_grounded(
         "tilt_rms_deg": float(np.degrees(np.sqrt(np.mean(np.sum(p[:, 1:] ** 2, axis=1)))
                                          * ground.tilt_sigma_rad)),
         "frames_off": int((np.sum(p * p, axis=1) > ground.f_scale**2).sum()),
+        "drive": None,
     }
+    if drive is not None and motion is not None and applied:
+        js = steps(motion.t_s, motion.max_gap_s)
+        start = fit_mount(res.R_cam, res.t_cam, motion.t_s, js, plane)
+        driven = resolve(res, ground=ground, plane=plane, drive=drive, mount=start)
+        assert driven.mount is not None and driven.plane is not None
+        fit = cost_ratio(res.variance_factor * res.dof, res.dof,
+                         driven.variance_factor * driven.dof, driven.dof)
+        wheeled = drive_mode == "wheeled" or bool(fit < WHEELED_BOUND)
+        if wheeled:
+            res, plane = driven, driven.plane
+        block["drive"] = _drive_block(res, motion, js, plane, driven.mount, drive, drive_mode,
+                                      wheeled, fit)
     return res, block
+
+
+def _drive_block(res: JointResult, motion: MotionPrior, js: I64, plane: Plane, mount: Mount,
+                 drive: DrivePrior, mode: str, applied: bool, fit: float) -> dict[str, Any]:
+    """The drive prior's report: the mode, applied, the cost ratio that decided ``auto``, the
+    camera's lever arm (m) and its yaw from the robot's forward axis (deg, about the plane's
+    normal, positive to the left), the RMS lateral velocity beyond the lever arm (m/s) and the
+    steps the robust loss let go (beyond 3 sigma)."""
+    q, _, _ = drive_terms(res.R_cam, res.t_cam, motion.t_s, js, plane, mount, drive)
+    h = motion.t_s[js + 1] - motion.t_s[js]
+    u = plane.u / max(float(np.linalg.norm(plane.u)), 1e-300)
+    fwd = np.cross(mount.lateral(u)[0], u)  # the robot's forward axis in the camera frame
+    z = np.array([0.0, 0.0, 1.0]) - u[2] * u
+    yaw = np.degrees(np.arctan2(np.cross(fwd, z) @ u, fwd @ z))
+    lat = q * drive.lateral_sigma / np.sqrt(h)  # m/s
+    return {"mode": mode, "applied": bool(applied), "cost_ratio": fit, "lever_m": mount.lever_m,
+            "camera_yaw_deg": float(yaw),
+            "lateral_rms_mps": float(np.sqrt(np.mean(lat**2))) if len(lat) else 0.0,
+            "steps_off": int((q * q > drive.f_scale**2).sum())}
 
 
 @dataclass(frozen=True)

@@ -88,12 +88,31 @@ class TagGraph(Document):
     """Ambiguous observations kept (down-weighted) because without them the graph splits."""
 
 
+class DriveSummary(Document):
+    """The wheeled-drive prior (``optimize.report.bundle.ground.drive``, geometry.drive): the
+    mode, whether it was applied, the cost ratio that decided ``auto`` (what the prior costs the
+    solution per step it constrains, in the variance factor of the solution without it; wheeled
+    below 2; NaN when nothing moves), the camera's lever
+    arm ahead of the centre of rotation (m) and its yaw from the robot's forward axis (deg,
+    positive to the left), the RMS sideways velocity beyond the lever arm (m/s) and the steps
+    beyond the robust loss's scale."""
+
+    mode: Literal["auto", "wheeled"]
+    applied: bool
+    cost_ratio: float
+    lever_m: float
+    camera_yaw_deg: float
+    lateral_rms_mps: float
+    steps_off: int
+
+
 class GroundSummary(Document):
     """The ground-plane prior (``optimize.report.bundle.ground``, geometry.ground): the mode,
     whether it was applied, the planarity figure that decided ``auto`` (median normalised
     chi^2 per degree of freedom of the solution without it; planar below 2), the plane's
     normal in the world, the camera's tilt to it (deg from its y axis), the RMS height (m) and
-    tilt (deg) of the frames off it, and the frames beyond the robust loss's scale."""
+    tilt (deg) of the frames off it, the frames beyond the robust loss's scale, and the
+    wheeled-drive prior on top of it."""
 
     mode: Literal["auto", "plane"]
     applied: bool
@@ -103,6 +122,7 @@ class GroundSummary(Document):
     height_rms_m: float
     tilt_rms_deg: float
     frames_off: int
+    drive: DriveSummary | None = None
 
 
 class BundleSummary(Document):

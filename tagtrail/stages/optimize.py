@@ -52,6 +52,7 @@ from tagtrail.geometry.bundle import (
     solve_joint,
 )
 from tagtrail.geometry.camera import CameraModel
+from tagtrail.geometry.drive import WHEELED_BOUND, DrivePrior
 from tagtrail.geometry.ground import PLANAR_BOUND, GroundPrior
 from tagtrail.geometry.posegraph import PoseGraph, PoseGraphResult, relative_residuals, solve
 from tagtrail.geometry.robust import LossName
@@ -128,6 +129,17 @@ class Params(StageParams):
     """How far the camera rises or sinks from its plane (m, per frame)."""
     ground_tilt_sigma_deg: float = Field(1.0, gt=0.0)
     """How far the camera rolls or pitches from its mean tilt to the plane (deg, per frame)."""
+    drive: Literal["auto", "wheeled", "free"] = "auto"
+    """Wheeled-drive prior, on top of the ground plane (geometry.drive): ``wheeled``: the robot
+    moves along its heading (differential drive, Ackermann), the camera sideways only by its
+    lever arm as it turns (the lever arm and the camera's yaw on the robot solved with the
+    map); ``auto`` (default): the same when it costs the corners little
+    (``geometry.drive.cost_ratio`` below 2), not for a robot or camera that moves sideways
+    (mecanum, omni wheels, a panning camera); ``free``: no such prior. Only where the ground
+    plane is applied."""
+    drive_lateral_sigma: float = Field(0.01, gt=0.0)
+    """Lateral velocity noise density of the wheeled-drive prior (m/s/sqrt(Hz)): wheel slip and
+    skid beyond the lever arm; over T seconds the camera may drift sideways this times sqrt(T)."""
     rival_search: bool = True
     """Joint solve: decide the tag pairs with a close rival hypothesis (``edges.rival_pairs``)
     by the frames' continuity (``choose_hypotheses``)."""
@@ -150,6 +162,10 @@ class Params(StageParams):
         if self.ground == "none":
             return None
         return GroundPrior.of(self.ground_height_sigma_m, self.ground_tilt_sigma_deg)
+
+    def drive_prior(self) -> DrivePrior | None:
+        """The wheeled-drive prior, None without."""
+        return None if self.drive == "free" else DrivePrior(self.drive_lateral_sigma)
 
     def prior(self) -> tuple[float, float] | None:
         """``(acc_sigma m/s^2/sqrt(Hz), ang_sigma rad/s^2/sqrt(Hz))``, None without a prior."""
@@ -311,13 +327,20 @@ def refine_on_corners(
     ground, ground_block = params.ground_prior(), None
     if ground is not None and mp is not None:  # frames held together: in time, and on a plane
         res, ground_block = solve_grounded(
-            res, lambda r, g, p: solve(r.R_tag, r.t_tag, r.R_cam, r.t_cam, ground=g, plane=p),
-            ground, params.ground)
+            res, lambda r, **kw: solve(r.R_tag, r.t_tag, r.R_cam, r.t_cam, **kw),
+            ground, params.ground, params.drive_prior(), params.drive, mp)
         log.info("optimize: ground plane %s (planarity %.2f, bound %.1f): camera %.1f deg "
                  "from level, %.1f mm / %.2f deg RMS off the plane",
                  "applied" if ground_block["applied"] else "not applied",
                  ground_block["planarity"], PLANAR_BOUND, ground_block["camera_tilt_deg"],
                  1e3 * ground_block["height_rms_m"], ground_block["tilt_rms_deg"])
+        wheels = ground_block["drive"]
+        if wheels is not None:
+            log.info("optimize: wheeled drive %s (cost ratio %.2f, bound %.1f): lever arm %.3f m, "
+                     "camera yaw %.1f deg, %.1f mm/s RMS sideways",
+                     "applied" if wheels["applied"] else "not applied", wheels["cost_ratio"],
+                     WHEELED_BOUND, wheels["lever_m"], wheels["camera_yaw_deg"],
+                     1e3 * wheels["lateral_rms_mps"])
     if not res.converged:
         log.warning("optimize: the joint solve stopped after %d iterations (joint_max_iter) "
                     "before converging", res.iters)

@@ -52,6 +52,7 @@ from tagtrail.geometry.bundle import (
     solve_joint,
 )
 from tagtrail.geometry.camera import CameraModel
+from tagtrail.geometry.drive import DrivePrior
 from tagtrail.geometry.fusion import frame_poses
 from tagtrail.geometry.ground import GroundPrior
 from tagtrail.geometry.ippe import best_pose
@@ -108,6 +109,10 @@ class Params(StageParams):
     """``joint``: as optimize's (m)."""
     ground_tilt_sigma_deg: float = Field(1.0, gt=0.0)
     """``joint``: as optimize's (deg)."""
+    drive: Literal["auto", "wheeled", "free"] = "auto"
+    """``joint``: the wheeled-drive prior, as optimize's (``auto``: decided on this dataset)."""
+    drive_lateral_sigma: float = Field(0.01, gt=0.0)
+    """``joint``: as optimize's (m/s/sqrt(Hz))."""
 
 
 INPUTS = {
@@ -170,11 +175,16 @@ def joint_trajectory(rows: pd.DataFrame, ids: np.ndarray, W_map: np.ndarray,
     res = solve(R_cam=cam_T_world[:, :3, :3], t_cam=cam_T_world[:, :3, 3])
     if params.ground != "none" and prior is not None:  # frames on their own get neither
         ground = GroundPrior.of(params.ground_height_sigma_m, params.ground_tilt_sigma_deg)
+        drive = None if params.drive == "free" else DrivePrior(params.drive_lateral_sigma)
         res, block = solve_grounded(
-            res, lambda r, g, p: solve(R_cam=r.R_cam, t_cam=r.t_cam, ground=g, plane=p),
-            ground, params.ground)
+            res, lambda r, **kw: solve(R_cam=r.R_cam, t_cam=r.t_cam, **kw),
+            ground, params.ground, drive, params.drive, prior)
         log.info("trajectory: ground plane %s (planarity %.2f)",
                  "applied" if block["applied"] else "not applied", block["planarity"])
+        if block["drive"] is not None:
+            log.info("trajectory: wheeled drive %s (cost ratio %.2f)",
+                     "applied" if block["drive"]["applied"] else "not applied",
+                     block["drive"]["cost_ratio"])
     if prior is not None:
         ev = frame_evidence(res, ob, px_per_unit=camera.focal_px, sigma_px=sigma,
                             loss=params.joint_loss, f_scale_px=params.joint_f_scale_px,

@@ -100,7 +100,7 @@ def test_ground_prior_holds_a_noisy_ring_in_its_plane() -> None:
 
     free_res = solve()
     res, block = solve_grounded(
-        free_res, lambda r, g, p: solve(ground=g, plane=p), PRIOR, "auto")
+        free_res, lambda r, **kw: solve(**kw), PRIOR, "auto")
     assert block["applied"] and block["planarity"] < PLANAR_BOUND
     assert res.plane is not None
 
@@ -132,8 +132,7 @@ def test_auto_leaves_a_hand_held_path_alone() -> None:
     free = np.arange(len(W)) != anchor
     res = solve_joint(W[:, :3, :3], W[:, :3, 3], C2[:, :3, :3], C2[:, :3, 3], ob2, free,
                       px_per_unit=FOCAL_PX, covariance=True)
-    out, block = solve_grounded(res, lambda r, g, p: solve_joint(
-        r.R_tag, r.t_tag, r.R_cam, r.t_cam, ob2, free, px_per_unit=FOCAL_PX, ground=g,
-        plane=p), PRIOR, "auto")
+    out, block = solve_grounded(res, lambda r, **kw: solve_joint(
+        r.R_tag, r.t_tag, r.R_cam, r.t_cam, ob2, free, px_per_unit=FOCAL_PX, **kw), PRIOR, "auto")
     assert not block["applied"] and block["planarity"] > 5 * PLANAR_BOUND
     assert out is res

@@ -1,0 +1,185 @@
+"""The wheeled-drive (non-holonomic) prior: a wheeled robot moves along its heading.
+
+A differential-drive or Ackermann robot does not slide sideways: the point between its wheels
+moves along the robot's forward axis, and a camera mounted ``lever_m`` ahead of that point
+moves sideways only as the robot turns, by ``lever_m`` per radian of yaw. Between consecutive
+frames ``j, j+1`` (``cam_T_world = (R, t)``, centres ``c``, step ``h_j`` s)::
+
+    x_j     = (R_j + R_{j+1}) (c_{j+1} - c_j) / 2        the step in the camera frame (m)
+    theta_j = (R_j n) . Log(R_j R_{j+1}^T)               its yaw about the plane's normal (rad)
+    q_j     = (s . x_j - lever_m theta_j) / (lateral_sigma sqrt(h_j))
+
+``n`` is the ground plane's normal (:mod:`tagtrail.geometry.ground`; the drive prior rides on
+it), ``s`` the robot's lateral axis seen from the camera (unit, ``up x forward``, across the
+plane's normal: the mount's yaw) and ``lever_m`` the camera's distance ahead of the centre of
+rotation: both unknowns of the solve, the camera's :class:`Mount`. ``lateral_sigma``
+(m/s/sqrt(Hz)) is the density of the white noise on the lateral velocity beyond that (wheel
+slip, skid in turns): over ``T`` seconds the camera drifts sideways ``lateral_sigma sqrt(T)``.
+A robust loss per step lets a skid or a bump stop counting. It ties the camera's heading, which
+the tags give well, to its direction of travel, so its lateral position is held by the heading
+instead of jumping where the tags in view change (a single oblique tag fixes the camera's
+bearing to it far better than its range).
+
+Not for a holonomic (mecanum, omni) robot moving sideways or a hand-held camera:
+:func:`cost_ratio` compares the solutions with and without the prior, and ``auto`` keeps it only
+where the corners give up little for it.
+
+Mount updates: the forward axis turned by ``b`` about the plane's normal, ``lever_m <- lever_m +
+dl``: 2 parameters, after the plane's 6.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from tagtrail.geometry.arrays import F64, I64
+from tagtrail.geometry.ground import Plane, centres
+from tagtrail.geometry.robust import LossName, rho
+from tagtrail.geometry.rotations import hat, log_so3, right_jacobian_inv
+from tagtrail.geometry.se3 import R_from_rotvec
+
+N_MOUNT = 2  # parameters of a Mount: its yaw about the plane's normal, its lever arm
+
+
+@dataclass(frozen=True)
+class DrivePrior:
+    """The lateral velocity noise density ``lateral_sigma`` (m/s/sqrt(Hz)), a robust ``loss``
+    on each step's whitened residual with scale ``f_scale`` (standard deviations)."""
+
+    lateral_sigma: float
+    loss: LossName = "cauchy"
+    f_scale: float = 3.0
+
+
+@dataclass(frozen=True)
+class Mount:
+    """``g (3,)``: the robot's forward axis in the camera frame (unit, across the plane's normal
+    seen from the camera, ``Plane.u``); ``lever_m``: the camera's distance ahead of the robot's
+    centre of rotation (m). The lateral axis is ``s = u x g / |u x g|`` (left), across the
+    plane's normal by construction: a lateral axis free to tilt would turn up the normal, along
+    which the ground prior already holds the camera, and the drive prior would hold nothing."""
+
+    g: F64
+    lever_m: float
+
+    def lateral(self, u: F64) -> tuple[F64, F64, float]:
+        """``s (3,)``, ``w = u x g`` and ``|w|`` for the plane's camera-frame normal ``u``."""
+        uh = u / np.linalg.norm(u)
+        w = np.cross(uh, self.g)
+        nw = float(np.linalg.norm(w))
+        return w / nw, w, nw
+
+    def update(self, step: F64, u: F64) -> Mount:
+        """The mount after the step ``[b ; dl]``: ``g`` turned by ``b`` rad about ``u``."""
+        g = R_from_rotvec((step[0] * u / np.linalg.norm(u))[None])[0] @ self.g
+        return Mount(g / np.linalg.norm(g), self.lever_m + float(step[1]))
+
+
+def steps(t_s: F64, max_gap_s: float) -> I64:
+    """Frames ``j (P,)`` whose successor ``j + 1`` follows within ``max_gap_s``."""
+    dt = np.diff(np.asarray(t_s, np.float64))
+    return np.flatnonzero((dt > 0) & (dt <= max_gap_s)).astype(np.int64)
+
+
+def _geometry(R: F64, t: F64, j: I64, n: F64) -> tuple[F64, F64, F64, F64, F64, F64]:
+    """Per step: ``x (P, 3)``, ``theta (P,)``, ``E = R_j R_{j+1}^T``, ``e = Log E``, the
+    camera-frame normal ``u = R_j n`` and the world step ``dc``."""
+    c = centres(R, t)
+    dc = c[j + 1] - c[j]
+    Ra, Rb = R[j], R[j + 1]
+    x = 0.5 * (np.einsum("pij,pj->pi", Ra, dc) + np.einsum("pij,pj->pi", Rb, dc))
+    E = Ra @ np.swapaxes(Rb, 1, 2)
+    e = log_so3(E)
+    u = Ra @ n
+    return x, np.einsum("pi,pi->p", u, e), E, e, u, dc
+
+
+def drive_terms(R_cam: F64, t_cam: F64, t_s: F64, j: I64, plane: Plane, mount: Mount,
+                prior: DrivePrior) -> tuple[F64, F64, F64]:
+    """Whitened residuals ``q (P,)`` of the steps ``j`` and their Jacobians on the cameras
+    ``[w ; v]`` of frames ``j, j+1`` ``(P, 2, 6)`` and on the plane's 6 then the mount's 2
+    parameters ``(P, 8)``."""
+    x, theta, E, e, u, dc = _geometry(R_cam, t_cam, j, plane.n)
+    s, w, nw = mount.lateral(plane.u)
+    lev = mount.lever_m
+    inv_sig = 1.0 / (prior.lateral_sigma * np.sqrt(t_s[j + 1] - t_s[j]))
+    q = (x @ s - lev * theta) * inv_sig
+    Ra, Rb = R_cam[j], R_cam[j + 1]
+    xa, xb = np.einsum("pij,pj->pi", Ra, dc), np.einsum("pij,pj->pi", Rb, dc)
+    Jinv_T = np.swapaxes(right_jacobian_inv(e), 1, 2)
+    Es = E @ s
+    EtS = np.einsum("pji,j->pi", E, s)
+    Jc = np.zeros((len(j), 2, 6))
+    # s . x: rotations turn the step in the camera frame, translations move the centres
+    Jc[:, 0, :3] = 0.5 * np.cross(xa, s)
+    Jc[:, 1, :3] = 0.5 * np.cross(xb, s)
+    Jc[:, 0, 3:] = 0.5 * (s + Es)
+    Jc[:, 1, 3:] = -0.5 * (s + EtS)
+    # theta = (R_j n) . Log(R_j R_{j+1}^T)
+    Jc[:, 0, :3] -= lev * (np.cross(u, e) + np.einsum("pij,pj->pi", E, np.einsum(
+        "pij,pj->pi", Jinv_T, u)))
+    Jc[:, 1, :3] += lev * np.einsum("pij,pj->pi", Jinv_T, u)
+    Jc *= inv_sig[:, None, None]
+    Jg = np.zeros((len(j), 6 + N_MOUNT))
+    bxn = np.cross(plane.basis().T, plane.n)  # (2, 3): d n / d a_i
+    Jg[:, :2] = -lev * np.einsum("pk,pki,ci->pc", e, Ra, bxn)
+    # s = w / |w|, w = u^ x g: d s = (I - s s^T) d w / |w|; through u, d w = -[g]x d u^
+    unorm = float(np.linalg.norm(plane.u))
+    uh = plane.u / unorm
+    P = (np.eye(3) - np.outer(s, s)) / nw
+    Jg[:, 3:6] = x @ (P @ -hat(mount.g) @ (np.eye(3) - np.outer(uh, uh)) / unorm)
+    Jg[:, 6] = x @ (P @ np.cross(uh, w))  # g turned about u^: d w = u^ x (u^ x g) d b
+    Jg[:, 7] = -theta
+    Jg *= inv_sig[:, None]
+    return q, Jc, Jg
+
+
+def robust_weights(q: F64, prior: DrivePrior) -> tuple[F64, F64]:
+    """Per-step loss values and IRLS weights ``(P,)`` of whitened residuals ``q (P,)``."""
+    f2 = prior.f_scale**2
+    val, w = rho(prior.loss, q * q / f2)
+    return f2 * val, w
+
+
+def fit_mount(R_cam: F64, t_cam: F64, t_s: F64, j: I64, plane: Plane) -> Mount:
+    """The mount that fits fixed cameras: the forward axis first the steps' principal direction
+    in the camera frame (across the plane's normal; the way most steps go), then the yaw about
+    the normal and the lever arm that minimise the lateral steps (weighted by ``1 / h``, as the
+    prior weighs them) by Gauss-Newton; the lever arm stays 0 without turns."""
+    u = plane.u / max(float(np.linalg.norm(plane.u)), 1e-300)
+    fwd = np.cross(u, np.array([1.0, 0.0, 0.0]))  # camera z, when nothing moves
+    if not len(j):
+        return Mount(fwd / np.linalg.norm(fwd), 0.0)
+    x, theta, *_ = _geometry(R_cam, t_cam, j, plane.n)
+    xp = x - np.outer(x @ u, u)
+    if np.linalg.norm(xp) > 0:
+        fwd = np.linalg.eigh(xp.T @ xp)[1][:, -1]
+        fwd = -fwd if np.sum(np.sign(xp @ fwd)) < 0 else fwd
+    mount = Mount(fwd / np.linalg.norm(fwd), 0.0)
+    w = 1.0 / (t_s[j + 1] - t_s[j])
+    turns = float(np.sum(w * theta * theta)) > 1e-12
+    for _ in range(5):  # lateral = s . x - lever theta; d s / d yaw = -g
+        s = mount.lateral(plane.u)[0]
+        r = x @ s - mount.lever_m * theta
+        J = np.stack([-(x @ mount.g), -theta], axis=1)[:, :2 if turns else 1]
+        step = np.linalg.lstsq(J * np.sqrt(w)[:, None], -r * np.sqrt(w), rcond=None)[0]
+        mount = mount.update(np.r_[step, 0.0][:2], plane.u)
+        if np.abs(step).max() < 1e-9:
+            break
+    return mount
+
+
+WHEELED_BOUND = 2.0  # the drive prior's cost per step, in the free solution's variance factor
+
+
+def cost_ratio(chi2_free: float, dof_free: int, chi2_driven: float, dof_driven: int) -> float:
+    """What the drive prior costs a solution, per constraint it adds, in units of the variance
+    factor of the solution without it: ``((chi2_d - chi2_f) / (dof_d - dof_f)) / (chi2_f /
+    dof_f)``, the F statistic of the constrained model. About 1 or less where the robot moves
+    as the prior says (the corners give up nothing for it); a camera that slides or turns on
+    its own (a mecanum base, a panning camera) makes every step cost several times that."""
+    if dof_driven <= dof_free or dof_free <= 0 or chi2_free <= 0:
+        return float("nan")
+    return ((chi2_driven - chi2_free) / (dof_driven - dof_free)) / (chi2_free / dof_free)
