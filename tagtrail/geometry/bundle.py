@@ -53,10 +53,10 @@ from tagtrail.geometry.drive import (
     WHEELED_BOUND,
     DrivePrior,
     Mount,
-    cost_ratio,
     drive_terms,
     fit_mount,
     steps,
+    strain,
 )
 from tagtrail.geometry.drive import robust_weights as drive_weights
 from tagtrail.geometry.fusion import tag_corners
@@ -537,26 +537,40 @@ def solve_grounded(
 ) -> tuple[JointResult, dict[str, Any]]:
     """The ground-plane prior on a solution ``res`` solved without it (with ``cam_cov``):
     ``mode`` ``plane`` applies it, ``auto`` only when the motion is planar
-    (:func:`tagtrail.geometry.ground.planarity` below ``PLANAR_BOUND``); then, with ``drive``
-    and the ``motion`` prior whose steps it constrains, the wheeled-drive prior on top:
-    ``drive_mode`` ``wheeled`` applies it, ``auto`` only when the grounded solution's motion
-    costs the corners little (:func:`tagtrail.geometry.drive.cost_ratio` of the solutions with and
-    without it below ``WHEELED_BOUND``).
-    ``resolve(start, ground=, plane=[, drive=, mount=])`` solves again from ``start`` with the
-    priors. Returns the solution and a report block: applied, the planarity figure, the
-    plane's normal (world), the camera's tilt to it (deg from its y axis), the camera centres'
-    RMS height off it (m), the RMS tilt off the mean (deg), the frames the robust loss let go
-    (beyond 3 sigma), and ``drive`` (:func:`_drive_block`, None without a drive prior)."""
+    (:func:`tagtrail.geometry.ground.planarity` below ``PLANAR_BOUND``); with ``drive`` and the
+    ``motion`` prior whose steps it constrains, the wheeled-drive prior is solved with it:
+    ``drive_mode`` ``wheeled`` keeps it, ``auto`` only where the corners leave its steps
+    unstrained (:func:`tagtrail.geometry.drive.strain` below ``WHEELED_BOUND``; else the plane
+    alone is solved for). ``resolve(start, ground=, plane=[, drive=, mount=])`` solves again
+    from ``start`` with the priors. Returns the solution and a report block: applied, the
+    planarity figure, the plane's normal (world), the camera's tilt to it (deg from its y
+    axis), the camera centres' RMS height off it (m), the RMS tilt off the mean (deg), the
+    frames the robust loss let go (beyond 3 sigma), and ``drive`` (:func:`_drive_block`, None
+    without a drive prior)."""
     assert res.cam_cov is not None
     plane, stat = planarity(res.R_cam, res.t_cam, res.cam_cov, ground)
     applied = mode == "plane" or stat < PLANAR_BOUND
-    if applied:
+    drive_block = None
+    if applied and drive is not None and motion is not None:
+        js = steps(motion.t_s, motion.max_gap_s)
+        start = fit_mount(res.R_cam, res.t_cam, motion.t_s, js, plane)
+        driven = resolve(res, ground=ground, plane=plane, drive=drive, mount=start)
+        assert driven.mount is not None and driven.plane is not None
+        q, _, _ = drive_terms(driven.R_cam, driven.t_cam, motion.t_s, js, driven.plane,
+                              driven.mount, drive)
+        fit = strain(q, drive, driven.variance_factor)
+        wheeled = drive_mode == "wheeled" or bool(fit < WHEELED_BOUND)
+        drive_block = _drive_block(driven, q, motion, js, drive, drive_mode, wheeled, fit)
+        if wheeled:
+            res = driven
+    if applied and (drive_block is None or not drive_block["applied"]):
         res = resolve(res, ground=ground, plane=plane)
+    if applied:
         assert res.plane is not None
         plane = res.plane
     p, _, _ = plane_terms(res.R_cam, res.t_cam, plane, ground)
     u = plane.u / max(float(np.linalg.norm(plane.u)), 1e-300)
-    block: dict[str, Any] = {
+    return res, {
         "mode": mode, "applied": bool(applied), "planarity": stat,
         "normal": [float(v) for v in plane.n],
         "camera_tilt_deg": float(np.degrees(np.arccos(np.clip(-u[1], -1.0, 1.0)))),
@@ -564,38 +578,26 @@ def solve_grounded(
         "tilt_rms_deg": float(np.degrees(np.sqrt(np.mean(np.sum(p[:, 1:] ** 2, axis=1)))
                                          * ground.tilt_sigma_rad)),
         "frames_off": int((np.sum(p * p, axis=1) > ground.f_scale**2).sum()),
-        "drive": None,
+        "drive": drive_block,
     }
-    if drive is not None and motion is not None and applied:
-        js = steps(motion.t_s, motion.max_gap_s)
-        start = fit_mount(res.R_cam, res.t_cam, motion.t_s, js, plane)
-        driven = resolve(res, ground=ground, plane=plane, drive=drive, mount=start)
-        assert driven.mount is not None and driven.plane is not None
-        fit = cost_ratio(res.variance_factor * res.dof, res.dof,
-                         driven.variance_factor * driven.dof, driven.dof)
-        wheeled = drive_mode == "wheeled" or bool(fit < WHEELED_BOUND)
-        if wheeled:
-            res, plane = driven, driven.plane
-        block["drive"] = _drive_block(res, motion, js, plane, driven.mount, drive, drive_mode,
-                                      wheeled, fit)
-    return res, block
 
 
-def _drive_block(res: JointResult, motion: MotionPrior, js: I64, plane: Plane, mount: Mount,
-                 drive: DrivePrior, mode: str, applied: bool, fit: float) -> dict[str, Any]:
-    """The drive prior's report: the mode, applied, the cost ratio that decided ``auto``, the
-    camera's lever arm (m) and its yaw from the robot's forward axis (deg, about the plane's
-    normal, positive to the left), the RMS lateral velocity beyond the lever arm (m/s) and the
-    steps the robust loss let go (beyond 3 sigma)."""
-    q, _, _ = drive_terms(res.R_cam, res.t_cam, motion.t_s, js, plane, mount, drive)
+def _drive_block(driven: JointResult, q: F64, motion: MotionPrior, js: I64, drive: DrivePrior,
+                 mode: str, applied: bool, fit: float) -> dict[str, Any]:
+    """The drive prior's report, from the solution solved with it (``q``: its whitened
+    steps): the mode, applied, the strain that decided ``auto``, the camera's lever arm (m)
+    and its yaw from the robot's forward axis (deg, about the plane's normal, positive to the
+    left), the RMS lateral velocity beyond the lever arm (m/s) and the steps the robust loss
+    let go (beyond 3 sigma)."""
+    assert driven.plane is not None and driven.mount is not None
     h = motion.t_s[js + 1] - motion.t_s[js]
-    u = plane.u / max(float(np.linalg.norm(plane.u)), 1e-300)
-    fwd = np.cross(mount.lateral(u)[0], u)  # the robot's forward axis in the camera frame
+    u = driven.plane.u / max(float(np.linalg.norm(driven.plane.u)), 1e-300)
+    fwd = np.cross(driven.mount.lateral(u)[0], u)  # the robot's forward axis, camera frame
     z = np.array([0.0, 0.0, 1.0]) - u[2] * u
     yaw = np.degrees(np.arctan2(np.cross(fwd, z) @ u, fwd @ z))
     lat = q * drive.lateral_sigma / np.sqrt(h)  # m/s
-    return {"mode": mode, "applied": bool(applied), "cost_ratio": fit, "lever_m": mount.lever_m,
-            "camera_yaw_deg": float(yaw),
+    return {"mode": mode, "applied": bool(applied), "strain": fit,
+            "lever_m": driven.mount.lever_m, "camera_yaw_deg": float(yaw),
             "lateral_rms_mps": float(np.sqrt(np.mean(lat**2))) if len(lat) else 0.0,
             "steps_off": int((q * q > drive.f_scale**2).sum())}
 

@@ -21,8 +21,8 @@ instead of jumping where the tags in view change (a single oblique tag fixes the
 bearing to it far better than its range).
 
 Not for a holonomic (mecanum, omni) robot moving sideways or a hand-held camera:
-:func:`cost_ratio` compares the solutions with and without the prior, and ``auto`` keeps it only
-where the corners give up little for it.
+:func:`strain` measures how hard the corners pull against the prior in a solution solved with
+it, and ``auto`` keeps it only where they leave it unstrained.
 
 Mount updates: the forward axis turned by ``b`` about the plane's normal, ``lever_m <- lever_m +
 dl``: 2 parameters, after the plane's 6.
@@ -171,15 +171,16 @@ def fit_mount(R_cam: F64, t_cam: F64, t_s: F64, j: I64, plane: Plane) -> Mount:
     return mount
 
 
-WHEELED_BOUND = 2.0  # the drive prior's cost per step, in the free solution's variance factor
+WHEELED_BOUND = 2.0  # the drive prior's robust chi^2 per step, in the variance factor
 
 
-def cost_ratio(chi2_free: float, dof_free: int, chi2_driven: float, dof_driven: int) -> float:
-    """What the drive prior costs a solution, per constraint it adds, in units of the variance
-    factor of the solution without it: ``((chi2_d - chi2_f) / (dof_d - dof_f)) / (chi2_f /
-    dof_f)``, the F statistic of the constrained model. About 1 or less where the robot moves
-    as the prior says (the corners give up nothing for it); a camera that slides or turns on
-    its own (a mecanum base, a panning camera) makes every step cost several times that."""
-    if dof_driven <= dof_free or dof_free <= 0 or chi2_free <= 0:
+def strain(q: F64, prior: DrivePrior, variance_factor: float) -> float:
+    """How hard the corners pull against the drive prior in a solution solved with it: its
+    robust chi^2 per step (whitened steps ``q (P,)``), in that solution's variance factor.
+    Well under 1 where the robot moves as the prior says (simulated wheeled robots
+    0.01-0.02); a camera that slides or turns on its own (a mecanum base, a panning camera)
+    leaves every step strained by several times that. NaN without steps."""
+    if not len(q):
         return float("nan")
-    return ((chi2_driven - chi2_free) / (dof_driven - dof_free)) / (chi2_free / dof_free)
+    _, w = robust_weights(q, prior)
+    return float(np.mean(q * q * w)) / max(variance_factor, 1e-12)

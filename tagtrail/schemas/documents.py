@@ -90,16 +90,16 @@ class TagGraph(Document):
 
 class DriveSummary(Document):
     """The wheeled-drive prior (``optimize.report.bundle.ground.drive``, geometry.drive): the
-    mode, whether it was applied, the cost ratio that decided ``auto`` (what the prior costs the
-    solution per step it constrains, in the variance factor of the solution without it; wheeled
-    below 2; NaN when nothing moves), the camera's lever
+    mode, whether it was applied, the strain that decided ``auto`` (the prior's robust chi^2 per
+    step in the solution solved with it, in its variance factor; wheeled below 2; NaN without
+    steps), then, of that solution, the camera's lever
     arm ahead of the centre of rotation (m) and its yaw from the robot's forward axis (deg,
     positive to the left), the RMS sideways velocity beyond the lever arm (m/s) and the steps
     beyond the robust loss's scale."""
 
     mode: Literal["auto", "wheeled"]
     applied: bool
-    cost_ratio: float
+    strain: float
     lever_m: float
     camera_yaw_deg: float
     lateral_rms_mps: float

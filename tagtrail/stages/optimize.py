@@ -134,7 +134,7 @@ class Params(StageParams):
     moves along its heading (differential drive, Ackermann), the camera sideways only by its
     lever arm as it turns (the lever arm and the camera's yaw on the robot solved with the
     map); ``auto`` (default): the same when it costs the corners little
-    (``geometry.drive.cost_ratio`` below 2), not for a robot or camera that moves sideways
+    (``geometry.drive.strain`` below 2), not for a robot or camera that moves sideways
     (mecanum, omni wheels, a panning camera); ``free``: no such prior. Only where the ground
     plane is applied."""
     drive_lateral_sigma: float = Field(0.01, gt=0.0)
@@ -336,9 +336,9 @@ def refine_on_corners(
                  1e3 * ground_block["height_rms_m"], ground_block["tilt_rms_deg"])
         wheels = ground_block["drive"]
         if wheels is not None:
-            log.info("optimize: wheeled drive %s (cost ratio %.2f, bound %.1f): lever arm %.3f m, "
+            log.info("optimize: wheeled drive %s (strain %.2f, bound %.1f): lever arm %.3f m, "
                      "camera yaw %.1f deg, %.1f mm/s RMS sideways",
-                     "applied" if wheels["applied"] else "not applied", wheels["cost_ratio"],
+                     "applied" if wheels["applied"] else "not applied", wheels["strain"],
                      WHEELED_BOUND, wheels["lever_m"], wheels["camera_yaw_deg"],
                      1e3 * wheels["lateral_rms_mps"])
     if not res.converged:

@@ -182,9 +182,9 @@ def joint_trajectory(rows: pd.DataFrame, ids: np.ndarray, W_map: np.ndarray,
         log.info("trajectory: ground plane %s (planarity %.2f)",
                  "applied" if block["applied"] else "not applied", block["planarity"])
         if block["drive"] is not None:
-            log.info("trajectory: wheeled drive %s (cost ratio %.2f)",
+            log.info("trajectory: wheeled drive %s (strain %.2f)",
                      "applied" if block["drive"]["applied"] else "not applied",
-                     block["drive"]["cost_ratio"])
+                     block["drive"]["strain"])
     if prior is not None:
         ev = frame_evidence(res, ob, px_per_unit=camera.focal_px, sigma_px=sigma,
                             loss=params.joint_loss, f_scale_px=params.joint_f_scale_px,

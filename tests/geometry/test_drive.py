@@ -16,10 +16,10 @@ from tagtrail.geometry.drive import (
     WHEELED_BOUND,
     DrivePrior,
     Mount,
-    cost_ratio,
     drive_terms,
     fit_mount,
     steps,
+    strain,
 )
 from tagtrail.geometry.fusion import tag_corners
 from tagtrail.geometry.ground import GroundPrior, Plane, centres, fit_plane
@@ -181,10 +181,11 @@ def test_fit_mount_recovers_the_lever_arm_and_the_camera_yaw() -> None:
     assert np.abs(q).max() * DRIVE.lateral_sigma * np.sqrt(1 / 30) < 2e-5  # 20 um a step
 
 
-def test_cost_ratio() -> None:
-    assert cost_ratio(100.0, 100, 150.0, 150) == 1.0  # each new term costs the variance factor
-    assert cost_ratio(50.0, 100, 200.0, 150) == 6.0
-    assert np.isnan(cost_ratio(50.0, 100, 50.0, 100))  # nothing constrained
+def test_strain_is_the_robust_chi2_per_step_in_the_variance_factor() -> None:
+    q = np.array([1.0, -1.0, 0.0, 0.0])
+    assert np.isclose(strain(q, DrivePrior(0.01, f_scale=1e9), 0.5), 1.0)  # 0.5 a step, / 0.5
+    assert np.isclose(strain(q, DRIVE, 0.5), 0.9)  # Cauchy at 3 sigma weighs 1 sigma by 0.9
+    assert np.isnan(strain(np.zeros(0), DRIVE, 1.0))
 
 
 def test_drive_prior_holds_a_wheeled_camera_to_its_heading() -> None:
@@ -195,7 +196,7 @@ def test_drive_prior_holds_a_wheeled_camera_to_its_heading() -> None:
     W = wall_tags(C)
     ob = corners(C, W, 1.0)
     grounded, driven, block = grounded_and_driven(C, t_s, W, ob)
-    assert block["applied"] and block["cost_ratio"] < 0.5 * WHEELED_BOUND
+    assert block["applied"] and block["strain"] < 0.5 * WHEELED_BOUND
     assert abs(block["lever_m"] - 0.084) < 0.02 and abs(abs(block["camera_yaw_deg"]) - 10) < 1.0
     assert across_rms(driven, W, C) < 0.8 * across_rms(grounded, W, C)  # 6.0 vs 8.5 mm
 
@@ -208,11 +209,11 @@ def test_auto_leaves_a_sliding_robot_and_a_panning_camera_alone() -> None:
     W = wall_tags(C)
     ob = corners(C, W, 1.0)
     grounded, out, block = grounded_and_driven(C, t_s, W, ob)
-    assert not block["applied"] and block["cost_ratio"] > 2 * WHEELED_BOUND
+    assert not block["applied"] and block["strain"] > 2 * WHEELED_BOUND
     assert out is grounded or np.allclose(out.t_cam, grounded.t_cam)
     _, forced, _ = grounded_and_driven(C, t_s, W, ob, "wheeled")
     assert across_rms(forced, W, C) > 1.5 * across_rms(grounded, W, C)  # 13.0 vs 2.6 mm
 
     ob, W, C, _, t_s = corner_problem(noise_px=1.0, seed=5)
     grounded, out, block = grounded_and_driven(C, t_s, W, ob)
-    assert not block["applied"] and block["cost_ratio"] > 2 * WHEELED_BOUND
+    assert not block["applied"] and block["strain"] > 2 * WHEELED_BOUND
