@@ -135,7 +135,6 @@ class JointResult:
     cam_cov: F64 | None = None
     plane: Plane | None = None
     mount: Mount | None = None
-    dof: int = 0
 
 
 def _project(R_cam: F64, t_cam: F64, R_tag: F64, t_tag: F64, ob: CornerObservations
@@ -492,7 +491,7 @@ def solve_joint(
             max(vf, 1.0) if np.isfinite(vf) else 1.0, schur)
     return JointResult(R_tag, t_tag, R_cam, t_cam, res_px, cost, it, converged, vf, len(kp),
                        float(np.median(sig)) if n_o else float("nan"), tag_std, cam_std, cam_cov,
-                       pl, mt, dof)
+                       pl, mt)
 
 
 def _std(ne: tuple[F64, F64, F64, F64, F64 | None, F64 | None, coo_matrix],

@@ -60,21 +60,16 @@ class Plane:
     u: F64
 
     def basis(self) -> F64:
-        """The normal's 2 update directions ``(3, 2)``."""
-        return tangent_basis(self.n)
+        """Two unit vectors ``(3, 2)`` orthogonal to ``n`` (the normal's 2 update directions)."""
+        a = np.eye(3)[int(np.argmin(np.abs(self.n)))]
+        b1 = np.cross(self.n, a)
+        b1 /= np.linalg.norm(b1)
+        return np.stack([b1, np.cross(self.n, b1)], axis=1)
 
     def update(self, step: F64) -> Plane:
         """The plane after the step ``[a (2) ; dd ; du (3)]``."""
         n = R_from_rotvec((self.basis() @ step[:2])[None])[0] @ self.n
         return Plane(n / np.linalg.norm(n), self.d + float(step[2]), self.u + step[3:])
-
-
-def tangent_basis(v: F64) -> F64:
-    """Two unit vectors ``(3, 2)`` orthogonal to the unit vector ``v`` and to each other."""
-    a = np.eye(3)[int(np.argmin(np.abs(v)))]
-    b1 = np.cross(v, a)
-    b1 /= np.linalg.norm(b1)
-    return np.stack([b1, np.cross(v, b1)], axis=1)
 
 
 def centres(R_cam: F64, t_cam: F64) -> F64:
