@@ -180,3 +180,52 @@ def consistent_branches(
             ch[rows[hit]] = k[hit]
             T[rows[hit]] = C[hit, k[hit]]
     return out
+
+
+def map_branches(frame: NDArray[np.int64], world_R_tag: F64, cam_R_tag: F64,
+                 *, cap_deg: float = 15.0) -> NDArray[np.int64]:
+    """Per observation, the IPPE solution (0 or 1) a tag map agrees with, frame by frame.
+
+    A mirrored solution of a small or distant tag can have the lower reprojection error and
+    still be tens of degrees off; a tag pair seen together in a frame or two cannot outvote it
+    (:func:`consistent_branches`), but the map, solved robustly from all the other edges, can.
+    Every solution of every tag in a frame proposes the camera's orientation
+    ``world_R_cam = world_R_tag cam_R_tag^T``; the proposal the frame's other tags agree with
+    best (the sum over them of the angle to their nearer solution, each capped at ``cap_deg``)
+    wins, and each observation takes its solution nearer that camera's prediction. Ties go to
+    the lower-reprojection (first) solutions. Frames of one tag say nothing and keep 0.
+
+    ``frame`` (n,): frame of each observation; ``world_R_tag`` (n, 3, 3): its tag's orientation
+    in the map; ``cam_R_tag`` (n, 2, 3, 3): both solutions (NaN: none).
+    """
+    n = len(frame)
+    choice = np.zeros(n, np.int64)
+    if n == 0:
+        return choice
+    order = np.argsort(frame, kind="stable")
+    f = np.asarray(frame)[order]
+    starts = np.flatnonzero(np.r_[True, f[1:] != f[:-1]])
+    size = np.diff(np.r_[starts, n])
+    fid = np.repeat(np.arange(len(starts)), size)  # frame of each sorted row
+    Rw, Rc = world_R_tag[order], cam_R_tag[order]
+    # every ordered pair (k proposes, m checks) of rows sharing a frame, k == m included
+    sq = size * size
+    local = np.arange(sq.sum()) - np.repeat(np.cumsum(sq) - sq, sq)
+    z = np.repeat(size, sq)
+    k = np.repeat(starts, sq) + local // z
+    m = np.repeat(starts, sq) + local % z
+    pred = Rc[k] @ (np.swapaxes(Rw[k], -1, -2) @ Rw[m])[:, None]  # m's cam_R_tag from k's (p, a)
+    cos = (np.einsum("paij,pbij->pab", pred, Rc[m]) - 1.0) / 2.0
+    err = np.degrees(np.arccos(np.clip(np.nan_to_num(cos, nan=-1.0), -1.0, 1.0)))  # (p, a, b)
+    err[:, :, 1] += 1e-6  # ties: the first solution
+    score = np.zeros((n, 2))
+    np.add.at(score, k, np.minimum(err.min(axis=2), cap_deg))
+    score[:, 1] += 1e-6
+    score[~np.isfinite(Rc[:, :, 0, 0])] = np.inf
+    win = np.lexsort((score.min(axis=1), fid))[starts]  # per frame, the best proposer
+    win_a = np.argmin(score[win], axis=1)
+    sel = k == win[fid[m]]
+    out = np.zeros(n, np.int64)
+    out[m[sel]] = np.argmin(err[sel, win_a[fid[m[sel]]]], axis=1)
+    choice[order] = out
+    return choice

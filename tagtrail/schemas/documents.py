@@ -199,6 +199,8 @@ class OptimizeReport(Document):
     rms_t_m: float
     rms_r_deg: float
     method: Literal["joint", "pairwise"]
+    edges_rebuilt: int = 0
+    """Edges rebuilt from the IPPE solutions the map agrees with (``optimize.branch_check``)."""
     bundle: BundleSummary | None
     survey: SurveySummary | None = None
     components: list[PlacedComponent] = []

@@ -54,9 +54,18 @@ from tagtrail.geometry.bundle import (
 from tagtrail.geometry.camera import CameraModel
 from tagtrail.geometry.drive import WHEELED_BOUND, DrivePrior
 from tagtrail.geometry.ground import PLANAR_BOUND, GroundPrior
+from tagtrail.geometry.ippe import map_branches
 from tagtrail.geometry.posegraph import PoseGraph, PoseGraphResult, relative_residuals, solve
 from tagtrail.geometry.robust import LossName
-from tagtrail.geometry.se3 import R_from_quat_xyzw, make_T, quat_xyzw_from_R, rotation_angle
+from tagtrail.geometry.rotations import geodesic_angle
+from tagtrail.geometry.se3 import (
+    R_from_quat_xyzw,
+    inv,
+    make_T,
+    quat_xyzw_from_R,
+    rotation_angle,
+    xyz_quat_from_T,
+)
 from tagtrail.geometry.survey import fit_survey
 from tagtrail.schemas.artifacts import (
     CORNER_COLS,
@@ -140,6 +149,12 @@ class Params(StageParams):
     drive_lateral_sigma: float = Field(0.01, gt=0.0)
     """Lateral velocity noise density of the wheeled-drive prior (m/s/sqrt(Hz)): wheel slip and
     skid beyond the lever arm; over T seconds the camera may drift sideways this times sqrt(T)."""
+    branch_check: Literal["map", "none"] = "map"
+    """``map`` (default): after the pose graph's solve, each observation takes the IPPE solution
+    the map agrees with in its frame (geometry.ippe.map_branches), the edges it changes are
+    rebuilt and the graph solved again (a small, far tag's mirrored solution can look
+    unambiguous and bend a map its pair's one or two frames cannot check); ``none``: the
+    edges as ``edges`` chose them."""
     rival_search: bool = True
     """Joint solve: decide the tag pairs with a close rival hypothesis (``edges.rival_pairs``)
     by the frames' continuity (``choose_hypotheses``)."""
@@ -425,6 +440,41 @@ def choose_hypotheses(
     return use, res, flipped
 
 
+def map_checked_edges(
+    edges: pd.DataFrame, use: np.ndarray, tags: np.ndarray, res: PoseGraphResult,
+    observations: pd.DataFrame, rivals: list[RivalPair],
+) -> tuple[pd.DataFrame, int]:
+    """``edges`` with the rows in ``use`` rebuilt from the IPPE solutions the map ``res`` (over
+    ``tags``) picks for their observations (geometry.ippe.map_branches) where that turns them
+    by more than a degree; and the number of rows rebuilt. The map's pick overrides the pair's
+    (``edges.branches``): it weighs every edge, the pair only its own frames. Pairs with a rival
+    hypothesis are left to ``choose_hypotheses`` (a bridge: the map cannot check it)."""
+    obs = observations[observations["tag_id"].isin(tags).to_numpy()]
+    obs = obs[~obs.duplicated(["t_ns", "tag_id"], keep=False).to_numpy()]
+    S = both_solutions(obs)
+    if not np.isfinite(S[:, 1]).all(axis=(1, 2)).any():
+        return edges, 0
+    k = np.searchsorted(tags, obs["tag_id"].to_numpy(np.int64))
+    pick = map_branches(obs["frame_idx"].to_numpy(np.int64), res.R[k], S[:, :, :3, :3])
+    chosen = S[np.arange(len(obs)), pick]
+    at = pd.MultiIndex.from_arrays([obs["t_ns"].to_numpy(), obs["tag_id"].to_numpy()])
+    t_ns = edges["t_ns"].to_numpy()
+    ri = at.get_indexer(pd.MultiIndex.from_arrays([t_ns, edges["tag_i"].to_numpy()]))
+    rj = at.get_indexer(pd.MultiIndex.from_arrays([t_ns, edges["tag_j"].to_numpy()]))
+    pair = edges["tag_i"].to_numpy(np.int64) * (1 << 32) + edges["tag_j"].to_numpy(np.int64)
+    rival = np.isin(pair, [r.tag_i * (1 << 32) + r.tag_j for r in rivals])
+    rows = np.flatnonzero(use & (ri >= 0) & (rj >= 0) & ~rival)
+    T_new = inv(chosen[ri[rows]]) @ chosen[rj[rows]]
+    R_old = R_from_quat_xyzw(edges[POSE_COLS[3:]].to_numpy(np.float64)[rows])
+    changed = geodesic_angle(R_old, T_new[:, :3, :3]) > np.radians(1.0)
+    if not changed.any():
+        return edges, 0
+    xyz, q = xyz_quat_from_T(T_new[changed])
+    edges = edges.copy()
+    edges.loc[edges.index[rows[changed]], POSE_COLS] = np.concatenate([xyz, q], axis=1)
+    return edges, int(changed.sum())
+
+
 def components(edges: pd.DataFrame, graph: TagGraph) -> list[np.ndarray]:
     """The tag graph's connected components (tag ids), the anchor's first, then by size."""
     tags = np.asarray(sorted(int(t) for t in graph.get("tags", [])), dtype=np.int64)
@@ -541,6 +591,17 @@ def _solve(
 
     g = graph_of(use)
     res = solve(g, loss=params.loss, f_scale=params.f_scale, max_nfev=params.max_nfev)
+    rebuilt = 0
+    for _ in range(3 if params.branch_check == "map" else 0):
+        edges, n = map_checked_edges(edges, use, tags, res, observations, graph.rival_pairs)
+        if n == 0:
+            break
+        rebuilt += n
+        g = graph_of(use)
+        res = solve(g, loss=params.loss, f_scale=params.f_scale, max_nfev=params.max_nfev)
+    if rebuilt:
+        log.info("optimize: %d edges rebuilt from the IPPE solutions the map agrees with",
+                 rebuilt)
     joint = (params.method == "joint" and detections is not None and len(detections) > 0
              and camera is not None)
     flipped: list[list[int]] = []
@@ -612,6 +673,7 @@ def _solve(
         "rms_t_m": float(np.sqrt(np.mean(e_t**2))) if len(e_t) else 0.0,
         "rms_r_deg": float(np.rad2deg(np.sqrt(np.mean(e_r**2)))) if len(e_r) else 0.0,
         "method": "joint" if bundle is not None else "pairwise",
+        "edges_rebuilt": rebuilt,
         "bundle": bundle,
         "survey": survey,
     }

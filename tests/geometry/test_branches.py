@@ -6,7 +6,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from tagtrail.geometry.ippe import consistent_branches
+from tagtrail.geometry.ippe import consistent_branches, map_branches
 from tagtrail.geometry.se3 import R_from_rotvec, inv, make_T, rotation_angle
 
 W_I = make_T(np.eye(3), [0.0, 0.0, 0.0])
@@ -84,3 +84,50 @@ def test_pairs_are_decided_separately() -> None:
     group = np.r_[np.zeros(n, np.int64), np.ones(n, np.int64)]
     out = consistent_branches(group, *both)
     assert (out.choice[:n] == 0).all() and (out.choice[n:] == 1).all()
+
+
+def test_the_map_picks_each_observations_solution_in_its_frame() -> None:
+    """map_branches: tags around a moving camera, a third of the observations with the mirror
+    first; every frame of two or more tags gets its true solutions back, from a map a degree off,
+    and the frames of one tag (nothing to check against) and solutions missing keep the first."""
+    rng = np.random.default_rng(1)
+    n_tags = 8
+    ang = np.linspace(0.0, 2 * np.pi, n_tags, endpoint=False)
+    W = [make_T(R_from_rotvec([0.0, a + np.pi / 2, 0.0]), [3 * np.cos(a), 0.0, 3 * np.sin(a)])
+         for a in ang]
+    frame, tag, both, wrong = [], [], [], []
+    for f in range(50):
+        c = np.array([rng.uniform(-1, 1), rng.uniform(-0.2, 0.2), rng.uniform(-1, 1)])
+        seen = rng.choice(n_tags, rng.integers(1, 5), replace=False)
+        cam_T_w = inv(look_at(c, W[seen[0]][:3, 3]))
+        for t in seen:
+            true = cam_T_w @ W[t]
+            pair = [true, mirrored(true)]
+            bad = rng.random() < 0.33
+            frame.append(f)
+            tag.append(t)
+            both.append(pair[::-1] if bad else pair)
+            wrong.append(bad)
+    frame_, tag_, wrong_ = np.array(frame), np.array(tag), np.array(wrong)
+    S = np.array(both)[:, :, :3, :3]
+    W_map = np.array([w[:3, :3] @ R_from_rotvec(rng.normal(scale=np.radians(1.0), size=3))
+                      for w in W])
+    missing = np.zeros(len(frame_), bool)
+    missing[::7] = True  # a source that gave one pose: its only solution is the one it has
+    S[missing & ~wrong_, 1] = np.nan
+    choice = map_branches(frame_, W_map[tag_], S)
+    multi = np.bincount(frame_)[frame_] > 1
+    assert multi.sum() > 60 and (~multi).sum() > 3 and wrong_[multi].sum() > 20
+    assert (choice[multi] == wrong_[multi]).all()
+    assert (choice[~multi] == 0).all()
+    assert (choice[missing & ~wrong_] == 0).all()
+
+
+def test_a_frame_the_map_cannot_decide_keeps_the_best_solutions() -> None:
+    """Two tags whose mirrors agree with each other as well as the true poses do (a
+    near-degenerate view): the lower-reprojection solutions stay."""
+    cam = inv(look_at(np.array([0.0, 0.0, 3.0]), np.zeros(3)))
+    ti, tj = cam @ W_I, cam @ W_I
+    S = np.array([[ti, ti], [tj, tj]])[:, :, :3, :3]
+    out = map_branches(np.zeros(2, np.int64), np.array([np.eye(3), np.eye(3)]), S)
+    assert (out == 0).all()
