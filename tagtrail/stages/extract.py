@@ -82,11 +82,10 @@ class Params(StageParams):
         False, description="keep tags whose white quiet zone runs off the image (their corners "
         "are unreliable)")
     small_tags: Literal["redetect", "off"] = Field(
-        "off", description="redetect: the tags quad_decimate loses (shorter side under ~35 px) "
-        "re-detected at full resolution in crops around tag-like dark blobs not in a found tag "
-        "(1.1-1.5x the decimated pass's time, bench/bench_recall.py); off (default): the "
-        "decimated pass only -- with redetect the swatbotics photos' two laps map 0.74 m apart "
-        "instead of 3 cm (bench/bench_realdata_tables.py): the small tags' poses hurt the map")
+        "redetect", description="redetect (default): the tags quad_decimate loses (shorter side "
+        "under ~35 px) re-detected at full resolution in crops around tag-like dark blobs not in "
+        "a found tag (1.1-1.5x the decimated pass's time, bench/bench_recall.py); off: the "
+        "decimated pass only")
     EXECUTION_ONLY = frozenset({"workers", "chunk_size"})  # same output whatever their values
 
     @field_validator("max_hamming")

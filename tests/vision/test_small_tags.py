@@ -1,5 +1,5 @@
 """``small_tags`` (issue 12): ``redetect`` finds the small tags quad_decimate 2 loses,
-re-detected at full resolution in crops; ``off`` (the default) is the decimated pass alone.
+re-detected at full resolution in crops (the default); ``off`` is the decimated pass alone.
 Recall, false detections and corners only — timing lives in bench/bench_recall.py."""
 
 from __future__ import annotations
@@ -18,7 +18,7 @@ from tests.vision.test_corners import LIMO
 
 MODES = {"full": {"quad_decimate": 1.0, "small_tags": "off"},
          "dec2": {"quad_decimate": 2.0, "small_tags": "off"},
-         "default": {"small_tags": "redetect"}}  # what redetect gives (not the default)
+         "default": {}}
 Dets = dict[str, list[tuple[Any, Any]]]
 
 
@@ -156,11 +156,9 @@ def test_default_finds_the_tags_off_misses(realdata: Path) -> None:
 
 
 def test_small_tags_default_and_values() -> None:
-    # off by default: with redetect the swatbotics laps' maps disagree by 0.74 m mean instead of
-    # 3.0 cm (bench/bench_realdata_tables.py), whatever the recall gain
-    assert extract.Params().small_tags == "off"
+    assert extract.Params().small_tags == "redetect"
     assert extract.Params().quad_decimate == 2.0
-    assert extract.Params().detector().small_tags == "off"
+    assert extract.Params().detector().small_tags == "redetect"
     assert extract.Params(small_tags="redetect").detector().small_tags == "redetect"
     assert extract.Params(small_tags="off").detector().small_tags == "off"
     with pytest.raises(ValueError, match="small_tags"):
