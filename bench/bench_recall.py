@@ -23,15 +23,18 @@ interleaved within each pass. Prints per set and mode: found / present, recall, 
 duplicates, ms per frame and the ratios (time vs decimation 2, recall vs full resolution), then
 the defaults against the targets of issue 12 (recall >= 0.95 x full resolution's, time <= 1.5 x
 decimation 2's).
-Run: ``.venv/bin/python bench/bench_recall.py [--repeats 7] [--sets swatbotics,duckietown]``.
+Run: ``.venv/bin/python bench/bench_recall.py [--repeats 7] [--sets swatbotics,duckietown]``;
+a run over every set also writes bench/RECALL.md (``--out`` elsewhere).
 """
 
 from __future__ import annotations
 
 import argparse
 import multiprocessing as mp
+import os
 import re
 import statistics
+import subprocess
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -43,7 +46,8 @@ import numpy as np
 
 from tagtrail.stages import extract
 
-REALDATA = Path(__file__).resolve().parents[1].parent / "shared" / "realdata"
+REPO = Path(__file__).resolve().parents[1]
+REALDATA = REPO.parent / "shared" / "realdata"
 DEFAULT = f"default ({extract.Params().small_tags})"
 MODES = {"decimate 1": {"quad_decimate": 1.0, "small_tags": "off"},
          "decimate 2": {"quad_decimate": 2.0, "small_tags": "off"},
@@ -147,12 +151,21 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--repeats", type=int, default=7)
     ap.add_argument("--sets", default=",".join(SETS))
+    ap.add_argument("--out", type=Path, help="markdown file (default: bench/RECALL.md when every "
+                    "set runs)")
     args = ap.parse_args()
+    out = args.out or (REPO / "bench" / "RECALL.md" if args.sets == ",".join(SETS) else None)
+    lines: list[str] = []
+
+    def say(line: str = "") -> None:
+        print(line, flush=True)
+        lines.append(line)
+
     ctx = mp.get_context("forkserver")
     pool = ctx.Pool(1)
     summary = []
     try:
-        print(f"{'set':13} {'mode':17} {'found':>6} {'present':>7} {'recall':>7} {'false':>5} "
+        say(f"{'set':13} {'mode':17} {'found':>6} {'present':>7} {'recall':>7} {'false':>5} "
               f"{'dup':>4} {'ms/frame':>9} {'time/dec2':>9} {'recall/full':>11}")
         for name in args.sets.split(","):
             data = SETS[name]()
@@ -168,7 +181,7 @@ def main() -> None:
                                for k, (ints, floats) in enumerate(dets)
                                for t, f in zip(ints[:, 0], floats, strict=True))
                 recall[m] = hits / max(present, 1)
-                print(f"{name:13} {m:17} {hits:6d} {present:7d} {recall[m]:7.3f} {false[m]:5d} "
+                say(f"{name:13} {m:17} {hits:6d} {present:7d} {recall[m]:7.3f} {false[m]:5d} "
                       f"{dup:4d} {ms:9.2f} {ms / res['decimate 2'][1]:9.2f} "
                       f"{recall[m] / max(recall['decimate 1'], 1e-9):11.3f}")
             rel = recall[DEFAULT] / max(recall["decimate 1"], 1e-9)
@@ -177,11 +190,22 @@ def main() -> None:
             summary.append(f"{name:13} {recall['decimate 2']:7.3f} {recall[DEFAULT]:7.3f} "
                            f"{recall['decimate 1']:7.3f} {rel:9.3f} {false[DEFAULT]:5d} "
                            f"{ratio:9.2f}  {'yes' if ok else 'NO'}")
-        print(f"\n{DEFAULT} against issue 12's targets (recall >= {RECALL_TARGET} x full "
+        say(f"\n{DEFAULT} against issue 12's targets (recall >= {RECALL_TARGET} x full "
               f"resolution's, time <= {TIME_TARGET} x decimation 2's, no false detections):")
-        print(f"{'set':13} {'dec2':>7} {'default':>7} {'full':>7} {'vs full':>9} {'false':>5} "
+        say(f"{'set':13} {'dec2':>7} {'default':>7} {'full':>7} {'vs full':>9} {'false':>5} "
               f"{'time/dec2':>9}  met")
-        print("\n".join(summary))
+        for line in summary:
+            say(line)
+        if out is not None:
+            commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=REPO,
+                                    capture_output=True, text=True).stdout.strip()
+            out.write_text(
+                "# Small-tag recall benchmark (issue 12)\n\n"
+                f"Produced by `bench/bench_recall.py` (definitions in its docstring) at commit "
+                f"{commit}, {time.strftime('%Y-%m-%d %H:%M')}, {os.cpu_count()} cores, load "
+                f"average {os.getloadavg()[0]:.1f}; {args.repeats} passes per set, times are "
+                "medians.\n\n```\n" + "\n".join(lines).strip("\n") + "\n```\n")
+            print(f"wrote {out}")
     finally:
         pool.terminate()  # the worker's exit status is not trusted (pupil-apriltags #46)
 

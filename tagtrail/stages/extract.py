@@ -30,7 +30,6 @@ import os
 import time
 from collections import Counter
 from collections.abc import Iterator
-from dataclasses import replace
 from typing import Any, Literal
 
 import numpy as np
@@ -235,17 +234,16 @@ def _detect_images(src: Source, params: Params, camera: CameraModel) -> tuple[An
             yield chunk
 
     cfg = params.detector()
-    # The margin and id filters run here, counted, so that a filter dropping most detections can
-    # be named; with small_tags redetect the workers need them (their found tags steer the crops).
-    loose = cfg.small_tags == "off"
-    worker_cfg = replace(cfg, min_decision_margin=0.0, tag_ids=None) if loose else cfg
-    parts = list(_map_chunks(chunks(), worker_cfg, params, camera, len(src)))
+    parts = list(_map_chunks(chunks(), cfg, params, camera, len(src)))
     frame_idx = np.concatenate([p["frame_idx"] for p in parts]) if parts else np.zeros(0, int)
     order = np.argsort(frame_idx, kind="stable")
     frame_idx = frame_idx[order]
     n_det = np.concatenate([p["n_det"] for p in parts])[order] if parts else np.zeros(0, int)
     shapes = np.concatenate([p["shape"] for p in parts])[order] if parts else np.zeros((0, 2))
-    n_cut = int(sum(int(p["n_truncated"]) for p in parts))
+    dropped: Counter[str] = Counter()
+    for p in parts:  # what each filter dropped, counted by the workers
+        dropped.update({k[len("dropped_"):]: int(v) for k, v in p.items()
+                        if k.startswith("dropped_") and int(v)})
     t_ns = np.array([t_of[int(i)] for i in frame_idx], dtype=np.int64)
     det_frame = np.concatenate([p["det_frame"] for p in parts]) if parts else np.zeros(0, int)
     det_t = np.array([t_of[int(i)] for i in det_frame], dtype=np.int64)
@@ -257,13 +255,7 @@ def _detect_images(src: Source, params: Params, camera: CameraModel) -> tuple[An
         keep = ~np.isin(det_frame, frame_idx[wrong])
         det_t, det_frame, ints, floats = det_t[keep], det_frame[keep], ints[keep], floats[keep]
         t_ns, frame_idx, n_det = t_ns[~wrong], frame_idx[~wrong], n_det[~wrong]
-    dropped: Counter[str] = Counter({"keep_truncated": n_cut} if n_cut else {})
-    n_total = len(ints) + n_cut
-    if loose and len(ints):
-        keep = _margin_and_ids(ints, floats, cfg, dropped)
-        det_t, det_frame, ints, floats = det_t[keep], det_frame[keep], ints[keep], floats[keep]
-        n_det = np.bincount(np.searchsorted(frame_idx, det_frame),
-                            minlength=len(frame_idx)).astype(n_det.dtype)
+    n_total = len(ints) + sum(dropped.values())
     report_filters(src, cfg, dropped, n_total, len(ints))
     return t_ns, frame_idx, n_det, (det_t, det_frame, ints, floats)
 
@@ -288,20 +280,6 @@ def _report_wrong_size(
     log.warning("%s: %d of %d frames left out, their size is not the camera's %s (%s): %s%s",
                 src.describe(), len(names), n_frames, cam, src.camera_origin,
                 ", ".join(names[:5]), more)  # fmt: skip
-
-
-def _margin_and_ids(
-    ints: NDArray[Any], floats: NDArray[Any], cfg: DetectorConfig, dropped: Counter[str]
-) -> NDArray[np.bool_]:
-    """The rows (``ints`` (m, 2) id/hamming, ``floats`` (m, 9) margin/corners) that pass the
-    ``min_decision_margin`` and ``tag_ids`` filters, counting what each drops."""
-    low = floats[:, 0] < cfg.min_decision_margin
-    other = np.zeros(len(ints), bool)
-    if cfg.tag_ids is not None:
-        other = ~low & ~np.isin(ints[:, 0], np.asarray(cfg.tag_ids, dtype=np.int64))
-    dropped.update({k: int(n) for k, n in (("min_decision_margin", low.sum()),
-                                            ("tag_ids", other.sum())) if n})
-    return np.asarray(~low & ~other)
 
 
 def _map_chunks(

@@ -5,7 +5,9 @@ a translation. Residual per edge observation: ``[t_pred - t_obs ; rot_weight_m *
 R_obs)]`` scaled by ``sqrt(weight)``; the robust ``loss`` acts on its norm with scale ``f_scale``
 (m). Initialised from a spanning tree of robust per-pair means; solved by Levenberg-Marquardt on
 the pair-accumulated normal equations (sparse LU). See :mod:`tagtrail.geometry.posegraph` for the
-maths.
+maths. That map then checks each observation's IPPE solution in its frame
+(``branch_check``, :func:`tagtrail.geometry.ippe.map_branches`): edges built from a solution the
+map disagrees with are rebuilt from the other, and the graph solved again.
 
 ``method="joint"`` (the default; datasets with detections and a camera) then solves the tag poses
 and the camera pose of every frame that sees a mapped tag jointly on the corner reprojection

@@ -96,30 +96,42 @@ def detect(
 
 def _detect_filtered(
     img: NDArray[np.uint8], cfg: DetectorConfig
-) -> tuple[NDArray[np.int32], NDArray[Any], int]:
-    """:func:`detect` without the corner re-fit; also the number of tags dropped as cut by the
-    image border."""
-    ints, floats = _keep(cfg, *_detect_raw(img, cfg))
+) -> tuple[NDArray[np.int32], NDArray[Any], dict[str, int]]:
+    """:func:`detect` without the corner re-fit; also how many detections each filter dropped
+    (``min_decision_margin``, ``tag_ids``, ``keep_truncated``). With ``small_tags: redetect``
+    a tag dropped for its margin at the decimated pass is tried again at full resolution (and
+    counted again if dropped again); one dropped for its id is not."""
+    ints, floats = _detect_raw(img, cfg)
+    keep, low, other = _filters(cfg, ints, floats)
+    dropped = {"min_decision_margin": int(low.sum()), "tag_ids": int(other.sum())}
     if cfg.small_tags == "redetect" and cfg.quad_decimate > 1.0:
-        more_i, more_f = _keep(cfg, *redetect_small(img, cfg, floats))
-        ints, floats = np.concatenate([ints, more_i]), np.concatenate([floats, more_f])
-    n_cut = 0
+        more_i, more_f = redetect_small(img, cfg, floats[keep | other])
+        k2, low2, other2 = _filters(cfg, more_i, more_f)
+        dropped["min_decision_margin"] += int(low2.sum())
+        dropped["tag_ids"] += int(other2.sum())
+        ints, floats = np.concatenate([ints[keep], more_i[k2]]), np.concatenate([floats[keep],
+                                                                                  more_f[k2]])
+    else:
+        ints, floats = ints[keep], floats[keep]
+    dropped["keep_truncated"] = 0
     if not cfg.keep_truncated and len(ints):
         cut = truncated(floats[:, 1:], img.shape[1], img.shape[0])
-        n_cut = int(cut.sum())
+        dropped["keep_truncated"] = int(cut.sum())
         ints, floats = ints[~cut], floats[~cut]
-    return ints, floats, n_cut
+    return ints, floats, dropped
 
 
-def _keep(
+def _filters(
     cfg: DetectorConfig, ints: NDArray[np.int32], floats: NDArray[Any]
-) -> tuple[NDArray[np.int32], NDArray[Any]]:
-    """The detections that pass the ``max_hamming``/``min_decision_margin``/``tag_ids``
-    filters."""
-    keep = (ints[:, 1] <= cfg.max_hamming) & (floats[:, 0] >= cfg.min_decision_margin)
+) -> tuple[NDArray[np.bool_], NDArray[np.bool_], NDArray[np.bool_]]:
+    """Masks of the detections that pass the ``max_hamming``/``min_decision_margin``/``tag_ids``
+    filters, that ``min_decision_margin`` drops, and that ``tag_ids`` drops (of the rest)."""
+    ok = ints[:, 1] <= cfg.max_hamming  # the C library's own bound: not counted
+    low = ok & (floats[:, 0] < cfg.min_decision_margin)
+    other = np.zeros(len(ints), bool)
     if cfg.tag_ids is not None:
-        keep &= np.isin(ints[:, 0], np.asarray(cfg.tag_ids, dtype=np.int32))
-    return ints[keep], floats[keep]
+        other = ok & ~low & ~np.isin(ints[:, 0], np.asarray(cfg.tag_ids, dtype=np.int32))
+    return ok & ~low & ~other, low, other
 
 
 def _detect_raw(
@@ -273,16 +285,17 @@ def detect_chunk(
 
     Returns arrays: ``frame_idx`` (n,), ``n_det`` (n,), ``shape`` (n, 2) image (H, W), per
     detection ``det_frame`` (m,), ``det_ints`` (m, 2), ``det_floats`` (m, 9) (see :func:`detect`),
-    and ``n_truncated`` (): tags dropped as cut by the image border.
+    and per filter (``dropped_<filter>`` ()) the detections it dropped (:func:`_detect_filtered`).
     """
     _single_threaded_opencv()
     n_det, shapes, det_frame, ints, floats = [], [], [], [], []
     imgs: list[NDArray[np.uint8] | None] = []  # None: no tags (the image is not kept)
-    n_cut = 0
+    dropped: dict[str, int] = {}
     for idx, _t_ns, raw in chunk:
         img = raw.decode()
-        i, f, cut = _detect_filtered(img, cfg)
-        n_cut += cut
+        i, f, drops = _detect_filtered(img, cfg)
+        for name, n in drops.items():
+            dropped[name] = dropped.get(name, 0) + n
         n_det.append(len(i))
         shapes.append(img.shape)
         det_frame.append(np.full(len(i), idx, dtype=np.int64))
@@ -306,5 +319,5 @@ def detect_chunk(
         "det_frame": np.concatenate(det_frame) if det_frame else np.zeros(0, np.int64),
         "det_ints": np.concatenate(ints) if ints else np.zeros((0, 2), np.int32),
         "det_floats": np.concatenate(floats) if floats else np.zeros((0, 9)),
-        "n_truncated": np.array(n_cut, dtype=np.int64),
+        **{f"dropped_{name}": np.array(n, dtype=np.int64) for name, n in dropped.items()},
     }
