@@ -109,8 +109,8 @@ def _detect_filtered(
         k2, low2, other2 = _filters(cfg, more_i, more_f)
         dropped["min_decision_margin"] += int(low2.sum())
         dropped["tag_ids"] += int(other2.sum())
-        ints, floats = np.concatenate([ints[keep], more_i[k2]]), np.concatenate([floats[keep],
-                                                                                  more_f[k2]])
+        ints = np.concatenate([ints[keep], more_i[k2]])
+        floats = np.concatenate([floats[keep], more_f[k2]])
     else:
         ints, floats = ints[keep], floats[keep]
     dropped["keep_truncated"] = 0
