@@ -16,8 +16,9 @@ pose itself (``alone_*`` pose columns: ``trajectory_raw.csv``, the trajectory be
 step).
 
 The frame-by-frame methods: every mapped tag ``i`` seen in a frame gives ``world_T_cam^(i) =
-world_T_tag_i (cam_T_tag_i)^-1`` (of its two IPPE solutions, the one with the lower reprojection
-error), fused by
+world_T_tag_i (cam_T_tag_i)^-1`` (of its two IPPE solutions, the one the map agrees with in
+its frame, ``geometry.ippe.map_branches``; in a frame of one tag, the one with the lower
+reprojection error), fused by
 
 - ``avg``: translation mean + chordal rotation mean of the per-tag estimates (paper, "averaging");
 - ``lsq``: per-frame robust least squares over the per-tag estimates (IRLS, ``loss``/``f_scale``
@@ -55,7 +56,7 @@ from tagtrail.geometry.camera import CameraModel
 from tagtrail.geometry.drive import DrivePrior
 from tagtrail.geometry.fusion import frame_poses
 from tagtrail.geometry.ground import GroundPrior
-from tagtrail.geometry.ippe import best_pose
+from tagtrail.geometry.ippe import map_branches
 from tagtrail.geometry.robust import LossName
 from tagtrail.geometry.se3 import T_from_xyz_quat, inv, make_T, xyz_quat_from_T
 from tagtrail.schemas.artifacts import (
@@ -67,7 +68,6 @@ from tagtrail.schemas.artifacts import (
     both_solutions,
     columns,
     corner_rows,
-    ippe_solutions,
     timed,
 )
 from tagtrail.stages.base import StageParams
@@ -314,8 +314,16 @@ def run(
         size = tag_map["size_m"].to_numpy(np.float64)[order][k]
     if "size_m" in obs.columns:
         size = np.where(np.isfinite(size), size, obs["size_m"].to_numpy(np.float64))
+    # each observation's IPPE solution the map agrees with in its frame (one-tag frames: the
+    # lower-reprojection one)
+    both = both_solutions(obs)
+    if "reproj_px" in obs.columns and "alt_reproj_px" in obs.columns:
+        swap = (obs["alt_reproj_px"] < obs["reproj_px"]).to_numpy() & np.isfinite(both[:, 1]).all(
+            axis=(1, 2))
+        both[swap] = both[swap][:, ::-1]
+    pick = map_branches(frame, W_map[k][:, :3, :3], both[:, :, :3, :3])
     res = frame_poses(
-        W_map[k], best_pose(*ippe_solutions(obs)), group, len(uframe), corners_px=px,
+        W_map[k], both[np.arange(len(obs)), pick], group, len(uframe), corners_px=px,
         size_m=size, camera=camera, method="lsq" if params.method == "joint" else params.method,
         loss=params.loss, f_scale=params.f_scale, rot_weight_m=params.rot_weight_m,
         ransac_px=params.ransac_px,

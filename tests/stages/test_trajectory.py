@@ -101,6 +101,17 @@ def test_single_tag_frames_use_the_lower_reprojection_solution(scene: Scene) -> 
     assert dt.max() < 1e-9
 
 
+def test_frames_of_several_tags_take_the_solution_the_map_agrees_with(scene: Scene) -> None:
+    """A mirrored solution first (lower reprojection, ambiguity 0.3), the true one second: the
+    frame-by-frame fusion takes, per observation, the one the map agrees with in its frame."""
+    T_bad, bad = flipped(scene, frac=0.15, seed=1)
+    obs = observations(scene, T_bad, ambiguity=np.full(len(T_bad), 0.3),
+                       alt_cam_T_tag=np.where(bad[:, None, None], scene.cam_T_tag(), T_bad))
+    assert bad.sum() > 30 and (np.bincount(scene.frame) > 1).all()
+    dt, dr = frame_errors(scene, run(scene, obs, "lsq"))
+    assert dt.max() < 1e-9 and dr.max() < 1e-7
+
+
 def test_frames_without_mapped_tags_get_no_pose(scene: Scene) -> None:
     keep = np.arange(16) % 4 != 0
     tm = tag_map_frame(scene.world_T_tag[keep], np.flatnonzero(keep))
