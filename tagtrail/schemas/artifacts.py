@@ -145,12 +145,14 @@ def corner_rows(observations: pd.DataFrame, detections: pd.DataFrame,
 
 
 def both_solutions(rows: pd.DataFrame) -> NDArray[np.float64]:
-    """``cam_T_tag`` ``(N, 2, 4, 4)``: both IPPE solutions of ``pnp.observations`` rows (the
-    second NaN where the source gave one pose)."""
-    pose, alt, _, _ = ippe_solutions(rows)
+    """``cam_T_tag`` ``(N, 2, 4, 4)``: both IPPE solutions of ``pnp.observations`` rows, the
+    lower-reprojection one first (the second NaN where the source gave one pose)."""
+    pose, alt, err, alt_err = ippe_solutions(rows)
     out = np.full((len(rows), 2, 4, 4), np.nan)
     out[:, 0] = T_from_xyz_quat(pose[:, :3], pose[:, 3:])
-    if alt is not None:
+    if alt is not None and err is not None and alt_err is not None:
         ok = np.isfinite(alt).all(axis=1)
         out[ok, 1] = T_from_xyz_quat(alt[ok, :3], alt[ok, 3:])
+        swap = ok & (alt_err < err)
+        out[swap] = out[swap][:, ::-1]
     return out

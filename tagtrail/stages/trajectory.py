@@ -317,10 +317,6 @@ def run(
     # each observation's IPPE solution the map agrees with in its frame (one-tag frames: the
     # lower-reprojection one)
     both = both_solutions(obs)
-    if "reproj_px" in obs.columns and "alt_reproj_px" in obs.columns:
-        swap = (obs["alt_reproj_px"] < obs["reproj_px"]).to_numpy() & np.isfinite(both[:, 1]).all(
-            axis=(1, 2))
-        both[swap] = both[swap][:, ::-1]
     pick = map_branches(frame, W_map[k][:, :3, :3], both[:, :, :3, :3])
     res = frame_poses(
         W_map[k], both[np.arange(len(obs)), pick], group, len(uframe), corners_px=px,
