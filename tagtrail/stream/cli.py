@@ -67,6 +67,17 @@ def tcp_port(text: str) -> int:
     return int(port)
 
 
+def _foxglove(p: argparse.ArgumentParser) -> None:
+    g = p.add_argument_group("foxglove")
+    g.add_argument("--foxglove", type=tcp_port, nargs="?", const=8765, default=None,
+                   metavar="PORT",
+                   help="also serve the outputs on a Foxglove WebSocket (foxglove-sdk; default "
+                   "port 8765; pip install 'tagtrail[foxglove]'; docs/FOXGLOVE.md)")
+    g.add_argument("--foxglove-host", default="127.0.0.1", metavar="HOST",
+                   help="address the Foxglove server binds (default: %(default)s, this machine "
+                   "only; 0.0.0.0: every interface)")
+
+
 def _pipeline(p: argparse.ArgumentParser, what: str) -> None:
     g = p.add_argument_group("parameters")
     g.add_argument("--pipeline", type=Path, default=None, metavar="FILE",
@@ -130,14 +141,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> argparse.ArgumentParser:
     _pipeline(p, "report's plane")
     _profile(p, "the pose key and report's plane (without a pipeline file)")
     _common(p, "stop after N input messages", express=True)
-    g = p.add_argument_group("foxglove")
-    g.add_argument("--foxglove", type=tcp_port, nargs="?", const=8765, default=None,
-                   metavar="PORT",
-                   help="also serve the outputs on a Foxglove WebSocket (default port 8765; "
-                   "pip install 'tagtrail[foxglove]')")
-    g.add_argument("--foxglove-host", default="127.0.0.1", metavar="HOST",
-                   help="address the Foxglove server binds (default: %(default)s, this machine "
-                   "only; 0.0.0.0: every interface)")
+    _foxglove(p)
 
     p = sub.add_parser("replay", help="publish a trajectory's poses (or bag topics)",
                        epilog=EXAMPLES, formatter_class=fmt,
@@ -191,6 +195,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> argparse.ArgumentParser:
     g.add_argument("--max-hamming", type=COUNT, default=None, metavar="N",
                    help="drop detections with more corrected bits (default: extract.max_hamming)")
     _common(p, "stop after N input messages", express=True)
+    _foxglove(p)
     _record_arguments(sub, fmt)
     _echo_arguments(sub, fmt)
     return parser
@@ -285,8 +290,9 @@ def with_profile(ns: argparse.Namespace) -> argparse.Namespace:
 def _relocalize(ns: argparse.Namespace) -> int:
     from tagtrail.io.layouts import read_trajectory
     from tagtrail.stages import report as report_stage
+    from tagtrail.stream.foxglove import foxglove_server
     from tagtrail.stream.params import stage_params
-    from tagtrail.stream.reloc_node import Relocalizer, load_alignment, serve
+    from tagtrail.stream.reloc_node import OUTPUT_TYPES, Relocalizer, load_alignment, serve
     from tagtrail.stream.session import leave_now, stop_on_signals
 
     ref = read_trajectory(ns.reference)
@@ -303,12 +309,7 @@ def _relocalize(ns: argparse.Namespace) -> int:
         alignment, plane = (A, R), ns.plane or file_plane or plane
     reloc = Relocalizer(ref, plane, alignment, ns.frame_id, ns.prefix, ns.pose_type,
                         ns.path_max_points)  # fmt: skip
-    fox = None
-    if getattr(ns, "foxglove", None) is not None:
-        from tagtrail.stream.reloc_node import foxglove_server
-
-        fox = foxglove_server(reloc, ns.foxglove, ns.foxglove_host)
-        print(f"relocalize: foxglove {fox.url}", flush=True)
+    fox = foxglove_server(ns, "relocalize", {reloc.key[k]: t for k, t in OUTPUT_TYPES.items()})
     try:
         session = open_session(config_from_args(ns, "listen"))
     except BaseException:
@@ -369,7 +370,9 @@ def localize_params(ns: argparse.Namespace) -> Any:
 
 
 def _localize(ns: argparse.Namespace) -> int:
+    from tagtrail.io import msgs
     from tagtrail.io.layouts import read_tag_map
+    from tagtrail.stream.foxglove import foxglove_server, teed
     from tagtrail.stream.localize import Localizer, cv2_threads
     from tagtrail.stream.node import Node
     from tagtrail.stream.session import leave_now, stop_on_signals
@@ -380,21 +383,25 @@ def _localize(ns: argparse.Namespace) -> int:
     stats = Stats("localize")
     loc = Localizer(tags, localize_params(ns), ns.pose_key, ns.frame_id, stats)
     cv2_threads()
+    # the Foxglove server (if asked for) first, as relocalize: a busy port fails before zenoh
+    fox = foxglove_server(ns, "localize", {ns.pose_key: msgs.POSE_STAMPED})
     node = Node(open_session(config_from_args(ns, "connect")), stats, ns.congestion, ns.express)
     node.count = ns.count
     try:
         node.publisher(ns.pose_key)
         node.subscribe(ns.camera_info_key, loc.on_camera_info)
         if ns.image_key:
-            node.subscribe(ns.image_key, lambda b: loc.on_image(b, ns.image_type),
+            node.subscribe(ns.image_key, teed(fox, lambda b: loc.on_image(b, ns.image_type)),
                            latest_only=True)  # fmt: skip
         else:
-            node.subscribe(ns.detections_key, loc.on_detections)
+            node.subscribe(ns.detections_key, teed(fox, loc.on_detections))
     except BaseException:
         node.close()
         raise
     with stop_on_signals() as stop:
         node.run(ns.duration, ns.stats_period, stop)
+    if fox is not None:
+        fox.close()  # on an error before this, the SDK stops it at exit (atexit)
     if ns.image_key or not node.clean:
         # pupil-apriltags may segfault in its destructor at interpreter exit (NOTES; upstream
         # pupil-labs/apriltags#46), and a zenoh callback blocked in a put would hold the exit

@@ -1,16 +1,19 @@
-"""The live node's outputs on a Foxglove WebSocket (``--foxglove [PORT]``): Foxglove without ROS.
+"""The live nodes' outputs on a Foxglove WebSocket (``--foxglove [PORT]``): Foxglove without ROS.
 
-Each output key ``<prefix>/<name>`` becomes the channel ``/<prefix>/<name>`` carrying the very
-bytes published on zenoh: CDR (``cdr`` message encoding) with the ROS 2 message definition as a
-``ros2msg`` schema, so Foxglove decodes them as it decodes a ROS 2 bag; ``state`` is a JSON
-channel. The server (the ``foxglove-sdk`` package, ``pip install 'tagtrail[foxglove]'``) binds
-127.0.0.1 unless told otherwise. Latched payloads (the reference path and its marker) are sent
+Served by Foxglove's own SDK (``foxglove-sdk``, ``pip install 'tagtrail[foxglove]'``; its Rust
+server speaks the WebSocket subprotocol ``foxglove.sdk.v1``): nothing of the protocol is written
+here. Each output key ``<prefix>/<name>`` becomes the channel ``/<prefix>/<name>`` carrying the
+very bytes published on zenoh: CDR (``cdr`` message encoding) with the ROS 2 message definition
+from rosbags' type store as a ``ros2msg`` schema, so Foxglove decodes them as it decodes a ROS 2
+bag; the relocalization ``state`` is a JSON channel. The server binds 127.0.0.1 unless told
+otherwise (``--foxglove-host``). Latched payloads (the reference path and its marker) are sent
 again whenever a client subscribes to their channel, so a late client sees them even with
-``--path-period 0``.
+``--path-period 0``. What a user does and sees: docs/FOXGLOVE.md.
 """
 
 from __future__ import annotations
 
+import argparse
 import importlib
 import logging
 import threading
@@ -22,6 +25,7 @@ from tagtrail.errors import SessionError, SpecError, one_line
 from tagtrail.io import msgs
 
 log = logging.getLogger("tagtrail.stream")
+Handler = Callable[[bytes], Iterable[tuple[str, bytes]]]  # a node's (tagtrail.stream.node)
 DEFAULT_PORT = 8765
 FOXGLOVE_MISSING = "--foxglove needs the foxglove-sdk package: pip install 'tagtrail[foxglove]'"
 JSON_TYPE = "json"  # a key whose payload is JSON text, not CDR
@@ -134,3 +138,22 @@ def _listener(ws: Any, on_subscribe: Callable[[str], None]) -> Any:
                 log.warning("foxglove: on subscribe to %s: %s", channel.topic, err)
 
     return Listener()
+
+
+def foxglove_server(ns: argparse.Namespace, node: str,
+                    types: dict[str, str]) -> FoxgloveServer | None:  # fmt: skip
+    """The server ``--foxglove [PORT]`` / ``--foxglove-host`` ask for (None without the flag), a
+    channel per key of ``types`` (key → ROS 2 type or :data:`JSON_TYPE`); its URL is printed as
+    ``<node>: foxglove ws://HOST:PORT``."""
+    if getattr(ns, "foxglove", None) is None:
+        return None
+    fox = FoxgloveServer(types, ns.foxglove, ns.foxglove_host, name=f"tagtrail {node}")
+    print(f"{node}: foxglove {fox.url}", flush=True)
+    return fox
+
+
+def teed(fox: FoxgloveServer | None, handler: Handler) -> Handler:
+    """``handler`` whose outputs also go to ``fox`` (``handler`` itself without a server)."""
+    if fox is None:
+        return handler
+    return lambda data: fox.tee(handler(data))

@@ -287,10 +287,3 @@ def serve(
         if foxglove is not None:
             foxglove.close()
 
-
-def foxglove_server(reloc: Relocalizer, port: int, host: str = "127.0.0.1") -> Any:
-    """A :class:`~tagtrail.stream.foxglove.FoxgloveServer` with a channel per output of
-    ``reloc`` (its keys and :data:`OUTPUT_TYPES`)."""
-    from tagtrail.stream.foxglove import FoxgloveServer
-
-    return FoxgloveServer({reloc.key[k]: t for k, t in OUTPUT_TYPES.items()}, port, host)

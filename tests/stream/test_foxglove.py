@@ -1,7 +1,11 @@
-"""``tagtrail stream relocalize --foxglove``: a WebSocket client (the ``websockets`` package,
-speaking the Foxglove protocol as the Foxglove app does) sees the node's advertised channels with
-their ROS 2 schemas and receives D, phi and the reference path while ``stream replay`` feeds the
-node over zenoh; values equal the offline report. Everything on 127.0.0.1 only."""
+"""``tagtrail stream relocalize|localize --foxglove``: the live outputs on the Foxglove WebSocket
+that ``foxglove-sdk`` serves. The client here is written in the test from the Foxglove WebSocket
+protocol (the ``websockets`` package; the SDK has no client): subprotocol ``foxglove.sdk.v1``,
+JSON ``serverInfo``/``advertise``/``subscribe``, binary ``messageData`` (opcode 1, u32
+subscription id, u64 log time, payload). Each channel's CDR is decoded by rosbags against the
+``ros2msg`` schema the server advertised (not tagtrail's types) and compared with what the node
+publishes on zenoh (byte for byte) and with values the node did not compute (the offline report,
+the simulator's ground truth). Everything on 127.0.0.1 only."""
 
 from __future__ import annotations
 
@@ -9,18 +13,20 @@ import json
 import socket
 import struct
 import sys
+import time
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 import pytest
-from rosbags.typesys import Stores, get_typestore
+from rosbags.typesys import Stores, get_types_from_msg, get_typestore
 
+from tagtrail.io.layouts import read_trajectory
+from tagtrail.sim.simulate import simulate
 from tagtrail.stream import cli
 from tests.stream.cases import synthetic_case
-from tests.stream.helpers import free_port, loopback, running
+from tests.stream.helpers import Collector, free_port, loopback, running
 
-HUMBLE = get_typestore(Stores.ROS2_HUMBLE)  # plain Humble: what a ROS-free client decodes with
 PREFIX = "reloc_fox"
 TYPES = {
     "distance_m": "std_msgs/msg/Float64", "heading_error_deg": "std_msgs/msg/Float64",
@@ -28,11 +34,18 @@ TYPES = {
     "nearest_pose": "geometry_msgs/msg/PoseStamped",
     "markers": "visualization_msgs/msg/MarkerArray", "reference_path": "nav_msgs/msg/Path",
 }  # fmt: skip
+SUBPROTOCOL = "foxglove.sdk.v1"  # what foxglove-sdk's server accepts (and the Foxglove app sends)
+Got = dict[str, list[tuple[int, bytes]]]  # channel topic → [(log time ns, payload)]
 
 
-def _url(lines: list[str]) -> str:
-    line = next(s for s in lines if "relocalize: foxglove " in s)
-    url = line.split("relocalize: foxglove ", 1)[1].strip()
+def _sdk_and_client() -> Any:
+    pytest.importorskip("foxglove", reason="pip install 'tagtrail[foxglove]'")
+    return pytest.importorskip("websockets.sync.client", reason="pip install 'tagtrail[test]'")
+
+
+def _url(lines: list[str], node: str) -> str:
+    line = next(s for s in lines if f"{node}: foxglove " in s)
+    url = line.split(f"{node}: foxglove ", 1)[1].strip()
     assert url.startswith("ws://127.0.0.1:"), url
     return url
 
@@ -49,68 +62,182 @@ def _advertised(ws: Any, n: int) -> dict[str, dict[str, Any]]:
     return channels
 
 
-def test_foxglove_client_sees_channels_and_live_d(tmp_path: Path) -> None:
-    pytest.importorskip("foxglove", reason="pip install 'tagtrail[foxglove]'")
-    ws_client = pytest.importorskip("websockets.sync.client", reason="pip install 'tagtrail[test]'")
+def _open(ws: Any, n_channels: int) -> dict[str, dict[str, Any]]:
+    """The handshake's outcome: the subprotocol, ``serverInfo`` first, then the channels."""
+    assert ws.subprotocol == SUBPROTOCOL
+    info = json.loads(ws.recv(timeout=10))
+    assert info["op"] == "serverInfo", info
+    return _advertised(ws, n_channels)
+
+
+def _subscribe(ws: Any, channels: dict[str, dict[str, Any]], topics: list[str]) -> dict[int, str]:
+    """Subscribe to ``topics``; subscription id → topic."""
+    sub_of = dict(enumerate(topics, start=1))
+    ws.send(json.dumps({"op": "subscribe", "subscriptions": [
+        {"id": i, "channelId": channels[t]["id"]} for i, t in sub_of.items()]}))  # fmt: skip
+    return sub_of
+
+
+def _collect(ws: Any, sub_of: dict[int, str], got: Got) -> None:
+    """One server message; a binary ``messageData`` is appended to its subscription's list."""
+    msg = ws.recv(timeout=20)
+    if isinstance(msg, bytes) and msg[0] == 1:
+        sub_id, log_time = struct.unpack_from("<IQ", msg, 1)
+        got[sub_of[sub_id]].append((log_time, msg[13:]))
+
+
+def _decoder(channel: dict[str, Any]) -> Any:
+    """A rosbags type store holding only the channel's advertised ``ros2msg`` schema (the full
+    definition, dependencies after ``===`` lines), as a ROS-free client builds it."""
+    assert (channel["encoding"], channel["schemaEncoding"]) == ("cdr", "ros2msg"), channel
+    store = get_typestore(Stores.EMPTY)
+    store.register(get_types_from_msg(channel["schema"], channel["schemaName"]))
+    return store
+
+
+def _decode(channel: dict[str, Any], payloads: list[bytes]) -> list[Any]:
+    store = _decoder(channel)
+    return [store.deserialize_cdr(b, channel["schemaName"]) for b in payloads]
+
+
+def _check_log_times(got: Got, t0_ns: int, t1_ns: int) -> None:
+    """Live log times: wall-clock nanoseconds within the test's window, in order per channel."""
+    for topic, items in got.items():
+        t = [lt for lt, _ in items]
+        assert t == sorted(t) and all(t0_ns <= x <= t1_ns for x in t), topic
+
+
+def test_relocalize_serves_d_and_phi_as_published_on_zenoh(tmp_path: Path) -> None:
+    ws_client = _sdk_and_client()
     case = synthetic_case(tmp_path, n_ref=200, n_query=40)
     port = free_port()
     node_args = ["relocalize", "--reference", case.reference, "--alignment", case.alignment,
                  "--prefix", PREFIX, "--listen", loopback(port), "--path-period", "0",
                  "--duration", "60", "--stats-period", "0", "--foxglove", "0"]
+    d_key, phi_key = f"{PREFIX}/distance_m", f"{PREFIX}/heading_error_deg"
+    n = len(case.offline)
+    t0 = time.time_ns()
     with running(node_args) as (node,):
         node.wait_for("relocalize: ready")
-        url = _url(node.lines)
-        with ws_client.connect(url, subprotocols=["foxglove.sdk.v1"],
-                               open_timeout=10) as ws:  # fmt: skip
-            info = json.loads(ws.recv(timeout=10))
-            assert info["op"] == "serverInfo"
-            channels = _advertised(ws, len(TYPES) + 1)
-            assert set(channels) == {f"/{PREFIX}/{k}" for k in (*TYPES, "state")}
-            for key, typename in TYPES.items():
-                c = channels[f"/{PREFIX}/{key}"]
-                assert (c["encoding"], c["schemaName"], c["schemaEncoding"]) == (
-                    "cdr", typename, "ros2msg")
-            path_schema = channels[f"/{PREFIX}/reference_path"]["schema"]
-            assert "MSG: geometry_msgs/PoseStamped" in path_schema  # the full definition
-            assert channels[f"/{PREFIX}/state"]["encoding"] == "json"
-
-            sub_of = {1: "distance_m", 2: "heading_error_deg", 3: "reference_path", 4: "state"}
-            ws.send(json.dumps({"op": "subscribe", "subscriptions": [
-                {"id": i, "channelId": channels[f"/{PREFIX}/{k}"]["id"]}
-                for i, k in sub_of.items()]}))  # fmt: skip
-            got: dict[str, list[bytes]] = {k: [] for k in sub_of.values()}
-            # the path was published once, before this client: it is latched for new subscribers
-            while not got["reference_path"]:
-                _collect(ws, sub_of, got)
-            with running(["replay", case.query, "--rate", "0", "--connect", loopback(port),
-                          "--wait", "10"]) as (rep,):  # fmt: skip
-                assert rep.p.wait(30) == 0, rep.output
-            while len(got["state"]) < len(case.offline) or len(got["distance_m"]) < len(
-                    case.offline):  # fmt: skip
-                _collect(ws, sub_of, got)
+        zsub = Collector(port, [d_key, phi_key])
+        try:
+            with ws_client.connect(_url(node.lines, "relocalize"), subprotocols=[SUBPROTOCOL],
+                                   open_timeout=10) as ws:  # fmt: skip
+                channels = _open(ws, len(TYPES) + 1)
+                assert set(channels) == {f"/{PREFIX}/{k}" for k in (*TYPES, "state")}
+                for key, typename in TYPES.items():
+                    c = channels[f"/{PREFIX}/{key}"]
+                    assert (c["encoding"], c["schemaName"], c["schemaEncoding"]) == (
+                        "cdr", typename, "ros2msg")
+                assert "MSG: geometry_msgs/PoseStamped" in channels[
+                    f"/{PREFIX}/reference_path"]["schema"]  # the full definition
+                assert channels[f"/{PREFIX}/state"]["encoding"] == "json"
+                topics = [f"/{d_key}", f"/{phi_key}", f"/{PREFIX}/reference_path",
+                          f"/{PREFIX}/state"]  # fmt: skip
+                sub_of = _subscribe(ws, channels, topics)
+                got: Got = {t: [] for t in topics}
+                # the path was published once, before this client: latched for new subscribers
+                while not got[f"/{PREFIX}/reference_path"]:
+                    _collect(ws, sub_of, got)
+                with running(["replay", case.query, "--rate", "0", "--connect", loopback(port),
+                              "--wait", "10"]) as (rep,):  # fmt: skip
+                    assert rep.p.wait(30) == 0, rep.output
+                while min(len(got[t]) for t in (f"/{d_key}", f"/{phi_key}",
+                                                f"/{PREFIX}/state")) < n:  # fmt: skip
+                    _collect(ws, sub_of, got)
+            on_zenoh = {k: zsub.wait(k, n) for k in (d_key, phi_key)}
+        finally:
+            zsub.close()
         assert node.stop() == 0, node.output
+    _check_log_times(got, t0, time.time_ns())
 
+    # the same bytes, in the same order, as the node put on zenoh
+    for key in (d_key, phi_key):
+        assert [b for _, b in got[f"/{key}"]] == on_zenoh[key], key
+    # decoded against the advertised schema, equal to the offline report (not the node's code)
     off = case.offline.set_index("t_ns")
-    states = [json.loads(b) for b in got["state"]]
+    states = [json.loads(b) for _, b in got[f"/{PREFIX}/state"]]
     t_ns = [s["stamp_sec"] * 10**9 + s["stamp_nanosec"] for s in states]
     assert sorted(t_ns) == sorted(off.index)
-    D = [HUMBLE.deserialize_cdr(b, "std_msgs/msg/Float64").data for b in got["distance_m"]]
-    phi = [HUMBLE.deserialize_cdr(b, "std_msgs/msg/Float64").data
-           for b in got["heading_error_deg"]]  # fmt: skip
+    D = [m.data for m in _decode(channels[f"/{d_key}"], [b for _, b in got[f"/{d_key}"]])]
+    phi = [m.data for m in _decode(channels[f"/{phi_key}"], [b for _, b in got[f"/{phi_key}"]])]
     # one result per pose, in the order handled: D/phi line up with the states' stamps
     np.testing.assert_allclose(D, off.loc[t_ns, "distance_m"], rtol=0, atol=1e-9)
     np.testing.assert_allclose(phi, off.loc[t_ns, "heading_error_deg"], rtol=0, atol=1e-9)
-    path = HUMBLE.deserialize_cdr(got["reference_path"][0], "nav_msgs/msg/Path")
+    (path,) = _decode(channels[f"/{PREFIX}/reference_path"],
+                      [got[f"/{PREFIX}/reference_path"][0][1]])  # fmt: skip
+    ref = read_trajectory(case.reference)
     assert len(path.poses) == 200 and path.header.frame_id == "map"
+    np.testing.assert_allclose([p.pose.position.x for p in path.poses], ref["x_m"], atol=1e-12)
 
 
-def _collect(ws: Any, sub_of: dict[int, str], got: dict[str, list[bytes]]) -> None:
-    """One server message; a binary ``messageData`` (opcode 1: u32 subscription, u64 log time,
-    payload) is appended to its subscription's list."""
-    msg = ws.recv(timeout=20)
-    if isinstance(msg, bytes) and msg[0] == 1:
-        (sub_id,) = struct.unpack_from("<I", msg, 1)
-        got[sub_of[sub_id]].append(msg[13:])
+def test_localize_serves_its_poses(tmp_path: Path) -> None:
+    """``stream localize --foxglove``: the PoseStamped of each frame, as published on zenoh, equal
+    to the simulator's ground truth (noise-free corners: exact)."""
+    ws_client = _sdk_and_client()
+    n_frames = 20
+    rec = simulate("circle", tmp_path, frames=n_frames, detections=True, corner_noise_px=0.0,
+                   seed=3)["circle"]  # fmt: skip
+    gt = read_trajectory(rec / "ground_truth" / "trajectory.csv").set_index("t_ns")
+    port = free_port()
+    node_args = ["localize", "--map", rec / "ground_truth" / "tag_map.yaml", "--listen",
+                 loopback(port), "--duration", "60", "--stats-period", "0", "--foxglove", "0"]
+    t0 = time.time_ns()
+    with running(node_args) as (node,):
+        node.wait_for("localize: ready")
+        zsub = Collector(port, ["tag_only_pose"])
+        try:
+            with ws_client.connect(_url(node.lines, "localize"), subprotocols=[SUBPROTOCOL],
+                                   open_timeout=10) as ws:  # fmt: skip
+                channels = _open(ws, 1)
+                assert set(channels) == {"/tag_only_pose"}
+                c = channels["/tag_only_pose"]
+                assert (c["schemaName"], c["encoding"]) == ("geometry_msgs/msg/PoseStamped", "cdr")
+                sub_of = _subscribe(ws, channels, ["/tag_only_pose"])
+                with running(["replay", rec, "--topics", "/camera_info", "/detections",
+                              "--connect", loopback(port), "--rate", "0"]) as (rep,):  # fmt: skip
+                    assert rep.p.wait(30) == 0, rep.output
+                # the first detection may precede the first CameraInfo (dropped, counted)
+                on_zenoh = zsub.wait("tag_only_pose", n_frames - 1)
+                time.sleep(0.5)
+                on_zenoh = zsub.wait("tag_only_pose", len(on_zenoh))
+                got: Got = {"/tag_only_pose": []}
+                while len(got["/tag_only_pose"]) < len(on_zenoh):
+                    _collect(ws, sub_of, got)
+        finally:
+            zsub.close()
+        assert node.stop() == 0, node.output
+    _check_log_times(got, t0, time.time_ns())
+    payloads = [b for _, b in got["/tag_only_pose"]]
+    assert payloads == on_zenoh
+    for msg in _decode(c, payloads):
+        row = gt.loc[msg.header.stamp.sec * 10**9 + msg.header.stamp.nanosec]
+        p = msg.pose.position
+        assert msg.header.frame_id == "map"
+        assert np.linalg.norm([p.x - row.x_m, p.y - row.y_m, p.z - row.z_m]) < 1e-6
+
+
+def test_viewer_must_speak_the_sdk_subprotocol() -> None:
+    """The SDK's server (what ``--foxglove`` runs, in process here) answers ``foxglove.sdk.v1``
+    and refuses a client offering only the older ``foxglove.websocket.v1`` (HTTP 400): viewers
+    too old to offer the new name (docs/FOXGLOVE.md) cannot connect."""
+    ws_client = _sdk_and_client()
+    from websockets.exceptions import InvalidStatus
+
+    from tagtrail.stream.foxglove import FoxgloveServer
+
+    fox = FoxgloveServer({"fox_test/d": "std_msgs/msg/Float64"}, port=0)
+    try:
+        assert fox.url.startswith("ws://127.0.0.1:")
+        with ws_client.connect(fox.url, subprotocols=["foxglove.websocket.v1", SUBPROTOCOL],
+                               open_timeout=10) as ws:  # fmt: skip
+            channels = _open(ws, 1)
+            assert channels["/fox_test/d"]["schemaName"] == "std_msgs/msg/Float64"
+        with pytest.raises(InvalidStatus) as info:
+            ws_client.connect(fox.url, subprotocols=["foxglove.websocket.v1"], open_timeout=10)
+        assert info.value.response.status_code == 400
+    finally:
+        fox.close()
 
 
 def test_missing_sdk_is_one_line(tmp_path: Path, monkeypatch: pytest.MonkeyPatch,
