@@ -132,18 +132,18 @@ def test_relocalize_serves_d_and_phi_as_published_on_zenoh(tmp_path: Path) -> No
                 assert "MSG: geometry_msgs/PoseStamped" in channels[
                     f"/{PREFIX}/reference_path"]["schema"]  # the full definition
                 assert channels[f"/{PREFIX}/state"]["encoding"] == "json"
-                topics = [f"/{d_key}", f"/{phi_key}", f"/{PREFIX}/reference_path",
-                          f"/{PREFIX}/state"]  # fmt: skip
-                sub_of = _subscribe(ws, channels, topics)
-                got: Got = {t: [] for t in topics}
+                sub_of = _subscribe(ws, channels, sorted(channels))
+                got: Got = {t: [] for t in channels}
                 # the path was published once, before this client: latched for new subscribers
                 while not got[f"/{PREFIX}/reference_path"]:
                     _collect(ws, sub_of, got)
                 with running(["replay", case.query, "--rate", "0", "--connect", loopback(port),
                               "--wait", "10"]) as (rep,):  # fmt: skip
                     assert rep.p.wait(30) == 0, rep.output
-                while min(len(got[t]) for t in (f"/{d_key}", f"/{phi_key}",
-                                                f"/{PREFIX}/state")) < n:  # fmt: skip
+                # one message per pose on each channel; markers: + the latched path's marker
+                want = {t: n + (t == f"/{PREFIX}/markers") for t in channels}
+                del want[f"/{PREFIX}/reference_path"]
+                while any(len(got[t]) < k for t, k in want.items()):
                     _collect(ws, sub_of, got)
             on_zenoh = {k: zsub.wait(k, n) for k in (d_key, phi_key)}
         finally:
@@ -164,6 +164,14 @@ def test_relocalize_serves_d_and_phi_as_published_on_zenoh(tmp_path: Path) -> No
     # one result per pose, in the order handled: D/phi line up with the states' stamps
     np.testing.assert_allclose(D, off.loc[t_ns, "distance_m"], rtol=0, atol=1e-9)
     np.testing.assert_allclose(phi, off.loc[t_ns, "heading_error_deg"], rtol=0, atol=1e-9)
+    # every message of every CDR channel decodes against its advertised schema
+    decoded = {t: _decode(channels[t], [b for _, b in got[t]]) for t in channels
+               if channels[t]["encoding"] == "cdr"}  # fmt: skip
+    for key in ("current_pose", "nearest_pose"):
+        stamps = [m.header.stamp.sec * 10**9 + m.header.stamp.nanosec
+                  for m in decoded[f"/{PREFIX}/{key}"]]  # fmt: skip
+        assert stamps == t_ns, key
+    assert len(decoded[f"/{PREFIX}/markers"]) == n + 1
     (path,) = _decode(channels[f"/{PREFIX}/reference_path"],
                       [got[f"/{PREFIX}/reference_path"][0][1]])  # fmt: skip
     ref = read_trajectory(case.reference)
