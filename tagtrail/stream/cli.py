@@ -8,6 +8,7 @@ too: ``python -m tagtrail.stream.cli relocalize …``.
 from __future__ import annotations
 
 import argparse
+import json
 import logging
 import math
 import sys
@@ -287,13 +288,20 @@ def with_profile(ns: argparse.Namespace) -> argparse.Namespace:
     return out
 
 
+def _wire(ns: argparse.Namespace, session: Any, node: str) -> Any:
+    """The command's wire (``--wire``), its node ``tagtrail_<node>`` announced."""
+    from tagtrail.stream.wire import wire_from_args
+
+    return wire_from_args(ns, session, f"tagtrail_{node}")
+
+
 def _relocalize(ns: argparse.Namespace) -> int:
     from tagtrail.io.layouts import read_trajectory
     from tagtrail.stages import report as report_stage
     from tagtrail.stream.foxglove import foxglove_server
     from tagtrail.stream.params import stage_params
     from tagtrail.stream.reloc_node import OUTPUT_TYPES, Relocalizer, load_alignment, serve
-    from tagtrail.stream.session import leave_now, stop_on_signals
+    from tagtrail.stream.session import close_all, leave_now, stop_on_signals
 
     ref = read_trajectory(ns.reference)
     # the alignment file's plane wins over the pipeline's: its planar transform acts in that plane
@@ -310,17 +318,21 @@ def _relocalize(ns: argparse.Namespace) -> int:
     reloc = Relocalizer(ref, plane, alignment, ns.frame_id, ns.prefix, ns.pose_type,
                         ns.path_max_points)  # fmt: skip
     fox = foxglove_server(ns, "relocalize", {reloc.key[k]: t for k, t in OUTPUT_TYPES.items()})
+    session = None
     try:
         session = open_session(config_from_args(ns, "listen"))
+        wire = _wire(ns, session, "relocalize")
     except BaseException:
         if fox is not None:
             fox.close()
+        close_all(session, [])
         raise
     with stop_on_signals() as stop:
         summary = serve(reloc, session, ns.pose_key, congestion=ns.congestion,
                         express=ns.express, path_period_s=ns.path_period,
                         duration_s=ns.duration, count=ns.count,
-                        stats_period_s=ns.stats_period, stop=stop, foxglove=fox)  # fmt: skip
+                        stats_period_s=ns.stats_period, stop=stop, foxglove=fox,
+                        wire=wire)  # fmt: skip
     if not summary["shutdown_clean"]:
         leave_now(0)  # a zenoh callback thread blocked in a put would hold the exit for 5 s
     return 0
@@ -336,12 +348,16 @@ def _replay(ns: argparse.Namespace) -> int:
         messages = pose_messages(load_poses(ns.source, ns.topic, ns.frame_id), ns.key)
     session = open_session(config_from_args(ns, "connect"))
     done = Replayed(0)
+    wire = None
     try:
+        wire = _wire(ns, session, "replay")
         with stop_on_signals() as stop:
             done = replay(session, messages, rate=ns.rate, count=ns.count, wait_s=ns.wait,
                           publish_anyway=ns.publish_anyway, congestion=ns.congestion,
-                          express=ns.express, stop=stop)  # fmt: skip
+                          express=ns.express, stop=stop, wire=wire)  # fmt: skip
     finally:
+        if wire is not None:
+            wire.close()
         closed = close_all(session, [], timeout_s=0.5 if done.clean else 0.1)
     if not (done.clean and closed):
         leave_now(0)  # the put blocked by a congested link would hold the exit for 5 s
@@ -375,7 +391,7 @@ def _localize(ns: argparse.Namespace) -> int:
     from tagtrail.stream.foxglove import foxglove_server, teed
     from tagtrail.stream.localize import Localizer, cv2_threads
     from tagtrail.stream.node import Node
-    from tagtrail.stream.session import leave_now, stop_on_signals
+    from tagtrail.stream.session import close_all, leave_now, stop_on_signals
     from tagtrail.stream.stats import Stats
 
     ns = with_profile(ns)
@@ -385,7 +401,18 @@ def _localize(ns: argparse.Namespace) -> int:
     cv2_threads()
     # the Foxglove server (if asked for) first, as relocalize: a busy port fails before zenoh
     fox = foxglove_server(ns, "localize", {ns.pose_key: msgs.POSE_STAMPED})
-    node = Node(open_session(config_from_args(ns, "connect")), stats, ns.congestion, ns.express)
+    session = open_session(config_from_args(ns, "connect"))
+    try:
+        wire = _wire(ns, session, "localize")
+    except BaseException:
+        close_all(session, [])
+        raise
+    node = Node(session, stats, ns.congestion, ns.express, wire)
+    node.types.update({ns.pose_key: msgs.POSE_STAMPED, ns.camera_info_key: msgs.CAMERA_INFO,
+                       ns.detections_key: msgs.DETECTIONS})  # fmt: skip
+    if ns.image_key:
+        node.types[ns.image_key] = (msgs.COMPRESSED_IMAGE if ns.image_type == "compressed"
+                                    else msgs.IMAGE)  # fmt: skip
     node.count = ns.count
     try:
         node.publisher(ns.pose_key)
@@ -413,7 +440,7 @@ def _localize(ns: argparse.Namespace) -> int:
 def _record(ns: argparse.Namespace) -> int:
     from tagtrail.schemas.profiles import get_profile
     from tagtrail.stream.bagwriter import CrashSafeWriter, recover
-    from tagtrail.stream.record import Recorder, discover, parse_size, resolve_topics, summary_line
+    from tagtrail.stream.record import Recorder, parse_size, resolve_topics, summary_line
     from tagtrail.stream.session import close_all, stop_on_signals
 
     if ns.recover:
@@ -425,16 +452,22 @@ def _record(ns: argparse.Namespace) -> int:
         raise SourceError(f"{ns.out} exists already; record into a new folder (or --recover "
                           f"{ns.out} to finish a recording that was killed)")  # fmt: skip
     session = open_session(config_from_args(ns, "connect"))
+    wire = None
     try:
-        # the bridge's admin space: topics when none are named, types for names without one,
-        # and a check of the types given
-        topics = resolve_topics(ns.topic, profile, discover(session))
+        wire = _wire(ns, session, "record")
+        # the bridge's admin space (or rmw_zenoh's liveliness tokens): topics when none are
+        # named, types for names without one, and a check of the types given
+        topics = resolve_topics(ns.topic, profile, wire.discover())
         writer = CrashSafeWriter(ns.out, ns.storage, flush_s=ns.flush_period)
-        rec = Recorder(session, topics, writer, wait_s=ns.wait, max_size=max_size)
+        rec = Recorder(session, topics, writer, wait_s=ns.wait, max_size=max_size, wire=wire)
         with stop_on_signals() as stop:
             done = rec.run(ns.duration, ns.stats_period, stop)
         print(summary_line(done, writer), flush=True)
+        if wire.summary():
+            print(f"record: {json.dumps(wire.summary())}", flush=True)
     finally:
+        if wire is not None:
+            wire.close()
         close_all(session, [])
     return 0
 
@@ -447,7 +480,12 @@ def _echo(ns: argparse.Namespace) -> int:
 
     got: queue.SimpleQueue[bytes] = queue.SimpleQueue()
     session = open_session(config_from_args(ns, "connect"))
-    sub = session.declare_subscriber(ns.key, lambda s: got.put(s.payload.to_bytes()))
+    try:
+        wire = _wire(ns, session, "echo")
+        sub = wire.declare_subscriber(ns.key, None, lambda s: got.put(s.payload.to_bytes()))
+    except BaseException:
+        close_all(session, [])
+        raise
     n, deadline = 0, time.monotonic() + ns.wait
     try:
         with stop_on_signals() as stop:
@@ -463,6 +501,7 @@ def _echo(ns: argparse.Namespace) -> int:
                     f"<{len(data)} bytes of CDR>")
                 print(f"{ns.key}: {text}", flush=True)
     finally:
+        wire.close()
         close_all(session, [sub])
     return 0
 

@@ -8,6 +8,10 @@ order), publishes what it returns, and turns every failure into a counted, rate-
 thread only waits (for SIGINT/SIGTERM, ``--duration``, ``--count``), runs periodic tasks and logs
 a stats line; on the way out every entity is undeclared and the session closed, within a
 bounded time (:meth:`Node.close`) even under a flood or a congested link.
+
+Keys are ROS topic names without the leading ``/``; the node's
+:class:`~tagtrail.stream.wire.Wire` (``bridge`` unless given) turns each into its zenoh key,
+with the message type of ``Node.types[key]`` (rmw_zenoh keys, attachments and tokens need it).
 """
 
 from __future__ import annotations
@@ -24,6 +28,7 @@ import zenoh
 
 from tagtrail.stream.session import close_all
 from tagtrail.stream.stats import DropError, Stats
+from tagtrail.stream.wire import RmwPublisher, Wire
 
 log = logging.getLogger("tagtrail.stream")
 Handler = Callable[[bytes], Iterable[tuple[str, bytes]]]
@@ -55,9 +60,11 @@ class Node:
     """Publishers, subscribers, queryables and periodic tasks of one live node (see module doc)."""
 
     def __init__(self, session: zenoh.Session, stats: Stats, congestion: str = "block",
-                 express: bool = False) -> None:  # fmt: skip
+                 express: bool = False, wire: Wire | None = None) -> None:  # fmt: skip
         self.session = session
         self.stats = stats
+        self.wire = wire if wire is not None else Wire(session)
+        self.types: dict[str, str] = {}  # key → ROS message type (or "json")
         self.stop = threading.Event()
         self.count: int | None = None
         self._cc = CONGESTION[congestion]
@@ -77,8 +84,9 @@ class Node:
         if key not in pubs:
             # a periodic republish may be dropped (the next one follows); it must never block
             cc = zenoh.CongestionControl.DROP if background else self._cc
-            pub = self.session.declare_publisher(
-                key, congestion_control=cc, express=self._express and not background,
+            pub = self.wire.declare_publisher(
+                key, self.types.get(key), congestion_control=cc,
+                express=self._express and not background,
                 priority=zenoh.Priority.DATA_LOW if background else zenoh.Priority.DATA,
             )  # fmt: skip
             self._entities.append(pub)
@@ -93,19 +101,22 @@ class Node:
             pub = pubs.get(key) or self.publisher(key, background)
             pub.put(payload)
 
-    def subscribe(self, key: str, handler: Handler, latest_only: bool = False) -> None:
-        """Handle every sample of ``key`` with ``handler`` and publish its outputs.
+    def subscribe(self, key: str, handler: Handler, latest_only: bool = False,
+                  msgtype: str | None = None) -> None:  # fmt: skip
+        """Handle every sample of ``key`` (of ``msgtype``, default ``types[key]``) with
+        ``handler`` and publish its outputs.
 
         ``latest_only`` (slow handlers, e.g. image detection): samples are handled on a worker
         thread, and a sample still waiting when a newer one arrives is skipped (counted as
         ``skipped``), so latency never builds up.
         """
+        msgtype = msgtype or self.types.get(key)
         if not latest_only:
 
             def callback(sample: zenoh.Sample) -> None:
                 self._handle(key, handler, sample, time.perf_counter_ns())
 
-            self._entities.append(self.session.declare_subscriber(key, callback))
+            self._entities.append(self.wire.declare_subscriber(key, msgtype, callback))
             return
         slot: list[Any] = []
         ready = threading.Condition()
@@ -128,7 +139,7 @@ class Node:
                 self._handle(key, handler, sample, t_recv)
 
         threading.Thread(target=worker, name=f"handle {key}", daemon=True).start()
-        self._entities.append(self.session.declare_subscriber(key, enqueue))
+        self._entities.append(self.wire.declare_subscriber(key, msgtype, enqueue))
 
     def _handle(self, key: str, handler: Handler, sample: zenoh.Sample, t_recv: int) -> None:
         stats = self.stats
@@ -156,11 +167,12 @@ class Node:
 
         def on_query(query: zenoh.Query) -> None:
             try:
-                query.reply(key, payload())
+                query.reply(zkey, payload())
             except Exception as err:  # noqa: BLE001
                 log.warning("query on %s: %s", key, err)
 
-        self._entities.append(self.session.declare_queryable(key, on_query))
+        zkey = self.wire.key(key, self.types.get(key))
+        self._entities.append(self.session.declare_queryable(zkey, on_query))
 
     def every(self, period_s: float, fn: Callable[[], None]) -> None:
         """Run ``fn`` now and then every ``period_s`` from the main loop (0: only now)."""
@@ -197,7 +209,8 @@ class Node:
         finally:
             t_close = time.monotonic()
             self.close()
-        summary = {**self.stats.summary(), "shutdown_s": round(time.monotonic() - t_close, 3),
+        summary = {**self.stats.summary(), **self.wire.summary(),
+                   "shutdown_s": round(time.monotonic() - t_close, 3),
                    "shutdown_clean": self.clean, "peak_rss_mb": peak_rss_mb()}  # fmt: skip
         print("stats " + json.dumps(summary), flush=True)
         return summary
@@ -212,13 +225,15 @@ class Node:
         (a 10 s stall under a flood).
         """
         self._closed = True
-        inputs = [e for e in self._entities if not isinstance(e, zenoh.Publisher)]
+        outs = (zenoh.Publisher, RmwPublisher)
+        inputs = [e for e in self._entities if not isinstance(e, outs)]
         close_all(None, inputs)
         idle = self._lock.acquire(timeout=wait_s)  # False: a put blocked by a congested link
         if idle:
             self._lock.release()
-        outputs = [e for e in self._entities if isinstance(e, zenoh.Publisher)]
+        outputs = [e for e in self._entities if isinstance(e, outs)]
         self._entities = []
+        self.wire.close()
         closed = close_all(self.session, outputs, timeout_s=0.5 if idle else 0.1)
         self.clean = self.clean and idle and closed
         return self.clean

@@ -175,8 +175,11 @@ class Recorder:
 
     def __init__(self, session: Any, topics: list[TopicSpec], writer: CrashSafeWriter, *,
                  wait_s: float = 10.0, max_size: int | None = None,
-                 max_queue_mb: float = 1024.0) -> None:  # fmt: skip
+                 max_queue_mb: float = 1024.0, wire: Any = None) -> None:  # fmt: skip
+        from tagtrail.stream.wire import Wire
+
         self.session = session
+        self.wire = wire if wire is not None else Wire(session)  # the keys to subscribe
         self.writer = writer
         self.topics = {t.key: _Topic(t) for t in topics}
         self.wait_s = wait_s
@@ -310,7 +313,8 @@ class Recorder:
         t0 = time.monotonic()
         try:
             for t in self.topics.values():
-                self._subs.append(self.session.declare_subscriber(t.spec.key, self._callback(t)))
+                self._subs.append(self.wire.declare_subscriber(t.spec.topic, t.spec.msgtype,
+                                                               self._callback(t)))
             names = ", ".join(f"{t.spec.topic} ({t.spec.msgtype})" for t in self.topics.values())
             print(f"record: recording {names} into {self.writer.out} ({self.writer.kind})",
                   flush=True)  # fmt: skip

@@ -240,6 +240,7 @@ def serve(
     stats_period_s: float = 10.0,
     stop: Any = None,
     foxglove: Any = None,
+    wire: Any = None,
 ) -> dict[str, Any]:
     """Run the node on an open zenoh ``session`` until stopped; returns the stats summary.
 
@@ -247,14 +248,17 @@ def serve(
     reference path (and its marker) every ``path_period_s`` (0: once) at low priority and answers
     ``get`` on ``<prefix>/reference_path``. ``foxglove``: a
     :class:`~tagtrail.stream.foxglove.FoxgloveServer` that also gets every output (stopped here
-    too). Closes the session on the way out.
+    too). ``wire``: the :class:`~tagtrail.stream.wire.Wire` to speak (default: the bridge's).
+    Closes the session on the way out.
     """
     import zenoh  # only where a session is used
 
     from tagtrail.stream.node import Node
 
     stats = Stats("relocalize")
-    node = Node(session, stats, congestion, express)
+    node = Node(session, stats, congestion, express, wire)
+    node.types.update({reloc.key[k]: t for k, t in OUTPUT_TYPES.items()})
+    node.types[pose_key] = codec.POSE_TYPES[reloc.pose_type]
     node.count = count
 
     def handle(data: bytes) -> Iterator[tuple[str, bytes]]:

@@ -22,7 +22,7 @@ from __future__ import annotations
 import logging
 import threading
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
@@ -118,11 +118,13 @@ def _read_bag(path: Path, topic: str | None) -> tuple[list[int], list[list[float
 
 @dataclass(frozen=True)
 class Messages:
-    """What to publish, in order: ``t_ns (N,)`` pacing times, ``keys`` and ``payloads``."""
+    """What to publish, in order: ``t_ns (N,)`` pacing times, ``keys`` and ``payloads``;
+    ``types``: each key's ROS message type (the rmw_zenoh wire needs it)."""
 
     t_ns: NDArray[np.int64]
     keys: list[str]
     payloads: list[bytes]
+    types: dict[str, str] = field(default_factory=dict)
 
 
 def pose_messages(poses: Poses, key: str) -> Messages:
@@ -134,7 +136,7 @@ def pose_messages(poses: Poses, key: str) -> Messages:
                           strict=True):  # fmt: skip
         enc = encoders.get(f) or encoders.setdefault(f, codec.PoseStampedEncoder(f))
         out.append(enc(s, n, *v))
-    return Messages(poses.t_ns, [key] * len(out), out)
+    return Messages(poses.t_ns, [key] * len(out), out, {key: msgs.POSE_STAMPED})
 
 
 def bag_messages(source: Path, topics: list[str]) -> Messages:
@@ -159,7 +161,8 @@ def bag_messages(source: Path, topics: list[str]) -> Messages:
         reader.close()
     if not data:
         raise SourceError(f"{bag}: topics {', '.join(topics)} have no messages")
-    return Messages(np.asarray(t_ns, dtype=np.int64), keys, data)
+    types = {c.topic.lstrip("/"): c.msgtype for c in conns}
+    return Messages(np.asarray(t_ns, dtype=np.int64), keys, data, types)
 
 
 def schedule_s(t_ns: NDArray[np.int64], rate: float) -> NDArray[np.float64]:
@@ -186,22 +189,26 @@ class Replayed:
 
 def replay(session: Any, messages: Messages, *, rate: float = 1.0, count: int | None = None,
            wait_s: float = 10.0, publish_anyway: bool = False, congestion: str = "block",
-           express: bool = False, stop: threading.Event | None = None) -> Replayed:  # fmt: skip
+           express: bool = False, stop: threading.Event | None = None,
+           wire: Any = None) -> Replayed:  # fmt: skip
     """Publish ``messages`` at ``rate`` (see :func:`schedule_s`).
 
     First waits up to ``wait_s`` for a subscriber on every key; raises :class:`NoSubscriber`
     if a key has none then, unless ``publish_anyway`` (a warning, and publishing goes on).
     Puts run on a worker thread, so that ``stop`` (SIGINT/SIGTERM) ends the replay within a
-    bounded time even while a put is blocked by a congested subscriber.
+    bounded time even while a put is blocked by a congested subscriber. ``wire``: the
+    :class:`~tagtrail.stream.wire.Wire` to publish on (default: the bridge's).
     """
     from tagtrail.stream.node import CONGESTION
     from tagtrail.stream.session import close_all, wait_matching
+    from tagtrail.stream.wire import Wire
 
     stop = stop or threading.Event()
     n = len(messages.payloads) if count is None else min(count, len(messages.payloads))
     when = schedule_s(messages.t_ns[:n], rate).tolist()
-    pubs = {k: session.declare_publisher(k, congestion_control=CONGESTION[congestion],
-                                         express=express)
+    wire = wire if wire is not None else Wire(session)
+    pubs = {k: wire.declare_publisher(k, messages.types.get(k),
+                                      congestion_control=CONGESTION[congestion], express=express)
             for k in dict.fromkeys(messages.keys[:n])}  # fmt: skip
     sent = 0
     failed: list[BaseException] = []

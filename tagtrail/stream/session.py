@@ -4,7 +4,10 @@ Every session tagtrail opens is configured here. Scouting (multicast and gossip)
 asked for, so a node only talks to the endpoints it is given (``--listen`` / ``--connect``); the
 defaults keep everything on the loopback interface: a node that is given no endpoint at all
 listens on (relocalize) or connects to (replay, localize) ``tcp/127.0.0.1:7447``. To reach a
-robot running zenoh-bridge-ros2dds: ``--connect tcp/<robot-ip>:7447``.
+robot running zenoh-bridge-ros2dds: ``--connect tcp/<robot-ip>:7447``. With ``--wire rmw_zenoh``
+and no endpoint, a node follows rmw_zenoh's topology instead: it connects to the router
+``rmw_zenohd`` at ``tcp/localhost:7447`` (gossip scouting on, as rmw_zenoh's peers have it);
+from a laptop: ``--mode client --connect tcp/<robot-ip>:7447``.
 
 Publishing follows NOTES "zenoh 1.10": payloads are ``bytes``, keys have no leading ``/``,
 publishers wait for their matching status before the first sample, and shutdown undeclares
@@ -48,11 +51,14 @@ def make_config(
     listen: Sequence[str] = (),
     connect: Sequence[str] = (),
     scouting: bool = False,
+    gossip: bool | None = None,
 ) -> zenoh.Config:
     """A zenoh config: ``mode`` (peer | client), explicit endpoints, scouting off by default.
 
     zenoh's own defaults listen on every interface and scout by multicast; both are replaced:
-    with ``listen`` empty the session listens nowhere (it only connects out).
+    with ``listen`` empty the session listens nowhere (it only connects out). ``gossip``
+    (default: as ``scouting``): gossip scouting alone, as rmw_zenoh's sessions use it to learn
+    their peers from the router.
     """
     if mode not in MODES:
         raise SpecError(f"zenoh mode {mode!r}: use one of {', '.join(MODES)}")
@@ -61,7 +67,8 @@ def make_config(
     cfg = zenoh.Config()
     cfg.insert_json5("mode", json.dumps(mode))
     cfg.insert_json5("scouting/multicast/enabled", json.dumps(bool(scouting)))
-    cfg.insert_json5("scouting/gossip/enabled", json.dumps(bool(scouting)))
+    cfg.insert_json5("scouting/gossip/enabled",
+                     json.dumps(bool(scouting if gossip is None else gossip)))
     if mode == "peer":
         cfg.insert_json5("listen/endpoints", json.dumps([endpoint(e) for e in listen]))
     cfg.insert_json5("connect/endpoints", json.dumps([endpoint(e) for e in connect]))
@@ -78,12 +85,41 @@ def add_session_arguments(parser: argparse.ArgumentParser) -> None:
                    help="endpoint to connect to, e.g. tcp/192.168.1.10:7447 (repeatable)")
     g.add_argument("--scouting", action="store_true",
                    help="enable multicast/gossip scouting (off by default: explicit endpoints)")
+    add_wire_arguments(parser)
+
+
+def add_wire_arguments(parser: argparse.ArgumentParser) -> None:
+    """``--wire``, ``--ros-distro``, ``--domain-id`` (:mod:`tagtrail.stream.wire`)."""
+    from tagtrail.stream.wire import DISTROS, WIRES
+
+    g = parser.add_argument_group("wire")
+    g.add_argument("--wire", choices=WIRES, default="bridge",
+                   help="bridge: zenoh-bridge-ros2dds keys (default); rmw_zenoh: the keys, "
+                   "attachments and liveliness tokens of ROS 2's rmw_zenoh_cpp (no bridge)")
+    g.add_argument("--ros-distro", choices=DISTROS, default=None,
+                   help="rmw_zenoh: the robot's ROS 2 distro, which sets the type hashes in "
+                   "the keys (default: $ROS_DISTRO, else humble)")
+    g.add_argument("--domain-id", type=_domain_id, default=None, metavar="N",
+                   help="rmw_zenoh: ROS_DOMAIN_ID of the robot (default: $ROS_DOMAIN_ID, else 0)")
+
+
+def _domain_id(text: str) -> int:
+    if not text.strip().isdigit():
+        raise argparse.ArgumentTypeError(f"must be an integer >= 0, got {text!r}")
+    return int(text)
 
 
 def config_from_args(ns: argparse.Namespace, default_role: str) -> zenoh.Config:
     """The session config of a command; ``default_role`` (listen | connect) applies the default
     endpoint when neither ``--listen`` nor ``--connect`` is given."""
     listen, connect = list(ns.listen), list(ns.connect)
+    if getattr(ns, "wire", "bridge") == "rmw_zenoh" and not listen and not connect:
+        # rmw_zenoh's topology (design.md): a peer that connects to the router on this
+        # machine, listens on the loopback and learns the other peers by gossip from the router
+        from tagtrail.stream.wire import RMW_ROUTER
+
+        return make_config(ns.mode, ["tcp/localhost:0"] if ns.mode == "peer" else [],
+                           [RMW_ROUTER], ns.scouting, gossip=True)  # fmt: skip
     if not listen and not connect and not ns.scouting:
         (listen if default_role == "listen" and ns.mode == "peer" else connect).append(
             DEFAULT_ENDPOINT
