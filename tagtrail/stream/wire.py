@@ -338,11 +338,11 @@ class RmwZenohWire(Wire):
         key = self.key(topic, msgtype)
         if msgtype == JSON:
             return self.session.declare_subscriber(key, callback)
-        expect = key.count("/")
+        expect = key.count("/") if "*" in key else None
 
         def on_sample(sample: zenoh.Sample) -> None:
-            if str(sample.key_expr).count("/") != expect:  # `0/a/*/*` also matches `0/a/b/T`
-                return
+            if expect is not None and str(sample.key_expr).count("/") != expect:
+                return  # `0/a/*/*` (any type) also matches topic /a/b's `0/a/b/<type>`
             self._check(sample.attachment)
             callback(sample)
 
