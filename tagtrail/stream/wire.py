@@ -18,9 +18,10 @@ entities, so that nodes never branch on the wire:
   <hash>/<qos>]``, every ``/`` inside a name written ``%`` (so ``ros2 node list`` /
   ``ros2 topic list`` under rmw_zenoh show tagtrail), the QoS string in rmw_zenoh's
   ``qos_to_keyexpr`` form (fields equal to rmw_zenoh's defaults left empty:
-  ``::,10:,:,:,,`` for reliable, volatile, keep-last 10). Subscribers accept samples with the
-  attachment and without it (counted as ``without_attachment``; a malformed one as
-  ``bad_attachment``, a jump in a publisher's sequence as ``sequence_gaps``).
+  ``::,10:,:,:,,`` for reliable, volatile, keep-last 10). Subscribers take the type name from
+  the key and any type hash; they accept samples with the attachment and without it (counted
+  as ``without_attachment``; a malformed one as ``bad_attachment``, a jump in a publisher's
+  sequence as ``sequence_gaps``).
 
 The GID: rmw_zenoh hashes the entity's token with XXH3-128; tagtrail takes BLAKE2b-128 of the
 same token (xxhash is no dependency). Both are 16 bytes fixed per entity; rmw_zenoh only passes
@@ -269,7 +270,7 @@ class RmwPublisher:
 
 
 class _Entity:
-    """A subscriber (or anything undeclarable) with its liveliness token."""
+    """A subscriber with its liveliness token (or a second subscriber): undeclared together."""
 
     def __init__(self, entity: Any, token: Any) -> None:
         self.entity = entity
@@ -335,7 +336,12 @@ class RmwZenohWire(Wire):
         return RmwPublisher(pub, self.session.liveliness().declare_token(token), gid_of(token))
 
     def declare_subscriber(self, topic: str, msgtype: str | None, callback: Callback) -> Any:
+        """Subscribe to ``topic`` of ``msgtype`` with any type hash (a definition that differs
+        from the robot's must not silence a topic: the first message is checked against its
+        type where it matters, e.g. by ``stream record``); ``msgtype`` None: any type."""
         key = self.key(topic, msgtype)
+        if msgtype is not None and msgtype != JSON:
+            key = key.rsplit("/", 1)[0] + "/*"
         if msgtype == JSON:
             return self.session.declare_subscriber(key, callback)
         expect = key.count("/") if "*" in key else None
@@ -347,11 +353,12 @@ class RmwZenohWire(Wire):
             callback(sample)
 
         sub = self.session.declare_subscriber(key, on_sample)
-        token = None
-        if msgtype is not None:
-            token = self.session.liveliness().declare_token(
-                self.token("MS", next(self._ids), topic, msgtype))
-        return _Entity(sub, token) if token is not None else sub
+        if msgtype is None:  # any type (echo): a JSON document on the bare key too
+            bare = self.session.declare_subscriber(self.key(topic, JSON), callback)
+            return _Entity(sub, bare)
+        token = self.session.liveliness().declare_token(
+            self.token("MS", next(self._ids), topic, msgtype))
+        return _Entity(sub, token)
 
     def _check(self, att: zenoh.ZBytes | None) -> None:
         if att is None:

@@ -62,6 +62,7 @@ class RosPeer:
     domain: int = 0
     entities: list[Any] = field(default_factory=list)
     received: dict[str, list[tuple[bytes, bytes | None]]] = field(default_factory=dict)
+    seen: list[str] = field(default_factory=list)  # every token that appeared, in order
     _eid: int = 0
     _lock: threading.Lock = field(default_factory=threading.Lock)
 
@@ -79,7 +80,16 @@ class RosPeer:
                 f"{type_hash(msgtype, self.distro)}/{qos}")
 
     def announce(self) -> None:
+        """The node's token, and a watch on the domain's tokens (as rmw_zenoh's graph cache)."""
         self.entities.append(self.session.liveliness().declare_token(self.token("NN")))
+
+        def on_token(s: zenoh.Sample) -> None:
+            if s.kind == zenoh.SampleKind.PUT:
+                with self._lock:
+                    self.seen.append(str(s.key_expr))
+
+        self.entities.append(self.session.liveliness().declare_subscriber(
+            f"@ros2_lv/{self.domain}/**", on_token, history=True))
 
     def publisher(self, topic: str, msgtype: str, qos: str = QOS) -> Publisher:
         tok = self.token("MP", topic, msgtype, qos)
@@ -325,3 +335,65 @@ def _tagtrail(cwd: Path, *args: str) -> subprocess.CompletedProcess[str]:
     return subprocess.run([sys.executable, "-m", "tagtrail.cli", *args], cwd=cwd, text=True,
                           capture_output=True, timeout=600,
                           env={**os.environ, "PYTHONPATH": str(REPO)})  # fmt: skip
+
+
+def test_replay_and_echo_speak_rmw_zenoh(peer: tuple[RosPeer, int], tmp_path: Path) -> None:
+    """``stream replay --wire rmw_zenoh`` publishes like a ROS 2 node on rmw_zenoh (key,
+    attachment 1..N, tokens), waiting for the peer's subscription; ``stream echo --wire
+    rmw_zenoh`` prints the peer's Float64 samples (any type hash) and a JSON document on the
+    bare key."""
+    from tagtrail.io.layouts import read_trajectory
+
+    p, port = peer
+    case = synthetic_case(tmp_path, n_ref=50, n_query=25)
+    n = len(read_trajectory(case.query))
+    p.announce()
+    p.subscribe("/tag_only_pose", "geometry_msgs/msg/PoseStamped")
+    t0 = time.time_ns()
+    rep = Proc(["replay", case.query, "--rate", "0", "--wire", "rmw_zenoh",
+                "--connect", loopback(port), "--wait", "20"])  # fmt: skip
+    try:
+        assert rep.p.wait(60) == 0, rep.output
+    finally:
+        rep.kill()
+    toks = list(p.seen)
+    assert any(t.endswith("/MP/%/%/tagtrail_replay/%tag_only_pose/geometry_msgs::msg::dds_::"
+                          f"PoseStamped_/TypeHashNotSupported/{QOS}") for t in toks), toks
+    assert any(t.endswith("/0/0/NN/%/%/tagtrail_replay") for t in toks), toks
+    deadline = time.monotonic() + 10
+    while len(p.received["/tag_only_pose"]) < n:
+        assert time.monotonic() < deadline, len(p.received["/tag_only_pose"])
+        time.sleep(0.02)
+    got = p.received["/tag_only_pose"]
+    atts = [a for _, a in got]
+    assert all(a is not None and len(a) == 33 and a[16] == 16 for a in atts)
+    seqs = [struct.unpack_from("<q", a)[0] for a in atts if a]
+    assert seqs == list(range(1, n + 1))
+    assert all(t0 <= struct.unpack_from("<q", a, 8)[0] <= time.time_ns() for a in atts if a)
+    poses = [HUMBLE.deserialize_cdr(d, "geometry_msgs/msg/PoseStamped") for d, _ in got]
+    query = read_trajectory(case.query)
+    np.testing.assert_allclose([m.pose.position.x for m in poses], query["x_m"], atol=0)
+    # echo: the peer's Float64 (a Jazzy hash: echo takes any) and a JSON document
+    jazzy_key = data_key("/relocalization/distance_m", "std_msgs/msg/Float64", "jazzy")
+    echo = Proc(["echo", "relocalization/distance_m", "--wire", "rmw_zenoh", "--connect",
+                 loopback(port), "--count", "3", "--wait", "20"])  # fmt: skip
+    pub = p.session.declare_publisher(jazzy_key)
+    bare = p.session.declare_publisher("relocalization/distance_m")
+    try:
+        deadline = time.monotonic() + 20
+        while not (pub.matching_status.matching  # type: ignore[attr-defined]
+                   and bare.matching_status.matching):  # type: ignore[attr-defined]
+            assert time.monotonic() < deadline, echo.output
+            time.sleep(0.02)
+        f64 = bytes(HUMBLE.serialize_cdr(HUMBLE.types["std_msgs/msg/Float64"](1.5),
+                                         "std_msgs/msg/Float64"))  # fmt: skip
+        pub.put(f64, attachment=struct.pack("<qqB", 1, time.time_ns(), 16) + bytes(16))
+        pub.put(f64)
+        bare.put(b'{"distance_m": 1.5}')
+        assert echo.p.wait(20) == 0, echo.output
+    finally:
+        echo.kill()
+        pub.undeclare()
+        bare.undeclare()
+    assert echo.lines.count("relocalization/distance_m: <12 bytes of CDR>") == 2, echo.output
+    assert 'relocalization/distance_m: {"distance_m": 1.5}' in echo.lines, echo.output
