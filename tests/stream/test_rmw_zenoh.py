@@ -177,3 +177,31 @@ def test_defaults_from_the_environment(monkeypatch: pytest.MonkeyPatch) -> None:
     monkeypatch.setenv("ROS_DISTRO", "jazzy")
     monkeypatch.setenv("ROS_DOMAIN_ID", "42")
     assert (W.default_distro(), W.default_domain()) == ("jazzy", 42)
+
+
+@pytest.mark.parametrize("cmd", [
+    ["relocalize", "--reference", "ref"], ["localize", "--map", "m.yaml"], ["replay", "t.csv"],
+    ["record", "out"], ["echo", "relocalization/state"],
+])  # fmt: skip
+def test_every_stream_command_takes_the_wire_flags(cmd: list[str]) -> None:
+    from tagtrail.stream.cli import build_parser
+    from tagtrail.stream.session import config_from_args
+
+    p = build_parser()
+    ns = p.parse_args(cmd)
+    assert (ns.wire, ns.ros_distro, ns.domain_id) == ("bridge", None, None)
+    ns = p.parse_args([*cmd, "--wire", "rmw_zenoh", "--ros-distro", "jazzy", "--domain-id", "3"])
+    assert (ns.wire, ns.ros_distro, ns.domain_id) == ("rmw_zenoh", "jazzy", 3)
+    # rmw_zenoh's topology when no endpoint is given: connect to the local router, gossip on
+    cfg = config_from_args(ns, "listen")
+    assert cfg.get_json("connect/endpoints") == '["tcp/localhost:7447"]'
+    assert cfg.get_json("scouting/gossip/enabled") == "true"
+    assert cfg.get_json("scouting/multicast/enabled") == "false"
+    # explicit endpoints win (tests: 127.0.0.1 only)
+    ns = p.parse_args([*cmd, "--wire", "rmw_zenoh", "--connect", "tcp/127.0.0.1:7999"])
+    assert config_from_args(ns, "listen").get_json("connect/endpoints") == (
+        '["tcp/127.0.0.1:7999"]')
+    for bad in (["--domain-id", "-1"], ["--wire", "dds"], ["--ros-distro", "iron"]):
+        with pytest.raises(SystemExit) as exc:
+            p.parse_args([*cmd, *bad])
+        assert exc.value.code == 2
