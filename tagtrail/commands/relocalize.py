@@ -31,11 +31,13 @@ log = logging.getLogger(__name__)
 Mode = Literal["auto", "trajectory", "point"]
 Align = Literal["auto", "none", "tags"]
 AlignModel = Literal["similarity", "rigid", "se3", "sim3"]
+Assoc = Literal["progress", "nearest"]
 OUTPUT_FILES = ("relocalization.csv", "summary.json", "relocalization.png", "map.png")
 EXAMPLES = """examples:
   tagtrail relocalize outputs/reference outputs/query -o reloc
   tagtrail relocalize ref/trajetoria_camera.csv query/ --mode point --plane xz
   tagtrail relocalize ref query --align none --mode trajectory
+  tagtrail relocalize ref query --mode trajectory --association nearest   # the paper's Eq. 3.12
 """
 
 
@@ -66,6 +68,7 @@ def relocalize(
     align_model: AlignModel = "similarity",
     plane: PlaneName = "auto",
     allow_scale: bool = False,
+    association: Assoc = "progress",
 ) -> dict[str, Any]:
     """Relocalize ``query`` against ``reference`` and write the SPEC files into ``out``.
 
@@ -73,7 +76,7 @@ def relocalize(
     :class:`DataError` (no common tags with ``align="tags"``, scale out of range, …).
     """
     summary: dict[str, Any] = _relocalize(
-        reference, query, out, mode, align, align_model, plane, allow_scale
+        reference, query, out, mode, align, align_model, plane, allow_scale, association
     )["summary"]
     return summary
 
@@ -87,6 +90,7 @@ def _relocalize(
     align_model: AlignModel,
     plane: PlaneName,
     allow_scale: bool,
+    association: Assoc = "progress",
 ) -> dict[str, Any]:
     check_out(Path(out))
     ref_traj, ref_tags = load_dataset(reference)
@@ -101,7 +105,7 @@ def _relocalize(
     a_params = align_stage.Params(
         align=align, model=align_model, plane=plane, allow_scale=allow_scale
     )
-    r_params = report_stage.Params(mode=mode, plane=plane)
+    r_params = report_stage.Params(mode=mode, plane=plane, association=association)
     try:
         aligned = align_stage.run(
             q_tags if q_tags is not None else _empty_tags(),
@@ -134,16 +138,26 @@ def check_out(out: Path) -> None:
 def summary_text(summary: dict[str, Any], reloc: pd.DataFrame, out: Path) -> str:
     """A short human summary: D, phi, the alignment and the files written."""
     d, p, a = summary["distance_m"], summary["abs_heading_error_deg"], summary["alignment"]
-    lines = [f"relocalization: {summary['mode']} mode, plane {summary['plane']}, n={summary['n']}"]
+    assoc = summary.get("association", "nearest")
+    how = "nearest point of the path" if assoc == "polyline" else f"{assoc} association"
+    lines = [f"relocalization: {summary['mode']} mode ({how}), plane {summary['plane']}, "
+             f"n={summary['n']}"]  # fmt: skip
+    ref_heading = ("the nearest segment's heading" if summary.get("ref_heading") == "segment"
+                   else "the path's heading at the sample (centred difference)")
     if summary["n"] == 1:
         phi = float(reloc["heading_error_deg"].iloc[0])
-        lines += [f"  D   = {d['mean']:.4f} m", f"  phi = {phi:+.2f} deg"]
+        cross = float(reloc["cross_track_m"].iloc[0])
+        lines += [f"  D   = {d['mean']:.4f} m  (cross-track {cross:+.4f} m, > 0: left)",
+                  f"  phi = {phi:+.2f} deg  (against {ref_heading})"]
     else:
+        c = summary["cross_track_m"]
         lines += [
             f"  D    mean {d['mean']:.4f} m, median {d['median']:.4f}, p95 {d['p95']:.4f}, "
             f"max {d['max']:.4f}",
             f"  |phi| mean {p['mean']:.2f} deg, median {p['median']:.2f}, p95 {p['p95']:.2f}, "
-            f"max {p['max']:.2f}",
+            f"max {p['max']:.2f}  (against {ref_heading})",
+            f"  cross-track mean {c['mean']:+.4f} m (> 0: left), rmse {c['rmse']:.4f}; "
+            f"lost {summary['lost']} of {summary['n']}",
         ]
     if a["model"] == "none":
         lines.append(f"  alignment: none ({a['common_tags']} common tags)")
@@ -176,6 +190,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> argparse.ArgumentParser:
     parser.add_argument("--plane", choices=list(PLANES), default="auto",
                         help="plane of D and phi (default: auto, fitted to the reference)",
                         )  # fmt: skip
+    parser.add_argument("--association", choices=["progress", "nearest"], default="progress",
+                        help="trajectory mode: progress = the nearest sample near the previous "
+                        "match (no jumps where the path crosses itself), nearest = the paper's "
+                        "Eq. 3.12 (default: progress)")  # fmt: skip
     parser.add_argument("--allow-scale", action="store_true",
                         help="accept an alignment scale outside [0.9, 1.1]")  # fmt: skip
     return parser
@@ -204,7 +222,7 @@ def main(args: argparse.Namespace | Sequence[str] | None = None) -> int:
 def _main(ns: argparse.Namespace) -> int:
     result = _relocalize(
         ns.reference, ns.query, ns.out, ns.mode, ns.align, ns.align_model, ns.plane,
-        getattr(ns, "allow_scale", False),
+        getattr(ns, "allow_scale", False), getattr(ns, "association", "progress"),
     )  # fmt: skip
     print(summary_text(result["summary"], result["relocalization"], Path(ns.out)))
     return 0

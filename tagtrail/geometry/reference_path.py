@@ -232,9 +232,23 @@ class ReferencePath:
                     fz: float) -> PoseMatch:  # fmt: skip
         """:meth:`query_one` of plain floats: position ``(x, y, z)`` (m) and optical axis
         ``f = world_R_cam[:, 2]`` — the live node's per-pose call, with no array conversions."""
+        u, v, hq = self.planar_point(x, y, z, fx, fy, fz)
+        dist, k = self.nearest_sample(u, v)
+        href = self._h[k]
+        phi = math.pi - (math.pi - (hq - href)) % (2.0 * math.pi)
+        return PoseMatch(k, dist, phi, hq, href, u, v, float(self._u[k]), float(self._v[k]))
+
+    def planar_point(self, x: float, y: float, z: float, fx: float, fy: float,
+                     fz: float) -> tuple[float, float, float]:  # fmt: skip
+        """``(u, v, θ)`` (m, m, rad) of a world position ``(x, y, z)`` (m) and optical axis
+        ``f = world_R_cam[:, 2]``, in plain floats (the live node's per-pose call)."""
         (a1, b1, c1), (a2, b2, c2) = self._e1, self._e2
         u, v = a1 * x + b1 * y + c1 * z, a2 * x + b2 * y + c2 * z
-        hq = math.atan2(a2 * fx + b2 * fy + c2 * fz, a1 * fx + b1 * fy + c1 * fz)
+        return u, v, math.atan2(a2 * fx + b2 * fy + c2 * fz, a1 * fx + b1 * fy + c1 * fz)
+
+    def nearest_sample(self, u: float, v: float) -> tuple[float, int]:
+        """``(D (m), k*)``: the reference sample nearest the planar point ``(u, v)`` (m) over the
+        whole path (Eq. 3.12; ties → the lowest index), for one pose in microseconds."""
         if len(self._h) <= _BRUTE_MAX:
             d2 = self._u - np.array(u)  # 0-d arrays: numpy calls with Python floats cost more
             dv = self._v - np.array(v)
@@ -242,14 +256,11 @@ class ReferencePath:
             dv *= dv
             d2 += dv
             k = int(d2.argmin())
-            dist = math.sqrt(float(d2[k]))
-        else:  # a k-d tree is slow inside a loop; PathIndex uses the path's order (exact)
-            if self._index is None:
-                self._index = PathIndex(self.uv)
-            dist, k = self._index.query_one(u, v)
-        href = self._h[k]
-        phi = math.pi - (math.pi - (hq - href)) % (2.0 * math.pi)
-        return PoseMatch(k, dist, phi, hq, href, u, v, float(self._u[k]), float(self._v[k]))
+            return math.sqrt(float(d2[k])), k
+        # a k-d tree is slow inside a loop; PathIndex uses the path's order (exact)
+        if self._index is None:
+            self._index = PathIndex(self.uv)
+        return self._index.query_one(u, v)
 
     def query_polyline(self, uv: ArrayLike, heading_rad: ArrayLike) -> PathMatch:
         """Nearest point of the reference polyline (``point`` mode); θref = that segment's heading.

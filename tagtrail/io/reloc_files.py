@@ -29,7 +29,10 @@ RELOC_HEADER = [
     "heading_error_deg", "query_heading_deg", "ref_heading_deg", "query_u", "query_v",
     "ref_u", "ref_v",
 ]  # fmt: skip
-_FLOATS = RELOC_HEADER[4:]
+# the path tracker's columns, after the seed's (SPEC): lost is written 0/1
+TRACK_HEADER = ["cross_track_m", "progress_m", "curvature_1pm", "lookahead_u", "lookahead_v",
+                "lost"]  # fmt: skip
+_FLOATS = RELOC_HEADER[4:] + TRACK_HEADER[:-1]
 _PNG_META = {"Software": None}
 
 
@@ -39,9 +42,11 @@ def relocalization_csv_text(reloc: pd.DataFrame) -> str:
     t_rel = reloc["t_rel_s"].to_numpy(np.float64)
     idx = reloc["nearest_ref_idx"].to_numpy(np.int64)
     vals = reloc[_FLOATS].to_numpy(np.float64)
-    lines = [",".join(RELOC_HEADER)]
-    for s, n, tr, k, row in zip(sec, nsec, t_rel, idx, vals, strict=True):
-        lines.append(f"{s},{n},{float(tr)!r},{k}," + ",".join(repr(float(v)) for v in row))
+    lost = reloc["lost"].to_numpy(bool).astype(int)
+    lines = [",".join(RELOC_HEADER + TRACK_HEADER)]
+    for s, n, tr, k, row, lo in zip(sec, nsec, t_rel, idx, vals, lost, strict=True):
+        lines.append(f"{s},{n},{float(tr)!r},{k}," + ",".join(repr(float(v)) for v in row)
+                     + f",{lo}")
     return "\n".join(lines) + "\n"
 
 
@@ -50,16 +55,19 @@ def write_relocalization_csv(path: Path, reloc: pd.DataFrame) -> None:
 
 
 def read_relocalization_csv(path: Path) -> pd.DataFrame:
-    """Read a ``relocalization.csv`` back into report.relocalization columns (``t_ns`` …)."""
+    """Read a ``relocalization.csv`` back into report.relocalization columns (``t_ns`` …); a
+    file of the seed's columns only (before the tracker's) is read too."""
     try:
         df = pd.read_csv(path)
     except (OSError, ValueError) as err:
         raise SourceError(f"{path}: cannot read relocalization CSV: {one_line(err)}") from err
-    if list(df.columns) != RELOC_HEADER:
+    if list(df.columns) not in (RELOC_HEADER, RELOC_HEADER + TRACK_HEADER):
         raise SourceError(f"{path}: not a relocalization CSV (header {list(df.columns)})")
     t_ns = df["stamp_sec"].to_numpy(np.int64) * 1_000_000_000 + df["stamp_nanosec"].to_numpy(
         np.int64
     )
+    if "lost" in df.columns:
+        df["lost"] = df["lost"].astype(bool)
     return pd.concat([pd.DataFrame({"t_ns": t_ns}), df.iloc[:, 2:]], axis=1)
 
 

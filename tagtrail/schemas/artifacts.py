@@ -53,7 +53,9 @@ SCHEMAS: dict[str, pa.Schema] = {
     "report.relocalization": pa.schema(
         [("t_ns", I64), ("t_rel_s", F64), ("nearest_ref_idx", I64), ("distance_m", F64),
          ("heading_error_deg", F64), ("query_heading_deg", F64), ("ref_heading_deg", F64),
-         ("query_u", F64), ("query_v", F64), ("ref_u", F64), ("ref_v", F64)]  # fmt: skip
+         ("query_u", F64), ("query_v", F64), ("ref_u", F64), ("ref_v", F64),
+         ("cross_track_m", F64), ("progress_m", F64), ("curvature_1pm", F64),
+         ("lookahead_u", F64), ("lookahead_v", F64), ("lost", pa.bool_())]  # fmt: skip
     ),
 }
 

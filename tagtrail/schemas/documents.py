@@ -275,6 +275,14 @@ class Summary(Document):
     distance_m: RelocStats
     abs_heading_error_deg: RelocStats
     alignment: AlignmentBlock
+    # which association chose the reference point (trajectory mode: progress | nearest; point
+    # mode: the nearest point of the polyline) and which heading phi compares with (point
+    # mode: the nearest segment's; trajectory mode: the centred difference at the sample)
+    association: Literal["progress", "nearest", "polyline"] = "nearest"
+    ref_heading: Literal["segment", "sample"] = "sample"
+    cross_track_m: RelocStats | None = None  # signed, > 0 left of the path seen from n
+    abs_cross_track_m: RelocStats | None = None
+    lost: int = 0  # rows with no reference point within report.lost_m, or re-acquired
 
 
 DOCUMENTS: dict[str, type[Document]] = {

@@ -8,6 +8,13 @@ that segment's. ``auto`` picks ``point`` when the query's 95th-percentile radius
 centroid is at most ``static_threshold_m``. Outputs follow SPEC ``relocalization.csv`` (with
 ``t_ns``) and ``summary.json``.
 
+Beside D and phi, each row carries what a path tracker steers on (signed cross-track error,
+progress along the path, curvature, a lookahead point, a ``lost`` flag:
+:mod:`tagtrail.geometry.association`). ``association`` chooses k* in trajectory mode:
+``progress`` (default: the nearest sample near the previous match, so that a path crossing itself
+does not make k* jump branch) or ``nearest`` (Eq. 3.12 exactly, the paper's). Point mode has one
+pose and no previous match: it always takes the nearest point of the polyline.
+
 Point mode follows the original tool exactly (segment heading; at a vertex shared by two segments
 the earlier segment), which reproduces its published LIMO results (PAPER Table 4.3) to < 0.1 mm
 and 0.01° from the smoothed trajectories (tests/test_relocalize.py).
@@ -23,6 +30,7 @@ from numpy.typing import ArrayLike
 from pydantic import Field
 
 from tagtrail.errors import DataError
+from tagtrail.geometry.association import PathTracker, Track, TrackParams
 from tagtrail.geometry.reference_path import (
     PathMatch,
     ReferencePath,
@@ -45,11 +53,30 @@ RELOC_COLS = columns("report.relocalization")
 
 
 class Params(StageParams):
-    """``mode``: auto | trajectory | point; ``plane``: auto | xz | xy | yz (SPEC Conventions)."""
+    """``mode``: auto | trajectory | point; ``plane``: auto | xz | xy | yz (SPEC Conventions);
+    ``association`` (trajectory mode): progress | nearest (Eq. 3.12); the tracker's lengths (m):
+    ``lookahead_m`` (the lookahead point's distance ahead along the path), ``search_back_m`` /
+    ``search_ahead_m`` (progress's window about the previous match), ``reacquire_m`` / ``lost_m``
+    (re-acquire over the whole path when the window's match is this much farther than another /
+    farther than ``lost_m``; ``lost`` beyond ``lost_m``), ``curvature_window_m``."""
 
     mode: Literal["auto", "trajectory", "point"] = "auto"
     plane: Literal["auto", "xz", "xy", "yz"] = "auto"
     static_threshold_m: float = Field(0.20, gt=0)
+    association: Literal["progress", "nearest"] = "progress"
+    lookahead_m: float = Field(0.3, ge=0)
+    search_back_m: float = Field(0.2, ge=0)
+    search_ahead_m: float = Field(1.0, gt=0)
+    reacquire_m: float = Field(0.25, gt=0)
+    lost_m: float = Field(0.5, gt=0)
+    curvature_window_m: float = Field(0.1, gt=0)
+
+
+def track_params(params: Params) -> TrackParams:
+    """The tracker settings of the report's parameters (also the live node's)."""
+    return TrackParams(params.association, params.lookahead_m, params.search_back_m,
+                       params.search_ahead_m, params.reacquire_m, params.lost_m,
+                       params.curvature_window_m)  # fmt: skip
 
 
 def stats(x: ArrayLike) -> dict[str, float | None]:
@@ -67,9 +94,12 @@ def stats(x: ArrayLike) -> dict[str, float | None]:
     }
 
 
-def relocalization_frame(t_ns: ArrayLike, t0_ns: int, m: PathMatch) -> pd.DataFrame:
-    """SPEC relocalization columns (``t_ns`` int64, ``t_rel_s`` from ``t0_ns``, angles in deg)."""
+def relocalization_frame(t_ns: ArrayLike, t0_ns: int, m: PathMatch,
+                         tracks: list[Track]) -> pd.DataFrame:  # fmt: skip
+    """SPEC relocalization columns (``t_ns`` int64, ``t_rel_s`` from ``t0_ns``, angles in deg),
+    then the tracker's (``cross_track_m … lost``) from ``tracks`` (one per row)."""
     t = np.asarray(t_ns, dtype=np.int64)
+    tr = np.array([tk[4:9] for tk in tracks], dtype=np.float64).reshape(-1, 5)
     return pd.DataFrame(
         {
             "t_ns": t,
@@ -83,9 +113,38 @@ def relocalization_frame(t_ns: ArrayLike, t0_ns: int, m: PathMatch) -> pd.DataFr
             "query_v": m.query_uv[:, 1],
             "ref_u": m.ref_uv[:, 0],
             "ref_v": m.ref_uv[:, 1],
+            "cross_track_m": tr[:, 0],
+            "progress_m": tr[:, 1],
+            "curvature_1pm": tr[:, 2],
+            "lookahead_u": tr[:, 3],
+            "lookahead_v": tr[:, 4],
+            "lost": np.array([tk.lost for tk in tracks], dtype=bool),
         },
         columns=RELOC_COLS,
     )
+
+
+def track_trajectory(path: ReferencePath, uv: ArrayLike, heading: ArrayLike,
+                     params: Params) -> tuple[PathMatch, list[Track]]:  # fmt: skip
+    """Trajectory mode: every pose ``uv (M, 2)``, ``heading (M,)`` against the reference.
+
+    ``nearest``: k* of the batch query (Eq. 3.12, as ever); ``progress``: the poses in time
+    order through one :class:`PathTracker` (the live node's per-pose call)."""
+    uv = np.asarray(uv, dtype=np.float64).reshape(-1, 2)
+    hq = np.asarray(heading, dtype=np.float64).reshape(-1)
+    tracker = PathTracker(path, track_params(params))
+    if params.association == "nearest":
+        m = path.query_uv(uv, hq)
+        tracks = [tracker.track(u, v, h, k) for (u, v), h, k in
+                  zip(uv.tolist(), hq.tolist(), m.ref_idx.tolist(), strict=True)]  # fmt: skip
+        return m, tracks
+    tracks = [tracker.track(u, v, h) for (u, v), h in zip(uv.tolist(), hq.tolist(), strict=True)]
+    k = np.array([tk.ref_idx for tk in tracks], dtype=np.int64)
+    href = path.heading_rad[k]
+    m = PathMatch(k, np.array([tk.distance_m for tk in tracks], dtype=np.float64),
+                  np.array([tk.phi_rad for tk in tracks], dtype=np.float64), hq, href, uv,
+                  path.uv[k])  # fmt: skip
+    return m, tracks
 
 
 def choose_mode(mode: str, query_uv: ArrayLike, static_threshold_m: float) -> str:
@@ -119,11 +178,14 @@ def run(
     if mode == "point":
         p, h, i = reduce_to_point(uv, heading)
         match = path.query_polyline(p[None], [h])
+        tracks = [PathTracker(path, track_params(params)).track_segment(
+            float(p[0]), float(p[1]), h, int(match.ref_idx[0]))]  # fmt: skip
         t_rows = t_ns[[i]]
     else:
-        match = path.query_uv(uv, heading)
+        match, tracks = track_trajectory(path, uv, heading, params)
         t_rows = t_ns
-    reloc = relocalization_frame(t_rows, int(t_ns[0]), match)
+    reloc = relocalization_frame(t_rows, int(t_ns[0]), match, tracks)
+    cross = reloc["cross_track_m"].to_numpy(np.float64)
     summary = {
         "mode": mode,
         "plane": params.plane,
@@ -131,5 +193,10 @@ def run(
         "distance_m": stats(reloc["distance_m"]),
         "abs_heading_error_deg": stats(np.abs(reloc["heading_error_deg"])),
         "alignment": alignment,
+        "association": params.association if mode == "trajectory" else "polyline",
+        "ref_heading": "segment" if mode == "point" else "sample",
+        "cross_track_m": stats(cross),
+        "abs_cross_track_m": stats(np.abs(cross)),
+        "lost": int(reloc["lost"].sum()),
     }
     return {"relocalization": reloc, "summary": Summary.model_validate(summary)}

@@ -134,6 +134,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> argparse.ArgumentParser:
     p.add_argument("--plane", choices=list(PLANES), default=None,
                    help="plane of D and phi (default: the alignment file's, else the pipeline's "
                    "report.plane)")
+    p.add_argument("--association", choices=["progress", "nearest"], default=None,
+                   help="progress = the nearest sample near the previous match (no jumps where "
+                   "the path crosses itself), nearest = the paper's Eq. 3.12 (default: the "
+                   "pipeline's report.association, else progress)")
     p.add_argument("--frame-id", default="map", help="frame of the outputs (default: map)")
     p.add_argument("--path-period", type=NON_NEGATIVE, default=1.0, metavar="S",
                    help="republish the reference path every S seconds (0: once; default 1)")
@@ -305,18 +309,18 @@ def _relocalize(ns: argparse.Namespace) -> int:
 
     ref = read_trajectory(ns.reference)
     # the alignment file's plane wins over the pipeline's: its planar transform acts in that plane
-    plane = ns.plane
-    if not plane:
-        report = stage_params(["report"], ns.pipeline, ns.dataset,
-                              profile=ns.profile)["report"]  # fmt: skip
-        assert isinstance(report, report_stage.Params)
-        plane = report.plane
+    report = stage_params(["report"], ns.pipeline, ns.dataset,
+                          profile=ns.profile)["report"]  # fmt: skip
+    assert isinstance(report, report_stage.Params)
+    if ns.association:
+        report = report.model_copy(update={"association": ns.association})
+    plane = ns.plane or report.plane
     alignment = None
     if ns.alignment is not None:
         A, R, file_plane = load_alignment(ns.alignment, ref, plane)
         alignment, plane = (A, R), ns.plane or file_plane or plane
     reloc = Relocalizer(ref, plane, alignment, ns.frame_id, ns.prefix, ns.pose_type,
-                        ns.path_max_points)  # fmt: skip
+                        ns.path_max_points, report_stage.track_params(report))  # fmt: skip
     fox = foxglove_server(ns, "relocalize", {reloc.key[k]: t for k, t in OUTPUT_TYPES.items()})
     session = None
     try:

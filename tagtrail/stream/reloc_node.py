@@ -4,8 +4,11 @@
 :class:`~tagtrail.geometry.reference_path.ReferencePath` (the object the offline ``report``
 stage uses), the alignment transform, the reference ``Path``/markers CDR, the encoders — and
 :meth:`Relocalizer.process` does the per-pose work: apply the alignment, ``k*``, D, phi
-(``ReferencePath.query_point``, Eqs. 3.12–3.15, ``trajectory`` mode), so live values equal the
-offline report's (long references use :class:`~tagtrail.geometry.pathindex.PathIndex`, exact).
+(Eqs. 3.12–3.15, ``trajectory`` mode) and the path tracker's quantities through
+:meth:`~tagtrail.geometry.association.PathTracker.track`, the report stage's per-pose call, so
+live values equal the offline report's (long references use
+:class:`~tagtrail.geometry.pathindex.PathIndex`, exact). With ``progress`` association the node
+keeps the previous match, as the report stage does along a query.
 :meth:`Relocalizer.handle` is bytes in → ``[(key, CDR bytes)]`` out; the zenoh driver is
 :func:`serve`.
 
@@ -32,6 +35,7 @@ import pandas as pd
 
 from tagtrail.errors import SourceError
 from tagtrail.geometry import se3
+from tagtrail.geometry.association import PathTracker, TrackParams
 from tagtrail.geometry.reference_path import PLANES, ReferencePath, reference_plane
 from tagtrail.geometry.registration import Alignment, world_transform
 from tagtrail.schemas.artifacts import poses
@@ -41,7 +45,8 @@ from tagtrail.stream.markers import PoseMarkers, path_markers
 from tagtrail.stream.stats import DropError, Stats
 
 F64 = np.ndarray
-OUTPUTS = ("distance_m", "heading_error_deg", "state", "current_pose", "nearest_pose", "markers")
+OUTPUTS = ("distance_m", "heading_error_deg", "state", "current_pose", "nearest_pose", "markers",
+           "cross_track_m", "progress_m", "curvature_1pm", "lookahead_pose")
 REFERENCE_PATH = "reference_path"
 # each output's ROS 2 type (SPEC Streaming); "json": the state document
 OUTPUT_TYPES = {
@@ -49,12 +54,16 @@ OUTPUT_TYPES = {
     "state": "json", "current_pose": "geometry_msgs/msg/PoseStamped",
     "nearest_pose": "geometry_msgs/msg/PoseStamped",
     "markers": "visualization_msgs/msg/MarkerArray", REFERENCE_PATH: "nav_msgs/msg/Path",
+    "cross_track_m": "std_msgs/msg/Float64", "progress_m": "std_msgs/msg/Float64",
+    "curvature_1pm": "std_msgs/msg/Float64", "lookahead_pose": "geometry_msgs/msg/PoseStamped",
 }  # fmt: skip
 
 
 class Outputs(NamedTuple):
     """One pose's result: stamp, D (m), phi, k*, planar (u, v) of the pose and of ``ref[k*]``,
-    and the 3-D poses ``(x, y, z, qx, qy, qz, qw)`` of the (aligned) query and of ``ref[k*]``."""
+    the 3-D poses ``(x, y, z, qx, qy, qz, qw)`` of the (aligned) query and of ``ref[k*]``, then
+    the path tracker's cross-track (m), progress (m), curvature (1/m), lookahead point (u, v)
+    and 3-D pose (on the reference, with the orientation of its nearer sample) and lost flag."""
 
     sec: int
     nanosec: int
@@ -68,6 +77,13 @@ class Outputs(NamedTuple):
     ref_v: float
     current: tuple[float, ...]
     nearest: tuple[float, ...]
+    cross_track_m: float = math.nan  # the path tracker's (geometry.association)
+    progress_m: float = math.nan
+    curvature_1pm: float = math.nan
+    lookahead_u: float = math.nan
+    lookahead_v: float = math.nan
+    lost: bool = False
+    lookahead: tuple[float, ...] = ()  # 3-D pose of the lookahead point, as current/nearest
 
 
 def load_alignment(
@@ -131,16 +147,19 @@ class Relocalizer:
     plane name (default: the report stage's); ``alignment``: ``(A, R)`` from
     :func:`load_alignment` or None; ``frame_id`` of the outputs; ``path_max_points``: the
     published Path/markers are decimated to at most this many poses (0: all) — D and phi always
-    use every sample.
+    use every sample; ``track``: association and tracker settings (default: the report stage's).
     """
 
     def __init__(self, ref_traj: pd.DataFrame, plane: str | None = None,
                  alignment: tuple[F64, F64] | None = None, frame_id: str = "map",
                  prefix: str = "relocalization", pose_type: str = "pose_stamped",
-                 path_max_points: int = 10_000) -> None:  # fmt: skip
+                 path_max_points: int = 10_000, track: TrackParams | None = None,
+                 ) -> None:  # fmt: skip
         P, R = poses(ref_traj)
         plane = report_stage.Params().plane if plane is None else plane
         self.path = ReferencePath(P, reference_plane(plane, *poses(ref_traj)))
+        self.tracker = PathTracker(self.path, track or report_stage.track_params(
+            report_stage.Params()))  # fmt: skip
         self.pose_type = pose_type
         self.key = {k: f"{prefix}/{k}" for k in (*OUTPUTS, REFERENCE_PATH)}
         self._ref7 = ref_traj[["x_m", "y_m", "z_m", "qx", "qy", "qz", "qw"]].to_numpy(np.float64)
@@ -180,13 +199,21 @@ class Relocalizer:
             x, y, z = (a * x + b * y + c * z + tx, d * x + e * y + f * z + ty,
                        g * x + h * y + i * z + tz)  # fmt: skip
             q = _quat_mul(self._q_al, q)
-        m = self.path.query_point(x, y, z, *_optical_axis(*q))
-        if not math.isfinite(m.distance_m):  # finite but huge coordinates
+        u, v, hq = self.path.planar_point(x, y, z, *_optical_axis(*q))
+        if not math.isfinite(u * u + v * v):  # finite but huge coordinates
+            raise DropError("non_finite", f"pose {vals} gives planar ({u}, {v})")
+        m = self.tracker.track(u, v, hq)
+        if not math.isfinite(m.distance_m):
             raise DropError("non_finite", f"pose {vals} gives D = {m.distance_m}")
         k = m.ref_idx
+        j, t = m.lookahead_seg, m.lookahead_t
+        a, b = self._ref7[j], self._ref7[j + 1]
+        la = (*(a[:3] + t * (b[:3] - a[:3])).tolist(), *(b if t > 0.5 else a)[3:].tolist())
+        ref_u, ref_v = self.path.uv[k].tolist()
         return Outputs(p.sec, p.nanosec, m.distance_m, m.phi_rad, math.degrees(m.phi_rad), k,
-                       m.u, m.v, m.ref_u, m.ref_v, (x, y, z, *q),
-                       tuple(self._ref7[k].tolist()))  # fmt: skip
+                       u, v, ref_u, ref_v, (x, y, z, *q), tuple(self._ref7[k].tolist()),
+                       m.cross_track_m, m.progress_m, m.curvature_1pm, m.lookahead_u,
+                       m.lookahead_v, m.lost, la)  # fmt: skip
 
     def encode(self, o: Outputs) -> list[tuple[str, bytes]]:
         """The CDR/JSON payloads of one result, keyed, in publication order."""
@@ -202,12 +229,19 @@ class Relocalizer:
             f'{{"stamp_sec": {o.sec}, "stamp_nanosec": {o.nanosec}, "distance_m": '
             f'{o.distance_m!r}, "heading_error_deg": {o.heading_error_deg!r}, '
             f'"heading_error_rad": {o.heading_error_rad!r}, "nearest_ref_idx": '
-            f'{o.nearest_ref_idx}, "u": {o.u!r}, "v": {o.v!r}}}'
+            f'{o.nearest_ref_idx}, "u": {o.u!r}, "v": {o.v!r}, "cross_track_m": '
+            f'{o.cross_track_m!r}, "progress_m": {o.progress_m!r}, "curvature_1pm": '
+            f'{o.curvature_1pm!r}, "lookahead_u": {o.lookahead_u!r}, "lookahead_v": '
+            f'{o.lookahead_v!r}, "lost": {"true" if o.lost else "false"}}}'
         ).encode()
         yield key["current_pose"], enc(o.sec, o.nanosec, *o.current)
         yield key["nearest_pose"], enc(o.sec, o.nanosec, *o.nearest)
         yield key["markers"], self._markers(o.sec, o.nanosec, o.current[:3], o.nearest[:3],
                                             o.distance_m, o.heading_error_deg)  # fmt: skip
+        yield key["cross_track_m"], codec.encode_float64(o.cross_track_m)
+        yield key["progress_m"], codec.encode_float64(o.progress_m)
+        yield key["curvature_1pm"], codec.encode_float64(o.curvature_1pm)
+        yield key["lookahead_pose"], enc(o.sec, o.nanosec, *o.lookahead)
 
     def handle(self, data: bytes, stats: Stats | None = None) -> Iterator[tuple[str, bytes]]:
         """Payload in (CDR pose of ``pose_type``), keyed outputs out (an iterator, to publish as

@@ -48,8 +48,8 @@ def test_trajectory_mode_against_hand_values() -> None:
     np.testing.assert_allclose(rel["t_rel_s"], [0.0, 0.1, 0.2, 0.3, 0.4], atol=1e-12)
     np.testing.assert_allclose(rel[["ref_u", "ref_v"]], np.column_stack([0.1 * k, np.zeros(5)]),
                                atol=1e-12)  # fmt: skip
-    assert list(summary.model_dump()) == ["mode", "plane", "n", "distance_m",
-                                          "abs_heading_error_deg", "alignment"]
+    assert list(summary.model_dump())[:6] == ["mode", "plane", "n", "distance_m",
+                                              "abs_heading_error_deg", "alignment"]  # seed's first
     assert summary["mode"] == "trajectory" and summary["plane"] == "xz" and summary["n"] == 5
     assert summary["alignment"].model_dump() == ALIGNMENT
     a = np.abs(heading)  # 20, 10, 30, 179, 90

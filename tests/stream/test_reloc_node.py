@@ -11,6 +11,7 @@ import pytest
 
 from tagtrail.errors import SourceError
 from tagtrail.geometry import se3
+from tagtrail.geometry.association import TrackParams
 from tagtrail.geometry.reference_path import reference_plane
 from tagtrail.geometry.registration import Alignment, world_transform
 from tagtrail.schemas.artifacts import poses
@@ -65,7 +66,7 @@ def test_drive_along_long_reference_equals_batch_query() -> None:
     to both sides of a 200,000-sample loop, the concave side included: k* and D of each pose
     equal the batch k-d tree query over every sample."""
     ref = reference_frame(200_000)
-    node = Relocalizer(ref, "xz")
+    node = Relocalizer(ref, "xz", track=TrackParams(association="nearest"))  # Eq. 3.12
     s = np.linspace(0.0, 4 * np.pi, 1500)  # two laps
     off = 0.3 * np.sin(np.linspace(0.0, 14 * np.pi, len(s)))
     tu, tv = -1.5 * np.sin(s), np.cos(s)
