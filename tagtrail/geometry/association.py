@@ -38,13 +38,14 @@ from dataclasses import dataclass
 from typing import Literal, NamedTuple
 
 import numpy as np
-from numpy.typing import NDArray
 
 from tagtrail.geometry.arrays import F64
+from tagtrail.geometry.pathindex import SUB, _boxes, _lower_bound
 from tagtrail.geometry.reference_path import ReferencePath
 
 Association = Literal["progress", "nearest"]
 ASSOCIATIONS: tuple[str, ...] = ("progress", "nearest")
+_BRUTE_WINDOW = 2048  # windows up to this many samples are scanned whole
 
 
 @dataclass(frozen=True)
@@ -126,6 +127,8 @@ class PathTracker:
         self._seg_len = np.sqrt(path.seg_len2).tolist()
         self._uv = path.uv.tolist()
         self._prev: int | None = None
+        self._boxes: tuple[F64, ...] | None = None  # built on the first long window
+        self._in_sub = np.arange(SUB)
         # a loop (ends within reacquire_m): progress goes on from the end to the start
         self.closed = bool(np.hypot(*(path.uv[-1] - path.uv[0])) <= self.params.reacquire_m)
 
@@ -146,19 +149,14 @@ class PathTracker:
         lo = int(np.searchsorted(self.s, s0 - p.search_back_m, "left"))
         hi = int(np.searchsorted(self.s, s0 + p.search_ahead_m, "right"))
         lo, hi = min(lo, self._prev), max(hi, self._prev + 1)
-        idx: slice | NDArray[np.int64] = slice(lo, hi)
+        d2, k = self._nearest_in(u, v, lo, hi, self._prev)
         over = s0 + p.search_ahead_m - self._s[-1]
-        if over > 0 and self.closed:  # a loop: the window goes on from the start
-            wrap = int(np.searchsorted(self.s, over, "right"))
-            idx = np.concatenate([np.arange(lo, hi), np.arange(0, min(wrap, lo))])
-        d2 = self.path._u[idx] - u
-        dv = self.path._v[idx] - v
-        d2 *= d2
-        dv *= dv
-        d2 += dv
-        j = int(d2.argmin())  # the first minimum: this lap's end before the next lap's start
-        k = lo + j if isinstance(idx, slice) else int(idx[j])
-        d = math.sqrt(float(d2[j]))
+        if over > 0 and self.closed and lo > 0:  # a loop: the window goes on from the start
+            wrap = min(int(np.searchsorted(self.s, over, "right")), lo)
+            d2w, kw = self._nearest_in(u, v, 0, wrap, 0) if wrap > 0 else (math.inf, 0)
+            if d2w < d2:  # a tie keeps this lap's end before the next lap's start
+                d2, k = d2w, kw
+        d = math.sqrt(d2)
         again = False
         if d > p.reacquire_m:  # else no sample elsewhere can be reacquire_m nearer
             dg, kg = self.path.nearest_sample(u, v)
@@ -166,6 +164,41 @@ class PathTracker:
                 k, d, again = kg, dg, kg != k
         self._prev = k
         return k, d, again
+
+    def _nearest_in(self, u: float, v: float, lo: int, hi: int, hint: int) -> tuple[float, int]:
+        """``(D², k)`` of the sample nearest ``(u, v)`` among ``lo … hi−1`` (ties → the lowest
+        index); ``hint`` (in the range) bounds the answer. Long ranges (a dense reference) scan
+        only the runs of ``SUB`` samples whose bounding box can beat the hint (exact)."""
+        path = self.path
+        if hi - lo <= _BRUTE_WINDOW:
+            d2 = path._u[lo:hi] - u
+            dv = path._v[lo:hi] - v
+            d2 *= d2
+            dv *= dv
+            d2 += dv
+            j = int(d2.argmin())
+            return float(d2[j]), lo + j
+        if self._boxes is None:
+            n = len(path._u)
+            pad = -(-n // SUB) * SUB
+            pu, pv = np.full(pad, np.inf), np.full(pad, np.inf)
+            pu[:n], pv[:n] = path._u, path._v
+            self._boxes = _boxes(pu, pv, SUB)
+        hu, hv = self._uv[hint]
+        ub = (hu - u) ** 2 + (hv - v) ** 2
+        ub += ub * 1e-9 + 1e-300  # the boxes' rounding must never exclude the answer
+        b0, b1 = lo // SUB, (hi - 1) // SUB + 1
+        lb = _lower_bound(tuple(b[b0:b1] for b in self._boxes), u, v)
+        runs = (lb <= ub).nonzero()[0] + b0
+        idx = (runs[:, None] * SUB + self._in_sub).ravel()  # ascending
+        idx = idx[(idx >= lo) & (idx < hi)]
+        d2 = path._u[idx] - u
+        dv = path._v[idx] - v
+        d2 *= d2
+        dv *= dv
+        d2 += dv
+        j = int(d2.argmin())
+        return float(d2[j]), int(idx[j])
 
     def track(self, u: float, v: float, heading_rad: float, k: int | None = None) -> Track:
         """The pose at ``(u, v)`` (m) with heading ``heading_rad`` against the reference:

@@ -33,6 +33,8 @@ TYPES = {
     "current_pose": "geometry_msgs/msg/PoseStamped",
     "nearest_pose": "geometry_msgs/msg/PoseStamped",
     "markers": "visualization_msgs/msg/MarkerArray", "reference_path": "nav_msgs/msg/Path",
+    "cross_track_m": "std_msgs/msg/Float64", "progress_m": "std_msgs/msg/Float64",
+    "curvature_1pm": "std_msgs/msg/Float64", "lookahead_pose": "geometry_msgs/msg/PoseStamped",
 }  # fmt: skip
 SUBPROTOCOL = "foxglove.sdk.v1"  # what foxglove-sdk's server accepts (and the Foxglove app sends)
 Got = dict[str, list[tuple[int, bytes]]]  # channel topic → [(log time ns, payload)]
