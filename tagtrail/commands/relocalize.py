@@ -143,7 +143,7 @@ def summary_text(summary: dict[str, Any], reloc: pd.DataFrame, out: Path) -> str
     lines = [f"relocalization: {summary['mode']} mode ({how}), plane {summary['plane']}, "
              f"n={summary['n']}"]  # fmt: skip
     ref_heading = ("the nearest segment's heading" if summary.get("ref_heading") == "segment"
-                   else "the path's heading at the sample (centred difference)")
+                   else "the path's heading at the sample, by centred difference")
     if summary["n"] == 1:
         phi = float(reloc["heading_error_deg"].iloc[0])
         cross = float(reloc["cross_track_m"].iloc[0])

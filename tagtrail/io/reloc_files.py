@@ -22,6 +22,7 @@ from numpy.typing import ArrayLike
 from tagtrail.errors import SourceError, one_line
 from tagtrail.geometry.reference_path import reference_plane
 from tagtrail.io.layouts import atomic_write, atomic_write_text
+from tagtrail.io.reloc_plots import map_figure, point_figure, timeline_figure
 from tagtrail.schemas.artifacts import poses
 
 RELOC_HEADER = [
@@ -94,25 +95,16 @@ def _save(fig: Figure, path: Path) -> None:
 
 
 def write_relocalization_png(path: Path, reloc: pd.DataFrame, title: str = "") -> None:
-    """``relocalization.png``: D(t) (m) and phi(t) (deg) against ``t_rel_s``."""
-    fig = Figure(figsize=(8.0, 5.0), dpi=100, layout="constrained")
-    ax_d, ax_p = fig.subplots(2, 1, sharex=True)
-    t = reloc["t_rel_s"].to_numpy(np.float64)
-    style = {"marker": "o", "markersize": 3} if len(t) < 50 else {}
-    ax_d.plot(t, reloc["distance_m"].to_numpy(np.float64), color="tab:blue", **style)
-    ax_p.plot(t, reloc["heading_error_deg"].to_numpy(np.float64), color="tab:orange", **style)
-    ax_p.axhline(0.0, color="0.6", linewidth=0.8)
-    if len(t) == 1:  # point mode: one value each, say it in words too
-        d, p = float(reloc["distance_m"].iloc[0]), float(reloc["heading_error_deg"].iloc[0])
-        ax_d.annotate(f"D = {d:.4f} m", (t[0], d), xytext=(8, 0), textcoords="offset points")
-        ax_p.annotate(f"phi = {p:+.2f} deg", (t[0], p), xytext=(8, 0), textcoords="offset points")
-    ax_d.set_ylabel("D [m]")
-    ax_p.set_ylabel("phi [deg]")
-    ax_p.set_xlabel("time since the query's first pose [s]")
-    for ax in (ax_d, ax_p):
-        ax.grid(alpha=0.3)
-    ax_d.set_title(title or "distance and heading error to the reference")
-    _save(fig, path)
+    """``relocalization.png`` of trajectory mode: D(t) (m), phi(t) (deg), cross-track (m)."""
+    _save(timeline_figure(reloc, title), path)
+
+
+def write_point_png(path: Path, row: pd.Series, ref_uv: ArrayLike, query_uv: ArrayLike,
+                    query_heading_rad: ArrayLike, axis_names: tuple[str, str] = ("u", "v"),
+                    flip_v: bool = False, title: str = "") -> None:  # fmt: skip
+    """``relocalization.png`` of point mode: the close-up of :func:`reloc_plots.point_figure`."""
+    _save(point_figure(row, ref_uv, query_uv, query_heading_rad, axis_names, flip_v, title),
+          path)  # fmt: skip
 
 
 def write_map_png(
@@ -127,65 +119,27 @@ def write_map_png(
     title: str = "",
     weak_tags: ArrayLike | None = None,
     tag_std_m: ArrayLike | None = None,
+    ref_heading_rad: ArrayLike | None = None,
+    photos: bool | None = None,
 ) -> None:
     """``map.png``: the plane seen from above, (u, v) in m.
 
-    ``ref_uv (N, 2)`` reference path; ``query_uv (M, 2)`` every (aligned) query pose; ``reloc``
+    ``ref_uv (N, 2)`` reference path (or photos: drawn as separate camera views with their
+    headings ``ref_heading_rad (N,)``; ``photos`` None = decided by
+    :func:`reloc_plots.is_photo_set`); ``query_uv (M, 2)`` every (aligned) query pose; ``reloc``
     the report rows (evaluated poses, headings, nearest reference points → links); ``tags_uv
     (K, 2)`` with ``tag_ids``; ``weak_tags (K,)`` (bool) are drawn apart as poorly constrained,
     labelled with their position standard deviation ``tag_std_m (K,)``. ``flip_v`` draws v
     downwards (when the normal points down, so that the picture is seen from above rather than
     from below).
     """
-    ref = np.asarray(ref_uv, dtype=np.float64).reshape(-1, 2)
-    qry = np.asarray(query_uv, dtype=np.float64).reshape(-1, 2)
-    pq = reloc[["query_u", "query_v"]].to_numpy(np.float64)
-    pr = reloc[["ref_u", "ref_v"]].to_numpy(np.float64)
-    fig = Figure(figsize=(7.5, 6.5), dpi=100, layout="constrained")
-    ax = fig.subplots()
-    ax.plot(ref[:, 0], ref[:, 1], color="black", linewidth=1.8, label="reference path", zorder=2)
-    ax.plot(*ref[0], marker="^", color="green", markersize=8, linestyle="", label="start")
-    ax.plot(*ref[-1], marker="x", color="black", markersize=8, linestyle="", label="end")
-    if tags_uv is not None and len(tag_ids):
-        tags = np.asarray(tags_uv, dtype=np.float64).reshape(-1, 2)
-        weak = (np.zeros(len(tags), bool) if weak_tags is None
-                else np.asarray(weak_tags, bool).reshape(-1))
-        std = (np.full(len(tags), np.nan) if tag_std_m is None
-               else np.asarray(tag_std_m, np.float64).reshape(-1))
-        ax.scatter(tags[~weak, 0], tags[~weak, 1], marker="s", s=24, color="tab:orange",
-                   label="tags")
-        if weak.any():
-            ax.scatter(tags[weak, 0], tags[weak, 1], marker="s", s=40, facecolors="none",
-                       edgecolors="tab:red", linewidths=1.5, label="poorly constrained tags")
-        for (u, v), k, w, sd in zip(tags, tag_ids, weak, std, strict=True):
-            text = f"{k} (±{100 * sd:.1f} cm)" if w and np.isfinite(sd) else str(k)
-            ax.annotate(text, (u, v), xytext=(0, 5), textcoords="offset points",
-                        ha="center", fontsize=7, color="tab:red" if w else "#3a4a6a")
-    ax.scatter(qry[:, 0], qry[:, 1], s=6, color="tab:blue", alpha=0.5, label="query poses")
-    step = max(1, len(pq) // 120)
-    links = np.stack([pq[::step], pr[::step]], axis=1)  # (L, 2, 2)
-    for a, b in links:
-        ax.plot([a[0], b[0]], [a[1], b[1]], color="tab:red", linewidth=0.8, alpha=0.6, zorder=1)
-    span = float(np.ptp(np.vstack([ref, qry]), axis=0).max()) or 1.0
-    every = max(1, len(pq) // 30)  # heading arrows: query (blue) and reference (red)
-    hq = np.radians(reloc["query_heading_deg"].to_numpy(np.float64))[::every]
-    hr = np.radians(reloc["ref_heading_deg"].to_numpy(np.float64))[::every]
-    arrow = 0.08 * span
-    for p, h, color in ((pq[::every], hq, "tab:blue"), (pr[::every], hr, "tab:red")):
-        ax.quiver(p[:, 0], p[:, 1], np.cos(h) * arrow, np.sin(h) * arrow, angles="xy",
-                  scale_units="xy", scale=1, color=color, width=0.004)  # fmt: skip
-    if len(pq) == 1:
-        ax.plot(*pq[0], marker="o", color="tab:blue", markersize=9, label="query (point)")
-        ax.plot(*pr[0], marker="o", color="tab:red", markersize=7, label="nearest on reference")
-    ax.set_aspect("equal", adjustable="datalim")
-    if flip_v:
-        ax.invert_yaxis()
-    ax.set_xlabel(f"{axis_names[0]} [m]")
-    ax.set_ylabel(f"{axis_names[1]} [m]" + (" (pointing down: seen from above)" if flip_v else ""))
-    ax.grid(alpha=0.3)
-    ax.legend(loc="best", fontsize=8)
-    ax.set_title(title or "reference path and query (seen from above)")
-    _save(fig, path)
+    _save(map_figure(ref_uv, query_uv, reloc, tags_uv, tag_ids, axis_names, flip_v, title,
+                     weak_tags, tag_std_m, ref_heading_rad, photos), path)  # fmt: skip
+
+
+def plane_axis_names(plane_name: str) -> tuple[str, str]:
+    """The names of a plane's in-plane axes (``auto``: u, v)."""
+    return {"xz": ("x", "z"), "xy": ("x", "y"), "yz": ("y", "z")}.get(plane_name, ("u", "v"))
 
 
 def write_outputs(
@@ -200,21 +154,29 @@ def write_outputs(
     """Write SPEC's relocalization files into ``out`` (also used by the pipeline's exports)."""
     plane = reference_plane(plane_name, *poses(ref_traj))
     ref_P, ref_R = poses(ref_traj)
-    names = {"xz": ("x", "z"), "xy": ("x", "y"), "yz": ("y", "z")}.get(plane_name, ("u", "v"))
+    names = plane_axis_names(plane_name)
     # v is drawn downwards when the normal points along the cameras' "down" (seen from above)
     flip_v = bool(plane.n @ ref_R[:, :, 1].mean(axis=0) > 0)
     d, p = summary["distance_m"], summary["abs_heading_error_deg"]
-    title = f"{summary['mode']} mode, plane {plane_name}: " + (
+    assoc = summary.get("association")
+    how = f" ({assoc} association)" if summary["mode"] == "trajectory" and assoc else ""
+    title = f"{summary['mode']} mode{how}, plane {plane_name}: " + (
         f"D {d['mean']:.4f} m, phi {reloc['heading_error_deg'].iloc[0]:+.2f} deg"
         if len(reloc) == 1
         else f"D mean {d['mean']:.3f} m, |phi| mean {p['mean']:.2f} deg"
     )
     write_relocalization_csv(out / "relocalization.csv", reloc)
     write_summary_json(out / "summary.json", summary)
-    write_relocalization_png(out / "relocalization.png", reloc, title)
+    q_P, q_R = poses(q_traj)
+    if summary["mode"] == "point":
+        write_point_png(out / "relocalization.png", reloc.iloc[0], plane.to_uv(ref_P),
+                        plane.to_uv(q_P), plane.heading(q_R), names, flip_v,
+                        title + "\nparked pose against the nearest segment")  # fmt: skip
+    else:
+        write_relocalization_png(out / "relocalization.png", reloc, title)
     tags_uv = None if ref_tags is None else plane.to_uv(ref_tags[["x_m", "y_m", "z_m"]].to_numpy())
     write_map_png(
-        out / "map.png", plane.to_uv(ref_P), plane.to_uv(poses(q_traj)[0]), reloc,
+        out / "map.png", plane.to_uv(ref_P), plane.to_uv(q_P), reloc,
         tags_uv, [] if ref_tags is None else ref_tags["tag_id"].astype(int).tolist(),
-        names, flip_v, title,
+        names, flip_v, title, ref_heading_rad=plane.heading(ref_R),
     )  # fmt: skip

@@ -24,6 +24,7 @@ from tagtrail.geometry.bundle import SHIFT_SIGMA_BOUND
 from tagtrail.geometry.reference_path import reference_plane
 from tagtrail.io import layouts, reloc_files
 from tagtrail.io.layouts import atomic_write_text
+from tagtrail.io.reloc_plots import is_photo_set
 from tagtrail.runner.cache import (
     canonical_json,
     file_sha256,
@@ -37,6 +38,8 @@ from tagtrail.schemas.artifacts import EVIDENCE_COLS, columns, per_frame, poses
 from tagtrail.stages import optimize
 
 STAMP = ".tagtrail-export.json"
+#: stages whose parameters the exporters read (``get("params", stage)``); in the export stamp
+DRAWN_WITH = ("report",)
 
 
 def _hashes(folder: Path) -> dict[str, str]:
@@ -72,7 +75,10 @@ def _export(runner: Runner, force: bool) -> dict[str, Path]:
     for dataset in runner.pipe.datasets:
         used = sorted(f"{st}/{ds}/{k}" for (st, ds), k in keys.items()
                       if ds in (dataset, runner.pipe.reference))
-        stamp = sha256_text(canonical_json({"code": code, "artifacts": used}))
+        # the parameters the exporters draw with (report.plane for map.png): a change redraws
+        drawn = {st: runner.pipe.params_for(st, dataset).model_dump(mode="json")
+                 for st in DRAWN_WITH if st in runner.pipe.stages}  # fmt: skip
+        stamp = sha256_text(canonical_json({"code": code, "artifacts": used, "params": drawn}))
         folder = inside(runner.pipe.outputs, dataset)
         clean_temp_files(folder)
         if not force and _unchanged(folder, stamp):
@@ -88,6 +94,8 @@ def _export(runner: Runner, force: bool) -> dict[str, Path]:
             cache: dict[Any, Any] = cache,
         ) -> Any:
             ds = runner.pipe.reference if reference else dataset
+            if stage == "params":  # get("params", STAGE): the stage's parameters (DRAWN_WITH)
+                return runner.pipe.params_for(output, ds) if output in DRAWN_WITH else None
             key = keys.get((stage, ds))
             if key is None or output not in runner.pipe.stages[stage].outputs:
                 return None
@@ -231,22 +239,29 @@ def diagnostics(get: Getter, folder: Path, dataset: str) -> bool:
 
 
 def recording_map(get: Getter, folder: Path, dataset: str) -> bool:
-    """``map.png`` of a recording: its tags and trajectory seen from above (plane auto)."""
+    """``map.png`` of a recording: its tags and trajectory (or photos: camera views) seen from
+    above, in the plane of ``report.plane``."""
     from tagtrail.io import reloc_files
 
     traj, tags = get("smooth", "trajectory"), get("optimize", "tag_map")
     if traj is None or tags is None or len(traj) < 2 or get("report", "summary") is not None:
         return False
-    plane = reference_plane("auto", *poses(traj))
+    report = get("params", "report")
+    plane_name = str(getattr(report, "plane", "auto"))
     P, R = poses(traj)
+    plane = reference_plane(plane_name, P, R)
     flip_v = bool(plane.n @ R[:, :, 1].mean(axis=0) > 0)
     empty = pd.DataFrame({c: np.zeros(0) for c in columns("report.relocalization")})
+    uv = plane.to_uv(P)
+    what = "camera views" if is_photo_set(uv) else "trajectory"
     reloc_files.write_map_png(
-        folder / "map.png", plane.to_uv(P), np.zeros((0, 2)), empty,
+        folder / "map.png", uv, np.zeros((0, 2)), empty,
         plane.to_uv(tags[["x_m", "y_m", "z_m"]].to_numpy()), tags["tag_id"].astype(int).tolist(),
-        ("u", "v"), flip_v, f"{dataset}: trajectory and tag map (plane auto, seen from above)",
+        reloc_files.plane_axis_names(plane_name), flip_v,
+        f"{dataset}: {what} and tag map (plane {plane_name}, seen from above)",
         weak_tags=optimize.poorly_constrained(tags),
         tag_std_m=tags["std_pos_m"].to_numpy(np.float64) if "std_pos_m" in tags else None,
+        ref_heading_rad=plane.heading(R),
     )  # fmt: skip
     return True
 
