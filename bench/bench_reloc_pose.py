@@ -48,7 +48,8 @@ sys.path.insert(0, str(ROOT))
 from bench_stream import queries  # noqa: E402
 
 from tagtrail.geometry.se3 import R_from_quat_xyzw  # noqa: E402
-from tagtrail.stream import codec, relocalize  # noqa: E402
+from tagtrail.stream import codec  # noqa: E402
+from tagtrail.stream import reloc_node as relocalize  # noqa: E402
 from tests.stream.cases import reference_frame  # noqa: E402
 
 BUDGET_US = 1e6 / 2000.0  # one pose's share of a second at 2,000 poses/s
