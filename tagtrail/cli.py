@@ -14,6 +14,7 @@ from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import TYPE_CHECKING
 
+from tagtrail import signals
 from tagtrail.errors import TagtrailError, one_line, report, storage_error
 
 if TYPE_CHECKING:
@@ -233,7 +234,8 @@ def run_command(command: Callable[[], int]) -> int:
     """Run ``command`` and return its exit code; every entry point (``tagtrail …`` and the
     standalone ``python -m`` modules) goes through here. A :class:`TagtrailError` is one
     ``error:`` line and its exit code (2 user error, 1 failure), a refused write (full disk,
-    read-only) one line and 2, Ctrl-C 130, anything else one line plus a traceback file, 1."""
+    read-only) one line and 2, Ctrl-C 130 and ``interrupted`` (:mod:`tagtrail.signals`),
+    anything else one line plus a traceback file, 1."""
     try:
         return int(command())
     except TagtrailError as err:
@@ -243,9 +245,8 @@ def run_command(command: Callable[[], int]) -> int:
         if refused is None:
             return _unexpected(err)
         return report(refused)
-    except KeyboardInterrupt:
-        print("interrupted", file=sys.stderr)
-        return 130
+    except KeyboardInterrupt as err:  # Ctrl-C, or SIGTERM/SIGHUP under the console script
+        return signals.report(err)
     except Exception as err:  # noqa: BLE001 - unexpected: full traceback to a file, one line out
         return _unexpected(err)
 
@@ -268,7 +269,12 @@ def main_entry() -> None:
     # oversubscribes small machines (measured 2x slower optimize on 2 cores). Set before numpy.
     for var in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS"):
         os.environ.setdefault(var, "1")
-    sys.exit(main())
+    signals.install()
+    try:
+        code = main()
+    except KeyboardInterrupt as err:  # outside run_command: parsing arguments, importing
+        code = signals.report(err)
+    signals.finish(code)
 
 
 if __name__ == "__main__":

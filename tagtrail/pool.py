@@ -28,12 +28,14 @@ import signal
 import subprocess
 import sys
 import threading
+import weakref
 from collections.abc import Callable, Iterable, Iterator
 from contextlib import contextmanager
 from pathlib import Path
 from typing import Any, BinaryIO
 
 import tagtrail
+from tagtrail import signals
 
 try:
     import fcntl
@@ -60,7 +62,8 @@ class WorkerPool:
             subprocess.Popen(
                 [sys.executable, "-m", "tagtrail.pool", func],
                 stdin=subprocess.PIPE, stdout=subprocess.PIPE, env=env,
-            )
+                process_group=0,  # Ctrl-C at a terminal signals its foreground group: the
+            )  # parent alone, which stops the workers (a worker has no partial result to keep)
             for _ in range(max(1, workers))
         ]
         for p in self.procs:  # fewer context switches for MB-sized raw images (Linux)
@@ -72,6 +75,7 @@ class WorkerPool:
         self._threads: list[threading.Thread] = []
         self._closing = threading.Event()
         self._clean = True  # no task in flight: safe to reuse
+        _LIVE.add(self)
 
     def __enter__(self) -> WorkerPool:
         return self
@@ -155,6 +159,21 @@ class WorkerPool:
 
 _IDLE: dict[tuple[str, int], WorkerPool] = {}
 _IDLE_LOCK = threading.Lock()
+_LIVE: weakref.WeakSet[WorkerPool] = weakref.WeakSet()  # every open pool, for kill_workers
+
+
+def kill_workers() -> None:
+    """SIGKILL every worker of every pool of this process: how an interrupted command ends them
+    at once (a worker holds no partial result worth keeping; their tasks are lost)."""
+    for pool in list(_LIVE):
+        for p in pool.procs:
+            try:
+                p.kill()
+            except OSError:
+                pass
+
+
+signals.at_exit(kill_workers)
 
 
 @contextmanager
@@ -291,6 +310,7 @@ def _read(
 def _worker_main(func_spec: str) -> None:
     """Worker loop: read a pickled task tuple, call the function, write ``(ok, result)``."""
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # the parent handles Ctrl-C and closes pipes
+    signal.signal(signal.SIGHUP, signal.SIG_IGN)  # (a closed terminal: the parent stops)
     out: BinaryIO = os.fdopen(os.dup(1), "wb")
     os.dup2(2, 1)  # stray prints (Python or C) go to stderr, not into the result stream
     mod, _, name = func_spec.partition(":")
@@ -299,11 +319,14 @@ def _worker_main(func_spec: str) -> None:
     while True:
         try:
             task = pickle.load(inp)
-        except (EOFError, OSError):
-            break
+        except (EOFError, OSError, pickle.UnpicklingError):  # the parent closed the pipe (or
+            break  # died writing a task): no more work
         if task is None:  # end of a batch: echo the marker, stay alive for the next one
-            out.write(pickle.dumps((None, None)))
-            out.flush()
+            try:
+                out.write(pickle.dumps((None, None)))
+                out.flush()
+            except OSError:
+                os._exit(0)
             continue
         try:
             reply: tuple[bool, Any] = (True, func(*task))
@@ -313,9 +336,15 @@ def _worker_main(func_spec: str) -> None:
             data = pickle.dumps(reply, protocol=pickle.HIGHEST_PROTOCOL)
         except Exception as err:  # noqa: BLE001 - an unpicklable exception
             data = pickle.dumps((False, RuntimeError(f"{type(reply[1]).__name__}: {err}")))
-        out.write(data)
-        out.flush()
-    out.close()
+        try:
+            out.write(data)
+            out.flush()
+        except OSError:  # the parent is gone (interrupted, killed): nobody wants the result
+            os._exit(0)
+    try:
+        out.close()
+    except OSError:
+        pass
     os._exit(0)  # skip interpreter teardown (library finalizers that may crash)
 
 

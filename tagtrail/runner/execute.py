@@ -255,7 +255,8 @@ class Runner:
                     try:
                         st.rows, st.seconds = fut.result()
                         keys[node] = st.key or ""
-                    except BaseException as err:  # noqa: BLE001 - reported below, with context
+                    except Exception as err:  # noqa: BLE001 - reported below, with context
+                        # (Ctrl-C is no stage's failure: KeyboardInterrupt goes straight up)
                         st.status = "failed"
                         st.reason = f"{type(err).__name__}: {err}"
                         failure = failure or self._wrap(node, err)

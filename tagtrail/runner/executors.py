@@ -84,13 +84,14 @@ CONNECT_TIMEOUT_S = 10.0
 
 
 class SerialExecutor(cf.Executor):
-    """Runs each submitted call at once, in the caller's thread; returns a finished future."""
+    """Runs each submitted call at once, in the caller's thread; returns a finished future.
+    Ctrl-C (``KeyboardInterrupt``) is not a result of the call: it leaves ``submit`` at once."""
 
     def submit(self, fn: Callable[..., T], /, *args: Any, **kwargs: Any) -> cf.Future[T]:
         fut: cf.Future[T] = cf.Future()
         try:
             fut.set_result(fn(*args, **kwargs))
-        except BaseException as err:  # noqa: BLE001 - handed to the caller through the future
+        except Exception as err:  # noqa: BLE001 - handed to the caller through the future
             fut.set_exception(err)
         return fut
 
@@ -416,8 +417,16 @@ def open_executor(
     if kind != "dask":
         if scheduler is not None:
             raise SpecError("--scheduler needs --executor dask")
-        with make_executor(kind, jobs) as pool:
+        pool = make_executor(kind, jobs)
+        try:
             yield pool
+        except KeyboardInterrupt:  # Ctrl-C: drop the queue, do not wait for the running nodes
+            pool.shutdown(wait=False, cancel_futures=True)  # (the process ends without them:
+            raise  # tagtrail.signals)
+        except BaseException:
+            pool.shutdown(wait=True)
+            raise
+        pool.shutdown(wait=True)
         return
     with ExitStack() as stack:
         session = _SESSION.get()

@@ -1,0 +1,132 @@
+"""Ctrl-C, SIGTERM and SIGHUP end a ``tagtrail`` command within a second, with one line.
+
+SIGINT: exit 130 and ``interrupted`` on stderr; SIGTERM and SIGHUP: exit 143 / 129 (128 + the
+signal's number, as a shell reports a process it ended) and ``interrupted by SIGTERM`` /
+``interrupted by SIGHUP``. A signal the parent process set to be ignored (``nohup``, a job
+started with ``&`` by a non-interactive shell) stays ignored.
+
+The handler raises :class:`Interrupted` (a :class:`KeyboardInterrupt`) in the main thread, so
+the command unwinds through its ``finally`` blocks (temporary files removed) up to
+:func:`tagtrail.cli.run_command`, which prints the line. A watchdog thread started by the same
+signal ends the process :data:`GRACE_S` later whatever the main thread is still doing (a stage
+running in a thread, a Dask cluster closing); a second signal ends it at once. Ending there
+leaves what ``kill -9`` leaves, which every writer tolerates: artifacts and outputs are renamed
+into place whole, and the next run removes the temporary files. The handlers are installed by
+the console script only (:func:`install`); ``tagtrail.cli.main`` called in-process keeps
+Python's own Ctrl-C (a plain ``KeyboardInterrupt``, still exit 130 and one line).
+"""
+
+from __future__ import annotations
+
+import os
+import signal
+import sys
+import threading
+import time
+from collections.abc import Callable
+from types import FrameType
+from typing import NoReturn
+
+GRACE_S = 0.5  # unwinding time before the watchdog ends the process
+HANDLED = (signal.SIGINT, signal.SIGTERM, signal.SIGHUP)
+
+_lock = threading.RLock()
+_AT_EXIT: list[Callable[[], None]] = []
+_state: dict[str, object] = {"signum": None, "reported": False, "finished": False}
+
+
+class Interrupted(KeyboardInterrupt):
+    """A termination signal arrived: SIGINT, SIGTERM or SIGHUP (``signum``)."""
+
+    def __init__(self, signum: int) -> None:
+        super().__init__(signal.Signals(signum).name)
+        self.signum = signum
+
+
+def signum_of(err: BaseException) -> int:
+    """The signal behind ``err`` (a plain ``KeyboardInterrupt`` is Ctrl-C)."""
+    return err.signum if isinstance(err, Interrupted) else int(signal.SIGINT)
+
+
+def message(signum: int) -> str:
+    """The one line: ``interrupted`` for Ctrl-C, ``interrupted by SIGTERM`` for the others."""
+    if signum == signal.SIGINT:
+        return "interrupted"
+    return f"interrupted by {signal.Signals(signum).name}"
+
+
+def report(err: BaseException) -> int:
+    """Print the interrupt's line on stderr (once per process) and return its exit code."""
+    signum = signum_of(err)
+    with _lock:
+        if not _state["reported"]:
+            _state["reported"] = True
+            print(message(signum), file=sys.stderr, flush=True)
+    return 128 + signum
+
+
+def at_exit(callback: Callable[[], None]) -> None:
+    """Call ``callback`` just before an interrupted process ends (e.g. stop worker processes:
+    they would otherwise finish their task for nobody)."""
+    _AT_EXIT.append(callback)
+
+
+def _end(code: int) -> NoReturn:
+    for callback in _AT_EXIT:
+        try:
+            callback()
+        except Exception:  # noqa: BLE001 - ending anyway
+            pass
+    _flush()
+    os._exit(code)
+
+
+def leave(signum: int) -> NoReturn:
+    """Report the interrupt (unless done already) and end the process now."""
+    with _lock:
+        report(Interrupted(signum))
+        _end(128 + signum)
+
+
+def _flush() -> None:
+    for stream in (sys.stdout, sys.stderr):
+        try:
+            stream.flush()
+        except (OSError, ValueError):  # a closed pipe: nothing more to say
+            pass
+
+
+def _watchdog(signum: int) -> None:
+    time.sleep(GRACE_S)
+    leave(signum)
+
+
+def _handler(signum: int, _frame: FrameType | None) -> None:
+    with _lock:
+        first = _state["signum"] is None and not _state["finished"]
+        if first:
+            _state["signum"] = signum
+    if not first:  # a second signal, or one after the command finished
+        leave(signum)
+    threading.Thread(target=_watchdog, args=(signum,), name="tagtrail-interrupt",
+                     daemon=True).start()
+    raise Interrupted(signum)
+
+
+def install() -> None:
+    """Handle SIGINT, SIGTERM and SIGHUP as above (main thread; ignored signals stay ignored)."""
+    for sig in HANDLED:
+        if signal.getsignal(sig) is not signal.SIG_IGN:
+            signal.signal(sig, _handler)
+
+
+def finish(code: int) -> NoReturn:
+    """End the process with ``code``. After an interrupt at once (threads still running a stage
+    are abandoned, as ``kill -9`` would); else through the normal exit, where a signal now
+    ends the process with its line and code instead of a traceback."""
+    with _lock:
+        _state["finished"] = True
+        interrupted = bool(_state["reported"])
+    if interrupted:
+        _end(code)
+    sys.exit(code)
