@@ -14,7 +14,7 @@ from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import TYPE_CHECKING
 
-from tagtrail import signals
+from tagtrail import faults, signals
 from tagtrail.errors import TagtrailError, one_line, report, storage_error
 
 if TYPE_CHECKING:
@@ -269,11 +269,16 @@ def main_entry() -> None:
     # oversubscribes small machines (measured 2x slower optimize on 2 cores). Set before numpy.
     for var in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS"):
         os.environ.setdefault(var, "1")
+    from tagtrail import pool
+
     signals.install()
+    signals.at_exit(pool.kill_workers)  # interrupted: the detector workers go with the process
     try:
         code = main()
     except KeyboardInterrupt as err:  # outside run_command: parsing arguments, importing
         code = signals.report(err)
+    signals.finished()  # a signal from here on ends the process at once, with its line
+    faults.point("cli:exit")
     signals.finish(code)
 
 

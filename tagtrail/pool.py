@@ -35,7 +35,6 @@ from pathlib import Path
 from typing import Any, BinaryIO
 
 import tagtrail
-from tagtrail import signals
 
 try:
     import fcntl
@@ -164,7 +163,7 @@ _LIVE: weakref.WeakSet[WorkerPool] = weakref.WeakSet()  # every open pool, for k
 
 def kill_workers() -> None:
     """SIGKILL every worker of every pool of this process: how an interrupted command ends them
-    at once (a worker holds no partial result worth keeping; their tasks are lost)."""
+    at once (``tagtrail.signals``; a worker holds no partial result worth keeping)."""
     for pool in list(_LIVE):
         for p in pool.procs:
             try:
@@ -172,8 +171,6 @@ def kill_workers() -> None:
             except OSError:
                 pass
 
-
-signals.at_exit(kill_workers)
 
 
 @contextmanager

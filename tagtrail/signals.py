@@ -61,8 +61,20 @@ def report(err: BaseException) -> int:
     with _lock:
         if not _state["reported"]:
             _state["reported"] = True
+            _clear_progress_bars()
             print(message(signum), file=sys.stderr, flush=True)
     return 128 + signum
+
+
+def _clear_progress_bars() -> None:
+    """Erase the progress bars still drawn, so the line stands on a line of its own."""
+    tqdm = sys.modules.get("tqdm")
+    for bar in list(getattr(getattr(tqdm, "tqdm", None), "_instances", ())):
+        try:
+            bar.leave = False
+            bar.close()
+        except Exception:  # noqa: BLE001 - a bar that cannot be erased stays
+            pass
 
 
 def at_exit(callback: Callable[[], None]) -> None:
@@ -120,12 +132,19 @@ def install() -> None:
             signal.signal(sig, _handler)
 
 
-def finish(code: int) -> NoReturn:
-    """End the process with ``code``. After an interrupt at once (threads still running a stage
-    are abandoned, as ``kill -9`` would); else through the normal exit, where a signal now
-    ends the process with its line and code instead of a traceback."""
+def finished() -> None:
+    """The command is over: a signal from now on ends the process at once with its line and
+    code (no ``KeyboardInterrupt`` in the interpreter's exit: Python would die of the signal,
+    exit -2 and no line)."""
     with _lock:
         _state["finished"] = True
+
+
+def finish(code: int) -> NoReturn:
+    """End the process with ``code``. After an interrupt at once (threads still running a stage
+    are abandoned, as ``kill -9`` would); else through the normal exit (:func:`finished`)."""
+    finished()
+    with _lock:
         interrupted = bool(_state["reported"])
     if interrupted:
         _end(code)

@@ -14,6 +14,7 @@ PACKAGE = Path(__file__).resolve().parents[1] / "tagtrail"
 ALLOWED: dict[str, set[str]] = {
     "errors": set(),
     "faults": set(),
+    "signals": set(),
     "geometry": {"errors"},
     "schemas": {"errors", "geometry"},
     "vision": {"errors", "geometry", "schemas"},
