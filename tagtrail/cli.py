@@ -15,7 +15,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING
 
 from tagtrail import faults, signals
-from tagtrail.errors import TagtrailError, one_line, report, storage_error
+from tagtrail.errors import MAX_LINE, TagtrailError, abbreviate, one_line, report, storage_error
 
 if TYPE_CHECKING:
     from tagtrail.runner.execute import Runner
@@ -260,7 +260,8 @@ def _unexpected(err: BaseException) -> int:
         where = f" (traceback in {path})"
     except OSError:
         where = ""
-    print(f"error: unexpected {type(err).__name__}: {one_line(err)}{where}", file=sys.stderr)
+    what = abbreviate(one_line(err), MAX_LINE)
+    print(f"error: unexpected {type(err).__name__}: {what}{where}", file=sys.stderr)
     return 1
 
 

@@ -74,6 +74,25 @@ def storage_error(err: OSError, what: str = "") -> StorageError | None:
                         "was kept)")
 
 
+MAX_LINE = 1000  # characters of an error line: a message quoting a value never runs on
+
+
+def abbreviate(text: str, limit: int = 300) -> str:
+    """``text`` cut to ``limit`` characters, an ellipsis marking the cut."""
+    return text if len(text) <= limit else text[:limit - 1] + "…"
+
+
+def short_repr(value: object, limit: int = 80) -> str:
+    """A bounded ``repr`` for messages: nested containers shown a few levels and items deep
+    (cheap even for a value of 10^9 shared items), cut to ``limit`` characters."""
+    import reprlib
+
+    r = reprlib.Repr()  # (keyword arguments from Python 3.12)
+    r.maxlevel, r.maxstring, r.maxother = 3, limit, limit
+    r.maxtuple = r.maxlist = r.maxdict = r.maxset = r.maxfrozenset = 6
+    return abbreviate(r.repr(value), limit)
+
+
 def one_line(text: object) -> str:
     """A message folded onto one line: users and scripts read exactly one ``error:`` line."""
     return " ".join(str(text).split())
@@ -83,5 +102,5 @@ def report(err: TagtrailError, file: TextIO | None = None) -> int:
     """Print ``error: <one line>`` on stderr and return the error's exit code."""
     where = getattr(err, "log_path", None)
     tail = f" (traceback in {where})" if where else ""
-    print(f"error: {one_line(err)}{tail}", file=file or sys.stderr)
+    print(f"error: {abbreviate(one_line(err), MAX_LINE)}{tail}", file=file or sys.stderr)
     return err.exit_code

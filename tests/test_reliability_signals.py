@@ -289,3 +289,205 @@ def test_ctrl_c_in_other_commands(dets, tmp_path, command):
         assert not (project / target).exists(), f"{target} written although interrupted"
     assert stray(project) == []
     assert tagtrail(project, *args).returncode == 0
+
+
+# --- 11, 13. Every parameter has a range, checked at load -------------------------------------
+
+def _bounded(annotation: object, metadata: list[object], where: str, found: list[str]) -> None:
+    """Walk a field's type: every int/float leaf needs a lower and an upper bound (its own
+    ``Annotated`` metadata, or the field's when the leaf is the field itself)."""
+    import types
+    import typing
+
+    import annotated_types as at
+    from pydantic import BaseModel
+    from pydantic.fields import FieldInfo
+
+    origin = typing.get_origin(annotation)
+    if origin is typing.Annotated:
+        base, *meta = typing.get_args(annotation)
+        flat = [x for m in meta for x in (m.metadata if isinstance(m, FieldInfo) else [m])]
+        _bounded(base, [*metadata, *flat], where, found)
+        return
+    if origin in (typing.Union, types.UnionType):
+        for arg in typing.get_args(annotation):
+            _bounded(arg, metadata, where, found)
+        return
+    if origin in (tuple, list, dict):
+        for arg in typing.get_args(annotation):
+            if arg is not Ellipsis:
+                _bounded(arg, [], where, found)  # container items: their own bounds
+        return
+    if isinstance(annotation, type) and issubclass(annotation, BaseModel):
+        for name, f in annotation.model_fields.items():
+            _bounded(f.annotation, list(f.metadata), f"{where}.{name}", found)
+        return
+    if annotation in (int, float):
+        low = any(isinstance(m, at.Ge | at.Gt) for m in metadata)
+        high = any(isinstance(m, at.Le | at.Lt) for m in metadata)
+        if not (low and high):
+            found.append(f"{where} ({annotation.__name__}: {'no lower ' if not low else ''}"
+                         f"{'no upper ' if not high else ''}bound)")
+
+
+def numeric_fields() -> list[tuple[str, str]]:
+    from tagtrail.stages import REGISTRY
+
+    out = []
+    for stage, module in REGISTRY.items():
+        for name, f in module.Params.model_fields.items():
+            text = str(f.annotation)
+            if ("int" in text or "float" in text) and "Config" not in text:  # a number here
+                out.append((stage, name))
+    return out
+
+
+def test_every_numeric_parameter_has_a_finite_range() -> None:
+    """Walks every stage's Params (nested models, tuples, dicts): a new number without a range
+    fails here."""
+    from tagtrail.schemas.pipeline import KnownTag, SurveyConfig, TagSizesFile
+    from tagtrail.stages import REGISTRY
+
+    missing: list[str] = []
+    for stage, module in REGISTRY.items():
+        for name, f in module.Params.model_fields.items():
+            _bounded(f.annotation, list(f.metadata), f"{stage}.{name}", missing)
+    for model in (KnownTag, SurveyConfig, TagSizesFile):
+        _bounded(model, [], model.__name__, missing)
+    assert not missing, "parameters without a range:\n" + "\n".join(missing)
+    assert len(numeric_fields()) >= 40  # the walk saw the numbers (not an empty registry)
+
+
+@pytest.fixture
+def project(dets, tmp_path, monkeypatch) -> Path:
+    monkeypatch.chdir(new_project(tmp_path / "p", dets))
+    return tmp_path / "p"
+
+
+@pytest.mark.parametrize(("stage", "param"), numeric_fields())
+def test_out_of_range_override_is_one_line_naming_s(project, capsys, stage, param) -> None:
+    """``-S stage.param=1e300`` (and -1e300): exit 2, one ``error:`` line naming the -S, at load
+    (``dag`` runs nothing). Was: a segfault in the detector (extract.quad_decimate=300),
+    LinAlgError in optimize (pnp.tag_size=1e300)."""
+    from tagtrail.cli import main
+    from tagtrail.stages import REGISTRY
+
+    f = REGISTRY[stage].Params.model_fields[param]
+    text = str(f.annotation)
+    if "tuple" in text and "int" in text:
+        values = ["[10000000000]", "[-1]"]
+    elif "tuple" in text:
+        values = ["[1e300, 1e300]", "[-1e300, 1]"]
+    elif "dict" in text:
+        values = ["{1: 1e300}", "{-1: 0.1}"]
+    else:
+        values = ["1e300", "-1e300"] if "float" in text else ["10000000000", "-10000000000"]
+    for value in values:
+        assert main(["dag", "-S", f"{stage}.{param}={value}"]) == 2, value
+        err = capsys.readouterr().err.strip().splitlines()
+        assert len(err) == 1 and err[0].startswith(f"error: -S {stage}.{param}="), err
+        assert len(err[0]) < 300, err
+
+
+def test_quad_decimate_300_and_tag_size_1e300(project) -> None:
+    """The issue's own cases through the real command, as a subprocess (no worker crash)."""
+    for s in ("extract.quad_decimate=300", "extract.quad_decimate=1e9", "pnp.tag_size=1e300"):
+        done = tagtrail(project, "run", "-S", s)
+        assert done.returncode == 2, done.stderr
+        assert done.stderr.startswith(f"error: -S {s}: ") and done.stderr.count("\n") == 1
+    assert not (project / "artifacts" / "objects").exists()  # refused before any work
+
+
+def test_out_of_range_in_the_pipeline_file_names_the_file(project, capsys) -> None:
+    from tagtrail.cli import main
+
+    doc = yaml.safe_load((project / "pipeline.yaml").read_text())
+    doc["stages"] = {"optimize": {"corner_sigma_px": 1e-300}}
+    (project / "pipeline.yaml").write_text(yaml.safe_dump(doc))
+    assert main(["status"]) == 2
+    err = capsys.readouterr().err.strip()
+    assert err.startswith("error: pipeline.yaml: stages.optimize.corner_sigma_px: "), err
+
+
+# --- 10. YAML alias bombs, bounded messages ---------------------------------------------------
+
+def bomb(levels: int) -> str:
+    lines = ["reference: reference", "datasets:", "  reference: {source: bags}",
+             "x0: &x0 [0.1, 0.1, 0.1, 0.1, 0.1, 0.1, 0.1, 0.1, 0.1]"]
+    lines += [f"x{i}: &x{i} [{', '.join([f'*x{i - 1}'] * 9)}]" for i in range(1, levels)]
+    return "\n".join([*lines[:3], "stages:", f"  pnp: {{tag_size: *x{levels - 1}}}",
+                      "anchors:", *("  " + ln for ln in lines[3:])]) + "\n"
+
+
+@pytest.mark.parametrize("levels", [6, 7, 9])
+def test_yaml_alias_bomb_is_refused_fast_in_one_short_line(project, capsys, levels) -> None:
+    """Was: 9 levels ``unexpected MemoryError`` after 56 s; 7 levels a 58 MB ``error:`` line."""
+    from tagtrail.cli import main
+
+    text = bomb(levels)
+    assert len(text) < 1000
+    (project / "pipeline.yaml").write_text(text)
+    t0 = time.monotonic()
+    assert main(["status"]) == 2
+    took = time.monotonic() - t0
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith("error: pipeline.yaml: "), err
+    assert len(err[0]) < 300, len(err[0])
+    assert took < 5.0, took
+    if 9 ** levels > 1_000_000:
+        assert "alias" in err[0], err
+
+
+@pytest.mark.parametrize("text", [
+    "a: &a [*a]\n",  # a recursive alias
+    "x: " + "[" * 5000 + "]" * 5000 + "\n",  # nested too deeply
+])
+def test_yaml_recursion_is_refused(project, capsys, text) -> None:
+    from tagtrail.cli import main
+
+    (project / "pipeline.yaml").write_text(text)
+    assert main(["status"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith("error: pipeline.yaml: "), err
+
+
+def test_a_huge_value_in_an_error_is_abbreviated(project, capsys) -> None:
+    from tagtrail.cli import main
+
+    value = "[" + ", ".join(["0.1"] * 200_000) + "]"
+    assert main(["dag", "-S", f"pnp.tag_size={value}"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and len(err[0]) < 400, len(err[0])
+
+
+# --- 13. Wiring an artifact of the wrong kind; simulate --size --------------------------------
+
+@pytest.mark.parametrize(("key", "ref", "says"), [
+    ("trajectory.tag_map", "reference:pnp.observations", "takes a tag_map artifact"),
+    ("align.tag_map", "reference:optimize.report", "takes a tag_map artifact"),
+    ("trajectory.tag_map", "reference:optimize.tagmap", "has no output 'tagmap'"),
+    ("trajectory.tag_map", "source", "takes optimize.tag_map only"),
+])
+def test_input_of_the_wrong_kind_is_refused_at_load(project, capsys, key, ref, says) -> None:
+    """Was: ``KeyError: 'tag_id'`` deep in trajectory, rc 1."""
+    from tagtrail.cli import main
+
+    doc = yaml.safe_load((project / "pipeline.yaml").read_text())
+    doc["datasets"]["query"]["inputs"] = {key: ref}
+    (project / "pipeline.yaml").write_text(yaml.safe_dump(doc))
+    assert main(["run"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and f"datasets.query.inputs: {key}" in err[0] and says in err[0], err
+    assert not (project / "artifacts" / "objects").exists()
+
+
+@pytest.mark.parametrize("args", [["--size", "20000x20000"], ["--frames", "0"],
+                                  ["--fps", "nan"], ["--tag-size", "1e300"]])
+def test_simulate_absurd_sizes_are_one_line(tmp_path, capsys, args) -> None:
+    """Was: ``simulate --size 20000x20000``: ``MemoryError``."""
+    from tagtrail.cli import main
+
+    assert main(["simulate", "room", "-o", str(tmp_path / "sim"), *args]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith(f"error: {args[0]}: "), err
+    assert not (tmp_path / "sim").exists()

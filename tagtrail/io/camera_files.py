@@ -28,6 +28,7 @@ from tagtrail.errors import SourceError
 from tagtrail.geometry.arrays import F64
 from tagtrail.geometry.camera import CameraModel
 from tagtrail.io.layouts import load_yaml, yaml_error_text
+from tagtrail.schemas.ranges import check_expansion
 
 _ROS_KEYS = ("image_width", "image_height", "camera_matrix", "distortion_model",
              "distortion_coefficients")  # fmt: skip
@@ -87,10 +88,13 @@ def _load(path: Path) -> Any:
         return load_yaml(path, "camera file")
     body = text.lstrip().split("\n", 1)[1] if "\n" in text.lstrip() else ""
     try:
-        return yaml.load(body, Loader=_OpenCVLoader)  # a SafeLoader plus !!opencv-matrix
+        doc = yaml.load(body, Loader=_OpenCVLoader)  # a SafeLoader plus !!opencv-matrix
+        return check_expansion(doc)
     except yaml.YAMLError as err:
         raise SourceError(f"{path}: not valid OpenCV YAML (camera file): "
                           f"{yaml_error_text(err)}") from err
+    except (ValueError, RecursionError) as err:
+        raise SourceError(f"{path}: refused (camera file): {err or 'nested too deeply'}") from err
 
 
 class _OpenCVLoader(yaml.SafeLoader):

@@ -25,6 +25,7 @@ from numpy.typing import NDArray
 from tagtrail import faults
 from tagtrail.errors import SourceError, one_line
 from tagtrail.schemas.artifacts import EVIDENCE_COLS, POSE_COLS
+from tagtrail.schemas.ranges import check_expansion
 
 TRAJ_COLS = ["t_ns", *POSE_COLS]
 TAG_COLS = ["tag_id", *POSE_COLS, "n_obs"]
@@ -408,11 +409,13 @@ def yaml_error_text(err: yaml.YAMLError) -> str:
 def load_yaml(f: Path, what: str) -> Any:
     """``yaml.safe_load`` of a file; a one-line :class:`SourceError` if it cannot be parsed."""
     try:
-        return yaml.safe_load(Path(f).read_text(encoding="utf-8"))
+        return check_expansion(yaml.safe_load(Path(f).read_text(encoding="utf-8")))
     except (OSError, UnicodeDecodeError) as err:
         raise SourceError(f"{f}: cannot read {what}: {one_line(err)}") from err
     except yaml.YAMLError as err:
         raise SourceError(f"{f}: not valid YAML ({what}): {yaml_error_text(err)}") from err
+    except (ValueError, RecursionError) as err:
+        raise SourceError(f"{f}: refused ({what}): {err or 'nested too deeply'}") from err
 
 
 def _yaml_number(f: Path, where: str, value: Any) -> float:

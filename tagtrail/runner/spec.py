@@ -16,10 +16,11 @@ from typing import Any
 import yaml
 from pydantic import ValidationError
 
-from tagtrail.errors import SpecError
+from tagtrail.errors import SpecError, abbreviate, short_repr
 from tagtrail.io.camera_files import split_camera_path
 from tagtrail.runner.stage import InputRef, StageSpec, stage_spec
 from tagtrail.schemas.pipeline import DatasetConfig, PipelineConfig
+from tagtrail.schemas.ranges import check_expansion
 from tagtrail.stages.base import StageParams
 
 
@@ -34,8 +35,9 @@ def _fmt_validation(where: str, err: ValidationError, fields: Iterable[str] = ()
     if e["type"] == "extra_forbidden":
         key = str(e["loc"][-1])
         return f"{where}: unknown key {loc!r}{did_you_mean(key, fields)}"
-    got = f" (got {e['input']!r})" if "input" in e and not isinstance(e["input"], dict) else ""
-    msg = str(e["msg"]).removeprefix("Value error, ")
+    got = f" (got {short_repr(e['input'])})" if "input" in e and not isinstance(
+        e["input"], dict) else ""
+    msg = abbreviate(str(e["msg"]).removeprefix("Value error, "))
     if e["type"] == "value_error":
         got = ""
     return f"{where}.{loc}: {msg}{got}" if loc else f"{where}: {msg}"
@@ -110,12 +112,17 @@ _UniqueKeyLoader.add_constructor(
 def load_yaml(text: str, where: str) -> Any:
     """Parse YAML (duplicate keys refused); errors are one :class:`SpecError` line."""
     try:
-        return yaml.load(text, Loader=_UniqueKeyLoader)  # a SafeLoader subclass: safe
+        doc = yaml.load(text, Loader=_UniqueKeyLoader)  # a SafeLoader subclass: safe
+        return check_expansion(doc)
     except yaml.YAMLError as err:
         mark = getattr(err, "problem_mark", None)
         line = f" line {mark.line + 1}:" if mark is not None else ""
         problem = getattr(err, "problem", None) or str(err).splitlines()[0]
-        raise SpecError(f"{where}:{line} invalid YAML: {problem}") from err
+        raise SpecError(f"{where}:{line} invalid YAML: {abbreviate(problem)}") from err
+    except RecursionError as err:
+        raise SpecError(f"{where}: invalid YAML: nested too deeply") from err
+    except ValueError as err:
+        raise SpecError(f"{where}: refused: {err}") from err
 
 
 def parse_override(text: str) -> tuple[str, list[str], Any]:
@@ -153,6 +160,37 @@ def _resolve_dataset(name: str, ds: DatasetConfig, root: Path, check: bool) -> D
     return ds.model_copy(update={"source": source, "camera": camera, "ground_truth": gt})
 
 
+def _origin(path: Path, given: Mapping[tuple[str, str], str], stage: str,
+            err: ValidationError) -> str:
+    """Where a bad parameter came from: the ``-S`` that set it, else the pipeline file."""
+    loc = err.errors()[0]["loc"]
+    text = given.get((stage, str(loc[0]))) if loc else None
+    return f"-S {short_repr(text, 120)[1:-1]}: " if text is not None else f"{path}: "
+
+
+def _check_kind(path: Path, dataset: str, key: str, ref: InputRef,
+                stages: Mapping[str, StageSpec]) -> None:
+    """A rewired input must name an artifact that exists and is of the kind the stage's input
+    takes (the output name of its default wiring: a ``tag_map``, a ``trajectory``, …): else
+    the stage would fail deep inside on a missing column."""
+    stage, _, arg = key.partition(".")
+    default = stages[stage].inputs[arg]
+    where = f"{path}: datasets.{dataset}.inputs: {key}: {short_repr(str(ref), 80)}"
+    if ref.special is not None or default.special is not None:
+        if ref.special != default.special:
+            raise SpecError(f"{where}: {stage}'s input {arg} takes {default} only")
+        return
+    assert ref.stage is not None and ref.output is not None
+    if ref.stage not in stages:
+        raise SpecError(f"{where}: unknown stage {ref.stage!r}{did_you_mean(ref.stage, stages)}")
+    if ref.output not in stages[ref.stage].outputs:
+        outs = ", ".join(stages[ref.stage].outputs)
+        raise SpecError(f"{where}: stage {ref.stage} has no output {ref.output!r} (it has {outs})")
+    if ref.output != default.output:
+        raise SpecError(f"{where}: {stage}'s input {arg} takes a {default.output} artifact "
+                        f"(e.g. {default}); {ref.stage}.{ref.output} is not one")
+
+
 def load_pipeline(
     path: Path,
     registry: Mapping[str, Any],
@@ -187,7 +225,10 @@ def load_pipeline(
 
     stages = {name: stage_spec(name, mod) for name, mod in registry.items()}
     raw: dict[str, dict[str, Any]] = {k: dict(v or {}) for k, v in config.stages.items()}
-    for stage, keys, value in (parse_override(o) for o in overrides):
+    given: dict[tuple[str, str], str] = {}  # (stage, param) -> the -S that set it
+    for text in overrides:
+        stage, keys, value = parse_override(text)
+        given[(stage, keys[0])] = text
         node = raw.setdefault(stage, {})
         for k in keys[:-1]:
             node = node.setdefault(k, {})
@@ -204,7 +245,7 @@ def load_pipeline(
         try:
             params[name] = spec.params_model.model_validate(raw.get(name, {}), context=ctx)
         except ValidationError as err:
-            where = f"{path}: stages.{name}"
+            where = f"{_origin(path, given, name, err)}stages.{name}"
             raise SpecError(_fmt_validation(where, err, spec.params_model.model_fields)) from err
 
     dataset_params: dict[tuple[str, str], StageParams] = {}
@@ -218,7 +259,7 @@ def load_pipeline(
                 dataset_params[(name, ds_name)] = stages[name].params_model.model_validate(
                     merged, context=ctx)
             except ValidationError as err:
-                where = f"{path}: datasets.{ds_name}.params.{name}"
+                where = f"{_origin(path, given, name, err)}datasets.{ds_name}.params.{name}"
                 fields = stages[name].params_model.model_fields
                 raise SpecError(_fmt_validation(where, err, fields)) from err
 
@@ -232,7 +273,7 @@ def load_pipeline(
                     f"{path}: datasets.{n}.inputs: {key!r} is not '<stage>.<input>'"
                     f"{did_you_mean(key, (f'{s}.{a}' for s in stages for a in stages[s].inputs))}"
                 )
-            InputRef.parse(ref)
+            _check_kind(path, n, key, InputRef.parse(ref), stages)
     config = config.model_copy(update={"datasets": datasets})
     return Pipeline(path=path, root=root, config=config, stages=stages, params=params,
                     dataset_params=dataset_params)

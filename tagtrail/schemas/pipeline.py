@@ -14,6 +14,7 @@ from pydantic import (
     BaseModel,
     ConfigDict,
     Field,
+    TypeAdapter,
     ValidationInfo,
     field_validator,
     model_validator,
@@ -21,6 +22,13 @@ from pydantic import (
 
 from tagtrail.geometry.se3 import R_from_quat_xyzw, quat_xyzw_from_R
 from tagtrail.geometry.survey import Survey, make_survey, parse_survey, parse_tag_sizes
+from tagtrail.schemas.ranges import (
+    Coordinate,
+    QuatComponent,
+    TagId,
+    TagSize,
+    check_expansion,
+)
 
 _DATASET_NAME = re.compile(r"[A-Za-z0-9_.-]+")
 
@@ -87,9 +95,16 @@ class KnownTag(BaseModel):
     quaternion (x, y, z, w; omitted = position only), ``size`` (m, optional)."""
 
     model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)
-    position: tuple[float, float, float]
-    orientation: tuple[float, float, float, float] | None = None
-    size: float | None = Field(None, gt=0.0)
+    position: tuple[Coordinate, Coordinate, Coordinate]
+    orientation: tuple[QuatComponent, QuatComponent, QuatComponent, QuatComponent] | None = None
+    size: TagSize | None = None
+
+    @field_validator("orientation")
+    @classmethod
+    def _not_zero(cls, q: tuple[float, ...] | None) -> tuple[float, ...] | None:
+        if q is not None and float(np.linalg.norm(q)) < 1e-6:
+            raise ValueError("a zero quaternion is no orientation")
+        return q
 
 
 class SurveyConfig(BaseModel):
@@ -107,12 +122,12 @@ class SurveyConfig(BaseModel):
 
     model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)
     file: str | None = None
-    tags: dict[int, KnownTag] = Field(default_factory=dict)
-    use: tuple[int, ...] | None = None
+    tags: dict[TagId, KnownTag] = Field(default_factory=dict)
+    use: tuple[TagId, ...] | None = None
     position_only: bool = False
     model: Literal["rigid", "similarity"] = "rigid"
     format: str = ""
-    known: dict[int, KnownTag] = Field(default_factory=dict)
+    known: dict[TagId, KnownTag] = Field(default_factory=dict)
 
     @model_validator(mode="after")
     def _load(self, info: ValidationInfo) -> SurveyConfig:
@@ -166,10 +181,16 @@ def _read_doc(path: Path, kind: str, param: str) -> Any:
                          "from the pipeline file's folder)")
     try:
         text = path.read_text(encoding="utf-8")
-        return json.loads(text) if path.suffix.lower() == ".json" else yaml.safe_load(text)
+        doc = json.loads(text) if path.suffix.lower() == ".json" else yaml.safe_load(text)
     except (OSError, UnicodeDecodeError, json.JSONDecodeError, yaml.YAMLError) as err:
         raise ValueError(f"{path}: cannot read the {kind} file: {str(err).splitlines()[0]}"
                          ) from err
+    except RecursionError as err:
+        raise ValueError(f"{path}: cannot read the {kind} file: nested too deeply") from err
+    try:
+        return check_expansion(doc)
+    except ValueError as err:
+        raise ValueError(f"{path}: {kind} file refused: {err}") from err
 
 
 def _read_known(path: Path) -> tuple[str, dict[int, KnownTag]]:
@@ -183,8 +204,11 @@ def _read_known(path: Path) -> tuple[str, dict[int, KnownTag]]:
     for k, i in enumerate(sv.ids.tolist()):
         q = None if not sv.full[k] else tuple(float(v) for v in quat_xyzw_from_R(sv.R[k]))
         size = float(sv.size[k]) if np.isfinite(sv.size[k]) else None
-        known[int(i)] = KnownTag(position=tuple(float(v) for v in sv.position[k]),
-                                 orientation=q, size=size)
+        try:
+            known[int(i)] = KnownTag(position=tuple(float(v) for v in sv.position[k]),
+                                     orientation=q, size=size)
+        except ValueError as err:
+            raise ValueError(f"{path}: {_first_error(err, f'tag {i}')}") from err
     return fmt, known
 
 
@@ -200,8 +224,8 @@ class TagSizesFile(BaseModel):
     model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)
     file: str
     format: str = ""
-    sizes: dict[int, float] = Field(default_factory=dict)
-    default: float | None = None
+    sizes: dict[TagId, TagSize] = Field(default_factory=dict)
+    default: TagSize | None = None
 
     @model_validator(mode="before")
     @classmethod
@@ -218,9 +242,25 @@ class TagSizesFile(BaseModel):
         doc = _read_doc(path, "tag-sizes", "pnp.tag_sizes_from")
         try:
             fmt, sizes = parse_tag_sizes(doc)
-        except (ValueError, TypeError) as err:
-            raise ValueError(f"{path}: {err}") from err
+            per_id = _SIZES.validate_python(dict(sorted(sizes.per_id.items())))
+            default = None if sizes.default is None else _SIZE.validate_python(sizes.default)
+        except (ValueError, TypeError) as err:  # a pydantic ValidationError is a ValueError
+            raise ValueError(f"{path}: {_first_error(err, 'tag size')}") from err
         object.__setattr__(self, "format", fmt)
-        object.__setattr__(self, "sizes", dict(sorted(sizes.per_id.items())))
-        object.__setattr__(self, "default", sizes.default)
+        object.__setattr__(self, "sizes", per_id)
+        object.__setattr__(self, "default", default)
         return self
+
+
+_SIZES: TypeAdapter[dict[int, float]] = TypeAdapter(dict[TagId, TagSize])
+_SIZE: TypeAdapter[float] = TypeAdapter(TagSize)
+
+
+def _first_error(err: Exception, what: str) -> str:
+    """One short line for a file's value out of range (the first of pydantic's errors)."""
+    errors = getattr(err, "errors", None)
+    if errors is None:
+        return str(err)
+    e = errors()[0]
+    where = ".".join(str(p) for p in e["loc"])
+    return f"{what} {where + ' ' if where else ''}{e['msg'].lower()} (got {e['input']!r:.40})"

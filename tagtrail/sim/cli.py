@@ -106,6 +106,16 @@ def _sizes(text: str) -> dict[int, float]:
         raise SpecError(f"--tag-sizes: cannot parse {text!r} (use e.g. 0=0.2,5=0.1)") from err
 
 
+MAX_SIDE_PX = 8192  # the live node's limit on an image's side, too
+RANGES: tuple[tuple[str, float, float], ...] = (  # a value outside: one error line
+    ("--frames", 1, 1_000_000), ("--query-frames", 1, 1_000_000), ("--fps", 0.01, 1000.0),
+    ("--speed", 1e-3, 100.0), ("--tag-size", 1e-3, 10.0), ("--jpeg-quality", 0, 100),
+    ("--noise-t", 0.0, 10.0), ("--noise-r-deg", 0.0, 180.0), ("--corner-noise", 0.0, 100.0),
+    ("--max-range", 0.01, 1000.0), ("--image-noise", 0.0, 255.0), ("--blur", 0.0, 100.0),
+    ("--exposure", 0.0, 100.0), ("--contrast", 0.0, 100.0), ("--exposure-jitter", 0.0, 10.0),
+)
+
+
 def options_from_args(args: argparse.Namespace) -> dict[str, Any]:
     """Keyword options for :func:`simulate` from parsed arguments."""
     camera = limo_camera()
@@ -116,7 +126,14 @@ def options_from_args(args: argparse.Namespace) -> dict[str, Any]:
         width, height = int(m.group(1)), int(m.group(2))
         if width < 16 or height < 16:
             raise SpecError(f"--size: {args.size} is too small (at least 16x16)")
+        if width > MAX_SIDE_PX or height > MAX_SIDE_PX:
+            raise SpecError(f"--size: {args.size[:40]} is too large (at most {MAX_SIDE_PX} px a "
+                            "side)")
         camera = camera.scaled(width, height)
+    for flag, lo, hi in RANGES:
+        v = getattr(args, flag.removeprefix("--").replace("-", "_"))
+        if v is not None and not (lo <= v <= hi):  # NaN fails too
+            raise SpecError(f"{flag}: {v:g} is out of range ({lo:g} to {hi:g})")
     return {
         "storage": args.storage, "compressed": args.compressed, "jpeg_quality": args.jpeg_quality,
         "detections": args.detections, "seed": args.seed, "force": args.force,

@@ -24,6 +24,7 @@ from tagtrail.geometry.reference_path import Plane, reference_plane
 from tagtrail.geometry.registration import MODELS, Alignment, ransac_align, world_transform
 from tagtrail.schemas.artifacts import poses
 from tagtrail.schemas.documents import AlignmentBlock
+from tagtrail.schemas.ranges import Scale
 from tagtrail.stages.base import StageParams
 
 log = logging.getLogger(__name__)
@@ -44,11 +45,11 @@ class Params(StageParams):
     align: Literal["auto", "none", "tags"] = "auto"
     model: Literal["similarity", "rigid", "se3", "sim3"] = "similarity"
     plane: Literal["auto", "xz", "xy", "yz"] = "auto"
-    ransac_threshold_m: float = Field(0.10, gt=0)
-    ransac_iterations: int = Field(300, ge=1)
-    seed: int = 0
+    ransac_threshold_m: float = Field(0.10, gt=0, le=100.0)
+    ransac_iterations: int = Field(300, ge=1, le=1_000_000)
+    seed: int = Field(0, ge=0, le=2**32 - 1)
     allow_scale: bool = False  # accept a fitted scale outside scale_range
-    scale_range: tuple[float, float] = (0.9, 1.1)
+    scale_range: tuple[Scale, Scale] = (0.9, 1.1)
 
 
 def common_tags(tag_map: pd.DataFrame, ref_tag_map: pd.DataFrame) -> tuple[F64, F64, list[int]]:

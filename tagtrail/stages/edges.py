@@ -48,6 +48,7 @@ from tagtrail.geometry.ippe import Branches, consistent_branches
 from tagtrail.geometry.se3 import T_from_xyz_quat, inv, xyz_quat_from_T
 from tagtrail.schemas.artifacts import POSE_COLS, columns
 from tagtrail.schemas.documents import TagGraph
+from tagtrail.schemas.ranges import TagId
 from tagtrail.stages.base import StageParams
 
 log = logging.getLogger(__name__)
@@ -57,11 +58,11 @@ WEAK_LINK_OBS = 3
 
 
 class Params(StageParams):
-    anchor_id: int | None = None
+    anchor_id: TagId | None = None
     """Gauge tag (world frame). None: the most observed tag, ties -> lowest id."""
     max_ambiguity: float | None = Field(0.6, gt=0.0, le=1.0)
     """Drop observations with IPPE ratio reproj/alt_reproj above this (None: keep all)."""
-    min_edge_obs: int = Field(1, ge=1)
+    min_edge_obs: int = Field(1, ge=1, le=1_000_000)
     """A tag pair needs this many co-observations to form edges."""
     weighting: Literal["uniform", "distance"] = "distance"
     branches: Literal["consistent", "best"] = "consistent"

@@ -30,7 +30,7 @@ import os
 import time
 from collections import Counter
 from collections.abc import Iterator
-from typing import Any, Literal
+from typing import Annotated, Any, Literal
 
 import numpy as np
 import pandas as pd
@@ -42,6 +42,7 @@ from tagtrail.geometry.camera import CameraModel
 from tagtrail.pool import map_tasks
 from tagtrail.schemas.artifacts import CORNER_COLS, POSE_COLS, columns
 from tagtrail.schemas.inputs import Frame, Source
+from tagtrail.schemas.ranges import TagId
 from tagtrail.stages.base import StageParams
 from tagtrail.vision.detector import FILTERS, DetectorConfig, explain_drops, filter_detections
 
@@ -57,11 +58,11 @@ AUTO_HAMMING = {"images": 0, "detections": 2}  # max_hamming: auto (its descript
 class Params(StageParams):
     """Detector settings (tag36h11, pupil-apriltags defaults) and output filters."""
 
-    quad_decimate: float = Field(2.0, ge=1.0)
-    quad_sigma: float = Field(0.0, ge=0.0)
+    quad_decimate: float = Field(2.0, ge=1.0, le=8.0)
+    quad_sigma: float = Field(0.0, ge=0.0, le=10.0)
     refine_edges: bool = True
-    decode_sharpening: float = Field(0.25, ge=0.0)
-    max_hamming: int | Literal["auto"] = Field(
+    decode_sharpening: float = Field(0.25, ge=0.0, le=10.0)
+    max_hamming: Annotated[int, Field(ge=0, le=3)] | Literal["auto"] = Field(
         "auto", description="bit errors corrected (the C library's bits_corrected, 0-3) or kept "
         "from detection messages. auto (default, on evidence, bench/bench_hamming.py): 0 for "
         "images, 2 for detection messages. No false detection at any of 0-3 on the real photos, "
@@ -71,9 +72,9 @@ class Params(StageParams):
         "hamming 1-2 (110 of 764; TagSLAM uses them) bring its trajectory from 22.1 to 12.8 mm "
         "of TagSLAM's. 3: ~5 s to build the decode table per worker")
     min_decision_margin: float = Field(
-        20.0, ge=0.0, description="drop detections whose decision margin is lower (not applied "
-        "to sources that carry no margin: TagSLAM's, Isaac ROS')")
-    tag_ids: tuple[int, ...] | None = None
+        20.0, ge=0.0, le=1000.0, description="drop detections whose decision margin is lower "
+        "(not applied to sources that carry no margin: TagSLAM's, Isaac ROS')")
+    tag_ids: tuple[TagId, ...] | None = None
     refit_corners: bool = Field(
         True, description="re-fit corners to the border's edges (io.corners); false: the "
         "detector's own")
@@ -87,10 +88,10 @@ class Params(StageParams):
         "decimated pass only")
     EXECUTION_ONLY = frozenset({"workers", "chunk_size"})  # same output whatever their values
 
-    @field_validator("max_hamming")
+    @field_validator("max_hamming", mode="before")
     @classmethod
-    def _hamming_range(cls, value: int | str) -> int | str:
-        if isinstance(value, int) and not 0 <= value <= 3:
+    def _hamming_range(cls, value: Any) -> Any:
+        if isinstance(value, int) and not isinstance(value, bool) and not 0 <= value <= 3:
             raise ValueError(f"max_hamming is 0-3 or auto (got {value})")
         return value
 
@@ -100,8 +101,8 @@ class Params(StageParams):
         """YAML 1.1 reads a bare ``off`` as false: take it as the word it was written as."""
         return "off" if value is False else value
 
-    workers: int = Field(0, ge=0, description="detector processes; 0 = all cores")
-    chunk_size: int = Field(16, ge=1, description="frames per task sent to a worker")
+    workers: int = Field(0, ge=0, le=1024, description="detector processes; 0 = all cores")
+    chunk_size: int = Field(16, ge=1, le=1024, description="frames per task sent to a worker")
 
     def detector(self, kind: str = "images") -> DetectorConfig:
         """The detector settings and filters for a source of ``kind`` (``images`` or

@@ -99,20 +99,20 @@ class Params(StageParams):
     pose graph is kept). ``pairwise``: the paper's pose graph alone (Eq. 3.4-3.7)."""
     loss: LossName = "soft_l1"
     """Robust loss on each edge's residual norm (Eq. 3.7): linear, soft_l1, huber, cauchy."""
-    f_scale: float = Field(0.1, gt=0.0)
+    f_scale: float = Field(0.1, ge=1e-6, le=100.0)
     """Residual norm (m) where the robust loss turns from quadratic to sub-quadratic."""
-    rot_weight_m: float = Field(1.0, gt=0.0)
+    rot_weight_m: float = Field(1.0, ge=1e-6, le=1000.0)
     """Metres of residual per radian of rotation residual (1.0: the paper's plain stacking)."""
-    max_nfev: int = Field(100, ge=1)
+    max_nfev: int = Field(100, ge=1, le=100_000)
     joint_loss: LossName = "huber"
     """Robust loss of the joint solve, on each tag's 8-vector of corner errors (px)."""
-    joint_f_scale_px: float = Field(1.0, gt=0.0)
+    joint_f_scale_px: float = Field(1.0, ge=1e-3, le=1000.0)
     """Corner error norm (px) where the joint solve's loss turns sub-quadratic."""
-    joint_max_iter: int = Field(50, ge=1)
-    joint_min_frames: int = Field(30, ge=1)
+    joint_max_iter: int = Field(50, ge=1, le=10_000)
+    joint_min_frames: int = Field(30, ge=1, le=10_000_000)
     """Frames seeing a mapped tag needed for the joint solve; with fewer, the pose graph is
     kept (module docstring)."""
-    corner_sigma_px: float = Field(0.5, gt=0.0)
+    corner_sigma_px: float = Field(0.5, ge=1e-3, le=100.0)
     """Corner noise (px, per coordinate) of the joint solve for a tag of 20 px sides: weighs the
     corners against the motion prior and scales the reported standard deviations."""
     corner_noise: Literal["estimated", "given"] = "given"
@@ -123,12 +123,12 @@ class Params(StageParams):
     geometry.bundle.corner_sigma); ``none``: ``corner_sigma_px`` for every tag."""
     motion: Literal["constant_velocity", "none"] = "constant_velocity"
     """Motion prior between consecutive frames of the joint solve (geometry.bundle)."""
-    motion_acc_sigma: float = Field(0.1, gt=0.0)
+    motion_acc_sigma: float = Field(0.1, ge=1e-6, le=1000.0)
     """Linear acceleration noise density of the motion prior (m/s^2/sqrt(Hz)): smaller holds
     the camera path straighter."""
-    motion_ang_sigma_deg: float = Field(30.0, gt=0.0)
+    motion_ang_sigma_deg: float = Field(30.0, ge=1e-4, le=1e5)
     """Angular acceleration noise density of the motion prior (deg/s^2/sqrt(Hz))."""
-    max_gap_s: float = Field(0.5, gt=0.0)
+    max_gap_s: float = Field(0.5, gt=0.0, le=1e6)
     """Frames further apart than this are not linked by the motion prior (gaps stay gaps)."""
     ground: Literal["auto", "plane", "none"] = "auto"
     """Ground-plane prior of the joint solve (geometry.ground): ``plane``: the camera rides at a
@@ -136,9 +136,9 @@ class Params(StageParams):
     ``auto`` (default): the same when the solution without it moves in a plane (a robot, a
     panning tripod), not for a hand-held camera (``geometry.ground.planarity``); ``none``:
     free 6-dof motion. Only with the motion prior (frames on their own get neither)."""
-    ground_height_sigma_m: float = Field(0.01, gt=0.0)
+    ground_height_sigma_m: float = Field(0.01, ge=1e-6, le=10.0)
     """How far the camera rises or sinks from its plane (m, per frame)."""
-    ground_tilt_sigma_deg: float = Field(1.0, gt=0.0)
+    ground_tilt_sigma_deg: float = Field(1.0, ge=1e-4, le=90.0)
     """How far the camera rolls or pitches from its mean tilt to the plane (deg, per frame)."""
     drive: Literal["auto", "wheeled", "free"] = "auto"
     """Wheeled-drive prior, on top of the ground plane (geometry.drive): ``wheeled``: the robot
@@ -148,7 +148,7 @@ class Params(StageParams):
     (``geometry.drive.strain`` below 2), not for a robot or camera that moves sideways
     (mecanum, omni wheels, a panning camera); ``free``: no such prior. Only where the ground
     plane is applied."""
-    drive_lateral_sigma: float = Field(0.01, gt=0.0)
+    drive_lateral_sigma: float = Field(0.01, ge=1e-6, le=100.0)
     """Lateral velocity noise density of the wheeled-drive prior (m/s/sqrt(Hz)): wheel slip and
     skid beyond the lever arm; over T seconds the camera may drift sideways this times sqrt(T)."""
     branch_check: Literal["map", "none"] = "map"
@@ -160,9 +160,9 @@ class Params(StageParams):
     rival_search: bool = True
     """Joint solve: decide the tag pairs with a close rival hypothesis (``edges.rival_pairs``)
     by the frames' continuity (``choose_hypotheses``)."""
-    rival_max_pairs: int = Field(16, ge=0)
+    rival_max_pairs: int = Field(16, ge=0, le=10_000)
     """At most this many rival pairs are tried, closest calls first."""
-    rival_max_iter: int = Field(10, ge=1)
+    rival_max_iter: int = Field(10, ge=1, le=1000)
     """Iterations of the joint solve that scores each hypothesis."""
     link_tags: bool = True
     """Joint solve: place tags the pose graph left out (never seen together with the map without

@@ -31,6 +31,7 @@ from tagtrail.geometry.ippe import ambiguity, solve_ippe
 from tagtrail.schemas.artifacts import ALT_POSE_COLS as ALT_COLS
 from tagtrail.schemas.artifacts import CORNER_COLS, POSE_COLS, columns
 from tagtrail.schemas.pipeline import TagSizesFile
+from tagtrail.schemas.ranges import TagId, TagSize
 from tagtrail.stages.base import StageParams
 
 log = logging.getLogger("tagtrail.pnp")
@@ -48,9 +49,9 @@ class Params(StageParams):
     """Tag edge length (black square, metres), with per-id overrides, from a known-poses file
     too."""
 
-    tag_size: float = Field(0.16, gt=0.0)
+    tag_size: float = Field(0.16, ge=1e-3, le=10.0)
     """The size of tags that neither ``tag_sizes`` nor ``tag_sizes_from`` gives."""
-    tag_sizes: dict[int, float] = Field(default_factory=dict)
+    tag_sizes: dict[TagId, TagSize] = Field(default_factory=dict)
     """Per-id sizes, over the file's."""
     tag_sizes_from: TagSizesFile | None = None
     """A ``tagslam.yaml`` or ``tag_map.yaml`` whose sizes are used (its per-tag sizes, then

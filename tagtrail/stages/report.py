@@ -62,14 +62,14 @@ class Params(StageParams):
 
     mode: Literal["auto", "trajectory", "point"] = "auto"
     plane: Literal["auto", "xz", "xy", "yz"] = "auto"
-    static_threshold_m: float = Field(0.20, gt=0)
+    static_threshold_m: float = Field(0.20, gt=0, le=100.0)
     association: Literal["progress", "nearest"] = "progress"
-    lookahead_m: float = Field(0.3, ge=0)
-    search_back_m: float = Field(0.2, ge=0)
-    search_ahead_m: float = Field(1.0, gt=0)
-    reacquire_m: float = Field(0.25, gt=0)
-    lost_m: float = Field(0.5, gt=0)
-    curvature_window_m: float = Field(0.1, gt=0)
+    lookahead_m: float = Field(0.3, ge=0, le=100.0)
+    search_back_m: float = Field(0.2, ge=0, le=1000.0)
+    search_ahead_m: float = Field(1.0, gt=0, le=1000.0)
+    reacquire_m: float = Field(0.25, gt=0, le=1000.0)
+    lost_m: float = Field(0.5, gt=0, le=1000.0)
+    curvature_window_m: float = Field(0.1, gt=0, le=100.0)
 
 
 def track_params(params: Params) -> TrackParams:

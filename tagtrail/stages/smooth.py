@@ -35,18 +35,18 @@ from tagtrail.stages.base import StageParams
 
 class Params(StageParams):
     method: Literal["auto", "none", "lsq"] = "auto"
-    pos_sigma_m: float = Field(0.01, gt=0.0)
+    pos_sigma_m: float = Field(0.01, ge=1e-6, le=10.0)
     """Per-frame position noise of the raw trajectory (m): weight of the position data term."""
-    rot_sigma_deg: float = Field(1.0, gt=0.0)
+    rot_sigma_deg: float = Field(1.0, ge=1e-4, le=180.0)
     """Per-frame orientation noise (deg): weight of the rotation data term."""
-    pos_acc_mps2: float = Field(0.2, gt=0.0)
+    pos_acc_mps2: float = Field(0.2, ge=1e-6, le=1000.0)
     """Standard deviation of the linear acceleration (m/s^2): smaller = smoother positions."""
-    rot_acc_dps2: float = Field(60.0, gt=0.0)
+    rot_acc_dps2: float = Field(60.0, ge=1e-4, le=1e5)
     """Standard deviation of the angular acceleration (deg/s^2): smaller = smoother rotations."""
     loss: LossName = "soft_l1"
-    f_scale: float = Field(3.0, gt=0.0)
+    f_scale: float = Field(3.0, ge=1e-3, le=1000.0)
     """Robust scale, in standard deviations of each term."""
-    max_gap_s: float = Field(1.0, gt=0.0)
+    max_gap_s: float = Field(1.0, gt=0.0, le=1e6)
     """Stamps further apart than this start a new segment (no smoothing across the gap)."""
 
 

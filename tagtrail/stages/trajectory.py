@@ -81,12 +81,12 @@ class Params(StageParams):
     method: Literal["auto", "joint", "avg", "lsq", "pnp"] = "auto"
     loss: LossName = "soft_l1"
     """Robust loss of the ``lsq`` fusion (per tag, on the 6-vector residual)."""
-    f_scale: float = Field(0.1, gt=0.0)
+    f_scale: float = Field(0.1, ge=1e-6, le=100.0)
     """Residual norm (m) where the ``lsq`` loss turns sub-quadratic."""
-    rot_weight_m: float = Field(1.0, gt=0.0)
-    ransac_px: float = Field(3.0, gt=0.0)
+    rot_weight_m: float = Field(1.0, ge=1e-6, le=1000.0)
+    ransac_px: float = Field(3.0, gt=0.0, le=1000.0)
     """``pnp``: RANSAC inlier threshold (pixels)."""
-    corner_sigma_px: float = Field(0.5, gt=0.0)
+    corner_sigma_px: float = Field(0.5, ge=1e-3, le=100.0)
     """``joint``: corner noise (px, 20 px tag), as optimize's (same default)."""
     corner_noise: Literal["estimated", "given"] = "given"
     """``estimated``: ``corner_sigma_px`` is the start, rescaled to what the corner residuals show
@@ -94,24 +94,24 @@ class Params(StageParams):
     corner_weighting: Literal["size", "none"] = "size"
     """``joint``: as optimize's."""
     joint_loss: LossName = "huber"
-    joint_f_scale_px: float = Field(1.0, gt=0.0)
-    joint_max_iter: int = Field(50, ge=1)
+    joint_f_scale_px: float = Field(1.0, ge=1e-3, le=1000.0)
+    joint_max_iter: int = Field(50, ge=1, le=10_000)
     motion: Literal["constant_velocity", "none"] = "constant_velocity"
-    motion_acc_sigma: float = Field(0.1, gt=0.0)
+    motion_acc_sigma: float = Field(0.1, ge=1e-6, le=1000.0)
     """``joint``: linear acceleration noise density (m/s^2/sqrt(Hz)), as optimize's."""
-    motion_ang_sigma_deg: float = Field(30.0, gt=0.0)
+    motion_ang_sigma_deg: float = Field(30.0, ge=1e-4, le=1e5)
     """``joint``: angular acceleration noise density (deg/s^2/sqrt(Hz)), as optimize's."""
-    max_gap_s: float = Field(0.5, gt=0.0)
+    max_gap_s: float = Field(0.5, gt=0.0, le=1e6)
     """``joint``: frames further apart than this are not linked (gaps stay gaps)."""
     ground: Literal["auto", "plane", "none"] = "auto"
     """``joint``: the ground-plane prior, as optimize's (``auto``: decided on this dataset)."""
-    ground_height_sigma_m: float = Field(0.01, gt=0.0)
+    ground_height_sigma_m: float = Field(0.01, ge=1e-6, le=10.0)
     """``joint``: as optimize's (m)."""
-    ground_tilt_sigma_deg: float = Field(1.0, gt=0.0)
+    ground_tilt_sigma_deg: float = Field(1.0, ge=1e-4, le=90.0)
     """``joint``: as optimize's (deg)."""
     drive: Literal["auto", "wheeled", "free"] = "auto"
     """``joint``: the wheeled-drive prior, as optimize's (``auto``: decided on this dataset)."""
-    drive_lateral_sigma: float = Field(0.01, gt=0.0)
+    drive_lateral_sigma: float = Field(0.01, ge=1e-6, le=100.0)
     """``joint``: as optimize's (m/s/sqrt(Hz))."""
 
 
