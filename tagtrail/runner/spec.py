@@ -128,12 +128,12 @@ def load_yaml(text: str, where: str) -> Any:
 def parse_override(text: str) -> tuple[str, list[str], Any]:
     """``stage.param[.key]=value`` → (stage, key path, YAML-parsed value)."""
     if "=" not in text:
-        raise SpecError(f"bad override {text!r}: expected stage.param=value")
+        raise SpecError(f"bad override {short_repr(text)}: expected stage.param=value")
     lhs, rhs = text.split("=", 1)
     parts = lhs.strip().split(".")
     if len(parts) < 2 or not all(parts):
-        raise SpecError(f"bad override {text!r}: expected stage.param=value")
-    value = load_yaml(rhs, f"bad override -S {text!r}") if rhs.strip() else None
+        raise SpecError(f"bad override {short_repr(text)}: expected stage.param=value")
+    value = load_yaml(rhs, f"bad override -S {short_repr(text)}") if rhs.strip() else None
     return parts[0], parts[1:], value
 
 

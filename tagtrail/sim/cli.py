@@ -101,9 +101,15 @@ def _int_list(text: str) -> tuple[int, ...]:
 def _sizes(text: str) -> dict[int, float]:
     try:
         pairs = [p.split("=") for p in text.split(",") if p.strip()]
-        return {int(k): float(v) for k, v in pairs}
+        sizes = {int(k): float(v) for k, v in pairs}
     except ValueError as err:
-        raise SpecError(f"--tag-sizes: cannot parse {text!r} (use e.g. 0=0.2,5=0.1)") from err
+        raise SpecError(f"--tag-sizes: cannot parse {text[:80]!r} (use e.g. 0=0.2,5=0.1)") from err
+    lo, hi = next((lo, hi) for flag, lo, hi in RANGES if flag == "--tag-size")
+    bad = {k: v for k, v in sizes.items() if not lo <= v <= hi}
+    if bad:
+        k, v = next(iter(bad.items()))
+        raise SpecError(f"--tag-sizes: {k}={v:g} is out of range ({lo:g} to {hi:g} m)")
+    return sizes
 
 
 MAX_SIDE_PX = 8192  # the live node's limit on an image's side, too

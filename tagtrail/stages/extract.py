@@ -72,7 +72,7 @@ class Params(StageParams):
         "hamming 1-2 (110 of 764; TagSLAM uses them) bring its trajectory from 22.1 to 12.8 mm "
         "of TagSLAM's. 3: ~5 s to build the decode table per worker")
     min_decision_margin: float = Field(
-        20.0, ge=0.0, le=1000.0, description="drop detections whose decision margin is lower "
+        20.0, ge=0.0, le=1e6, description="drop detections whose decision margin is lower "
         "(not applied to sources that carry no margin: TagSLAM's, Isaac ROS')")
     tag_ids: tuple[TagId, ...] | None = None
     refit_corners: bool = Field(
