@@ -240,6 +240,8 @@ def _follow_arguments(sub: Any, fmt: type[argparse.HelpFormatter]) -> None:
         ("--max-yaw-rate", "max_yaw_rate_rps", "rad/s"),
         ("--k", "k", "Stanley's cross-track gain, 1/s"), ("--k-soft", "k_soft", "m/s"),
         ("--wheelbase", "wheelbase_m", "m"), ("--lookahead", "lookahead_m", "pure pursuit, m"),
+        ("--camera-forward", "camera_forward_m", "m: the pose's point ahead of the turning "
+         "centre"),
     ):  # fmt: skip
         g.add_argument(flag, dest=name, type=NON_NEGATIVE, default=None, metavar="X", help=what)
     g = p.add_argument_group("safety")
@@ -495,7 +497,7 @@ def _follow(ns: argparse.Namespace) -> int:
 
     names = ("max_speed_mps", "min_turn_radius_m", "max_accel_mps2", "max_ang_accel_rps2",
              "max_lat_accel_mps2", "max_yaw_rate_rps", "k", "k_soft", "wheelbase_m",
-             "lookahead_m", "law")  # fmt: skip
+             "lookahead_m", "camera_forward_m", "law")  # fmt: skip
     over = {n: getattr(ns, n) for n in names} | {"cmd_key": ns.cmd_key}
     limits, gains, cmd_key = with_profile(Limits(), Gains(), ns.profile, over)
     length = ns.path_length

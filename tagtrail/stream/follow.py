@@ -23,6 +23,10 @@ The control law (:func:`control`, pure: numbers in, numbers out):
 
       alpha = atan2(−e, sqrt(Ld² − e²)) − phi     omega = v·(2·sin(alpha)/Ld + kappa)
 
+phi is the camera's heading against the tangent of the reference's (camera) path: a camera d
+ahead of the turning centre (the rear axle; ``--camera-forward``) runs on a curve turned
+atan(d·kappa) outward of its heading, so both laws steer on phi + atan(d·kappa) (0 on the path).
+
 Speed: v = min(--speed, sqrt(a_lat_max/|kappa|), sqrt(2·a_max·(length − s))) — slower in curves
 and ramping down to the path's end. Limits (:class:`Limits`, ``--profile limo`` or flags):
 |omega| ≤ v / R_min (the turning radius), |Δv| ≤ a_max·dt, |Δomega| ≤ alpha_max·dt, 0 ≤ v ≤
@@ -40,7 +44,7 @@ import math
 import struct
 import threading
 import time
-from collections.abc import Iterable
+from collections.abc import Callable, Iterable
 from dataclasses import dataclass, replace
 from typing import Any
 
@@ -51,6 +55,7 @@ log = logging.getLogger("tagtrail.stream")
 
 TWIST = "geometry_msgs/msg/Twist"
 LAWS = ("stanley", "pure_pursuit")
+WATCHDOG_S = 0.05  # the stale-pose check's period (the Node's main loop wakes every 50 ms)
 
 
 @dataclass(frozen=True)
@@ -81,18 +86,20 @@ class Gains:
     k_soft: float = 0.1  # m/s: keeps the cross-track term finite at low speed
     wheelbase_m: float = 0.2
     lookahead_m: float = 0.3  # pure pursuit's Ld
+    camera_forward_m: float = 0.0  # d: the pose (camera) ahead of the turning centre
 
 
 # The LIMO (NOTES "The LIMO"): 1 m/s, Ackermann R_min 0.4 m, wheelbase 0.2 m; key cmd_vel.
 PROFILES: dict[str, tuple[Limits, Gains, str]] = {
     "limo": (Limits(max_speed_mps=1.0, min_turn_radius_m=0.4, max_accel_mps2=1.0,
                     max_ang_accel_rps2=4.0, max_lat_accel_mps2=0.5, max_yaw_rate_rps=2.5),
-             Gains(wheelbase_m=0.2), "cmd_vel"),
+             Gains(wheelbase_m=0.2, camera_forward_m=0.084), "cmd_vel"),
 }  # fmt: skip
 
 
 def control(e: float, phi: float, kappa: float, v: float, g: Gains) -> float:
     """Yaw rate (rad/s, counter-clockwise about n) of the law at speed ``v`` ≥ 0."""
+    phi = phi + math.atan(g.camera_forward_m * kappa)  # phi on the curve when on the path
     if g.law == "pure_pursuit":
         ld = g.lookahead_m
         alpha = math.atan2(-e, math.sqrt(max(ld * ld - e * e, 1e-6))) - phi
@@ -116,7 +123,8 @@ class Follower:
     def __init__(self, limits: Limits, gains: Gains, speed_mps: float,
                  path_length_m: float | None = None, end_tolerance_m: float = 0.05,
                  timeout_s: float = 0.5, stamp_check: bool = True, normal_down: bool = True,
-                 ) -> None:  # fmt: skip
+                 clock: Callable[[], float] = time.monotonic,
+                 wall_ns: Callable[[], int] = time.time_ns) -> None:  # fmt: skip
         self.limits, self.gains = limits, gains
         self.speed = min(speed_mps, limits.max_speed_mps)
         self.length = path_length_m
@@ -129,6 +137,7 @@ class Follower:
         self.t_last_good: float | None = None
         self.finished = False
         self.lock = threading.Lock()
+        self.clock, self.wall_ns = clock, wall_ns
 
     def parse(self, data: bytes, now_wall_ns: int) -> dict[str, Any]:
         """The state document, checked; :class:`DropError` (counted) for anything else."""
@@ -157,8 +166,8 @@ class Follower:
 
     def on_state(self, data: bytes) -> Command:
         """One state in → the command to publish (DropError for bad input: nothing sent)."""
-        now = time.monotonic()
-        s = self.parse(data, time.time_ns())
+        now = self.clock()
+        s = self.parse(data, self.wall_ns())
         with self.lock:
             self.t_last_good = now
             if s["lost"]:
@@ -197,11 +206,13 @@ class Follower:
         self.last, self.t_last_cmd = cmd, now
         return cmd
 
-    def watchdog(self) -> Command | None:
-        """A stop if no good state came for ``timeout_s`` and the robot is not stopped yet."""
-        now = time.monotonic()
+    def watchdog(self, period_s: float = 0.05) -> Command | None:
+        """A stop when the last good state is older than ``timeout_s − 2·period_s``: run every
+        ``period_s`` (give or take a loop), the zero Twist is out within ``timeout_s``."""
+        now = self.clock()
         with self.lock:
-            stale = self.t_last_good is None or now - self.t_last_good > self.timeout_s
+            stale = (self.t_last_good is None
+                     or now - self.t_last_good > self.timeout_s - 2 * period_s)  # fmt: skip
             if stale:
                 return self._stop(now, "timeout")
         return None
@@ -263,9 +274,9 @@ def serve(fol: Follower, node: FollowerNode, state_key: str, cmd_key: str,
         return [(cmd_key, encode_twist(c.v, c.omega))]
 
     def tick() -> None:
-        if fol.watchdog() is not None:
+        if fol.watchdog(WATCHDOG_S) is not None:
             node.publish([(cmd_key, ZERO)])
 
     node.subscribe(state_key, handler)
-    node.every(0.05, tick)
+    node.every(WATCHDOG_S, tick)
     return node.run(duration_s, stats_period_s, stop)
