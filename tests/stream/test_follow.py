@@ -167,3 +167,38 @@ def test_node_stops_counts_drops_and_exits_on_sigint() -> None:
         st = node.stats()
         assert st["dropped"] == {"garbage": 2, "non_finite": 1, "stale": 1}, st
         assert st["shutdown_clean"] and st["shutdown_s"] < 1.0
+
+
+def test_node_on_the_rmw_zenoh_wire() -> None:
+    """``--wire rmw_zenoh``: the Twist on rmw_zenoh's key of ``cmd_vel`` with its attachment,
+    the state JSON on its bare key (as relocalize publishes it on that wire)."""
+    from tagtrail.stream import wire as W
+
+    port = free_port()
+    args = ["follow", "--profile", "limo", "--wire", "rmw_zenoh", "--ros-distro", "jazzy",
+            "--listen", loopback(port), "--stats-period", "0"]
+    with running(args) as (node,):
+        node.wait_for("follow: ready")
+        s = zenoh.open(make_config("peer", connect=[loopback(port)]))
+        key = W.make_wire("rmw_zenoh", s, "jazzy", 0).key("cmd_vel", TWIST)
+        assert key.startswith("0/cmd_vel/geometry_msgs::msg::dds_::Twist_/RIHS01_")
+        got: list[tuple[bytes, bytes | None]] = []
+
+        def on(sample: zenoh.Sample) -> None:
+            att = sample.attachment
+            got.append((sample.payload.to_bytes(), None if att is None else att.to_bytes()))
+
+        sub = s.declare_subscriber(key, on)
+        pub = s.declare_publisher("relocalization/state")
+        try:
+            deadline = time.monotonic() + 10
+            while not any(decode_twist(p)[0] > 0 for p, _ in got):
+                assert time.monotonic() < deadline, got[-3:]
+                pub.put(state(0.02, 0.0, 0.0, 1.0))
+                time.sleep(1 / 30)
+        finally:
+            pub.undeclare()
+            sub.undeclare()
+            s.close()
+        assert all(a is not None and len(a) == 33 for _, a in got)
+        assert node.stop(sig=signal.SIGINT) == 0, node.output
