@@ -94,6 +94,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                    help="no tag in view for S seconds from mid-path (%(default)s)")
     f.add_argument("--law", choices=("stanley", "pure_pursuit"), default="stanley",
                    help="stream follow's control law (%(default)s)")
+    f.add_argument("--images", action="store_true",
+                   help="render 640x480 images (stream localize detects the tags) instead of "
+                   "publishing detections")
     g.add_argument("--image-noise", type=float, default=r.noise_sigma, metavar="DN",
                    help=f"sensor noise std, grey levels ({r.noise_sigma})")
     g.add_argument("--blur", type=float, default=r.blur_sigma, metavar="PX",
@@ -175,7 +178,7 @@ def _follow(args: argparse.Namespace) -> int:
         raise SpecError("follow: --speed must be in (0, 1] m/s and --blackout >= 0")
     s = run(args.out, reference=args.reference, start_offset_m=args.start_offset,
             start_heading_deg=args.start_heading, speed_mps=args.speed,
-            blackout_s=args.blackout, seed=args.seed, law=args.law)
+            blackout_s=args.blackout, seed=args.seed, law=args.law, images=args.images)
     keys = ("converged_s", "cross_track_rms_m", "cross_track_max_m", "completed")
     print(json.dumps({k: s[k] for k in keys}))
     print(f"follow: {args.out / 'follow.csv'}, {args.out / 'follow_summary.json'}, "

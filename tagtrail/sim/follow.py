@@ -1,7 +1,9 @@
 """``tagtrail simulate follow --out DIR``: the closed loop — simulated LIMO, real nodes, zenoh.
 
-The simulated LIMO (:mod:`tagtrail.sim.limo`) publishes ``detections`` (apriltag_msgs),
-``camera_info`` (30 Hz) and ``odom`` (50 Hz) on a zenoh peer listening on 127.0.0.1 and obeys
+The simulated LIMO (:mod:`tagtrail.sim.limo`) publishes ``detections`` (apriltag_msgs) and
+``camera_info`` — or, ``images=True``, rendered 640×480 rgb8 ``camera/color/image_raw`` with
+``camera/color/camera_info``, detected by ``stream localize`` (30 Hz) —
+and ``odom`` (50 Hz) on a zenoh peer listening on 127.0.0.1 and obeys
 ``cmd_vel``; ``stream localize`` → ``stream relocalize`` → ``stream follow`` run as their own
 processes, chained on loopback ports (sim ← localize ← relocalize ← follow, follow → sim), as on
 a robot. Simulated time is wall time (real time on loopback).
@@ -47,6 +49,7 @@ from tagtrail.geometry.se3 import compose
 from tagtrail.io.layouts import atomic_write_text, read_trajectory
 from tagtrail.schemas.artifacts import poses
 from tagtrail.sim import limo
+from tagtrail.sim.render import Renderer
 from tagtrail.sim.scenarios import SimOptions, _tags
 from tagtrail.sim.scene import (
     Scene,
@@ -64,6 +67,7 @@ PLANE = "xz"  # the floor of the anchor's frame (world y up: n = −y points dow
 COLUMNS = ("t_s,x,y,yaw_rad,true_cross_track_m,cross_track_m,distance_m,heading_error_deg,"
            "v_mps,omega_rps")
 CONVERGED_M = 0.05
+IMAGE_KEY, IMAGE_INFO_KEY = "camera/color/image_raw", "camera/color/camera_info"  # the LIMO's
 SETTLE_S = 5.0  # the issue's allowance to converge: RMS and max are taken after it
 
 
@@ -163,7 +167,8 @@ class _Truth:
 
 def run(out: Path, *, reference: Path | None = None, start_offset_m: float = 0.3,
         start_heading_deg: float = 30.0, speed_mps: float = 0.3, blackout_s: float = 0.0,
-        seed: int = 0, law: str = "stanley", max_time_s: float | None = None,
+        seed: int = 0, law: str = "stanley", images: bool = False,
+        max_time_s: float | None = None,
         ) -> dict[str, Any]:  # fmt: skip
     """Run the closed loop (module docstring); returns the summary written to
     ``out/follow_summary.json``."""
@@ -215,8 +220,9 @@ def run(out: Path, *, reference: Path | None = None, start_offset_m: float = 0.3
         with lock:
             state.update(doc)
 
-    pubs = {k: session.declare_publisher(k, express=True)
-            for k in ("detections", "camera_info", "odom")}  # fmt: skip
+    keys = (IMAGE_KEY, IMAGE_INFO_KEY) if images else ("detections", "camera_info")
+    pubs = {k: session.declare_publisher(k, express=True) for k in (*keys, "odom")}
+    renderer = Renderer(scene, opts.realism, seed=seed) if images else None
     subs = [session.declare_subscriber("cmd_vel", on_cmd)]
     procs: list[_Proc] = []
     rows: list[tuple[float, ...]] = []
@@ -224,8 +230,10 @@ def run(out: Path, *, reference: Path | None = None, start_offset_m: float = 0.3
     session_b = None
     try:
         common = ["--stats-period", "0"]
+        inputs = (["--image-key", IMAGE_KEY, "--image-type", "raw", "--camera-info-key",
+                   IMAGE_INFO_KEY] if images else [])  # fmt: skip
         procs.append(_Proc(["localize", "--map", str(gt), "--tag-size", str(opts.tag_size_m),
-                            "--listen", ep[1], "--connect", ep[0], *common], out))  # fmt: skip
+                            *inputs, "--listen", ep[1], "--connect", ep[0], *common], out))
         procs[-1].wait_for("localize: ready")
         procs.append(_Proc(["relocalize", "--reference", str(ref), "--plane", PLANE,
                             "--listen", ep[2], "--connect", ep[1], "--path-period", "0",
@@ -256,9 +264,14 @@ def run(out: Path, *, reference: Path | None = None, start_offset_m: float = 0.3
                 if math.isnan(blind_from) and blackout_s > 0 and prog >= truth.length / 2:
                     blind_from = t_sim
                 blind = blind_from <= t_sim < blind_from + blackout_s
-                det, info, _ = limo.detections(scene, T, wall_ns, opts, rng, blind)
-                pubs["camera_info"].put(info)
-                pubs["detections"].put(det)
+                if renderer is not None:
+                    img, info = limo.image(renderer, scene, T, wall_ns, rng, blind)
+                    pubs[IMAGE_INFO_KEY].put(info)
+                    pubs[IMAGE_KEY].put(img)
+                else:
+                    det, info, _ = limo.detections(scene, T, wall_ns, opts, rng, blind)
+                    pubs["camera_info"].put(info)
+                    pubs["detections"].put(det)
                 with lock:
                     pending[0] = time.monotonic()
             if t_sim >= next_odo:
@@ -290,12 +303,14 @@ def run(out: Path, *, reference: Path | None = None, start_offset_m: float = 0.3
             session_b.close()  # type: ignore[no-untyped-call]
         session.close()  # type: ignore[no-untyped-call]
     data = np.array(rows, dtype=np.float64).reshape(-1, 10)
-    summary = _summary(data, completed, truth.length, lat, blackout_s, blind_from)
+    summary = _summary(data, completed, truth.length, lat, blackout_s, blind_from,
+                       "images" if images else "detections")
     summary["nodes"] = {n: {"exit": c, "stats": p.stats()} for n, c, p in
                         zip(("localize", "relocalize", "follow"), codes, procs, strict=False)}
     summary["params"] = {"start_offset_m": start_offset_m, "start_heading_deg": start_heading_deg,
                          "speed_mps": speed_mps, "blackout_s": blackout_s, "seed": seed,
-                         "law": law, "reference": str(ref), "plane": PLANE}  # fmt: skip
+                         "law": law, "reference": str(ref), "plane": PLANE,
+                         "input": "images" if images else "detections"}  # fmt: skip
     np.savetxt(out / "follow.csv", data, delimiter=",", header=COLUMNS, comments="",
                fmt="%.6f")
     atomic_write_text(out / "follow_summary.json", json.dumps(summary, indent=2) + "\n")
@@ -304,7 +319,7 @@ def run(out: Path, *, reference: Path | None = None, start_offset_m: float = 0.3
 
 
 def _summary(d: np.ndarray, completed: bool, length: float, lat: list[float],
-             blackout_s: float, blind_from: float) -> dict[str, Any]:  # fmt: skip
+             blackout_s: float, blind_from: float, inputs: str) -> dict[str, Any]:  # fmt: skip
     t, x, y, ct = d[:, 0], d[:, 1], d[:, 2], np.abs(d[:, 4])
     inside = np.nonzero(ct < CONVERGED_M)[0]
     conv = float(t[inside[0]]) if len(inside) else None
@@ -330,7 +345,7 @@ def _summary(d: np.ndarray, completed: bool, length: float, lat: list[float],
         "path_length_m": length,
         "measured_minus_true_cross_track_rms_m": float(np.sqrt(np.nanmean(
             (d[settled, 5] - d[settled, 4]) ** 2))) if settled.any() else None,  # fmt: skip
-        "latency_detections_to_twist_ms": {
+        f"latency_{inputs}_to_twist_ms": {
             "n": int(len(lat_ms)),
             "p50": float(np.percentile(lat_ms, 50)) if len(lat_ms) else None,
             "p99": float(np.percentile(lat_ms, 99)) if len(lat_ms) else None},

@@ -13,6 +13,8 @@ Plain numbers in and out (no zenoh): :mod:`tagtrail.sim.follow` drives it in a c
   (``slip_per_mps2``: 3 % per m/s², skidding). ``/odom`` is ``nav_msgs/msg/Odometry`` at 50 Hz
   whose header stamp is the host time at publication — the state it describes is older by a
   latency drawn in [2, 8] ms — with the LIMO's placeholder covariance.
+- :func:`image`: a rendered frame (:class:`~tagtrail.sim.render.Renderer`), as the LIMO's
+  camera driver publishes it (raw rgb8);
 - :func:`detections`: the tags in view of the camera (mount of :class:`~tagtrail.sim.scene.Mount`)
   projected through the camera model with pixel noise, as ``tagtrail simulate --detections``
   (:func:`tagtrail.sim.bagwrite.synth_detections`).
@@ -29,6 +31,7 @@ from tagtrail.geometry.arrays import F64
 from tagtrail.io import msgs
 from tagtrail.sim import bagwrite
 from tagtrail.sim.camera import FRAME_ID
+from tagtrail.sim.render import Renderer
 from tagtrail.sim.scenarios import SimOptions
 from tagtrail.sim.scene import Scene, scene_T_cam_planar
 
@@ -145,3 +148,19 @@ def detections(scene: Scene, scene_T_cam: F64, stamp_ns: int, opts: SimOptions,
     info = bagwrite.camera_info_msg(one, stamp_ns)
     return (bytes(ts.serialize_cdr(det, msgs.DETECTIONS)),
             bytes(ts.serialize_cdr(info, msgs.CAMERA_INFO)), int(sel.sum()))
+
+
+def image(renderer: Renderer, scene: Scene, scene_T_cam: F64, stamp_ns: int,
+          rng: np.random.Generator, blind: bool = False) -> tuple[bytes, bytes]:  # fmt: skip
+    """CDR ``(sensor_msgs/msg/Image rgb8, CameraInfo)`` of one rendered frame (the renderer of
+    ``tagtrail simulate``); ``blind``: a black frame (the lens covered: no tag in view)."""
+    c = scene.camera
+    rgb = (np.zeros((c.height, c.width, 3), np.uint8) if blind
+           else renderer.render(scene_T_cam, rng))  # fmt: skip
+    h, w = rgb.shape[:2]
+    msg = bagwrite._t(msgs.IMAGE)(header=bagwrite._header(stamp_ns, FRAME_ID), height=h, width=w,
+                                  encoding="rgb8", is_bigendian=0, step=3 * w,
+                                  data=rgb.reshape(-1))  # fmt: skip
+    ts = msgs.typestore()
+    return (bytes(ts.serialize_cdr(msg, msgs.IMAGE)),
+            bytes(ts.serialize_cdr(bagwrite.camera_info_msg(scene, stamp_ns), msgs.CAMERA_INFO)))

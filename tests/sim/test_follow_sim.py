@@ -14,6 +14,7 @@ from tagtrail.cli import main
 from tagtrail.sim import limo
 from tagtrail.sim.follow import COLUMNS, eight_poly
 from tagtrail.stream import codec
+from tests.sim.helpers import detector, image_of
 
 
 def test_kinematics_obey_the_limos_limits() -> None:
@@ -73,3 +74,23 @@ def test_closed_loop_figure_eight(tmp_path: Path, capsys: object) -> None:
     assert s["crossing"]["max_m"] <= 0.05
     for name, node in s["nodes"].items():
         assert node["exit"] == 0 and node["stats"]["shutdown_clean"], name
+
+
+def test_rendered_frames_show_the_tags_and_blind_ones_none() -> None:
+    from tagtrail.sim.follow import eight_scene
+    from tagtrail.sim.render import Renderer
+    from tagtrail.sim.scenarios import SimOptions
+
+    scene = eight_scene(SimOptions())
+    rng = np.random.default_rng(0)
+    renderer = Renderer(scene, SimOptions().realism, seed=0)
+    det = detector()
+    for blind in (False, True):
+        data, info = limo.image(renderer, scene, scene.scene_T_cam[0], 123, rng, blind)
+        msg = codec.deserialize(data, "sensor_msgs/msg/Image")
+        assert (msg.width, msg.height, msg.encoding) == (640, 480, "rgb8")
+        gray = image_of(msg).mean(axis=2).astype(np.uint8)
+        found = {d.tag_id for d in det.detect(gray)}
+        _, _, n = limo.detections(scene, scene.scene_T_cam[0], 123, SimOptions(), rng, blind)
+        assert len(found) == n and (n == 0) == blind
+        assert codec.deserialize(info, "sensor_msgs/msg/CameraInfo").width == 640
