@@ -1,4 +1,5 @@
-"""``tagtrail stream relocalize | replay | localize | record``: the live nodes over eclipse-zenoh.
+"""``tagtrail stream relocalize | replay | localize | record | echo | follow``: the live nodes
+over eclipse-zenoh.
 
 Thin shell: parse → load (files are read before any port is opened) → open the session → run
 the node until SIGINT/SIGTERM, ``--duration`` or ``--count`` → close → exit code. Runs standalone
@@ -32,6 +33,8 @@ EXAMPLES = """examples:
   tagtrail stream relocalize --reference outputs/reference --foxglove   # ws://127.0.0.1:8765
   tagtrail stream localize --profile limo --map outputs/reference/tag_map.yaml
   tagtrail stream record bags/run1 --profile limo --mode client --connect tcp/192.168.1.10:7447
+  tagtrail stream follow --profile limo --reference outputs/reference --speed 0.3 \\
+      --connect tcp/127.0.0.1:7447 --connect tcp/192.168.1.10:7447   # Twist on /cmd_vel
   tagtrail stream record bags/run1 --topic /camera/color/image_raw:sensor_msgs/msg/Image \\
       --topic /camera/color/camera_info:sensor_msgs/msg/CameraInfo --duration 60
 """

@@ -24,8 +24,9 @@ The control law (:func:`control`, pure: numbers in, numbers out):
       alpha = atan2(−e, sqrt(Ld² − e²)) − phi     omega = v·(2·sin(alpha)/Ld + kappa)
 
 phi is the camera's heading against the tangent of the reference's (camera) path: a camera d
-ahead of the turning centre (the rear axle; ``--camera-forward``) runs on a curve turned
-atan(d·kappa) outward of its heading, so both laws steer on phi + atan(d·kappa) (0 on the path).
+ahead of the turning centre (the rear axle; ``--camera-forward``) on a curve is headed
+atan(d·kappa) outward of its path's tangent, so both laws steer on phi + atan(d·kappa) (0 on
+the path).
 
 Speed: v = min(--speed, sqrt(a_lat_max/|kappa|), sqrt(2·a_max·(length − s))) — slower in curves
 and ramping down to the path's end. Limits (:class:`Limits`, ``--profile limo`` or flags):
