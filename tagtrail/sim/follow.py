@@ -365,17 +365,24 @@ def _plot(path: Path, d: np.ndarray, scene: Scene, summary: dict[str, Any]) -> N
     fig, (a, b) = plt.subplots(2, 1, figsize=(8, 8), height_ratios=(3, 2))
     ref = scene.scene_T_cam[:, :2, 3]
     a.plot(ref[:, 0], ref[:, 1], "k-", lw=1, label="reference (camera)")
-    a.plot(d[:, 1], d[:, 2], "C0-", lw=1, label="LIMO base (true)")
-    a.plot(d[:1, 1], d[:1, 2], "C0o")
+    fwd = SimOptions().mount.forward_m
+    cam = d[:, 1:3] + fwd * np.stack([np.cos(d[:, 3]), np.sin(d[:, 3])], -1)
+    a.plot(cam[:, 0], cam[:, 1], "C0-", lw=1, label="LIMO camera (true)")
+    a.plot(cam[:1, 0], cam[:1, 1], "C0o")
     a.set_aspect("equal")
     a.legend(loc="upper right")
-    a.set_title(f"converged {summary['converged_s']} s, completed {summary['completed']}")
+    conv, rms, mx = (summary[k] for k in ("converged_s", "cross_track_rms_m",
+                                           "cross_track_max_m"))  # fmt: skip
+    a.set_title(f"converged {conv if conv is None else round(conv, 2)} s, after {SETTLE_S:g} s: "
+                f"RMS {rms if rms is None else round(rms * 100, 2)} cm, max "
+                f"{mx if mx is None else round(mx * 100, 2)} cm, completed {summary['completed']}")
     b.plot(d[:, 0], d[:, 4] * 100, label="true cross-track")
     b.plot(d[:, 0], d[:, 5] * 100, lw=0.8, label="measured (relocalize)")
     b.axhline(5, color="grey", ls=":")
     b.axhline(-5, color="grey", ls=":")
     b.set_xlabel("t (s)")
-    b.set_ylabel("cm")
+    b.set_ylabel("cross-track (cm, left of the path about n)")
+    b.set_ylim(-40, 40)  # single-frame outliers of the measured one run off the chart
     b.legend()
     fig.tight_layout()
     fig.savefig(path, dpi=100)

@@ -250,6 +250,9 @@ def _follow_arguments(sub: Any, fmt: type[argparse.HelpFormatter]) -> None:
     g = p.add_argument_group("safety")
     g.add_argument("--timeout", type=POSITIVE, default=0.5, metavar="S",
                    help="stop when the last good pose is older than S (default 0.5)")
+    g.add_argument("--max-jump", type=NON_NEGATIVE, default=0.1, metavar="M",
+                   help="drop a pose whose cross-track jumps more than M (+ v_max*dt) from the "
+                   "last good one (a bad pose; 0: never; default 0.1)")
     g.add_argument("--no-stamp-check", action="store_true",
                    help="judge a pose's age by its arrival only (clocks not synchronised)")
     g.add_argument("--plane-normal", choices=["down", "up"], default="down",
@@ -507,7 +510,7 @@ def _follow(ns: argparse.Namespace) -> int:
     if ns.reference is not None and length is None:
         length = _path_length(ns)
     fol = Follower(limits, gains, ns.speed, length, ns.end_tolerance, ns.timeout,
-                   not ns.no_stamp_check, ns.plane_normal == "down")  # fmt: skip
+                   not ns.no_stamp_check, ns.plane_normal == "down", ns.max_jump)  # fmt: skip
     session = open_session(config_from_args(ns, "connect"))
     try:
         wire = _wire(ns, session, "follow")

@@ -34,7 +34,9 @@ and ramping down to the path's end. Limits (:class:`Limits`, ``--profile limo`` 
 v_max. A zero Twist (stop, not rate-limited) when the last good state is older than
 ``--timeout`` (0.5 s; by arrival, and by its stamp unless ``--no-stamp-check``), ``lost``, or
 at the path's end (s ≥ length − ``--end-tolerance``). NaN/garbage states are counted (stats
-``dropped``) and dropped. On SIGINT/SIGTERM: a zero Twist, then the node closes.
+``dropped``) and dropped, and so is a cross-track that jumps more than ``--max-jump`` (0.1 m,
+plus v_max·dt) from the last good one within ``--timeout`` (a bad pose: a robot cannot jump;
+``jump``). On SIGINT/SIGTERM: a zero Twist, then the node closes.
 """
 
 from __future__ import annotations
@@ -124,7 +126,7 @@ class Follower:
     def __init__(self, limits: Limits, gains: Gains, speed_mps: float,
                  path_length_m: float | None = None, end_tolerance_m: float = 0.05,
                  timeout_s: float = 0.5, stamp_check: bool = True, normal_down: bool = True,
-                 clock: Callable[[], float] = time.monotonic,
+                 max_jump_m: float = 0.1, clock: Callable[[], float] = time.monotonic,
                  wall_ns: Callable[[], int] = time.time_ns) -> None:  # fmt: skip
         self.limits, self.gains = limits, gains
         self.speed = min(speed_mps, limits.max_speed_mps)
@@ -139,6 +141,8 @@ class Follower:
         self.finished = False
         self.lock = threading.Lock()
         self.clock, self.wall_ns = clock, wall_ns
+        self.max_jump = max_jump_m
+        self.last_e = math.nan
 
     def parse(self, data: bytes, now_wall_ns: int) -> dict[str, Any]:
         """The state document, checked; :class:`DropError` (counted) for anything else."""
@@ -170,6 +174,7 @@ class Follower:
         now = self.clock()
         s = self.parse(data, self.wall_ns())
         with self.lock:
+            self._gate(now, s["cross_track_m"])
             self.t_last_good = now
             if s["lost"]:
                 return self._stop(now, "lost")
@@ -178,6 +183,16 @@ class Follower:
             if self.finished:
                 return self._stop(now, "end")
             return self._drive(now, s)
+
+    def _gate(self, now: float, e: float) -> None:
+        """Drop a cross-track that jumps more than ``max_jump`` (+ what the robot can move) from
+        the last good one — a bad pose, not a motion; after ``timeout_s`` anything goes."""
+        if self.max_jump > 0 and self.t_last_good is not None and math.isfinite(self.last_e):
+            dt = now - self.t_last_good
+            if dt <= self.timeout_s and abs(e - self.last_e) > (
+                    self.max_jump + self.limits.max_speed_mps * dt):  # fmt: skip
+                raise DropError("jump", f"cross-track {self.last_e:.3f} -> {e:.3f} m")
+        self.last_e = e
 
     def _drive(self, now: float, s: dict[str, Any]) -> Command:
         lim, kappa = self.limits, s["curvature_1pm"]

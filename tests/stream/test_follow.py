@@ -61,7 +61,7 @@ def test_never_beyond_the_profiles_limits() -> None:
     for limits, gains in (PROFILES["limo"][:2], (Limits(), Gains(law="pure_pursuit"))):
         clock = Clock()
         fol = Follower(limits, gains, speed_mps=rnd.uniform(0.1, 2.0), path_length_m=20.0,
-                       clock=clock, wall_ns=clock.wall_ns)  # fmt: skip
+                       max_jump_m=0.0, clock=clock, wall_ns=clock.wall_ns)  # fmt: skip
         prev, t_prev, n_drive = (0.0, 0.0), clock.t, 0
         for _ in range(5000):
             clock.t += rnd.choice([0.001, 0.01, 0.033, 0.05, 0.2, rnd.uniform(0, 0.3)])
@@ -115,6 +115,32 @@ def test_stops_lost_end_stale_garbage() -> None:
     c = fol.on_state(state(s=4.96, stamp_ns=clock.wall_ns()))
     assert (c.v, c.omega, c.reason) == (0.0, 0.0, "end")
     assert fol.on_state(state(s=1.0, stamp_ns=clock.wall_ns())).reason == "end"  # stays done
+
+
+def test_a_jumping_cross_track_is_dropped_until_the_timeout() -> None:
+    clock = Clock()
+    limits, gains, _ = PROFILES["limo"]
+    fol = Follower(limits, gains, 0.3, clock=clock, wall_ns=clock.wall_ns)
+    fol.on_state(state(0.02, stamp_ns=clock.wall_ns()))
+    clock.t += 0.033
+    try:
+        fol.on_state(state(2.5, stamp_ns=clock.wall_ns()))  # a bad pose
+        raise AssertionError("accepted")
+    except DropError as err:
+        assert err.reason == "jump"
+    clock.t += 0.033
+    assert not fol.on_state(state(0.03, stamp_ns=clock.wall_ns())).stop
+    dropped = 0
+    for _ in range(20):  # a real jump (re-acquired elsewhere): dropped for 0.5 s, then taken
+        clock.t += 0.033
+        try:
+            fol.on_state(state(0.6, stamp_ns=clock.wall_ns()))
+        except DropError:
+            dropped += 1
+    # the documented gate: |Δe| > 0.1 m + v_max·dt while dt ≤ 0.5 s
+    rule = sum(k * 0.033 <= 0.5 and 0.57 > 0.1 + limits.max_speed_mps * k * 0.033
+               for k in range(1, 21))  # fmt: skip
+    assert dropped == rule >= 10 and fol.last_e == 0.6
 
 
 def test_steers_back_towards_the_path() -> None:
