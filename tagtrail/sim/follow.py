@@ -311,6 +311,7 @@ def run(out: Path, *, reference: Path | None = None, start_offset_m: float = 0.3
                          "speed_mps": speed_mps, "blackout_s": blackout_s, "seed": seed,
                          "law": law, "reference": str(ref), "plane": PLANE,
                          "input": "images" if images else "detections"}  # fmt: skip
+    summary = dict(_rounded(summary))
     np.savetxt(out / "follow.csv", data, delimiter=",", header=COLUMNS, comments="",
                fmt="%.6f")
     atomic_write_text(out / "follow_summary.json", json.dumps(summary, indent=2) + "\n")
@@ -354,6 +355,13 @@ def _summary(d: np.ndarray, completed: bool, length: float, lat: list[float],
         out["blackout"] = {"from_s": None if math.isnan(blind_from) else blind_from,
                            "s": blackout_s}
     return out
+
+
+def _rounded(x: Any) -> Any:
+    """Floats of the summary to 0.1 mm / 0.1 ms / 1 ms: what the run can tell."""
+    if isinstance(x, dict):
+        return {k: _rounded(v) for k, v in x.items()}
+    return round(x, 5) if isinstance(x, float) else x
 
 
 def _plot(path: Path, d: np.ndarray, scene: Scene, summary: dict[str, Any]) -> None:

@@ -94,3 +94,20 @@ def test_rendered_frames_show_the_tags_and_blind_ones_none() -> None:
         _, _, n = limo.detections(scene, scene.scene_T_cam[0], 123, SimOptions(), rng, blind)
         assert len(found) == n and (n == 0) == blind
         assert codec.deserialize(info, "sensor_msgs/msg/CameraInfo").width == 640
+
+
+def test_closed_loop_blackout_stops_then_resumes(tmp_path: Path) -> None:
+    """2 s without a tag from mid-path: no pose (localize has no odometry yet), the follower
+    commands zero within 0.5 s (+ one frame and the hops), waits, resumes and completes."""
+    out = tmp_path / "blackout"
+    assert main(["simulate", "follow", "--out", str(out), "--blackout", "2", "--seed", "1"]) == 0
+    s = json.loads((out / "follow_summary.json").read_text())
+    t0 = s["blackout"]["from_s"]
+    d = np.loadtxt(out / "follow.csv", delimiter=",", skiprows=1)
+    t, v_cmd = d[:, 0], d[:, 8]
+    assert (v_cmd[(t > t0 - 1.0) & (t < t0)] > 0.1).all()  # driving into it
+    assert (v_cmd[(t > t0 + 0.6) & (t < t0 + 2.0)] == 0.0).all()  # stopped in the dark
+    assert (v_cmd[t > t0 + 3.0] > 0).any()  # and on again
+    assert s["completed"] and s["cross_track_max_m"] <= 0.05
+    print(json.dumps({k: s[k] for k in ("converged_s", "cross_track_rms_m", "cross_track_max_m",
+                                        "blackout")}))
