@@ -176,6 +176,8 @@ def _follow(args: argparse.Namespace) -> int:
 
     if args.speed <= 0 or args.speed > 1.0 or args.blackout < 0:
         raise SpecError("follow: --speed must be in (0, 1] m/s and --blackout >= 0")
+    if (args.out / "follow_summary.json").exists() and not args.force:
+        raise SpecError(f"{args.out} holds a follow run already; use --force to overwrite it")
     s = run(args.out, reference=args.reference, start_offset_m=args.start_offset,
             start_heading_deg=args.start_heading, speed_mps=args.speed,
             blackout_s=args.blackout, seed=args.seed, law=args.law, images=args.images)

@@ -9,6 +9,7 @@ import math
 from pathlib import Path
 
 import numpy as np
+import pytest
 
 from tagtrail.cli import main
 from tagtrail.sim import limo
@@ -111,3 +112,14 @@ def test_closed_loop_blackout_stops_then_resumes(tmp_path: Path) -> None:
     assert s["completed"] and s["cross_track_max_m"] <= 0.05
     print(json.dumps({k: s[k] for k in ("converged_s", "cross_track_rms_m", "cross_track_max_m",
                                         "blackout")}))
+
+
+def test_bad_options_are_one_error_line(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    for bad in (["--speed", "1.5"], ["--blackout", "-1"]):
+        assert main(["simulate", "follow", "--out", str(tmp_path / "x"), *bad]) == 2
+        err = capsys.readouterr().err.strip().splitlines()
+        assert len(err) == 1 and err[0].startswith("error: follow: --speed")
+    (tmp_path / "y").mkdir()
+    (tmp_path / "y" / "follow_summary.json").write_text("{}")
+    assert main(["simulate", "follow", "--out", str(tmp_path / "y")]) == 2
+    assert "--force" in capsys.readouterr().err
