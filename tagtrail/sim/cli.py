@@ -21,12 +21,16 @@ scenarios (recordings written under OUT):
   corridor      long path, one or two tags in view at a time             -> corridor
   hall          sparse: tags flat on both walls, 1-3 in view, U-turn    -> hall
   observations  cam_T_tag observations from rigid transforms (+ noise)  -> observations
+  follow        closed loop: simulated LIMO + stream localize/relocalize/follow over zenoh
+                on 127.0.0.1 -> follow.csv, follow_summary.json, follow.png, ground_truth/
 
 examples:
   tagtrail simulate room --out demo/data
   tagtrail simulate room --out sim --detections --storage sqlite3
   tagtrail simulate circle --out sim --frames 300 --compressed --seed 7
   tagtrail simulate observations --out sim --noise-t 0.10 --noise-r-deg 2
+  tagtrail simulate follow --out runs/eight --start-offset 0.3 --start-heading 30
+  tagtrail simulate follow --out runs/blackout --blackout 2
 """
 
 
@@ -38,7 +42,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.formatter_class = argparse.RawDescriptionHelpFormatter
     a = parser.add_argument
     o = SimOptions  # one default per option: SimOptions'
-    a("scenario", metavar="SCENARIO", choices=SCENARIOS, help=" | ".join(SCENARIOS))
+    a("scenario", metavar="SCENARIO", choices=(*SCENARIOS, "follow"),
+      help=" | ".join((*SCENARIOS, "follow")))
     a("--out", "-o", type=Path, required=True, metavar="DIR", help="output folder")
     a("--storage", choices=("mcap", "sqlite3"), default=o.storage,
       help="bag storage (%(default)s)")
@@ -77,6 +82,21 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     g.add_argument("--max-range", type=float, default=o.max_range_m, metavar="M",
                    help="detections/observations: farthest tag reported, m (%(default)s)")
     r = Realism()
+    f = parser.add_argument_group("follow (closed loop; docs/FOLLOW.md)")
+    f.add_argument("--reference", type=Path, default=None,
+                   help="trajectory to follow, in the scene's world (default: the figure eight's "
+                   "ground truth)")
+    f.add_argument("--start-offset", type=float, default=0.3, metavar="M",
+                   help="start this far left of the reference's start (%(default)s)")
+    f.add_argument("--start-heading", type=float, default=30.0, metavar="DEG",
+                   help="start turned this far left of the reference (%(default)s)")
+    f.add_argument("--blackout", type=float, default=0.0, metavar="S",
+                   help="no tag in view for S seconds from mid-path (%(default)s)")
+    f.add_argument("--law", choices=("stanley", "pure_pursuit"), default="stanley",
+                   help="stream follow's control law (%(default)s)")
+    f.add_argument("--images", action="store_true",
+                   help="render 640x480 images (stream localize detects the tags) instead of "
+                   "publishing detections")
     g.add_argument("--image-noise", type=float, default=r.noise_sigma, metavar="DN",
                    help=f"sensor noise std, grey levels ({r.noise_sigma})")
     g.add_argument("--blur", type=float, default=r.blur_sigma, metavar="PX",
@@ -164,9 +184,30 @@ def main(args: argparse.Namespace) -> int:
 
 
 def _simulate(args: argparse.Namespace) -> int:
+    if args.scenario == "follow":
+        return _follow(args)
     written = simulate(args.scenario, args.out, **options_from_args(args))
     for name, folder in written.items():
         print(f"{name}: {folder}  (ground truth: {folder / 'ground_truth'})")
+    return 0
+
+
+def _follow(args: argparse.Namespace) -> int:
+    import json
+
+    from tagtrail.sim.follow import run
+
+    if args.speed <= 0 or args.speed > 1.0 or args.blackout < 0:
+        raise SpecError("follow: --speed must be in (0, 1] m/s and --blackout >= 0")
+    if (args.out / "follow_summary.json").exists() and not args.force:
+        raise SpecError(f"{args.out} holds a follow run already; use --force to overwrite it")
+    s = run(args.out, reference=args.reference, start_offset_m=args.start_offset,
+            start_heading_deg=args.start_heading, speed_mps=args.speed,
+            blackout_s=args.blackout, seed=args.seed, law=args.law, images=args.images)
+    keys = ("converged_s", "cross_track_rms_m", "cross_track_max_m", "completed")
+    print(json.dumps({k: s[k] for k in keys}))
+    print(f"follow: {args.out / 'follow.csv'}, {args.out / 'follow_summary.json'}, "
+          f"{args.out / 'follow.png'}")
     return 0
 
 

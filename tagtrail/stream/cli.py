@@ -1,4 +1,5 @@
-"""``tagtrail stream relocalize | replay | localize | record``: the live nodes over eclipse-zenoh.
+"""``tagtrail stream relocalize | replay | localize | record | echo | follow``: the live nodes
+over eclipse-zenoh.
 
 Thin shell: parse → load (files are read before any port is opened) → open the session → run
 the node until SIGINT/SIGTERM, ``--duration`` or ``--count`` → close → exit code. Runs standalone
@@ -32,6 +33,8 @@ EXAMPLES = """examples:
   tagtrail stream relocalize --reference outputs/reference --foxglove   # ws://127.0.0.1:8765
   tagtrail stream localize --profile limo --map outputs/reference/tag_map.yaml
   tagtrail stream record bags/run1 --profile limo --mode client --connect tcp/192.168.1.10:7447
+  tagtrail stream follow --profile limo --reference outputs/reference --speed 0.3 \\
+      --connect tcp/127.0.0.1:7447 --connect tcp/192.168.1.10:7447   # Twist on /cmd_vel
   tagtrail stream record bags/run1 --topic /camera/color/image_raw:sensor_msgs/msg/Image \\
       --topic /camera/color/camera_info:sensor_msgs/msg/CameraInfo --duration 60
 """
@@ -203,7 +206,59 @@ def add_arguments(parser: argparse.ArgumentParser) -> argparse.ArgumentParser:
     _foxglove(p)
     _record_arguments(sub, fmt)
     _echo_arguments(sub, fmt)
+    _follow_arguments(sub, fmt)
     return parser
+
+
+def _follow_arguments(sub: Any, fmt: type[argparse.HelpFormatter]) -> None:
+    p = sub.add_parser("follow", help="drive along the reference: Twist on cmd_vel",
+                       formatter_class=fmt, description="A reference path follower (Stanley "
+                       "or pure pursuit; docs/FOLLOW.md) on relocalize's state JSON, publishing "
+                       "geometry_msgs/msg/Twist within the robot's limits; a zero Twist when "
+                       "the pose is stale, lost, bad or at the path's end.")
+    p.add_argument("--state-key", default="relocalization/state",
+                   help="relocalize's state JSON (default: %(default)s)")
+    p.add_argument("--cmd-key", default=None, help="output key (default: cmd_vel)")
+    p.add_argument("--profile", choices=["limo"], default=None,
+                   help="the robot's limits and key (limo: 1 m/s, R_min 0.4 m, wheelbase 0.2 m)")
+    p.add_argument("--law", choices=["stanley", "pure_pursuit"], default=None,
+                   help="control law (default: stanley)")
+    p.add_argument("--speed", type=POSITIVE, default=0.3, metavar="M/S",
+                   help="cruise speed (default 0.3; capped by the profile's)")
+    g = p.add_argument_group("path's end (one of)")
+    g.add_argument("--reference", type=Path, default=None,
+                   help="the reference relocalize follows: its length is where to stop")
+    g.add_argument("--plane", choices=list(PLANES), default=None,
+                   help="--reference's plane (default: the profile's report.plane, else auto)")
+    g.add_argument("--path-length", type=POSITIVE, default=None, metavar="M",
+                   help="stop when progress_m reaches M (minus --end-tolerance)")
+    g.add_argument("--end-tolerance", type=NON_NEGATIVE, default=0.05, metavar="M",
+                   help="stop this short of the end (default 0.05)")
+    g = p.add_argument_group("limits and gains (default: the profile's)")
+    for flag, name, what in (
+        ("--max-speed", "max_speed_mps", "m/s"), ("--min-turn-radius", "min_turn_radius_m", "m"),
+        ("--max-accel", "max_accel_mps2", "m/s^2"),
+        ("--max-ang-accel", "max_ang_accel_rps2", "rad/s^2"),
+        ("--max-lat-accel", "max_lat_accel_mps2", "m/s^2: v <= sqrt(a/|kappa|)"),
+        ("--max-yaw-rate", "max_yaw_rate_rps", "rad/s"),
+        ("--k", "k", "Stanley's cross-track gain, 1/s"), ("--k-soft", "k_soft", "m/s"),
+        ("--wheelbase", "wheelbase_m", "m"), ("--lookahead", "lookahead_m", "pure pursuit, m"),
+        ("--camera-forward", "camera_forward_m", "m: the pose's point ahead of the turning "
+         "centre"),
+    ):  # fmt: skip
+        g.add_argument(flag, dest=name, type=NON_NEGATIVE, default=None, metavar="X", help=what)
+    g = p.add_argument_group("safety")
+    g.add_argument("--timeout", type=POSITIVE, default=0.5, metavar="S",
+                   help="stop when the last good pose is older than S (default 0.5)")
+    g.add_argument("--max-jump", type=NON_NEGATIVE, default=0.1, metavar="M",
+                   help="drop a pose whose cross-track jumps more than M (+ v_max*dt) from the "
+                   "last good one (a bad pose; 0: never; default 0.1)")
+    g.add_argument("--no-stamp-check", action="store_true",
+                   help="judge a pose's age by its arrival only (clocks not synchronised)")
+    g.add_argument("--plane-normal", choices=["down", "up"], default="down",
+                   help="where the plane's n points (default: down, as tagtrail's xz/auto "
+                   "planes: left about n is the robot's right)")
+    _common(p, "stop after N input messages", express=True)
 
 
 def _echo_arguments(sub: Any, fmt: type[argparse.HelpFormatter]) -> None:
@@ -265,7 +320,7 @@ def main(args: argparse.Namespace | Sequence[str] | None = None) -> int:
         build_parser().print_help()
         return 2
     run = {"relocalize": _relocalize, "replay": _replay, "localize": _localize,
-           "record": _record, "echo": _echo}[cmd]
+           "record": _record, "echo": _echo, "follow": _follow}[cmd]
     return run_command(lambda: run(with_profile(ns)))
 
 
@@ -439,6 +494,55 @@ def _localize(ns: argparse.Namespace) -> int:
         # for 5 s: the session is closed (or abandoned) and stats printed, so leave at once
         leave_now(0)
     return 0
+
+
+def _follow(ns: argparse.Namespace) -> int:
+    from tagtrail.stream.follow import Follower, FollowerNode, Gains, Limits, serve, with_profile
+    from tagtrail.stream.session import stop_on_signals
+    from tagtrail.stream.stats import Stats
+
+    names = ("max_speed_mps", "min_turn_radius_m", "max_accel_mps2", "max_ang_accel_rps2",
+             "max_lat_accel_mps2", "max_yaw_rate_rps", "k", "k_soft", "wheelbase_m",
+             "lookahead_m", "camera_forward_m", "law")  # fmt: skip
+    over = {n: getattr(ns, n) for n in names} | {"cmd_key": ns.cmd_key}
+    limits, gains, cmd_key = with_profile(Limits(), Gains(), ns.profile, over)
+    length = ns.path_length
+    if ns.reference is not None and length is None:
+        length = _path_length(ns)
+    fol = Follower(limits, gains, ns.speed, length, ns.end_tolerance, ns.timeout,
+                   not ns.no_stamp_check, ns.plane_normal == "down", ns.max_jump)  # fmt: skip
+    session = open_session(config_from_args(ns, "connect"))
+    try:
+        wire = _wire(ns, session, "follow")
+        node = FollowerNode(session, Stats("follow"), ns.congestion, ns.express, wire)
+    except BaseException:
+        from tagtrail.stream.session import close_all
+
+        close_all(session, [])
+        raise
+    node.count = ns.count
+    with stop_on_signals() as stop:
+        serve(fol, node, ns.state_key, cmd_key, ns.duration, ns.stats_period, stop)
+    return 0
+
+
+def _path_length(ns: argparse.Namespace) -> float:
+    """Planar arc length of ``--reference`` in its plane (relocalize's ``progress_m`` scale)."""
+    from tagtrail.geometry.association import arc_length
+    from tagtrail.geometry.reference_path import ReferencePath, reference_plane
+    from tagtrail.io.layouts import read_trajectory
+    from tagtrail.schemas.artifacts import poses
+    from tagtrail.stages import report as report_stage
+    from tagtrail.stream.params import stage_params
+
+    plane = ns.plane
+    if plane is None:
+        report = stage_params(["report"], None, None, profile=ns.profile)["report"]
+        assert isinstance(report, report_stage.Params)
+        plane = report.plane
+    P, R = poses(read_trajectory(ns.reference))
+    path = ReferencePath(P, reference_plane(plane, P, R))
+    return float(arc_length(path.uv)[-1])
 
 
 def _record(ns: argparse.Namespace) -> int:
