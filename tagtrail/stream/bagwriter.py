@@ -347,8 +347,17 @@ def _recover_mcap(path: Path) -> tuple[list[TopicCount], int, int, str]:
             chans[channel.id] = (channel.topic, schema.name if schema else "")
             counts[channel.id] = counts.get(channel.id, 0) + 1
             t_min, t_max = min(t_min, message.log_time), max(t_max, message.log_time)
-    topics = [TopicCount(t, m, store.hash_rihs01(m), counts[c]) for c, (t, m) in chans.items()]
+    topics = [TopicCount(t, m, _digest(store, m), counts[c]) for c, (t, m) in chans.items()]
     return topics, t_min, t_max, cut
+
+
+def _digest(store: Any, msgtype: str) -> str:
+    """The type hash rosbag2 records; empty for a type this typestore does not know (a bag
+    of another tool: its messages are read all the same)."""
+    try:
+        return str(store.hash_rihs01(msgtype))
+    except Exception:  # noqa: BLE001 - rosbags raises its own errors for unknown types
+        return ""
 
 
 def _count_sqlite(path: Path) -> tuple[list[TopicCount], int, int]:

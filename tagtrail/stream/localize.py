@@ -46,7 +46,7 @@ from tagtrail.stages import trajectory as trajectory_stage
 from tagtrail.stream import codec
 from tagtrail.stream.stats import DropError, Stats
 from tagtrail.vision.detector import filter_detections
-from tagtrail.vision.images import encoded_size
+from tagtrail.vision.images import frame_size
 
 log = logging.getLogger("tagtrail.stream")
 F64 = NDArray[np.float64]
@@ -171,15 +171,12 @@ class Localizer:
         raw = raw_image_from_msg(msg, IMAGE_TYPES[kind])
         assert isinstance(raw.data, bytes)  # a message's image: bytes, not a file path
         payload = bytes(raw.data)
-        if raw.kind == "compressed":
-            fmt = raw.encoding
-            size = encoded_size(payload[12:] if "compresseddepth" in fmt.lower() else payload)
-            if size is None:
-                raise DropError("bad_image", f"CompressedImage ({fmt!r}): no PNG/JPEG header")
-            self.check_size(*size)
-        else:
+        size = frame_size(raw)  # the offline extract's check too
+        if size is None:
+            raise DropError("bad_image", f"CompressedImage ({raw.encoding!r}): no PNG/JPEG header")
+        self.check_size(*size)
+        if raw.kind == "raw":
             w, h, step, n = raw.width, raw.height, raw.step, len(payload)
-            self.check_size(w, h)
             if step < w or not step * (h - 1) + w <= n <= step * h:
                 raise DropError("bad_image", f"Image {w}x{h} step {step}: {n} data bytes")
         try:
