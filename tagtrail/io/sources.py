@@ -199,6 +199,22 @@ def detections_from_msg(msg: Any, msgtype: str = msgs.DETECTIONS) -> list[TagDet
     return out
 
 
+def detection_problem(dets: list[TagDetection]) -> str | None:
+    """What is wrong with a message's detections (None: nothing): a negative tag id, a corner
+    that is not a finite pixel position within :data:`MAX_CORNER_PX`. Bag sources refuse such a
+    message in one line; the live localize node drops and counts it (``bad_detection``)."""
+    for d in dets:
+        if d.tag_id < 0:
+            return f"a detection of tag id {d.tag_id} (ids are >= 0)"
+        c = np.asarray(d.corners, dtype=np.float64)
+        bad = ~(np.abs(c) <= MAX_CORNER_PX).all(axis=-1)
+        if bad.any():
+            k = int(np.argmax(bad))
+            return (f"tag {d.tag_id}: corner {k} is {tuple(c[k].tolist())}, not a pixel "
+                    "position (finite, within 1e6 px)")
+    return None
+
+
 def raw_image_from_msg(msg: Any, msgtype: str) -> RawImage:
     """A ``sensor_msgs/Image`` or ``CompressedImage`` (``msgtype``) as an undecoded
     :class:`RawImage` (its bytes copied out of the message)."""
@@ -404,22 +420,16 @@ class BagSource(Source):
 
     def _stamp(self, stamp: Any, idx: int) -> int:
         """``header.stamp`` in ns; a nanosecond field out of [0, 1e9) is an error."""
-        nsec = int(stamp.nanosec if hasattr(stamp, "nanosec") else stamp.nsecs)
-        if not 0 <= nsec < 1_000_000_000:
-            raise self._bad(idx, f"header.stamp nanoseconds {nsec} not in [0, 999999999]")
+        problem = msgs.stamp_problem(int(stamp.nanosec if hasattr(stamp, "nanosec")
+                                         else stamp.nsecs))  # fmt: skip
+        if problem is not None:
+            raise self._bad(idx, problem)
         return _stamp_ns(stamp)
 
     def _check_detections(self, dets: list[TagDetection], idx: int) -> None:
-        """Tag ids >= 0 and corners finite pixel positions (within 1e6 px), else an error."""
-        for d in dets:
-            if d.tag_id < 0:
-                raise self._bad(idx, f"a detection of tag id {d.tag_id} (ids are >= 0)")
-            c = np.asarray(d.corners, dtype=np.float64)
-            bad = ~(np.abs(c) <= MAX_CORNER_PX).all(axis=-1)
-            if bad.any():
-                k = int(np.argmax(bad))
-                raise self._bad(idx, f"tag {d.tag_id}: corner {k} is {tuple(c[k].tolist())}, "
-                                "not a pixel position (finite, within 1e6 px)")
+        problem = detection_problem(dets)
+        if problem is not None:
+            raise self._bad(idx, problem)
 
 
 # --- image folders -----------------------------------------------------------------------------

@@ -38,7 +38,7 @@ from tagtrail.geometry.fusion import frame_poses
 from tagtrail.geometry.ippe import solve_ippe
 from tagtrail.geometry.se3 import T_from_xyz_quat, xyz_quat_from_T
 from tagtrail.io import msgs
-from tagtrail.io.sources import detections_from_msg, raw_image_from_msg
+from tagtrail.io.sources import detection_problem, detections_from_msg, raw_image_from_msg
 from tagtrail.schemas.artifacts import POSE_COLS
 from tagtrail.stages import extract as extract_stage
 from tagtrail.stages import pnp as pnp_stage
@@ -156,8 +156,11 @@ class Localizer:
         # the extract stage's conversion (−0.5 px) and filters, so live = offline
         assert self.camera is not None
         size = (self.camera.width, self.camera.height)
-        dets = list(filter_detections(detections_from_msg(msg), self.msg_detector, Counter(),
-                                      size))
+        found = detections_from_msg(msg)
+        problem = detection_problem(found)  # what a bag source refuses, the node drops
+        if problem is not None:
+            raise DropError("bad_detection", problem)
+        dets = list(filter_detections(found, self.msg_detector, Counter(), size))
         ids = np.array([d.tag_id for d in dets], dtype=np.int64)
         px = np.array([d.corners for d in dets], dtype=np.float64)
         return self._publish(msg.header.stamp, px.reshape(-1, 4, 2), ids)
@@ -204,6 +207,9 @@ class Localizer:
             msg = codec.deserialize(data, msgtype)
         except codec.CodecError as err:
             raise DropError("malformed", str(err)) from err
+        problem = msgs.stamp_problem(int(msg.header.stamp.nanosec))
+        if problem is not None:
+            raise DropError("bad_stamp", problem)
         if self.stats is not None:
             self.stats.stamp(int(msg.header.stamp.sec), int(msg.header.stamp.nanosec))
         return msg
