@@ -127,6 +127,7 @@ class CrashSafeWriter:
         self._meta_at: int | None = None  # MCAP: where the file ends as metadata.yaml counts it
         self._meta_counts: dict[str, int] = {}
         self.kept: dict[str, int] | None = None  # after abort(): the messages the bag holds
+        self.opened = False  # False: no bag folder (never opened, or removed by open's failure)
 
     def open(self) -> None:
         """Create the folder, the storage file, the reserve and a first ``metadata.yaml`` (in
@@ -143,10 +144,13 @@ class CrashSafeWriter:
             self._write_metadata()
         except OSError as err:
             self._discard()
+            if err.filename is None:  # a failed write names no file
+                err.filename = str(self.out)
             raise (storage_error(err, "record") or err) from err
         except BaseException:
             self._discard()
             raise
+        self.opened = True
 
     def _discard(self) -> None:
         """Remove the bag folder this writer has just created (nothing was recorded in it)."""

@@ -362,6 +362,8 @@ class Recorder:
         writer.join()
 
     def _one_line(self, err: BaseException, done: Recorded) -> TagtrailError:
+        if not self.writer.opened and isinstance(err, TagtrailError):
+            return err  # no bag was made (the folder is not left behind)
         kept = f"recorded until then kept in {self.writer.out} ({_counts(done.counts)})"
         if is_full_disk(err):
             return StorageError(f"cannot write {self.writer.file}: No space left on device; "

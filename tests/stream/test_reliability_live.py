@@ -290,3 +290,26 @@ def test_outlier_stamp_in_localize(detections: Path, tmp_path: Path) -> None:
     assert stats["received"] == len(payloads), stats
     assert stats["dropped"]["bad_detection"] == 2 and stats["dropped"]["bad_stamp"] == 1, stats
     assert stats["out_of_order"] == 0 and stats["stamp_outliers"] == 2, stats
+
+
+def test_disk_full_before_the_first_byte_leaves_no_folder(tmp_path: Path) -> None:
+    """The probe's case: no room for even the bag's first metadata.yaml: one line, and the half
+    made folder is removed (it said "kept in OUT" of a folder without metadata)."""
+    with small_disk(tmp_path, "64k") as disk:
+        with open(disk / "filler", "wb", buffering=0) as f:  # fill the disk to its last byte
+            try:
+                while True:
+                    f.write(bytes(4096))
+            except OSError:
+                pass
+        bag = disk / "bag"
+        rec = Proc(["record", str(bag), "--topic", "/x:std_msgs/msg/Float64", "--listen",
+                    loopback(free_port()), "--wait", "5"])
+        try:
+            assert rec.p.wait(30) == 2, rec.output
+        finally:
+            rec.kill()
+        errors = [ln for ln in rec.lines if "error:" in ln]
+        assert len(errors) == 1 and f"cannot write {bag}: No space left on device" in errors[0] \
+            and "kept in" not in errors[0], rec.output
+        assert not bag.exists()
