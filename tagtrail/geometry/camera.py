@@ -25,6 +25,7 @@ from tagtrail.geometry.arrays import F64
 MODELS = ("plumb_bob", "rational_polynomial", "equidistant", "none")
 _ALIASES = {"": "none", "fisheye": "equidistant", "radtan": "plumb_bob", "pinhole": "none"}
 _OPENCV_NCOEF = (4, 5, 8, 12, 14)
+MAX_SIDE_PX = 16384  # a larger camera is a corrupt message (its undistortion grid alone: GBs)
 # Tight criteria: OpenCV's default (5 iterations) leaves ~1e-9 rad of error with strong distortion.
 _CRITERIA = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 100, 1e-14)
 
@@ -58,6 +59,15 @@ class CameraModel:
                               f"fy = {K[1, 1]:g} (both must be > 0)")  # fmt: skip
         if not np.isfinite(D).all():
             raise SourceError(f"distortion coefficients are not finite: {D.tolist()}")
+        if abs(K[1, 0]) + abs(K[2, 0]) + abs(K[2, 1]) + abs(K[2, 2] - 1) > 1e-6:
+            raise SourceError(f"camera matrix K is not [fx s cx, 0 fy cy, 0 0 1]: "
+                              f"{K.reshape(-1).tolist()}")  # fmt: skip
+        if model not in ("equidistant", "none") and D.size > _OPENCV_NCOEF[-1]:
+            raise SourceError(f"{D.size} distortion coefficients: OpenCV takes at most 14")
+        w, h = self.width, self.height
+        if not all(isinstance(v, int | np.integer) and 1 <= v <= MAX_SIDE_PX for v in (w, h)):
+            raise SourceError(f"image size {w}x{h} is not a camera's (width and height: whole "
+                              f"pixels, 1 to {MAX_SIDE_PX})")  # fmt: skip
         if model == "equidistant":
             D = np.concatenate([D, np.zeros(4)])[:4] if D.size != 4 else D
         elif model == "none":

@@ -184,6 +184,19 @@ def read_stamped_poses(
     return out, df
 
 
+def read_csv_table(f: Path, what: str, header: list[str]) -> pd.DataFrame:
+    """A CSV with at least the columns ``header`` (every problem one :class:`SourceError`)."""
+    df = _read_csv(f, what)
+    _require(f, df, header, what)
+    return df
+
+
+def integer_column(f: Path, df: pd.DataFrame, col: str, lo: int, hi: int) -> NDArray[np.int64]:
+    """Column ``col`` of ``df`` (read from ``f``) as integers in ``[lo, hi]``; else one line
+    naming the file, the data row and the column."""
+    return _integers(f, df, col, lo, hi)
+
+
 def _read_csv(f: Path, what: str) -> pd.DataFrame:
     """``pd.read_csv`` with one-line :class:`SourceError` s (an empty file, a ragged row, …)."""
     try:

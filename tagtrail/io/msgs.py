@@ -107,6 +107,14 @@ DETECTION_SOURCES: dict[str, DetectionType] = {
 DETECTION_TYPES = tuple(DETECTION_SOURCES)
 
 
+def stamp_problem(nanosec: int) -> str | None:
+    """What is wrong with a ``header.stamp`` whose nanoseconds field is ``nanosec`` (None: in
+    range). Bag sources refuse such a message in one line; the live nodes drop and count it."""
+    if 0 <= nanosec < 1_000_000_000:
+        return None
+    return f"header.stamp nanoseconds {nanosec} not in [0, 999999999]"
+
+
 @lru_cache(maxsize=1)
 def typestore() -> Typestore:
     """The shared Humble typestore with apriltag_msgs and isaac_ros_apriltag_interfaces."""

@@ -23,7 +23,6 @@ their type's declared offset; a field the type lacks is "not carried" (hamming -
 
 from __future__ import annotations
 
-import csv
 import logging
 import os
 import re
@@ -41,7 +40,7 @@ from tagtrail.geometry.camera import CameraModel
 from tagtrail.io import msgs
 from tagtrail.io.bags import BAG_FILE_SUFFIXES, open_bag
 from tagtrail.io.camera_files import read_camera_file, split_camera_path
-from tagtrail.io.layouts import read_stamped_poses, tag_ids
+from tagtrail.io.layouts import integer_column, read_csv_table, read_stamped_poses, tag_ids
 from tagtrail.schemas.pipeline import DatasetConfig
 from tagtrail.vision.detector import TagDetection
 from tagtrail.vision.images import RawImage
@@ -55,6 +54,8 @@ Kind = Literal["images", "detections", "observations"]
 IMAGE_EXTS = (".jpg", ".jpeg", ".png")
 IMAGE_TYPES = (msgs.IMAGE, msgs.COMPRESSED_IMAGE)
 FOLDER_PERIOD_NS = 100_000_000  # image folders without stamps.csv: 10 Hz from t = 0
+MAX_CORNER_PX = 1e6  # a detection corner farther out is a corrupt message
+STAMPS_HEADER = ["file", "stamp_sec", "stamp_nanosec"]
 OBS_CSV_HEADER = ["stamp_sec", "stamp_nanosec", "tag", "x", "y", "z", "qx", "qy", "qz", "qw"]
 
 
@@ -131,7 +132,8 @@ def open_source(cfg: DatasetConfig) -> Source:
                 return BagSource(path.parent, cfg, camera)
             raise SourceError(
                 f"{path}: no metadata.yaml next to it; a rosbag2 recording is a folder "
-                f"(`ros2 bag reindex {path.parent}` recreates a lost metadata.yaml)"
+                f"(`ros2 bag reindex {path.parent}` or `tagtrail stream record --recover "
+                f"{path.parent}` recreates a lost metadata.yaml)"
             )
         if path.name == "observations.csv":
             return ObservationsSource(path.parent)
@@ -147,7 +149,8 @@ def open_source(cfg: DatasetConfig) -> Source:
         return ImageFolderSource(path, camera, cfg.camera)
     if any(path.glob("*.mcap")) or any(path.glob("*.db3")):
         raise SourceError(
-            f"{path}: bag files without metadata.yaml (`ros2 bag reindex {path}` recreates it)"
+            f"{path}: bag files without metadata.yaml (`ros2 bag reindex {path}` or "
+            f"`tagtrail stream record --recover {path}` recreates it)"
         )
     bags = sorted(path.glob("*.bag"))
     if bags:
@@ -194,6 +197,22 @@ def detections_from_msg(msg: Any, msgtype: str = msgs.DETECTIONS) -> list[TagDet
             family=family if kind.family else "",
         ))
     return out
+
+
+def detection_problem(dets: list[TagDetection]) -> str | None:
+    """What is wrong with a message's detections (None: nothing): a negative tag id, a corner
+    that is not a finite pixel position within :data:`MAX_CORNER_PX`. Bag sources refuse such a
+    message in one line; the live localize node drops and counts it (``bad_detection``)."""
+    for d in dets:
+        if d.tag_id < 0:
+            return f"a detection of tag id {d.tag_id} (ids are >= 0)"
+        c = np.asarray(d.corners, dtype=np.float64)
+        bad = ~(np.abs(c) <= MAX_CORNER_PX).all(axis=-1)
+        if bad.any():
+            k = int(np.argmax(bad))
+            return (f"tag {d.tag_id}: corner {k} is {tuple(c[k].tolist())}, not a pixel "
+                    "position (finite, within 1e6 px)")
+    return None
 
 
 def raw_image_from_msg(msg: Any, msgtype: str) -> RawImage:
@@ -370,15 +389,21 @@ class BagSource(Source):
                     msg: Any = reader.deserialize(raw, conn.msgtype)
                     if conn.topic == self.camera_info_topic:
                         if not warned and self._camera is not None:
-                            cam = CameraModel.from_camera_info(msg)
-                            if not cam.same_as(self._camera):
-                                log.warning("%s: %s changes during the recording; using the "
-                                            "first message", self.path, conn.topic)
+                            try:
+                                same = CameraModel.from_camera_info(msg).same_as(self._camera)
+                                why = "changes during the recording"
+                            except SourceError as err:
+                                same, why = False, f"has an invalid message later ({err})"
+                            if not same:
+                                log.warning("%s: %s %s; using the first message", self.path,
+                                            conn.topic, why)  # fmt: skip
                                 warned = True
                         continue
-                    t_ns = _stamp_ns(msg.header.stamp) or int(t_recv)
+                    t_ns = self._stamp(msg.header.stamp, idx) or int(t_recv)
                     if conn.msgtype in msgs.DETECTION_TYPES:
-                        yield idx, t_ns, detections_from_msg(msg, conn.msgtype)
+                        dets = detections_from_msg(msg, conn.msgtype)
+                        self._check_detections(dets, idx)
+                        yield idx, t_ns, dets
                     else:
                         yield idx, t_ns, raw_image_from_msg(msg, conn.msgtype)
                     idx += 1
@@ -388,6 +413,23 @@ class BagSource(Source):
                 raise SourceError(
                     f"{self.path}: cannot read message {idx} of {self.topic}: {err}"
                 ) from err
+
+
+    def _bad(self, idx: int, problem: str) -> SourceError:
+        return SourceError(f"{self.path}: topic {self.topic}, message {idx}: {problem}")
+
+    def _stamp(self, stamp: Any, idx: int) -> int:
+        """``header.stamp`` in ns; a nanosecond field out of [0, 1e9) is an error."""
+        problem = msgs.stamp_problem(int(stamp.nanosec if hasattr(stamp, "nanosec")
+                                         else stamp.nsecs))  # fmt: skip
+        if problem is not None:
+            raise self._bad(idx, problem)
+        return _stamp_ns(stamp)
+
+    def _check_detections(self, dets: list[TagDetection], idx: int) -> None:
+        problem = detection_problem(dets)
+        if problem is not None:
+            raise self._bad(idx, problem)
 
 
 # --- image folders -----------------------------------------------------------------------------
@@ -425,14 +467,12 @@ class ImageFolderSource(Source):
         f = self.path / "stamps.csv"
         if not f.is_file():
             return np.arange(len(self.files), dtype=np.int64) * FOLDER_PERIOD_NS
-        try:
-            with f.open(newline="", encoding="utf-8") as fh:
-                rows = {r["file"].strip(): int(r["stamp_sec"]) * 1_000_000_000
-                        + int(r["stamp_nanosec"]) for r in csv.DictReader(fh)}
-        except (OSError, KeyError, ValueError, TypeError, AttributeError) as err:
-            raise SourceError(
-                f"{f}: cannot read stamps (header file,stamp_sec,stamp_nanosec): {err!r}"
-            ) from err
+        # every cell range-checked: one line naming the file, the data row and the column
+        df = read_csv_table(f, "stamps", STAMPS_HEADER)
+        sec = integer_column(f, df, "stamp_sec", -(2**31), 2**32 - 1)  # builtin_interfaces/Time
+        nsec = integer_column(f, df, "stamp_nanosec", 0, 999_999_999)
+        names = [str(v).strip() for v in df["file"].tolist()]
+        rows = dict(zip(names, (sec * 1_000_000_000 + nsec).tolist(), strict=True))
         missing = [p.name for p in self.files if p.name not in rows]
         if missing:
             raise SourceError(f"{f}: no stamp for {len(missing)} image(s), e.g. {missing[0]}")

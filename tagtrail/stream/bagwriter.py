@@ -13,6 +13,12 @@ readable bag between flushes (every ``flush_s``):
 - sqlite3: the open transaction is committed.
 - then ``metadata.yaml`` is rewritten (atomically) with the counts so far.
 
+The bag is readable from the start: :meth:`CrashSafeWriter.open` ends the new MCAP at once and
+writes ``metadata.yaml`` (no messages) before any message arrives. A full disk keeps the bag as
+of its last flush, the MCAP cut where that flush's ``metadata.yaml`` counted it; a small reserve
+file written at open (:data:`RESERVE`) is given back first, so that the rollback and the last
+``metadata.yaml`` fit. :attr:`CrashSafeWriter.kept` then holds what a reader will find.
+
 :func:`recover` finishes a bag left mid-write (the MCAP cut after its last complete record,
 ``metadata.yaml`` recounted from the file): what ``--recover`` runs. The writer relies on
 rosbags' MCAP storage writing each closed chunk straight to its file (``bio``, ``chunks``,
@@ -43,6 +49,8 @@ MAGIC = b"\x89MCAP0\r\n"
 # crc 0) + magic: the end of an MCAP with no summary section.
 TAIL = (b"\x0f" + struct.pack("<QI", 4, 0) + b"\x02" + struct.pack("<QQQI", 20, 0, 0, 0) + MAGIC)
 STORAGES = {"mcap": StoragePlugin.MCAP, "sqlite3": StoragePlugin.SQLITE3}
+RESERVE = ".tagtrail-reserve"  # space held back for a full disk's clean-up (module docstring)
+RESERVE_BYTES = 16 * 1024
 
 
 @dataclass(frozen=True)
@@ -116,15 +124,51 @@ class CrashSafeWriter:
         self._chunks = 0
         self._next_flush = time.monotonic() + flush_s
         self._dirty = False
+        self._meta_at: int | None = None  # MCAP: where the file ends as metadata.yaml counts it
+        self._meta_counts: dict[str, int] = {}
+        self.kept: dict[str, int] | None = None  # after abort(): the messages the bag holds
+        self.opened = False  # False: no bag folder (never opened, or removed by open's failure)
 
     def open(self) -> None:
-        """Create the folder and the storage file (in the thread that writes: sqlite3
-        connections belong to their thread)."""
+        """Create the folder, the storage file, the reserve and a first ``metadata.yaml`` (in
+        the thread that writes: sqlite3 connections belong to their thread). The bag is
+        readable from here on; if the disk cannot hold even that, nothing is left behind."""
         try:
             self.writer.open()
+            _check_storage(self.writer.storage, self.kind)
+            (self.out / RESERVE).write_bytes(b"\0" * RESERVE_BYTES)
+            if self.kind == "mcap":
+                self._end_mcap(sync=True)
+            else:
+                self.writer.storage.conn.commit()  # type: ignore[union-attr]
+            self._write_metadata()
         except OSError as err:
+            self._discard()
+            if err.filename is None:  # a failed write names no file
+                err.filename = str(self.out)
             raise (storage_error(err, "record") or err) from err
-        _check_storage(self.writer.storage, self.kind)
+        except BaseException:
+            self._discard()
+            raise
+        self.opened = True
+
+    def _discard(self) -> None:
+        """Remove the bag folder this writer has just created (nothing was recorded in it)."""
+        st: Any = self.writer.storage
+        self.writer.storage = None
+        if st is not None:
+            try:
+                st.abort()
+            except Exception:  # noqa: BLE001 - a full disk: the folder goes anyway
+                pass
+        for name in (self.file.name, RESERVE, "metadata.yaml"):
+            (self.out / name).unlink(missing_ok=True)
+        for p in self.out.glob(".metadata.yaml.*"):  # atomic_write_text's temporary file
+            p.unlink(missing_ok=True)
+        try:
+            self.out.rmdir()
+        except OSError:
+            pass  # not empty: something else wrote there; leave it
 
     def write(self, topic: str, msgtype: str, t_ns: int, cdr: bytes) -> None:
         conn = self.conns.get(topic)
@@ -174,6 +218,7 @@ class CrashSafeWriter:
         self._write_metadata()
         self._dirty = False
 
+
     def topic_counts(self) -> list[TopicCount]:
         return [TopicCount(c.topic, c.msgtype, c.digest, self.counts[t])
                 for t, c in self.conns.items()]  # fmt: skip
@@ -182,6 +227,8 @@ class CrashSafeWriter:
         atomic_write_text(self.out / "metadata.yaml",
                           metadata_text(self.kind, self.file.name, self.topic_counts(),
                                         self.t_min, self.t_max))  # fmt: skip
+        self._meta_at = self._good_at
+        self._meta_counts = dict(self.counts)
 
     def close(self) -> None:
         """Close the bag as rosbags does (MCAP summary, sqlite3 metadata, ``metadata.yaml``)."""
@@ -190,17 +237,22 @@ class CrashSafeWriter:
             return
         if self.kind == "mcap" and self._tail_at is not None:
             st.bio.seek(self._tail_at)
+        (self.out / RESERVE).unlink(missing_ok=True)  # rosbags' summary and metadata fit
         self.writer.close()
 
     def abort(self) -> None:
         """After a failed write (a full disk): keep the bag as of the last flush.
 
-        MCAP: the file is cut where the last end written out in full began and that end written
-        again (the same bytes, so no new space is needed); sqlite3: the open transaction is rolled
-        back. ``metadata.yaml`` of that flush stays as it was.
+        The reserve is given back first. MCAP: the file is cut where the last ``metadata.yaml``
+        counted it and the end written again (the same bytes: no new space needed); sqlite3: the
+        open transaction is rolled back and ``metadata.yaml`` rewritten from the file if the
+        last flush committed more than it counted. :attr:`kept` = the messages a reader finds.
         """
         st: Any = self.writer.storage
         self.writer.storage = None
+        (self.out / RESERVE).unlink(missing_ok=True)
+        for p in self.out.glob("metadata.yaml.tmp"):  # rosbags' close() stopped half-way
+            p.unlink(missing_ok=True)
         if st is None:
             return
         if self.kind == "mcap":
@@ -208,16 +260,22 @@ class CrashSafeWriter:
                 st.bio.close()
             except OSError:
                 pass  # the buffered bytes that did not fit are dropped below
-            with open(self.file, "r+b") as f:  # a chunk only buffered when the disk filled
-                f.truncate(self._good_at if self._good_at is not None else 0)  # is not kept
-                if self._good_at is not None:
-                    f.seek(self._good_at)
+            with open(self.file, "r+b") as f:  # what no metadata.yaml counted is not kept
+                f.truncate(self._meta_at if self._meta_at is not None else 0)
+                if self._meta_at is not None:
+                    f.seek(self._meta_at)
                     f.write(TAIL)
-        else:
-            try:
-                st.conn.rollback()
-            finally:
-                st.conn.close()
+            self.kept = dict(self._meta_counts)
+            return
+        try:
+            st.conn.rollback()
+        finally:
+            st.conn.close()
+        topics, t_min, t_max = _count_sqlite(self.file)
+        self.kept = {t.topic: t.count for t in topics if t.count}
+        if self.kept != {t: n for t, n in self._meta_counts.items() if n}:
+            atomic_write_text(self.out / "metadata.yaml",
+                              metadata_text(self.kind, self.file.name, topics, t_min, t_max))
 
 
 def _records(f: Any, size: int) -> Iterator[tuple[int, int, int]]:
@@ -245,6 +303,7 @@ def recover(out: Path) -> str:
         raise SourceError(f"{out}: not a recording of tagtrail stream record (no single .mcap or "
                           ".db3 file in it)")  # fmt: skip
     path = files[0]
+    (out / RESERVE).unlink(missing_ok=True)
     try:
         if path.suffix == ".mcap":
             topics, t_min, t_max, cut = _recover_mcap(path)
@@ -292,8 +351,17 @@ def _recover_mcap(path: Path) -> tuple[list[TopicCount], int, int, str]:
             chans[channel.id] = (channel.topic, schema.name if schema else "")
             counts[channel.id] = counts.get(channel.id, 0) + 1
             t_min, t_max = min(t_min, message.log_time), max(t_max, message.log_time)
-    topics = [TopicCount(t, m, store.hash_rihs01(m), counts[c]) for c, (t, m) in chans.items()]
+    topics = [TopicCount(t, m, _digest(store, m), counts[c]) for c, (t, m) in chans.items()]
     return topics, t_min, t_max, cut
+
+
+def _digest(store: Any, msgtype: str) -> str:
+    """The type hash rosbag2 records; empty for a type this typestore does not know (a bag
+    of another tool: its messages are read all the same)."""
+    try:
+        return str(store.hash_rihs01(msgtype))
+    except Exception:  # noqa: BLE001 - rosbags raises its own errors for unknown types
+        return ""
 
 
 def _count_sqlite(path: Path) -> tuple[list[TopicCount], int, int]:

@@ -38,7 +38,7 @@ from tagtrail.geometry.fusion import frame_poses
 from tagtrail.geometry.ippe import solve_ippe
 from tagtrail.geometry.se3 import T_from_xyz_quat, xyz_quat_from_T
 from tagtrail.io import msgs
-from tagtrail.io.sources import detections_from_msg, raw_image_from_msg
+from tagtrail.io.sources import detection_problem, detections_from_msg, raw_image_from_msg
 from tagtrail.schemas.artifacts import POSE_COLS
 from tagtrail.stages import extract as extract_stage
 from tagtrail.stages import pnp as pnp_stage
@@ -46,7 +46,7 @@ from tagtrail.stages import trajectory as trajectory_stage
 from tagtrail.stream import codec
 from tagtrail.stream.stats import DropError, Stats
 from tagtrail.vision.detector import filter_detections
-from tagtrail.vision.images import encoded_size
+from tagtrail.vision.images import frame_size
 
 log = logging.getLogger("tagtrail.stream")
 F64 = NDArray[np.float64]
@@ -156,8 +156,11 @@ class Localizer:
         # the extract stage's conversion (−0.5 px) and filters, so live = offline
         assert self.camera is not None
         size = (self.camera.width, self.camera.height)
-        dets = list(filter_detections(detections_from_msg(msg), self.msg_detector, Counter(),
-                                      size))
+        found = detections_from_msg(msg)
+        problem = detection_problem(found)  # what a bag source refuses, the node drops
+        if problem is not None:
+            raise DropError("bad_detection", problem)
+        dets = list(filter_detections(found, self.msg_detector, Counter(), size))
         ids = np.array([d.tag_id for d in dets], dtype=np.int64)
         px = np.array([d.corners for d in dets], dtype=np.float64)
         return self._publish(msg.header.stamp, px.reshape(-1, 4, 2), ids)
@@ -171,15 +174,12 @@ class Localizer:
         raw = raw_image_from_msg(msg, IMAGE_TYPES[kind])
         assert isinstance(raw.data, bytes)  # a message's image: bytes, not a file path
         payload = bytes(raw.data)
-        if raw.kind == "compressed":
-            fmt = raw.encoding
-            size = encoded_size(payload[12:] if "compresseddepth" in fmt.lower() else payload)
-            if size is None:
-                raise DropError("bad_image", f"CompressedImage ({fmt!r}): no PNG/JPEG header")
-            self.check_size(*size)
-        else:
+        size = frame_size(raw)  # the offline extract's check too
+        if size is None:
+            raise DropError("bad_image", f"CompressedImage ({raw.encoding!r}): no PNG/JPEG header")
+        self.check_size(*size)
+        if raw.kind == "raw":
             w, h, step, n = raw.width, raw.height, raw.step, len(payload)
-            self.check_size(w, h)
             if step < w or not step * (h - 1) + w <= n <= step * h:
                 raise DropError("bad_image", f"Image {w}x{h} step {step}: {n} data bytes")
         try:
@@ -207,6 +207,9 @@ class Localizer:
             msg = codec.deserialize(data, msgtype)
         except codec.CodecError as err:
             raise DropError("malformed", str(err)) from err
+        problem = msgs.stamp_problem(int(msg.header.stamp.nanosec))
+        if problem is not None:
+            raise DropError("bad_stamp", problem)
         if self.stats is not None:
             self.stats.stamp(int(msg.header.stamp.sec), int(msg.header.stamp.nanosec))
         return msg

@@ -37,6 +37,7 @@ from tagtrail.errors import SourceError, SpecError, StorageError, TagtrailError
 from tagtrail.io import msgs
 from tagtrail.schemas.profiles import Profile
 from tagtrail.stream.bagwriter import CrashSafeWriter, is_full_disk
+from tagtrail.stream.stats import StampOrder
 
 log = logging.getLogger("tagtrail.stream")
 ADMIN_KEYS = ("@/*/@ros2_lv/MP/**", "@ros2_lv/*/MP/**")  # zenoh 1.x bridges, then 0.x ones
@@ -154,8 +155,7 @@ class _Topic:
     last_count: int = 0
     checked: bool = False
     stamp_at: int | None = None  # byte offset of header.stamp in the CDR payload, if any
-    last_stamp: tuple[int, int] = (-(2**31), 0)
-    out_of_order: int = 0
+    order: StampOrder = field(default_factory=StampOrder)
 
 
 @dataclass
@@ -168,6 +168,7 @@ class Recorded:
     seconds: float
     size_bytes: int
     out_of_order: dict[str, int] = field(default_factory=dict)
+    stamp_outliers: dict[str, int] = field(default_factory=dict)
 
 
 class Recorder:
@@ -238,11 +239,8 @@ class Recorder:
         if topic.stamp_at is None or len(data) < 12:
             return
         fmt = "<iI" if data[1] == 1 else ">iI"
-        stamp: tuple[int, int] = struct.unpack_from(fmt, data, 4)
-        if stamp < topic.last_stamp:
-            topic.out_of_order += 1
-        else:
-            topic.last_stamp = stamp
+        sec, nanosec = struct.unpack_from(fmt, data, 4)
+        topic.order.note(sec * 1_000_000_000 + nanosec)
 
     def _write_loop(self) -> None:
         try:
@@ -340,9 +338,12 @@ class Recorder:
         finally:
             self._finish(writer)
         seconds = time.monotonic() - t0
-        done = Recorded({t.spec.topic: t.count for t in self.topics.values()},
+        kept = self.writer.kept  # a full disk: what the bag holds, not what was handed to it
+        done = Recorded({t.spec.topic: t.count if kept is None else kept.get(t.spec.topic, 0)
+                         for t in self.topics.values()},
                         dict(self.dropped), self.reason or "failed", seconds, self.writer.size,
-                        {t.spec.topic: t.out_of_order for t in self.topics.values()})
+                        {t.spec.topic: t.order.out_of_order for t in self.topics.values()},
+                        {t.spec.topic: t.order.outliers for t in self.topics.values()})
         if self.failure is not None:
             raise self._one_line(self.failure, done) from self.failure
         return done
@@ -361,6 +362,8 @@ class Recorder:
         writer.join()
 
     def _one_line(self, err: BaseException, done: Recorded) -> TagtrailError:
+        if not self.writer.opened and isinstance(err, TagtrailError):
+            return err  # no bag was made (the folder is not left behind)
         kept = f"recorded until then kept in {self.writer.out} ({_counts(done.counts)})"
         if is_full_disk(err):
             return StorageError(f"cannot write {self.writer.file}: No space left on device; "
@@ -377,7 +380,12 @@ def _counts(counts: dict[str, int]) -> str:
 
 
 def summary_line(done: Recorded, writer: CrashSafeWriter) -> str:
+    """The last line; header stamps out of order or lone outliers (kept as sent) are named."""
+    stamps = "".join(f", {what} {_counts({t: n for t, n in per.items() if n})}"
+                     for what, per in (("stamps out of order:", done.out_of_order),
+                                       ("stamp outliers:", done.stamp_outliers))
+                     if any(per.values()))  # fmt: skip
     return (f"record: {done.reason}: {sum(done.counts.values())} messages in {done.seconds:.1f} "
             f"s ({_counts(done.counts)}), {done.size_bytes / 1e6:.1f} MB into {writer.out}, "
-            f"dropped {sum(done.dropped.values())}")
+            f"dropped {sum(done.dropped.values())}{stamps}")
 

@@ -38,6 +38,7 @@ from tagtrail.geometry import se3
 from tagtrail.geometry.association import PathTracker, TrackParams
 from tagtrail.geometry.reference_path import PLANES, ReferencePath, reference_plane
 from tagtrail.geometry.registration import Alignment, world_transform
+from tagtrail.io.msgs import stamp_problem
 from tagtrail.schemas.artifacts import poses
 from tagtrail.stages import report as report_stage
 from tagtrail.stream import codec
@@ -250,6 +251,9 @@ class Relocalizer:
             p = codec.decode_pose(data, self.pose_type)
         except codec.CodecError as err:
             raise DropError("malformed", str(err)) from err
+        problem = stamp_problem(p.nanosec)
+        if problem is not None:
+            raise DropError("bad_stamp", problem)
         out = self.process(p)
         if stats is not None:
             stats.stamp(p.sec, p.nanosec)

@@ -35,6 +35,7 @@ from tagtrail.io.bags import bag_path, open_bag
 from tagtrail.io.layouts import TRAJECTORY_NAMES, read_trajectory
 from tagtrail.schemas.artifacts import POSE_COLS
 from tagtrail.stream import codec
+from tagtrail.stream.stats import lone_outliers
 
 log = logging.getLogger("tagtrail.stream")
 POSE_MSGTYPES = tuple(codec.POSE_TYPES.values())
@@ -166,10 +167,26 @@ def bag_messages(source: Path, topics: list[str]) -> Messages:
 
 
 def schedule_s(t_ns: NDArray[np.int64], rate: float) -> NDArray[np.float64]:
-    """Send times (s from the first message) at ``rate`` × the recorded speed; all 0 for 0."""
+    """Send times (s from the first message) at ``rate`` × the recorded speed; all 0 for 0.
+
+    A stamp going back: no pause. A lone outlier stamp (:func:`~tagtrail.stream.stats.
+    lone_outliers`: far future, far past, zero) is sent with its predecessor, so it neither
+    stalls the replay nor sends the messages after it at once (logged once)."""
     if rate <= 0 or len(t_ns) == 0:
         return np.zeros(len(t_ns))
-    t = np.maximum.accumulate(t_ns.astype(np.int64))  # a stamp going back: no pause
+    t = np.asarray(t_ns, dtype=np.int64)
+    lone = lone_outliers(t)
+    if lone.any():
+        k = np.flatnonzero(lone)
+        log.warning("replay: %d lone stamp outlier(s), e.g. message %d at %d.%09d s between "
+                    "stamps %s s: sent without a pause", len(k), k[0], t[k[0]] // 10**9,
+                    t[k[0]] % 10**9, " and ".join(f"{t[j] / 1e9:.3f}" for j in (k[0] - 1,
+                    k[0] + 1) if 0 <= j < len(t)))  # fmt: skip
+        keep = np.where(lone, -1, np.arange(len(t)))
+        src = np.maximum.accumulate(keep)  # the last stamp before that is not an outlier
+        src[src < 0] = np.flatnonzero(~lone)[0] if (~lone).any() else 0
+        t = t[src]
+    t = np.maximum.accumulate(t)  # a stamp going back: no pause
     send_s: NDArray[np.float64] = (t - t[0]) * 1e-9 / rate
     return send_s
 

@@ -5,10 +5,77 @@ from __future__ import annotations
 import logging
 import time
 from collections import Counter, deque
+from typing import Any
 
 import numpy as np
+from numpy.typing import NDArray
 
 log = logging.getLogger("tagtrail.stream")
+OUTLIER_NS = 10 * 1_000_000_000  # a stamp this far from both neighbours, which agree: an outlier
+
+
+class StampOrder:
+    """Out-of-order and outlier stamps of one stream, judged against the neighbours.
+
+    A stamp earlier than the one before it is out of order (counted once; the next is compared
+    with it, not with the largest stamp ever seen). A lone stamp more than :data:`OUTLIER_NS`
+    from both its neighbours while they agree (far future, far past, zero) is an outlier:
+    counted once as such, and left out, so it poisons neither the out-of-order count nor the
+    stamps after it. The judgement of a stamp waits for the next one (``pending``); the last
+    stamp of a stream is judged on its predecessor alone.
+    """
+
+    def __init__(self) -> None:
+        self.outliers = 0
+        self._out_of_order = 0
+        self._prev: list[int] = []  # the last two stamps kept; the newest not judged yet
+        self._first = True  # the first stamp has no predecessor: judged on its two successors
+
+    def note(self, t_ns: int) -> None:
+        prev = self._prev
+        if len(prev) == 2:
+            a, b = prev
+            if self._first and _far(a, b) and _far(a, t_ns) and not _far(b, t_ns):
+                self.outliers += 1  # the very first stamp was the lone one
+                prev[:] = [b]
+            elif _far(b, a) and _far(b, t_ns) and not _far(a, t_ns):
+                self.outliers += 1
+                prev[:] = [a]
+            else:
+                self._out_of_order += b < a
+                prev[:] = [b]
+            self._first = False
+        prev.append(int(t_ns))
+
+    @property
+    def out_of_order(self) -> int:
+        """Stamps earlier than the one before (the newest judged on its predecessor alone)."""
+        p = self._prev
+        return self._out_of_order + (len(p) == 2 and p[1] < p[0])
+
+
+def _far(a: int, b: int) -> bool:
+    return abs(a - b) > OUTLIER_NS
+
+
+def lone_outliers(t_ns: NDArray[np.int64]) -> NDArray[np.bool_]:
+    """:class:`StampOrder`'s outliers of a whole sequence ``t_ns (N,)`` at once: stamps more
+    than :data:`OUTLIER_NS` from both neighbours while these agree (the first and the last
+    stamp: from the two next to them)."""
+    t = np.asarray(t_ns, dtype=np.float64)  # int64 differences of such stamps overflow
+    n = len(t)
+    out = np.zeros(n, dtype=bool)
+    if n < 3:
+        return out
+
+    def far(i: Any, j: Any) -> Any:
+        return np.abs(t[i] - t[j]) > OUTLIER_NS
+
+    i = np.arange(1, n - 1)
+    out[1:-1] = far(i, i - 1) & far(i, i + 1) & ~far(i - 1, i + 1)
+    out[0] = far(0, 1) and far(0, 2) and not far(1, 2)
+    out[-1] = far(n - 1, n - 2) and far(n - 1, n - 3) and not far(n - 2, n - 3)
+    return out
 
 
 class DropError(Exception):
@@ -30,7 +97,7 @@ class Stats:
         self.name = name
         self.received = 0
         self.processed = 0
-        self.out_of_order = 0
+        self.order = StampOrder()
         self.dropped: Counter[str] = Counter()
         self.proc_ns: deque[int] = deque(maxlen=window)
         self.age_ns: deque[int] = deque(maxlen=window)
@@ -39,19 +106,20 @@ class Stats:
         self._since: Counter[str] = Counter()
         self._t0 = self._t_last = time.monotonic()
         self._n_last = 0
-        self._last_stamp = (-(2**62), 0)
+
+    @property
+    def out_of_order(self) -> int:
+        return self.order.out_of_order
 
     def stamp(self, sec: int, nanosec: int) -> None:
-        """Note a message stamp; one older than the newest so far counts as out of order (it is
+        """Note a message stamp (:class:`StampOrder`: out of order, outliers; the message is
         processed all the same). Stamps within a minute of this machine's clock also give the
         message's age (end-to-end latency when the clocks are synchronised)."""
-        age = time.time_ns() - (sec * 1_000_000_000 + nanosec)
+        t_ns = sec * 1_000_000_000 + nanosec
+        age = time.time_ns() - t_ns
         if 0 <= age < 60_000_000_000:
             self.age_ns.append(age)
-        if (sec, nanosec) < self._last_stamp:
-            self.out_of_order += 1
-        else:
-            self._last_stamp = (sec, nanosec)
+        self.order.note(t_ns)
 
     def drop(self, reason: str, detail: str = "") -> None:
         self.dropped[reason] += 1
@@ -83,7 +151,8 @@ class Stats:
         why = ", ".join(f"{k} {v}" for k, v in sorted(self.dropped.items()))
         why = f" ({why})" if why else ""
         return (f"{self.name}: {rate:.1f} msg/s, {p}, received {self.received}, processed "
-                f"{self.processed}, dropped {drops}{why}, out of order {self.out_of_order}")
+                f"{self.processed}, dropped {drops}{why}, out of order {self.out_of_order}"
+                + (f", stamp outliers {self.order.outliers}" if self.order.outliers else ""))
 
     def summary(self) -> dict[str, object]:
         """Machine-readable totals (printed as JSON by the nodes when they stop)."""
@@ -94,6 +163,7 @@ class Stats:
             "processed": self.processed,
             "dropped": dict(self.dropped),
             "out_of_order": self.out_of_order,
+            "stamp_outliers": self.order.outliers,
             "elapsed_s": round(time.monotonic() - self._t0, 3),
             "proc_p50_us": float(np.percentile(lat, 50)) if lat.size else None,
             "proc_p99_us": float(np.percentile(lat, 99)) if lat.size else None,

@@ -29,10 +29,11 @@ import numpy as np
 from numpy.typing import NDArray
 from pupil_apriltags import Detector
 
+from tagtrail.errors import SourceError
 from tagtrail.geometry.camera import CameraModel
 from tagtrail.vision.corners import refine_many, truncated
 from tagtrail.vision.detector import C_LIBRARY_PIXEL_OFFSET, FAMILY, DetectorConfig
-from tagtrail.vision.images import RawImage
+from tagtrail.vision.images import RawImage, frame_size
 
 
 class GuardedDetector(Detector):  # type: ignore[misc]
@@ -276,6 +277,8 @@ def redetect_small(
 @functools.cache
 def _single_threaded_opencv() -> None:
     cv2.setNumThreads(1)  # one worker per core already; OpenCV's own threads would oversubscribe
+    # a damaged image is one error line (its decode returns None), not OpenCV's log lines too
+    cv2.utils.logging.setLogLevel(cv2.utils.logging.LOG_LEVEL_SILENT)
 
 
 def detect_chunk(
@@ -291,8 +294,23 @@ def detect_chunk(
     n_det, shapes, det_frame, ints, floats = [], [], [], [], []
     imgs: list[NDArray[np.uint8] | None] = []  # None: no tags (the image is not kept)
     dropped: dict[str, int] = {}
-    for idx, _t_ns, raw in chunk:
-        img = raw.decode()
+    for idx, t_ns, raw in chunk:
+        size = frame_size(raw) if camera is not None else None
+        if camera is not None and size is not None and size != (camera.width, camera.height):
+            # not the camera's size: left out by extract, so not decoded (a 1 MB PNG can say
+            # 20000x20000: 400 MB once decoded)
+            n_det.append(0)
+            shapes.append((size[1], size[0]))
+            det_frame.append(np.zeros(0, np.int64))
+            ints.append(np.zeros((0, 2), np.int32))
+            floats.append(np.zeros((0, 9)))
+            imgs.append(None)
+            continue
+        try:
+            img = raw.decode()
+        except SourceError as err:
+            raise SourceError(f"frame {idx} (stamp {t_ns // 10**9}.{t_ns % 10**9:09d} s): "
+                              f"{err}") from err
         i, f, drops = _detect_filtered(img, cfg)
         for name, n in drops.items():
             dropped[name] = dropped.get(name, 0) + n

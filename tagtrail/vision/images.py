@@ -84,10 +84,37 @@ class RawImage:
         )
 
 
+def frame_size(raw: RawImage) -> tuple[int, int] | None:
+    """``(width, height)`` that ``raw`` will decode to, read without decoding it: a raw
+    ``Image``'s fields, a PNG's IHDR or a JPEG's start-of-frame (:func:`encoded_size`) of a
+    ``CompressedImage`` (after ``compressedDepth``'s 12-byte prefix) or of an image file. None
+    when no such header says (another format, a cut header, an unreadable file).
+
+    Both the offline extract (``detect_chunk``) and the live localize node check this size
+    against the camera's before decoding: a small file can claim a huge image."""
+    if raw.kind == "raw":
+        return raw.width, raw.height
+    if raw.kind == "compressed":
+        assert isinstance(raw.data, bytes)
+        data = bytes(raw.data)
+        return encoded_size(data[12:] if "compresseddepth" in raw.encoding.lower() else data)
+    try:
+        with open(str(raw.data), "rb") as f:
+            head = f.read(1 << 16)
+            size = encoded_size(head)
+            if size is None and len(head) == 1 << 16:  # a JPEG's frame header after big EXIF
+                size = encoded_size(head + f.read())
+    except OSError:
+        return None
+    return size
+
+
 def decode_compressed(data: bytes, fmt: str) -> U8:
     """``sensor_msgs/CompressedImage`` bytes (jpeg/png; ``compressedDepth`` too) → gray uint8."""
     if "compresseddepth" in fmt.lower():
         data = data[12:]  # image_transport's compressedDepth prefixes a 12-byte config header
+    if not data:
+        raise SourceError(f"an empty CompressedImage (format {fmt!r}): no image bytes")
     img = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_GRAYSCALE)
     if img is None:
         raise SourceError(f"cannot decode a CompressedImage of format {fmt!r} (jpeg/png expected)")
