@@ -135,11 +135,25 @@ def _filters(
     return ok & ~low & ~other, low, other
 
 
+# The C library reads out of bounds (a segfault, measured with pupil-apriltags 1.0.4.post11) on an
+# image whose shorter side is under 3 pixels once decimated (16 px at quad_decimate 8, 2 px at
+# 1); no tag fits in fewer than 4 decimated pixels a side, so such an image is not handed to it.
+MIN_DECIMATED_SIDE_PX = 4.0
+
+
+def guarded_detect(detector: Any, img: NDArray[np.uint8], quad_decimate: float) -> list[Any]:
+    """``detector.detect(img)``, or no detection where the image is too small to hold a tag at
+    ``quad_decimate`` (which would crash the C library)."""
+    if min(img.shape[:2]) < MIN_DECIMATED_SIDE_PX * max(1.0, quad_decimate):
+        return []
+    return list(detector.detect(img))
+
+
 def _detect_raw(
     img: NDArray[np.uint8], cfg: DetectorConfig
 ) -> tuple[NDArray[np.int32], NDArray[Any]]:
     """The C library's detections, unfiltered: ints (m, 2), floats (m, 9) as :func:`detect`."""
-    dets = get_detector(cfg).detect(img)
+    dets = guarded_detect(get_detector(cfg), img, cfg.quad_decimate)
     ints = np.array([(d.tag_id, d.hamming) for d in dets], dtype=np.int32).reshape(-1, 2)
     floats = np.array(
         [(d.decision_margin, *(np.asarray(d.corners).reshape(8) - C_LIBRARY_PIXEL_OFFSET))
@@ -254,7 +268,7 @@ def redetect_small(
     centres = [q.mean(axis=0) for q in found[:, 1:].reshape(-1, 4, 2)]
     ints, floats = [], []
     for x0, y0, x1, y1 in small_tag_candidates(img, found):
-        for d in full.detect(np.ascontiguousarray(img[y0:y1, x0:x1])):
+        for d in guarded_detect(full, np.ascontiguousarray(img[y0:y1, x0:x1]), 1.0):
             corners = np.asarray(d.corners, dtype=np.float64) - C_LIBRARY_PIXEL_OFFSET
             corners = corners + (x0, y0)
             lo, hi = corners.min(axis=0), corners.max(axis=0)
