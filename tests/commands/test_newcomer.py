@@ -120,3 +120,64 @@ def test_run_ends_with_the_answer(bags: Path, tmp_path: Path, monkeypatch, capsy
     assert float(m[2]) == pytest.approx(summary["distance_m"]["max"], abs=1e-3)
     assert float(m[3]) == pytest.approx(summary["abs_heading_error_deg"]["mean"], abs=0.1)
     assert float(m[4]) == pytest.approx(summary["abs_heading_error_deg"]["max"], abs=0.1)
+
+
+def test_a_sweep_of_a_parameter_that_changes_nothing_marks_no_best(
+        bags: Path, tmp_path: Path, monkeypatch, capsys) -> None:
+    """optimize.f_scale under the linear loss (which ignores it) moves the reference metrics by
+    float noise only: the table prints one value for them, no point is "best", the table fits
+    100 columns, and sweep.png draws flat lines (the plotted values are one)."""
+    from tagtrail.commands import sweep as sweep_cmd
+    from tagtrail.runner.sweep import read_table, within_noise
+
+    monkeypatch.chdir(tmp_path)
+    assert main(["init", "--reference", str(bags / "reference"), "--query",
+                 str(bags / "query_1"), "--tag-size", "0.16"]) == 0
+    capsys.readouterr()
+    assert main(["sweep", "-S", "optimize.loss=linear", "-S", "optimize.f_scale=0.05,0.1,0.2",
+                 "--metric", "trajectory.rmse_m", "--metric", "D.mean_m",
+                 "--metric", "gauge_free.trajectory.rmse_m"]) == 0
+    out = capsys.readouterr().out
+    rows = read_table(next(Path("sweeps").glob("*/sweep.csv")))
+    first = [float(r["trajectory.rmse_m[reference]"]) for r in rows]
+    assert all(within_noise(a, first[0]) for a in first)
+    assert [r["best"] for r in rows] == ["false"] * 3
+    assert "best: none: points 1, 2, 3 give the same trajectory.rmse_m" in out
+    lines = out[:out.index("\nbest")].splitlines()
+    assert max(len(line) for line in lines) <= 100
+    head = next(i for i, line in enumerate(lines) if line.startswith("point"))
+    block = lines[head:head + 4]  # the first block: header and three points
+    col = block[0].split().index("trajectory.rmse_m[reference]")
+    assert len({line.split()[col] for line in block[1:]}) == 1  # one value for the three
+    assert sweep_cmd.denoised(first) == [sum(first) / 3] * 3
+
+
+def test_sweep_values_to_the_digits_that_tell_them_apart() -> None:
+    from tagtrail.commands.sweep import denoised, digits
+
+    assert digits([0.1416, 0.14160000001, None]) == ["0.1416", "0.1416", "-"]
+    assert digits([0.1416, 0.14161]) == ["0.1416", "0.14161"]  # 7e-5 apart: both shown
+    assert digits([1.0, 1.0 + 3e-7]) == ["1", "1"]  # below the noise: the same
+    assert denoised([1.0, 1.0 + 1e-3]) == [1.0, 1.0 + 1e-3]  # a real difference stays
+
+
+def test_an_error_caused_by_dash_s_names_dash_s(bags: Path, tmp_path: Path, monkeypatch,
+                                                capsys) -> None:
+    """A -S typo or bad value blames -S; the same mistake in the file blames the file."""
+    monkeypatch.chdir(tmp_path)
+    assert main(["init", "--reference", str(bags / "reference"), "--tag-size", "0.16"]) == 0
+    capsys.readouterr()
+    for given, expected in (
+            ("optimize.f_scal=0.1", "error: -S optimize: unknown key 'f_scal' — did you mean "
+                                    "'f_scale'?"),
+            ("optimize.f_scale=-1", "error: -S optimize.f_scale: Input should be greater than 0"),
+            ("optimiz.f_scale=1", "error: -S: unknown stage 'optimiz' — did you mean "
+                                  "'optimize'?")):
+        assert main(["status", "-S", given]) == 2
+        line = one_error_line(capsys)
+        assert line.startswith(expected) and "pipeline.yaml" not in line, line
+    doc = yaml.safe_load(Path("pipeline.yaml").read_text())
+    doc["stages"]["optimize"] = {"f_scal": 0.1}
+    Path("pipeline.yaml").write_text(yaml.safe_dump(doc))
+    assert main(["status", "-S", "optimize.f_scale=0.2"]) == 2
+    assert one_error_line(capsys).startswith("error: pipeline.yaml: stages.optimize: unknown key")
