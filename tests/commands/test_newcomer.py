@@ -181,3 +181,18 @@ def test_an_error_caused_by_dash_s_names_dash_s(bags: Path, tmp_path: Path, monk
     Path("pipeline.yaml").write_text(yaml.safe_dump(doc))
     assert main(["status", "-S", "optimize.f_scale=0.2"]) == 2
     assert one_error_line(capsys).startswith("error: pipeline.yaml: stages.optimize: unknown key")
+
+
+def test_change_lines_are_bounded(bags: Path, tmp_path: Path, monkeypatch, capsys) -> None:
+    """A known-poses file added to a run's parameters: `status` says so in one short line (the
+    block summarised by its keys), not thousands of characters of poses."""
+    monkeypatch.chdir(tmp_path)
+    assert main(["init", "--reference", str(bags / "reference"), "--tag-size", "0.16"]) == 0
+    assert main(["run", "optimize"]) == 0
+    capsys.readouterr()
+    survey = bags / "reference" / "ground_truth" / "tag_map.yaml"
+    assert main(["status", "-S", f"optimize.survey.file={survey}"]) == 0
+    lines = capsys.readouterr().out.splitlines()
+    line = next(x for x in lines if x.startswith("optimize [reference]"))
+    assert "params changed: survey: None → {file, " in line
+    assert max(len(x) for x in lines) <= 250
