@@ -250,7 +250,8 @@ def run(observations: pd.DataFrame, params: Params) -> dict[str, Any]:
     ids = n_obs.index.to_numpy(np.int64)  # sorted
     back = _bridging(obs, keep, amb, ids, params.min_edge_obs)
     if amb.any():
-        log.info("edges: %d ambiguous observations left out of the graph", int((amb & ~back).sum()))
+        log.info("edges: %d views of a tag left out of the tag-pair links: ambiguous (its two "
+                 "mirror-image poses fit almost equally)", int((amb & ~back).sum()))
     if back.any():
         log.warning("edges: %d ambiguous observations kept (their edges weighted x%g): without "
                     "them the tag graph splits", int(back.sum()), params.ambiguous_weight)
@@ -267,8 +268,8 @@ def run(observations: pd.DataFrame, params: Params) -> dict[str, Any]:
         br = _consistent(ob, T, a, b, ni * len(ids) + nj)
         n_alt = int((br.choice > 0).sum())
         if n_alt:
-            log.info("edges: %d of %d co-observations use a second IPPE solution (the one "
-                     "their tag pair agrees on)", n_alt, len(a))
+            log.info("edges: %d of %d tag pairs seen together use a tag's other mirror-image "
+                     "pose (the one the pair agrees on across frames)", n_alt, len(a))
         close = (br.ratio >= params.rival_ratio) & (br.alt_choice >= 0)
         alt = (a[close], b[close], br.alt_T_ij[close], br.ratio[close])
         T_ij = br.T_ij

@@ -179,12 +179,15 @@ def joint_trajectory(rows: pd.DataFrame, ids: np.ndarray, W_map: np.ndarray,
         res, block = solve_grounded(
             res, lambda r, **kw: solve(R_cam=r.R_cam, t_cam=r.t_cam, **kw),
             ground, params.ground, drive, params.drive, prior)
-        log.info("trajectory: ground plane %s (planarity %.2f)",
-                 "applied" if block["applied"] else "not applied", block["planarity"])
+        log.info("trajectory: %s (off-plane score %.2f)",
+                 "the camera moves in one plane at a fixed tilt, as on a robot: held there"
+                 if block["applied"] else "the camera leaves a single plane: its height and tilt "
+                 "left free", block["planarity"])
         if block["drive"] is not None:
-            log.info("trajectory: wheeled drive %s (strain %.2f)",
-                     "applied" if block["drive"]["applied"] else "not applied",
-                     block["drive"]["strain"])
+            log.info("trajectory: %s (sideways-motion score %.2f)",
+                     "the camera moves like a wheeled robot's, never sliding sideways: held so"
+                     if block["drive"]["applied"] else "the camera moves sideways too: not "
+                     "held to a wheeled robot's motion", block["drive"]["strain"])
     if prior is not None:
         ev = frame_evidence(res, ob, px_per_unit=camera.focal_px, sigma_px=sigma,
                             loss=params.joint_loss, f_scale_px=params.joint_f_scale_px,
@@ -204,8 +207,9 @@ def joint_trajectory(rows: pd.DataFrame, ids: np.ndarray, W_map: np.ndarray,
     out = pd.DataFrame({"t_ns": t_ns})
     out[POSE_COLS] = np.concatenate([xyz, q], axis=1)
     out["n_tags"] = np.bincount(ob.frame, minlength=len(t_ns)).astype(np.int32)
-    log.info("trajectory: joint solve of %d frames (%d held by the motion prior), corner RMS "
-             "%.2f px", len(t_ns), res.prior_terms, float(np.sqrt(np.mean(res.res_px**2))))
+    log.info("trajectory: %d frames solved together (%d tied to their neighbours by smooth "
+             "motion); tag corners fit to %.2f px RMS", len(t_ns), res.prior_terms,
+             float(np.sqrt(np.mean(res.res_px**2))))
     return _extra(out, res.cam_std, prior is not None, evidence, alone)
 
 
