@@ -65,6 +65,8 @@ class Params(StageParams):
     min_edge_obs: int = Field(1, ge=1, le=1_000_000)
     """A tag pair needs this many co-observations to form edges."""
     weighting: Literal["uniform", "distance"] = "distance"
+    """Edge weight: ``distance`` (IPPE's depth error, ~ range^2 / tag size, normalised to a median
+    of 1) or ``uniform`` (all 1, the paper's)."""
     branches: Literal["consistent", "best"] = "consistent"
     """Which IPPE solution of each tag forms an edge: ``consistent`` (per tag pair, the
     combination that agrees across frames, ``geometry.ippe.consistent_branches``), ``best``
@@ -74,6 +76,8 @@ class Params(StageParams):
     combination has at least this share of the winner's support keeps it as a rival hypothesis
     (edges rows with ``hypothesis`` 1) for optimize to test."""
     on_disconnected: Literal["drop", "fail", "keep"] = "drop"
+    """Tags not linked to the anchor by co-observations: ``drop`` them (a warning), ``fail`` the
+    stage, or ``keep`` every part for optimize to place by a survey's known tags."""
     ambiguous_weight: float = Field(0.1, gt=0.0, le=1.0)
     """Weight factor of the edges of ambiguous observations kept because, left out, they would
     split the tag graph (the pose graph's start; the joint solve uses every observation)."""

@@ -104,11 +104,13 @@ class Params(StageParams):
     rot_weight_m: float = Field(1.0, ge=1e-6, le=1000.0)
     """Metres of residual per radian of rotation residual (1.0: the paper's plain stacking)."""
     max_nfev: int = Field(100, ge=1, le=100_000)
+    """Iterations (function evaluations) of the pose-graph solve at most."""
     joint_loss: LossName = "huber"
     """Robust loss of the joint solve, on each tag's 8-vector of corner errors (px)."""
     joint_f_scale_px: float = Field(1.0, ge=1e-3, le=1000.0)
     """Corner error norm (px) where the joint solve's loss turns sub-quadratic."""
     joint_max_iter: int = Field(50, ge=1, le=10_000)
+    """Iterations of the joint solve at most (a warning when it stops before converging)."""
     joint_min_frames: int = Field(30, ge=1, le=10_000_000)
     """Frames seeing a mapped tag needed for the joint solve; with fewer, the pose graph is
     kept (module docstring)."""

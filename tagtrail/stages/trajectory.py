@@ -79,11 +79,15 @@ TRAJ_COLS = columns("trajectory.trajectory")
 
 class Params(StageParams):
     method: Literal["auto", "joint", "avg", "lsq", "pnp"] = "auto"
+    """How each frame's camera pose is found: ``joint`` (all frames on their tags' corners, held
+    together by the motion prior), ``avg``, ``lsq`` or ``pnp`` (frame by frame); ``auto``:
+    ``joint`` with detections and a camera, else ``lsq``."""
     loss: LossName = "soft_l1"
     """Robust loss of the ``lsq`` fusion (per tag, on the 6-vector residual)."""
     f_scale: float = Field(0.1, ge=1e-6, le=100.0)
     """Residual norm (m) where the ``lsq`` loss turns sub-quadratic."""
     rot_weight_m: float = Field(1.0, ge=1e-6, le=1000.0)
+    """``lsq``: metres of residual per radian of rotation residual."""
     ransac_px: float = Field(3.0, gt=0.0, le=1000.0)
     """``pnp``: RANSAC inlier threshold (pixels)."""
     corner_sigma_px: float = Field(0.5, ge=1e-3, le=100.0)
@@ -94,9 +98,14 @@ class Params(StageParams):
     corner_weighting: Literal["size", "none"] = "size"
     """``joint``: as optimize's."""
     joint_loss: LossName = "huber"
+    """``joint``: robust loss on each tag's corner errors, as optimize's."""
     joint_f_scale_px: float = Field(1.0, ge=1e-3, le=1000.0)
+    """``joint``: corner error norm (px) where the loss turns sub-quadratic, as optimize's."""
     joint_max_iter: int = Field(50, ge=1, le=10_000)
+    """``joint``: iterations at most, as optimize's."""
     motion: Literal["constant_velocity", "none"] = "constant_velocity"
+    """``joint``: motion prior between consecutive frames, as optimize's (``none``: frames solved
+    alone)."""
     motion_acc_sigma: float = Field(0.1, ge=1e-6, le=1000.0)
     """``joint``: linear acceleration noise density (m/s^2/sqrt(Hz)), as optimize's."""
     motion_ang_sigma_deg: float = Field(30.0, ge=1e-4, le=1e5)
