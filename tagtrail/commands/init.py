@@ -148,7 +148,7 @@ def _survey_params(survey: Path, base: Path, stages: dict[str, Any]) -> str:
     pnp["tag_sizes_from"] = name
     if sizes.default is not None:
         unused = pnp.pop("tag_size", None)
-        note = "" if unused is None else f" (--tag-size {unused} not used: the file sizes all)"
+        note = "" if unused is None else f" (tag size {unused} not written: the file sizes all)"
         return f"{desc}; tag sizes from it: {sizes.sizes}, {sizes.default} m for the others{note}"
     if "tag_size" not in pnp:
         raise SpecError(f"{NO_SIZE} (--survey {survey} sizes only tags {sorted(sizes.sizes)})")
