@@ -5,8 +5,8 @@ Read from the files the run exported into ``outputs/<dataset>/`` (``diagnostics.
 printed is what a user finds in the folder. A reference: tags mapped, frames posed, the corner
 RMS (px) and, with ground truth, the trajectory's and the map's position errors. A query: D and
 phi (the parked values in point mode, mean / max in trajectory mode) and which reference
-heading phi compares with (SPEC: the nearest segment's in point mode, the nearest sample's in
-trajectory mode).
+heading phi compares with (``summary.json``'s ``ref_heading``: the nearest segment's in point
+mode, the matched sample's in trajectory mode, with the association that matched it).
 """
 
 from __future__ import annotations
@@ -16,9 +16,9 @@ import json
 from pathlib import Path
 from typing import Any
 
-HEADING = {
-    "point": "phi vs the heading of the nearest reference segment",
-    "trajectory": "phi vs the reference heading at the nearest sample",
+HEADING = {  # summary.json's ref_heading
+    "segment": "phi vs the heading of the nearest reference segment",
+    "sample": "phi vs the reference heading at the matched sample",
 }
 
 
@@ -104,8 +104,11 @@ def query_block(dataset: str, folder: Path) -> list[str]:
     else:
         text = (f"{dataset}: {mode} mode, {summary.get('n', '?')} poses: D mean {d['mean']:.4f} m, "
                 f"max {d['max']:.4f} m; |phi| mean {phi['mean']:.2f} deg, max {phi['max']:.2f} deg")
-    return [text, f"  {HEADING.get(mode, 'phi vs the reference heading')} "
-                  f"(plane {summary.get('plane', '?')})"]
+    ref = summary.get("ref_heading") or ("segment" if mode == "point" else "sample")
+    how = f"{summary['association']} association, " \
+        if ref == "sample" and summary.get("association") else ""
+    return [text, f"  {HEADING.get(ref, 'phi vs the reference heading')} "
+                  f"({how}plane {summary.get('plane', '?')})"]
 
 
 def answer_text(written: dict[str, Path], reference: str) -> str:

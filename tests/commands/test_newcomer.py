@@ -114,7 +114,8 @@ def test_run_ends_with_the_answer(bags: Path, tmp_path: Path, monkeypatch, capsy
     summary = json.loads(Path("outputs/query/summary.json").read_text())
     m = re.search(r"^query: trajectory mode, \d+ poses: D mean ([\d.]+) m, max ([\d.]+) m; "
                   r"\|phi\| mean ([\d.]+) deg, max ([\d.]+) deg\n"
-                  r"  phi vs the reference heading at the nearest sample", out, re.M)
+                  r"  phi vs the reference heading at the matched sample \(progress "
+                  r"association, plane auto\)", out, re.M)
     assert m, out
     assert float(m[1]) == pytest.approx(summary["distance_m"]["mean"], abs=1e-3)
     assert float(m[2]) == pytest.approx(summary["distance_m"]["max"], abs=1e-3)
@@ -168,11 +169,11 @@ def test_an_error_caused_by_dash_s_names_dash_s(bags: Path, tmp_path: Path, monk
     assert main(["init", "--reference", str(bags / "reference"), "--tag-size", "0.16"]) == 0
     capsys.readouterr()
     for given, expected in (
-            ("optimize.f_scal=0.1", "error: -S optimize: unknown key 'f_scal' — did you mean "
-                                    "'f_scale'?"),
-            ("optimize.f_scale=-1", "error: -S optimize.f_scale: Input should be greater than 0"),
-            ("optimiz.f_scale=1", "error: -S: unknown stage 'optimiz' — did you mean "
-                                  "'optimize'?")):
+            ("optimize.f_scal=0.1", "error: -S optimize.f_scal=0.1: stages.optimize: unknown key "
+                                    "'f_scal' — did you mean 'f_scale'?"),
+            ("optimize.f_scale=-1", "error: -S optimize.f_scale=-1: stages.optimize.f_scale: "),
+            ("optimiz.f_scale=1", "error: -S optimiz.f_scale=1: unknown stage 'optimiz' — did you "
+                                  "mean 'optimize'?")):
         assert main(["status", "-S", given]) == 2
         line = one_error_line(capsys)
         assert line.startswith(expected) and "pipeline.yaml" not in line, line
