@@ -216,7 +216,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> argparse.ArgumentParser:
 
 def _follow_arguments(sub: Any, fmt: type[argparse.HelpFormatter]) -> None:
     p = sub.add_parser("follow", help="drive along the reference: Twist on cmd_vel",
-                       formatter_class=fmt, description="A reference path follower (Stanley "
+                       epilog=EXAMPLES, formatter_class=fmt,
+                       description="A reference path follower (Stanley "
                        "or pure pursuit; docs/FOLLOW.md) on relocalize's state JSON, publishing "
                        "geometry_msgs/msg/Twist within the robot's limits; a zero Twist when "
                        "the pose is stale, lost, bad or at the path's end.")
