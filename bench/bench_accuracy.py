@@ -209,7 +209,7 @@ def combo(work: Path, scenario: str, source: str, level: str, frames: int,
     tagtrail("simulate", scenario, "--out", "sim", "--frames", str(frames), "--query-frames", "2",
              "--no-progress", *LEVELS[(source, level)], cwd=project)
     rec = RECORDING.get(scenario, scenario)
-    tagtrail("init", "--reference", f"sim/{rec}", cwd=project)
+    tagtrail("init", "--reference", f"sim/{rec}", "--tag-size", "0.16", cwd=project)
     rows = [method_row(project, scenario, source, level, m) for m in METHODS]
     dt, dr, n = floor(Runner(load_pipeline(project / "pipeline.yaml", REGISTRY)),
                       project / "sim" / rec / "ground_truth")

@@ -78,7 +78,8 @@ def main() -> None:
         subprocess.run([str(BIN / "tagtrail"), "simulate", "room", "--out", "sim", "--detections",
                         "--frames", str(args.frames), "--query-frames", "2", "--no-progress",
                         "--force"], cwd=work, check=True, capture_output=True)
-        subprocess.run([str(BIN / "tagtrail"), "init", "--reference", "sim/reference", "--force"],
+        subprocess.run([str(BIN / "tagtrail"), "init", "--reference", "sim/reference", "--tag-size",
+                        "0.16", "--force"],
                        cwd=work, check=True, capture_output=True)
         print(f"recording: room --detections --frames {args.frames} "
               f"(simulated in {time.perf_counter() - t0:.1f} s)")

@@ -215,7 +215,7 @@ def recording(work: Path, scenario: str, frames: int) -> Path:
     run(TAGTRAIL, "simulate", scenario, "--out", "sim", "--detections", "--frames", str(frames),
         "--query-frames", "2", "--no-progress", "--force", cwd=project)  # fmt: skip
     reference = "sim/reference" if scenario == "room" else f"sim/{scenario}"
-    run(TAGTRAIL, "init", "--reference", reference, "--force", cwd=project)
+    run(TAGTRAIL, "init", "--reference", reference, "--tag-size", "0.16", "--force", cwd=project)
     return project
 
 

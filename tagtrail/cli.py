@@ -75,6 +75,11 @@ def cmd_run(args: argparse.Namespace) -> int:
     say(f"{ran} ran, {len(states) - ran} cached in {time.perf_counter() - t0:.2f}s")
     for ds, folder in written.items():
         say(f"outputs [{ds}]: {folder}")
+    from tagtrail.commands.answer import answer_text
+
+    answer = answer_text(written, runner.pipe.reference)
+    if answer:
+        say(answer)
     if args.json:
         from dataclasses import asdict
 

@@ -144,7 +144,7 @@ def test_sparse_hall_from_detections_with_the_defaults(tmp_path: Path,
 
     rec = simulate("hall", tmp_path / "data", detections=True, storage="sqlite3")["hall"]
     monkeypatch.chdir(tmp_path)
-    assert main(["init", "--reference", str(rec)]) == 0
+    assert main(["init", "--reference", str(rec), "--tag-size", "0.16"]) == 0
     assert main(["run"]) == 0
     runner = Runner(load_pipeline(tmp_path / "pipeline.yaml", REGISTRY))
     assert all(s.status == "cached" for s in runner.plan())
@@ -197,7 +197,7 @@ def test_sparse_corridor_images_mirrored_pairs_decided_by_continuity(
     rec = simulate("corridor", tmp_path / "data",
                    realism=replace(Realism(), noise_sigma=4.0, blur_sigma=1.0))["corridor"]
     monkeypatch.chdir(tmp_path)
-    assert main(["init", "--reference", str(rec)]) == 0
+    assert main(["init", "--reference", str(rec), "--tag-size", "0.16"]) == 0
     raw = "extract.refit_corners=false"
     assert main(["run", "-S", raw]) == 0
     runner = Runner(load_pipeline(tmp_path / "pipeline.yaml", REGISTRY, [raw]))
@@ -238,7 +238,7 @@ def test_ground_plane_and_wheels_keep_a_corridor_of_tags_level_and_straight(
     rec = simulate("corridor", tmp_path / "data", detections=True,
                    corner_noise_px=0.6)["corridor"]
     monkeypatch.chdir(tmp_path)
-    assert main(["init", "--reference", str(rec)]) == 0
+    assert main(["init", "--reference", str(rec), "--tag-size", "0.16"]) == 0
     assert main(["run"]) == 0
     runner = Runner(load_pipeline(tmp_path / "pipeline.yaml", REGISTRY))
     ground = artifact(runner, "optimize", "report", "reference")["bundle"]["ground"]

@@ -62,8 +62,8 @@ def test_missing_source_and_bad_source(tmp_path: Path, monkeypatch, capsys) -> N
     Path("pipeline.yaml").write_text("datasets:\n  reference: {source: empty}\n")
     assert main(["run"]) == 2
     assert "extract [reference]" in one_error_line(capsys)
-    assert main(["init", "--reference", "empty"]) == 2
-    one_error_line(capsys)
+    assert main(["init", "--reference", "empty", "--tag-size", "0.16", "-o", "p2.yaml"]) == 2
+    assert "empty" in one_error_line(capsys)
 
 
 def test_simulate_bad_option(tmp_path: Path, capsys) -> None:

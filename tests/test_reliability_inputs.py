@@ -73,7 +73,7 @@ def init_and_extract(project: Path, source: Path, monkeypatch: pytest.MonkeyPatc
                      *extra: str) -> int:  # fmt: skip
     project.mkdir()
     monkeypatch.chdir(project)
-    rc = main(["init", "--reference", str(source), *extra])
+    rc = main(["init", "--reference", str(source), "--tag-size", "0.16", *extra])
     return rc if rc else main(["run", "extract"])
 
 
@@ -275,7 +275,8 @@ def test_oversized_png_frames_are_not_decoded(recordings, huge_png, tmp_path) ->
     bag = rewrite(recordings["images"], tmp_path / "bag", edit)
     project = tmp_path / "p"
     project.mkdir()
-    assert main(["init", "--reference", str(bag), "-o", str(project / "pipeline.yaml")]) == 0
+    assert main(["init", "--reference", str(bag), "--tag-size", "0.16",
+                 "-o", str(project / "pipeline.yaml")]) == 0
     rc, peak, err = run_measured(project, "run", "extract", "-S", "extract.workers=1")
     print(f"extract with two 20000x20000 PNG frames: peak {peak} MB")
     assert rc == 0, err
@@ -292,7 +293,8 @@ def test_oversized_image_file_is_not_decoded(huge_png, tmp_path) -> None:
     assert frame_size(raw) == (20_000, 20_000)
     project = tmp_path / "p"
     project.mkdir()
-    assert main(["init", "--reference", str(folder), "-o", str(project / "pipeline.yaml")]) == 0
+    assert main(["init", "--reference", str(folder), "--tag-size", "0.16",
+                 "-o", str(project / "pipeline.yaml")]) == 0
     rc, peak, err = run_measured(project, "run", "extract", "-S", "extract.workers=1")
     print(f"extract with a 20000x20000 PNG file: peak {peak} MB")
     assert "f1.png (20000x20000)" in err, err

@@ -275,7 +275,8 @@ def test_ctrl_c_in_other_commands(dets, tmp_path, command):
     project = new_project(tmp_path / "p", dets)
     assert tagtrail(project, "run").returncode == 0
     args, target = {
-        "init": (["init", "--reference", str(dets / "reference"), "-o", "new.yaml"], "new.yaml"),
+        "init": (["init", "--reference", str(dets / "reference"), "--tag-size", "0.16", "-o",
+                  "new.yaml"], "new.yaml"),
         "eval": (["eval", "--csv", "eval.csv"], "eval.csv"),
         "relocalize": (["relocalize", "outputs/reference", "outputs/query", "-o", "reloc"],
                        "reloc/relocalization.csv"),

@@ -15,11 +15,11 @@ from tagtrail.schemas.pipeline import DatasetConfig, Topics
 from tagtrail.schemas.profiles import PROFILES, Profile, describe, get_profile
 
 EXAMPLES = """examples:
-  tagtrail init --reference bags/run1 --query bags/parked1
+  tagtrail init --reference bags/run1 --query bags/parked1 --tag-size 0.16
   tagtrail init --reference photos/ --camera photos/camera.yaml --tag-size 0.127
-  tagtrail init --reference run1.bag --anchor 0 -o lab.yaml
+  tagtrail init --reference run1.bag --tag-size 0.16 --anchor 0 -o lab.yaml
   tagtrail init --reference tag_detections.bag --camera cameras.yaml --survey tagslam.yaml
-  tagtrail init --profile limo --reference bags/reference      # the LIMO's topics and defaults
+  tagtrail init --profile limo --reference bags/reference --tag-size 0.16  # the LIMO's topics
   tagtrail init --list-profiles"""
 
 
@@ -34,7 +34,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--camera", type=Path, default=None, metavar="FILE",
                         help="camera_info YAML (image folders, or to override the bag's)")
     parser.add_argument("--tag-size", type=float, default=None, metavar="M",
-                        help="edge of the tags' black square in metres (default: pnp.tag_size)")
+                        help="edge of the tags' black square in metres; required unless "
+                        "--survey or --profile sim gives it (no source format carries it)")
     parser.add_argument("--anchor", type=int, default=None, metavar="ID",
                         help="anchor (world) tag id (default: the most observed tag)")
     parser.add_argument("--survey", type=Path, default=None, metavar="FILE",
@@ -59,7 +60,7 @@ def inspect(source: Path, camera: Path | None,
     topics found by type); return its dataset entry and a one-line description."""
     from tagtrail.io.sources import BagSource, open_source
 
-    cfg = DatasetConfig(source=source.resolve(), camera=camera.resolve() if camera else None,
+    cfg = DatasetConfig(source=_typed(source), camera=_typed(camera) if camera else None,
                         topics=Topics(**(topics_given or {})))  # fmt: skip
     with open_source(cfg) as src:
         topics: dict[str, Any] = {}
@@ -74,6 +75,11 @@ def inspect(source: Path, camera: Path | None,
     return cfg.model_copy(update={"topics": Topics(**topics)}), desc
 
 
+def _typed(path: Path) -> Path:
+    """``path`` made absolute as typed: symlinks kept (a linked data folder stays named so)."""
+    return Path(os.path.abspath(path))
+
+
 def _rel(path: Path, base: Path) -> str:
     try:
         return os.path.relpath(path, base)
@@ -81,35 +87,40 @@ def _rel(path: Path, base: Path) -> str:
         return str(path)
 
 
+NO_SIZE = ("the tags' printed size is not known: pass --tag-size M (edge of the black square, "
+           "metres) or tag_sizes in pipeline.yaml")
+
+
 def _stage_params(tag_size: float | None, profile: Profile | None = None) -> dict[str, Any]:
     """The ``stages:`` block (the profile's parameters, ``--tag-size`` over them), validated by
-    the stages' own models (a file ``run`` accepts)."""
+    the stages' own models (a file ``run`` accepts). ``pnp.tag_size`` is written only when the
+    user or the profile gives it: pnp's built-in default is never written silently."""
     from pydantic import ValidationError
 
     from tagtrail.stages import REGISTRY, pnp
 
     stages = {s: dict(ps) for s, ps in (profile.stages if profile else {}).items()}
-    size = tag_size if tag_size is not None else stages.get("pnp", {}).get(
-        "tag_size", pnp.Params().tag_size)
-    try:
-        pnp.Params(tag_size=size)
-    except ValidationError as err:
-        msg = err.errors()[0]["msg"]
-        raise SpecError(
-            f"--tag-size {size}: {msg} (the edge of the black square, in metres)"
-        ) from err
-    stages.setdefault("pnp", {})["tag_size"] = size
+    if tag_size is not None:
+        try:
+            pnp.Params(tag_size=tag_size)
+        except ValidationError as err:
+            msg = err.errors()[0]["msg"]
+            raise SpecError(
+                f"--tag-size {tag_size}: {msg} (the edge of the black square, in metres)"
+            ) from err
+        stages.setdefault("pnp", {})["tag_size"] = tag_size
     for stage, params in stages.items():  # a profile's own values must pass too
         REGISTRY[stage].Params(**params)
-    return {"pnp": stages.pop("pnp"), **stages}
+    return {"pnp": stages.pop("pnp", {}), **stages}
 
 
 def _survey_params(survey: Path, base: Path, stages: dict[str, Any]) -> str:
     """Name the known-poses file ``survey`` (relative to ``base``, the pipeline's folder) in
     ``stages``: ``optimize.survey.file``, ``edges.on_disconnected: keep`` (parts of the tag
     graph never seen together are placed by their known tags), and ``pnp.tag_sizes_from`` when
-    it gives tag sizes;
-    read as ``run`` will (one-line errors naming the file). Returns a one-line description."""
+    it gives tag sizes (then no ``pnp.tag_size`` is written beside a default size of the file's
+    for every other tag: it would never be used); read as ``run`` will (one-line errors naming
+    the file). Returns a one-line description."""
     from pydantic import ValidationError
 
     from tagtrail.schemas.pipeline import SurveyConfig, TagSizesFile
@@ -117,7 +128,7 @@ def _survey_params(survey: Path, base: Path, stages: dict[str, Any]) -> str:
     def first(err: ValidationError) -> str:
         return str(err.errors()[0]["msg"]).removeprefix("Value error, ")
 
-    path = Path(os.path.abspath(survey))  # named as given (a symlinked folder stays one)
+    path = _typed(survey)  # named as given (a symlinked folder stays one)
     try:
         known = SurveyConfig(file=str(path))
     except ValidationError as err:
@@ -126,14 +137,29 @@ def _survey_params(survey: Path, base: Path, stages: dict[str, Any]) -> str:
     stages.setdefault("optimize", {})["survey"] = {"file": name}
     stages.setdefault("edges", {})["on_disconnected"] = "keep"  # each part placed by its tags
     desc = f"survey: {known.format}, known tags {sorted(known.known)}"
+    pnp = stages["pnp"]
     try:
         sizes = TagSizesFile(file=str(path))
     except ValidationError as err:  # the file is read above: it gives no (valid) size
         reason = first(err).removeprefix(f"{path}: ")
-        return f"{desc}; tag size {stages['pnp']['tag_size']} m for every tag: {reason}"
-    stages["pnp"]["tag_sizes_from"] = name
-    other = "" if sizes.default is None else f", {sizes.default} m for the others"
-    return f"{desc}; tag sizes from it: {sizes.sizes}{other}"
+        if "tag_size" not in pnp:
+            raise SpecError(f"{NO_SIZE} (--survey {survey}: {reason})") from err
+        return f"{desc}; tag size {pnp['tag_size']} m for every tag: {reason}"
+    pnp["tag_sizes_from"] = name
+    if sizes.default is not None:
+        unused = pnp.pop("tag_size", None)
+        note = "" if unused is None else f" (tag size {unused} not written: the file sizes all)"
+        return f"{desc}; tag sizes from it: {sizes.sizes}, {sizes.default} m for the others{note}"
+    if "tag_size" not in pnp:
+        raise SpecError(f"{NO_SIZE} (--survey {survey} sizes only tags {sorted(sizes.sizes)})")
+    return f"{desc}; tag sizes from it: {sizes.sizes}, {pnp['tag_size']} m for the others"
+
+
+def _needs_size(sources: list[Path]) -> bool:
+    """Whether some source has tags to measure (images or corners): only an observations folder
+    (camera→tag poses given) needs no tag size."""
+    return any(not (p.name == "observations.csv" or (p / "observations.csv").is_file())
+               for p in sources)
 
 
 def main(args: argparse.Namespace) -> int:
@@ -147,8 +173,10 @@ def main(args: argparse.Namespace) -> int:
         raise SpecError(f"{out} exists already; use --force to overwrite it")
     profile = get_profile(args.profile)
     stages = _stage_params(args.tag_size, profile)
-    base = out.resolve().parent
+    base = out.resolve().parent  # run takes relative paths from the file's real folder
     survey = _survey_params(args.survey, base, stages) if args.survey is not None else None
+    if not stages["pnp"] and _needs_size([args.reference, *args.query]):
+        raise SpecError(NO_SIZE)
     names = ["reference"] + [f"query{'' if i == 0 else f'_{i + 1}'}"
                              for i in range(len(args.query))]
     datasets: dict[str, Any] = {}
@@ -172,6 +200,8 @@ def main(args: argparse.Namespace) -> int:
         print(survey)
     if args.anchor is not None:  # the reference's gauge; queries may never see that tag
         datasets["reference"]["params"] = {"edges": {"anchor_id": args.anchor}}
+    if not stages["pnp"]:
+        del stages["pnp"]
     doc = {"reference": "reference", "datasets": datasets, "stages": stages}
     header = ("# Written by `tagtrail init`. Stage parameters not listed keep their defaults;\n"
               "# see `tagtrail dag` and `tagtrail run --dry-run`.\n")

@@ -175,6 +175,8 @@ def summary_text(summary: dict[str, Any], reloc: pd.DataFrame, out: Path) -> str
 
 def add_arguments(parser: argparse.ArgumentParser) -> argparse.ArgumentParser:
     """Add the ``relocalize`` arguments to ``parser`` (returned)."""
+    parser.epilog = EXAMPLES
+    parser.formatter_class = argparse.RawDescriptionHelpFormatter
     parser.add_argument("reference", type=Path, help="reference folder or trajectory file")
     parser.add_argument("query", type=Path, help="query folder or trajectory file")
     parser.add_argument("-o", "--out", type=Path, default=Path("relocalization"),

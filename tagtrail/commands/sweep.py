@@ -135,14 +135,7 @@ def _main(ns: argparse.Namespace) -> int:
         quiet.setLevel(level)
     plot = write_plot(sweep, sweep.folder / PLOT)
     print("\n".join(table(sweep)))
-    best = sweep.best()
-    first = sweep.columns[0].metric
-    if best is not None:
-        over = f" (mean of {len(sweep.first)} datasets)" if len(sweep.first) > 1 else ""
-        print(f"\nbest (lowest {first}{over}): point {best.point.index}: "
-              f"{best.point.label or '(no overrides)'}")  # fmt: skip
-    else:
-        print(f"\nbest: none (no point has {first})")
+    print("\n" + best_line(sweep))
     failed = [r for r in results if r.status != "ok"]
     print(f"wrote {sweep.folder / sw.TABLE} ({len(results)} rows)"
           + (f", {plot}" if plot is not None else ""))  # fmt: skip
@@ -154,22 +147,76 @@ def _main(ns: argparse.Namespace) -> int:
     return 0
 
 
-def _fmt(v: float | None) -> str:
-    return "-" if v is None else f"{v:.4g}"
+WIDTH = 100  # the printed table's lines fit this many columns
+MAX_CELL = 24  # a parameter value longer than this is cut (sweep.csv has it whole)
 
 
-def table(sweep: Sweep) -> list[str]:
-    """The printed table: point, parameters, metric columns, the best point starred."""
+def best_line(sweep: Sweep) -> str:
+    """The line under the table: the best point, or why there is none (a tie within the
+    metric's noise, or no point with the metric)."""
+    from tagtrail.runner.sweep import NOISE_REL
+
+    first = sweep.columns[0].metric
+    over = f" (mean of {len(sweep.first)} datasets)" if len(sweep.first) > 1 else ""
+    best, low = sweep.best(), sweep.lowest()
+    if best is not None:
+        return (f"best (lowest {first}{over}): point {best.point.index}: "
+                f"{best.point.label or '(no overrides)'}")
+    if not low:
+        return f"best: none (no point has {first})"
+    value = sweep.score(low[0])
+    return (f"best: none: points {', '.join(str(r.point.index) for r in low)} give the same "
+            f"{first}{over} ({digits([value])[0]}) within its noise (relative {NOISE_REL:g})")
+
+
+def digits(values: Sequence[float | None], least: int = 4, most: int = 7) -> list[str]:
+    """``values`` to as few significant digits (``least`` … ``most``) as tell apart every two
+    that differ beyond the metric's noise; values the same within noise print the same."""
+    from tagtrail.runner.sweep import within_noise
+
+    real = [v for v in values if v is not None]
+    for n in range(least, most + 1):
+        text = {v: f"{v:.{n}g}" for v in real}
+        if all(text[a] != text[b] for i, a in enumerate(real) for b in real[i + 1:]
+               if not within_noise(a, b)):
+            break
+    return ["-" if v is None else f"{v:.{n}g}" for v in values]
+
+
+def _cut(text: str) -> str:
+    return text if len(text) <= MAX_CELL else text[:MAX_CELL - 1] + "…"
+
+
+def table(sweep: Sweep, width: int = WIDTH) -> list[str]:
+    """The printed table: point, parameters, metric columns, the best point starred; metric
+    columns that do not fit ``width`` go to a further block (point and parameters repeated)."""
     from tagtrail.commands.eval import aligned
 
     best = sweep.best()
-    header = ["point", *sweep.params, *(c.name for c in sweep.columns), ""]
-    body = []
-    for r in sorted(sweep.results, key=lambda r: r.point.index):
-        mark = "*" if r is best else ("failed" if r.status != "ok" else "")
-        body.append([str(r.point.index), *(r.point.values.get(p, "") for p in sweep.params),
-                     *(_fmt(r.metrics.get(c.name)) for c in sweep.columns), mark])  # fmt: skip
-    return aligned(header, body, text=(*range(1, 1 + len(sweep.params)), len(header) - 1))
+    results = sorted(sweep.results, key=lambda r: r.point.index)
+    left = [["point", *sweep.params]] + [
+        [str(r.point.index), *(_cut(r.point.values.get(p, "")) for p in sweep.params)]
+        for r in results]
+    marks = ["*" if r is best else ("failed" if r.status != "ok" else "") for r in results]
+    cols = [[c.name, *digits([r.metrics.get(c.name) for r in results])] for c in sweep.columns]
+    left_w = sum(max(len(row[i]) for row in left) + 2 for i in range(len(left[0])))
+    mark_w = max((len(m) for m in marks), default=0) + 2
+    blocks: list[list[list[str]]] = [[]]
+    used = left_w + mark_w
+    for col in cols:
+        w = max(len(cell) for cell in col) + 2
+        if blocks[-1] and used + w > width:
+            blocks.append([])
+            used = left_w + mark_w
+        blocks[-1].append(col)
+        used += w
+    lines: list[str] = []
+    for k, block in enumerate(blocks):
+        header = [*left[0], *(c[0] for c in block), ""]
+        body = [[*left[i + 1], *(c[i + 1] for c in block), marks[i]] for i in range(len(results))]
+        lines += ([""] if k else []) + aligned(
+            header, body, text=(*range(1, len(left[0])), len(header) - 1))
+    return lines
 
 
 def _number(text: str) -> float | None:
@@ -184,10 +231,39 @@ def _number(text: str) -> float | None:
     return float(v)
 
 
+def denoised(ys: Sequence[float | None]) -> list[float | None]:
+    """A metric's values as plotted: all one value (their mean) when every two agree within
+    the metric's noise, so float noise draws a flat line, not a trend."""
+    from tagtrail.runner.sweep import within_noise
+
+    real = [y for y in ys if y is not None]
+    if real and within_noise(min(real), max(real)):
+        mean = sum(real) / len(real)
+        return [None if y is None else mean for y in ys]
+    return list(ys)
+
+
+MIN_SPAN_REL = 1e-3  # a y axis spans at least this much of its values: short tick labels
+
+
+def _y_range(ax: Any, ys: Sequence[float]) -> None:
+    """Plain tick labels (no ``1e-16+1.48e-3`` offset) on an axis at least
+    :data:`MIN_SPAN_REL` of its values wide, centred on them."""
+    ax.ticklabel_format(axis="y", useOffset=False, style="plain")
+    if not ys:
+        return
+    lo, hi = min(ys), max(ys)
+    span = max(hi - lo, MIN_SPAN_REL * max(abs(lo), abs(hi)), 1e-12)
+    mid = (lo + hi) / 2
+    ax.set_ylim(mid - 0.55 * span, mid + 0.55 * span)
+
+
 def write_plot(sweep: Sweep, path: Path) -> Path | None:
     """``sweep.png``: each metric (rows; averaged over its datasets) against each parameter that
     varies (columns): every point as a dot, the lowest over the other parameters as a line, the
-    best point starred. None when no point has a metric."""
+    best point starred (when it is best beyond the metric's noise). Values that agree within
+    the noise are drawn as one (:func:`denoised`), axes without offset notation. None when no
+    point has a metric."""
     from matplotlib.backends.backend_agg import FigureCanvasAgg
     from matplotlib.figure import Figure
 
@@ -206,9 +282,14 @@ def write_plot(sweep: Sweep, path: Path) -> Path | None:
     for i, metric in enumerate(metrics):
         cols = [c.name for c in sweep.columns if c.metric == metric]
 
-        def value(r: Any, cols: list[str] = cols) -> float | None:
+        def mean(r: Any, cols: list[str] = cols) -> float | None:
             vals = [r.metrics.get(c) for c in cols]
             return None if any(v is None for v in vals) else sum(vals) / len(vals)
+
+        plotted = dict(zip([id(r) for r in ok], denoised([mean(r) for r in ok]), strict=True))
+
+        def value(r: Any, plotted: dict[int, float | None] = plotted) -> float | None:
+            return plotted[id(r)]
 
         for j, param in enumerate(params):
             ax = axes[i][j]
@@ -239,6 +320,7 @@ def write_plot(sweep: Sweep, path: Path) -> Path | None:
                     ax.set_xscale("log")
             else:
                 ax.set_xticks(range(len(order)), order)
+            _y_range(ax, [y for _, y in pts])
             ax.set_xlabel(param)
             over = f" (mean of {len(cols)})" if len(cols) > 1 else ""
             ax.set_ylabel(f"{metric}{over}" if len(cols) > 1 else cols[0])

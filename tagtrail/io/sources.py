@@ -56,6 +56,8 @@ IMAGE_TYPES = (msgs.IMAGE, msgs.COMPRESSED_IMAGE)
 FOLDER_PERIOD_NS = 100_000_000  # image folders without stamps.csv: 10 Hz from t = 0
 MAX_CORNER_PX = 1e6  # a detection corner farther out is a corrupt message
 STAMPS_HEADER = ["file", "stamp_sec", "stamp_nanosec"]
+# Compressed files tagtrail does not read, and the command that unpacks each (keeping the file).
+UNPACK = {".bz2": "bunzip2 -k", ".gz": "gunzip -k", ".zst": "unzstd", ".xz": "unxz -k"}
 OBS_CSV_HEADER = ["stamp_sec", "stamp_nanosec", "tag", "x", "y", "z", "qx", "qy", "qz", "qw"]
 
 
@@ -123,6 +125,9 @@ def open_source(cfg: DatasetConfig) -> Source:
     path = Path(cfg.source)
     if not path.exists():
         raise SourceError(f"{path}: no such file or folder (dataset source)")
+    if path.is_file() and path.suffix in UNPACK:
+        raise SourceError(f"{path}: a compressed file; unpack it first (`{UNPACK[path.suffix]} "
+                          f"{path}`) and name {path.with_suffix('').name} as the source")
     camera = _camera_override(cfg.camera)
     if path.is_file():
         if path.suffix == ".bag":
@@ -155,6 +160,10 @@ def open_source(cfg: DatasetConfig) -> Source:
     bags = sorted(path.glob("*.bag"))
     if bags:
         raise SourceError(f"{path}: holds ROS 1 bags; name one as the source, e.g. {bags[0]}")
+    packed = sorted(p for p in path.iterdir() if p.suffix in UNPACK)
+    if packed:
+        raise SourceError(f"{path}: holds compressed files only; unpack one first, e.g. "
+                          f"`{UNPACK[packed[0].suffix]} {packed[0]}`")
     raise SourceError(
         f"{path}: empty or unrecognised source folder (expected metadata.yaml of a rosbag2 "
         f"recording, jpg/png images, or observations.csv)"

@@ -55,19 +55,44 @@ class NodeState:
         return f"{node:<28} {self.status:<7}{took}{rows}  ({self.reason})"
 
 
-def _param_diff(old: dict[str, Any], new: dict[str, Any], prefix: str = "") -> str:
+MAX_VALUE = 40  # characters of one value in a change line; a mapping is summarised
+MAX_DIFF = 200  # characters of the whole list of changed parameters
+
+
+def _short(v: Any) -> str:
+    """A value for a change line: a mapping (a known-poses block, tag sizes) by its keys, any
+    value cut to :data:`MAX_VALUE` characters."""
+    text = "{" + ", ".join(map(str, v)) + "}" if isinstance(v, dict) else repr(v)
+    return text if len(text) <= MAX_VALUE else text[:MAX_VALUE - 1] + "…"
+
+
+def _param_diff(old: dict[str, Any], new: dict[str, Any], prefix: str = "",
+                limit: int = MAX_DIFF) -> str:
     """The changed parameters, nested ones by their dotted name (a file's tag sizes or known
-    poses: ``tag_sizes_from.sizes.2: 0.16 → 0.2``, not the whole block twice)."""
+    poses: ``tag_sizes_from.sizes.2: 0.16 → 0.2``, not the whole block twice); each value at
+    most :data:`MAX_VALUE` characters, the list at most ``limit`` (then ``… and N more``)."""
+    parts = _param_changes(old, new, prefix)
+    shown: list[str] = []
+    for i, part in enumerate(parts):
+        rest = len(parts) - i - 1
+        tail = f", … and {rest} more" if rest else ""
+        if len(", ".join([*shown, part])) + len(tail) > limit and shown:
+            return ", ".join(shown) + f", … and {len(parts) - i} more"
+        shown.append(part)
+    return ", ".join(shown)
+
+
+def _param_changes(old: dict[str, Any], new: dict[str, Any], prefix: str) -> list[str]:
     parts = []
     for k in sorted(set(old) | set(new)):
         a, b = old.get(k), new.get(k)
         if a == b:
             continue
         if isinstance(a, dict) and isinstance(b, dict):
-            parts.append(_param_diff(a, b, f"{prefix}{k}."))
+            parts += _param_changes(a, b, f"{prefix}{k}.")
         else:
-            parts.append(f"{prefix}{k}: {a!r} → {b!r}")
-    return ", ".join(parts)
+            parts.append(f"{prefix}{k}: {_short(a)} → {_short(b)}")
+    return parts
 
 
 class Runner:

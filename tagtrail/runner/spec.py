@@ -237,7 +237,10 @@ def load_pipeline(
         node[keys[-1]] = value
     for name in raw:
         if name not in stages:
-            raise SpecError(f"{path}: unknown stage {name!r}{did_you_mean(name, stages)}")
+            by = next((t for (st, _), t in given.items() if st == name), None)
+            src = str(path) if name in config.stages or by is None else \
+                f"-S {short_repr(by, 120)[1:-1]}"
+            raise SpecError(f"{src}: unknown stage {name!r}{did_you_mean(name, stages)}")
     root = path.resolve().parent
     ctx = {"root": root}  # files named by parameters (optimize.survey.file) are taken from here
     params: dict[str, StageParams] = {}

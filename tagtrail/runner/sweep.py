@@ -62,6 +62,21 @@ _NAME = re.compile(r"^[A-Za-z0-9_.-]+$")
 
 # --- metrics ----------------------------------------------------------------------------------
 
+# A metric's noise: two points whose values differ by no more than this (relative to the larger)
+# are the same result. Metrics come out of iterative least-squares solves (tolerances ~1e-8) and
+# float sums whose order changes with the data's order: runs that change nothing of substance
+# differ by ~1e-7 relative (issue 30: three optimize.f_scale values all 0.1416, one marked best on
+# a 1e-7 difference). 1e-6 is above that and far below any change worth a row in a table (a
+# micrometre in a metre).
+NOISE_REL = 1e-6
+NOISE_ABS = 1e-12  # values at zero (a perfect fit): below this, equal
+
+
+def within_noise(a: float, b: float) -> bool:
+    """Whether two values of one metric are the same result (:data:`NOISE_REL`)."""
+    return abs(a - b) <= max(NOISE_REL * max(abs(a), abs(b)), NOISE_ABS)
+
+
 
 @dataclass(frozen=True)
 class Metric:
@@ -416,9 +431,20 @@ class Sweep:
             return None
         return sum(v for v in values if v is not None) / len(values)
 
+    def lowest(self) -> list[PointResult]:
+        """The points whose first metric is the lowest, within the metric's noise
+        (:func:`within_noise`), in point order; empty when no point has it."""
+        scored = [(s, r) for r in self.results if (s := self.score(r)) is not None]
+        if not scored:
+            return []
+        low = min(s for s, _ in scored)
+        return sorted((r for s, r in scored if within_noise(s, low)), key=lambda r: r.point.index)
+
     def best(self) -> PointResult | None:
-        scored = [(s, r.point.index, r) for r in self.results if (s := self.score(r)) is not None]
-        return min(scored, key=lambda t: (t[0], t[1]))[2] if scored else None
+        """The point with the lowest first metric, when it is lower than every other point's
+        beyond the metric's noise; None when points tie (or none has the metric)."""
+        low = self.lowest()
+        return low[0] if len(low) == 1 else None
 
     # --- the table ---
 

@@ -45,8 +45,10 @@ class Profile(BaseModel):
 
 
 # The LIMO: an anchor tag upright on a wall, the floor the anchor's x-z plane (NOTES "The LIMO";
-# the original tool's plane); tag edge as the pipeline's default: measure yours and edit it.
-_LIMO_STAGES: dict[str, dict[str, Any]] = {"pnp": {"tag_size": 0.16}, "report": {"plane": "xz"}}
+# the original tool's plane). No tag size: nothing documents the LIMO's tags (print your own and
+# give `init --tag-size`). The `sim` profile carries the simulator's size (SimOptions), which
+# `tagtrail simulate` documents and renders.
+_LIMO_STAGES: dict[str, dict[str, Any]] = {"report": {"plane": "xz"}}
 
 PROFILES: dict[str, Profile] = {p.name: p for p in (
     Profile(
@@ -97,4 +99,6 @@ def describe(profile: Profile) -> str:
     """A few lines for ``--list-profiles``: name, what it is for, its topics and parameters."""
     topics = ", ".join(f"{t} ({m.rsplit('/', 1)[-1]})" for t, m in profile.record)
     stages = ", ".join(f"{s}.{k}={v}" for s, ps in profile.stages.items() for k, v in ps.items())
+    if "tag_size" not in profile.stages.get("pnp", {}):
+        stages += " (no tag size: give init --tag-size)"
     return f"{profile.name}: {profile.description}\n  records: {topics}\n  parameters: {stages}"

@@ -43,13 +43,25 @@ class Params(StageParams):
     """``align``: auto | none | tags; ``model``: similarity | rigid (planar), sim3 | se3 (3-D)."""
 
     align: Literal["auto", "none", "tags"] = "auto"
+    """Bring the query into the reference world with their common tags: ``tags`` (always),
+    ``none`` (keep the query's frame), ``auto`` (when there are enough common tags, else a
+    warning)."""
     model: Literal["similarity", "rigid", "se3", "sim3"] = "similarity"
+    """The transform fitted: ``similarity`` / ``rigid`` in the plane (with / without scale),
+    ``sim3`` / ``se3`` in 3-D."""
     plane: Literal["auto", "xz", "xy", "yz"] = "auto"
+    """Plane of the planar models (SPEC Conventions; ``auto``: fitted to the reference cameras)."""
     ransac_threshold_m: float = Field(0.10, gt=0, le=100.0)
+    """RANSAC inlier threshold (m) on a common tag's position after the fit."""
     ransac_iterations: int = Field(300, ge=1, le=1_000_000)
+    """RANSAC iterations."""
     seed: int = Field(0, ge=0, le=2**32 - 1)
+    """Seed of RANSAC's random samples (a fixed seed: the same fit every run)."""
     allow_scale: bool = False  # accept a fitted scale outside scale_range
+    """Accept a fitted scale outside ``scale_range`` (else the stage fails: a scale far from 1
+    usually means a wrong tag size)."""
     scale_range: tuple[Scale, Scale] = (0.9, 1.1)
+    """Fitted scales accepted without ``allow_scale`` (min, max)."""
 
 
 def common_tags(tag_map: pd.DataFrame, ref_tag_map: pd.DataFrame) -> tuple[F64, F64, list[int]]:

@@ -50,7 +50,9 @@ class StageParams(BaseModel):
     (e.g. worker counts); they are left out of the cache key.
     """
 
-    model_config = ConfigDict(extra="forbid", frozen=True, strict=True, allow_inf_nan=False)
+    # use_attribute_docstrings: each field's docstring is its description (docs/PARAMETERS.md)
+    model_config = ConfigDict(extra="forbid", frozen=True, strict=True, allow_inf_nan=False,
+                              use_attribute_docstrings=True)
     EXECUTION_ONLY: ClassVar[frozenset[str]] = frozenset()
 
     @model_validator(mode="before")

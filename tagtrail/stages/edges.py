@@ -65,6 +65,8 @@ class Params(StageParams):
     min_edge_obs: int = Field(1, ge=1, le=1_000_000)
     """A tag pair needs this many co-observations to form edges."""
     weighting: Literal["uniform", "distance"] = "distance"
+    """Edge weight: ``distance`` (IPPE's depth error, ~ range^2 / tag size, normalised to a median
+    of 1) or ``uniform`` (all 1, the paper's)."""
     branches: Literal["consistent", "best"] = "consistent"
     """Which IPPE solution of each tag forms an edge: ``consistent`` (per tag pair, the
     combination that agrees across frames, ``geometry.ippe.consistent_branches``), ``best``
@@ -74,6 +76,8 @@ class Params(StageParams):
     combination has at least this share of the winner's support keeps it as a rival hypothesis
     (edges rows with ``hypothesis`` 1) for optimize to test."""
     on_disconnected: Literal["drop", "fail", "keep"] = "drop"
+    """Tags not linked to the anchor by co-observations: ``drop`` them (a warning), ``fail`` the
+    stage, or ``keep`` every part for optimize to place by a survey's known tags."""
     ambiguous_weight: float = Field(0.1, gt=0.0, le=1.0)
     """Weight factor of the edges of ambiguous observations kept because, left out, they would
     split the tag graph (the pose graph's start; the joint solve uses every observation)."""
@@ -250,7 +254,8 @@ def run(observations: pd.DataFrame, params: Params) -> dict[str, Any]:
     ids = n_obs.index.to_numpy(np.int64)  # sorted
     back = _bridging(obs, keep, amb, ids, params.min_edge_obs)
     if amb.any():
-        log.info("edges: %d ambiguous observations left out of the graph", int((amb & ~back).sum()))
+        log.info("edges: %d views of a tag left out of the tag-pair links: ambiguous (its two "
+                 "mirror-image poses fit almost equally)", int((amb & ~back).sum()))
     if back.any():
         log.warning("edges: %d ambiguous observations kept (their edges weighted x%g): without "
                     "them the tag graph splits", int(back.sum()), params.ambiguous_weight)
@@ -267,8 +272,8 @@ def run(observations: pd.DataFrame, params: Params) -> dict[str, Any]:
         br = _consistent(ob, T, a, b, ni * len(ids) + nj)
         n_alt = int((br.choice > 0).sum())
         if n_alt:
-            log.info("edges: %d of %d co-observations use a second IPPE solution (the one "
-                     "their tag pair agrees on)", n_alt, len(a))
+            log.info("edges: %d of %d tag pairs seen together use a tag's other mirror-image "
+                     "pose (the one the pair agrees on across frames)", n_alt, len(a))
         close = (br.ratio >= params.rival_ratio) & (br.alt_choice >= 0)
         alt = (a[close], b[close], br.alt_T_ij[close], br.ratio[close])
         T_ij = br.T_ij

@@ -59,9 +59,16 @@ class Params(StageParams):
     """Detector settings (tag36h11, pupil-apriltags defaults) and output filters."""
 
     quad_decimate: float = Field(2.0, ge=1.0, le=8.0)
+    """Detect quads on the image shrunk by this factor (faster; small tags are re-detected at full
+    resolution, ``small_tags``); 1.0: full resolution."""
     quad_sigma: float = Field(0.0, ge=0.0, le=10.0)
+    """Gaussian blur (px, sigma) applied before quad detection; 0: none (helps on noisy images)."""
     refine_edges: bool = True
+    """Let the detector snap each quad's edges to the strong image gradients (the C library's
+    refine_edges)."""
     decode_sharpening: float = Field(0.25, ge=0.0, le=10.0)
+    """Sharpening of the decoded tag image (the C library's decode_sharpening); helps with small,
+    blurred tags."""
     max_hamming: Annotated[int, Field(ge=0, le=3)] | Literal["auto"] = Field(
         "auto", description="bit errors corrected (the C library's bits_corrected, 0-3) or kept "
         "from detection messages. auto (default, on evidence, bench/bench_hamming.py): 0 for "
@@ -75,6 +82,7 @@ class Params(StageParams):
         20.0, ge=0.0, le=1e6, description="drop detections whose decision margin is lower "
         "(not applied to sources that carry no margin: TagSLAM's, Isaac ROS')")
     tag_ids: tuple[TagId, ...] | None = None
+    """Keep only these tag ids (null: every tag36h11 id)."""
     refit_corners: bool = Field(
         True, description="re-fit corners to the border's edges (io.corners); false: the "
         "detector's own")

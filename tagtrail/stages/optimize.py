@@ -104,11 +104,13 @@ class Params(StageParams):
     rot_weight_m: float = Field(1.0, ge=1e-6, le=1000.0)
     """Metres of residual per radian of rotation residual (1.0: the paper's plain stacking)."""
     max_nfev: int = Field(100, ge=1, le=100_000)
+    """Iterations (function evaluations) of the pose-graph solve at most."""
     joint_loss: LossName = "huber"
     """Robust loss of the joint solve, on each tag's 8-vector of corner errors (px)."""
     joint_f_scale_px: float = Field(1.0, ge=1e-3, le=1000.0)
     """Corner error norm (px) where the joint solve's loss turns sub-quadratic."""
     joint_max_iter: int = Field(50, ge=1, le=10_000)
+    """Iterations of the joint solve at most (a warning when it stops before converging)."""
     joint_min_frames: int = Field(30, ge=1, le=10_000_000)
     """Frames seeing a mapped tag needed for the joint solve; with fewer, the pose graph is
     kept (module docstring)."""
@@ -298,8 +300,9 @@ def refine_on_corners(
     m = corner_rows(observations, detections, np.unique(observations["tag_id"].to_numpy()))
     n_frames = int(m.loc[m["tag_id"].isin(tags), "frame_idx"].nunique())
     if n_frames < params.joint_min_frames:
-        log.info("optimize: %d frames see a mapped tag (< joint_min_frames %d): no joint solve, "
-                 "the pose-graph map is kept", n_frames, params.joint_min_frames)
+        log.info("optimize: only %d frames see a mapped tag (joint_min_frames %d): the map from "
+                 "tag pairs is kept, not refined over all frames together", n_frames,
+                 params.joint_min_frames)
         return None
     ids = np.union1d(tags, m["tag_id"].to_numpy(np.int64))
     W = np.full((len(ids), 4, 4), np.nan)
@@ -346,18 +349,24 @@ def refine_on_corners(
         res, ground_block = solve_grounded(
             res, lambda r, **kw: solve(r.R_tag, r.t_tag, r.R_cam, r.t_cam, **kw),
             ground, params.ground, params.drive_prior(), params.drive, mp)
-        log.info("optimize: ground plane %s (planarity %.2f, bound %.1f): camera %.1f deg "
-                 "from level, %.1f mm / %.2f deg RMS off the plane",
-                 "applied" if ground_block["applied"] else "not applied",
+        log.info("optimize: %s (off-plane score %.2f, limit %.1f); the camera's up axis is "
+                 "%.1f deg from that plane's normal, and it stays within %.1f mm / %.2f deg "
+                 "RMS of the plane",
+                 "the camera moves in one plane at a fixed tilt, as on a robot: the map is "
+                 "solved with it held there" if ground_block["applied"] else "the camera "
+                 "leaves a single plane: the map is solved without holding it to one",
                  ground_block["planarity"], PLANAR_BOUND, ground_block["camera_tilt_deg"],
                  1e3 * ground_block["height_rms_m"], ground_block["tilt_rms_deg"])
         wheels = ground_block["drive"]
         if wheels is not None:
-            log.info("optimize: wheeled drive %s (strain %.2f, bound %.1f): lever arm %.3f m, "
-                     "camera yaw %.1f deg, %.1f mm/s RMS sideways",
-                     "applied" if wheels["applied"] else "not applied", wheels["strain"],
-                     WHEELED_BOUND, wheels["lever_m"], wheels["camera_yaw_deg"],
-                     1e3 * wheels["lateral_rms_mps"])
+            log.info("optimize: %s (sideways-motion score %.2f, limit %.1f); the camera sits "
+                     "%.3f m from the turning point, looks %.1f deg off the direction of travel "
+                     "and slides %.1f mm/s RMS sideways",
+                     "the camera moves like a wheeled robot's, never sliding sideways: the map "
+                     "is solved with it held so" if wheels["applied"] else "the camera moves "
+                     "sideways too: the map is solved without a wheeled robot's motion",
+                     wheels["strain"], WHEELED_BOUND, wheels["lever_m"],
+                     wheels["camera_yaw_deg"], 1e3 * wheels["lateral_rms_mps"])
     if not res.converged:
         log.warning("optimize: the joint solve stopped after %d iterations (joint_max_iter) "
                     "before converging", res.iters)
@@ -437,8 +446,8 @@ def choose_hypotheses(
             use, res, best = trial, r_res, c
             flipped.append([int(r >> 32), int(r & 0xFFFFFFFF)])
     if flipped:
-        log.info("optimize: tag pairs %s take their rival solution (the frames' continuity "
-                 "agrees better)", flipped)
+        log.info("optimize: tag pairs %s: the other of the two mirror-image poses fits the "
+                 "camera's smooth motion better and is used", flipped)
     return use, res, flipped
 
 
@@ -602,8 +611,8 @@ def _solve(
         g = graph_of(use)
         res = solve(g, loss=params.loss, f_scale=params.f_scale, max_nfev=params.max_nfev)
     if rebuilt:
-        log.info("optimize: %d edges rebuilt from the IPPE solutions the map agrees with",
-                 rebuilt)
+        log.info("optimize: %d tag-pair links rebuilt from the mirror-image poses the map agrees "
+                 "with", rebuilt)
     joint = (params.method == "joint" and detections is not None and len(detections) > 0
              and camera is not None)
     flipped: list[list[int]] = []

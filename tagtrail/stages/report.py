@@ -61,15 +61,35 @@ class Params(StageParams):
     farther than ``lost_m``; ``lost`` beyond ``lost_m``), ``curvature_window_m``."""
 
     mode: Literal["auto", "trajectory", "point"] = "auto"
+    """``trajectory``: D and phi per query pose against the nearest reference sample; ``point``: a
+    parked robot, its median pose against the nearest reference segment; ``auto``: ``point``
+    when the query stays within ``static_threshold_m``."""
     plane: Literal["auto", "xz", "xy", "yz"] = "auto"
+    """Plane of D and phi (SPEC Conventions; ``auto``: fitted to the reference cameras; ``xy`` in
+    a z-up world)."""
     static_threshold_m: float = Field(0.20, gt=0, le=100.0)
+    """``auto`` picks ``point`` mode when the query's 95th-percentile radius about its centroid is
+    at most this (m)."""
     association: Literal["progress", "nearest"] = "progress"
+    """Trajectory mode: which reference sample a query pose is matched to: ``progress`` (the
+    nearest within a window about the previous match, so a path that crosses itself is
+    followed) or ``nearest`` (the nearest sample, Eq. 3.12)."""
     lookahead_m: float = Field(0.3, ge=0, le=100.0)
+    """Distance (m) ahead along the path of the lookahead point."""
     search_back_m: float = Field(0.2, ge=0, le=1000.0)
+    """``progress``: the window reaches this far (m) back along the path from the previous
+    match."""
     search_ahead_m: float = Field(1.0, gt=0, le=1000.0)
+    """``progress``: the window reaches this far (m) ahead along the path from the previous
+    match."""
     reacquire_m: float = Field(0.25, gt=0, le=1000.0)
+    """``progress``: search the whole path again when the window's match is this much (m) farther
+    than another point of the path."""
     lost_m: float = Field(0.5, gt=0, le=1000.0)
+    """``progress``: search the whole path again when the window's match is farther than this (m);
+    a pose farther than this from the path is marked ``lost``."""
     curvature_window_m: float = Field(0.1, gt=0, le=100.0)
+    """Length (m) of path over which the curvature is measured."""
 
 
 def track_params(params: Params) -> TrackParams:

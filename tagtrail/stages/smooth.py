@@ -35,6 +35,9 @@ from tagtrail.stages.base import StageParams
 
 class Params(StageParams):
     method: Literal["auto", "none", "lsq"] = "auto"
+    """``lsq``: robust least-squares smoothing of the trajectory; ``none``: passed through;
+    ``auto``: ``none`` when the trajectory stage's motion prior already held the frames, else
+    ``lsq``."""
     pos_sigma_m: float = Field(0.01, ge=1e-6, le=10.0)
     """Per-frame position noise of the raw trajectory (m): weight of the position data term."""
     rot_sigma_deg: float = Field(1.0, ge=1e-4, le=180.0)
@@ -44,6 +47,7 @@ class Params(StageParams):
     rot_acc_dps2: float = Field(60.0, ge=1e-4, le=1e5)
     """Standard deviation of the angular acceleration (deg/s^2): smaller = smoother rotations."""
     loss: LossName = "soft_l1"
+    """Robust loss on each data and smoothness term: linear, soft_l1, huber, cauchy."""
     f_scale: float = Field(3.0, ge=1e-3, le=1000.0)
     """Robust scale, in standard deviations of each term."""
     max_gap_s: float = Field(1.0, gt=0.0, le=1e6)

@@ -79,11 +79,15 @@ TRAJ_COLS = columns("trajectory.trajectory")
 
 class Params(StageParams):
     method: Literal["auto", "joint", "avg", "lsq", "pnp"] = "auto"
+    """How each frame's camera pose is found: ``joint`` (all frames on their tags' corners, held
+    together by the motion prior), ``avg``, ``lsq`` or ``pnp`` (frame by frame); ``auto``:
+    ``joint`` with detections and a camera, else ``lsq``."""
     loss: LossName = "soft_l1"
     """Robust loss of the ``lsq`` fusion (per tag, on the 6-vector residual)."""
     f_scale: float = Field(0.1, ge=1e-6, le=100.0)
     """Residual norm (m) where the ``lsq`` loss turns sub-quadratic."""
     rot_weight_m: float = Field(1.0, ge=1e-6, le=1000.0)
+    """``lsq``: metres of residual per radian of rotation residual."""
     ransac_px: float = Field(3.0, gt=0.0, le=1000.0)
     """``pnp``: RANSAC inlier threshold (pixels)."""
     corner_sigma_px: float = Field(0.5, ge=1e-3, le=100.0)
@@ -94,9 +98,14 @@ class Params(StageParams):
     corner_weighting: Literal["size", "none"] = "size"
     """``joint``: as optimize's."""
     joint_loss: LossName = "huber"
+    """``joint``: robust loss on each tag's corner errors, as optimize's."""
     joint_f_scale_px: float = Field(1.0, ge=1e-3, le=1000.0)
+    """``joint``: corner error norm (px) where the loss turns sub-quadratic, as optimize's."""
     joint_max_iter: int = Field(50, ge=1, le=10_000)
+    """``joint``: iterations at most, as optimize's."""
     motion: Literal["constant_velocity", "none"] = "constant_velocity"
+    """``joint``: motion prior between consecutive frames, as optimize's (``none``: frames solved
+    alone)."""
     motion_acc_sigma: float = Field(0.1, ge=1e-6, le=1000.0)
     """``joint``: linear acceleration noise density (m/s^2/sqrt(Hz)), as optimize's."""
     motion_ang_sigma_deg: float = Field(30.0, ge=1e-4, le=1e5)
@@ -179,12 +188,15 @@ def joint_trajectory(rows: pd.DataFrame, ids: np.ndarray, W_map: np.ndarray,
         res, block = solve_grounded(
             res, lambda r, **kw: solve(R_cam=r.R_cam, t_cam=r.t_cam, **kw),
             ground, params.ground, drive, params.drive, prior)
-        log.info("trajectory: ground plane %s (planarity %.2f)",
-                 "applied" if block["applied"] else "not applied", block["planarity"])
+        log.info("trajectory: %s (off-plane score %.2f)",
+                 "the camera moves in one plane at a fixed tilt, as on a robot: held there"
+                 if block["applied"] else "the camera leaves a single plane: its height and tilt "
+                 "left free", block["planarity"])
         if block["drive"] is not None:
-            log.info("trajectory: wheeled drive %s (strain %.2f)",
-                     "applied" if block["drive"]["applied"] else "not applied",
-                     block["drive"]["strain"])
+            log.info("trajectory: %s (sideways-motion score %.2f)",
+                     "the camera moves like a wheeled robot's, never sliding sideways: held so"
+                     if block["drive"]["applied"] else "the camera moves sideways too: not "
+                     "held to a wheeled robot's motion", block["drive"]["strain"])
     if prior is not None:
         ev = frame_evidence(res, ob, px_per_unit=camera.focal_px, sigma_px=sigma,
                             loss=params.joint_loss, f_scale_px=params.joint_f_scale_px,
@@ -204,8 +216,9 @@ def joint_trajectory(rows: pd.DataFrame, ids: np.ndarray, W_map: np.ndarray,
     out = pd.DataFrame({"t_ns": t_ns})
     out[POSE_COLS] = np.concatenate([xyz, q], axis=1)
     out["n_tags"] = np.bincount(ob.frame, minlength=len(t_ns)).astype(np.int32)
-    log.info("trajectory: joint solve of %d frames (%d held by the motion prior), corner RMS "
-             "%.2f px", len(t_ns), res.prior_terms, float(np.sqrt(np.mean(res.res_px**2))))
+    log.info("trajectory: %d frames solved together (%d tied to their neighbours by smooth "
+             "motion); tag corners fit to %.2f px RMS", len(t_ns), res.prior_terms,
+             float(np.sqrt(np.mean(res.res_px**2))))
     return _extra(out, res.cam_std, prior is not None, evidence, alone)
 
 

@@ -38,6 +38,10 @@ EXAMPLES = """examples:
   tagtrail stream record bags/run1 --topic /camera/color/image_raw:sensor_msgs/msg/Image \\
       --topic /camera/color/camera_info:sensor_msgs/msg/CameraInfo --duration 60
 """
+ECHO_EXAMPLES = """examples:
+  tagtrail stream echo relocalization/state --count 5
+  tagtrail stream echo relocalization/distance_m --connect tcp/192.168.1.10:7447
+"""
 
 
 def _number(kind: type, low: float, strict: bool = False) -> Callable[[str], Any]:
@@ -212,7 +216,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> argparse.ArgumentParser:
 
 def _follow_arguments(sub: Any, fmt: type[argparse.HelpFormatter]) -> None:
     p = sub.add_parser("follow", help="drive along the reference: Twist on cmd_vel",
-                       formatter_class=fmt, description="A reference path follower (Stanley "
+                       epilog=EXAMPLES, formatter_class=fmt,
+                       description="A reference path follower (Stanley "
                        "or pure pursuit; docs/FOLLOW.md) on relocalize's state JSON, publishing "
                        "geometry_msgs/msg/Twist within the robot's limits; a zero Twist when "
                        "the pose is stale, lost, bad or at the path's end.")
@@ -263,6 +268,7 @@ def _follow_arguments(sub: Any, fmt: type[argparse.HelpFormatter]) -> None:
 
 def _echo_arguments(sub: Any, fmt: type[argparse.HelpFormatter]) -> None:
     p = sub.add_parser("echo", help="print the messages of a key (e.g. relocalization/state)",
+                       epilog=ECHO_EXAMPLES,
                        formatter_class=fmt, description="Print each sample of a key: JSON "
                        "(the state key) as it is, CDR as its size.")
     p.add_argument("key", help="zenoh key, e.g. relocalization/state")

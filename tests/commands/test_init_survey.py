@@ -34,9 +34,9 @@ def test_init_survey_tagslam_yaml_then_run(realdata: Path, tmp_path: Path,
                  "-o", "lab/pipeline.yaml"]) == 0
     out = capsys.readouterr().out
     assert "survey: tagslam, known tags [2]; tag sizes from it: {2: 0.16}, 0.16 m for the " \
-        "others" in out
+        "others (tag size 0.5 not written: the file sizes all)" in out
     stages = yaml.safe_load((lab / "pipeline.yaml").read_text())["stages"]
-    assert stages == {"pnp": {"tag_size": 0.5, "tag_sizes_from": "tagslam.yaml"},
+    assert stages == {"pnp": {"tag_sizes_from": "tagslam.yaml"},  # no stale tag_size beside
                       "edges": {"on_disconnected": "keep"},
                       "optimize": {"survey": {"file": "tagslam.yaml"}}}
     assert main(["run", "-p", "lab/pipeline.yaml", "optimize"]) == 0

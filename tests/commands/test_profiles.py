@@ -47,7 +47,8 @@ def test_init_writes_the_profile_into_the_file(bags: Path, tmp_path: Path,
                                                capsys: pytest.CaptureFixture[str]) -> None:
     out = tmp_path / "pipeline.yaml"
     assert main(["init", "--profile", "limo", "--reference", str(bags / "det" / "reference"),
-                 "--query", str(bags / "det" / "query_1"), "-o", str(out)]) == 0
+                 "--query", str(bags / "det" / "query_1"), "--tag-size", "0.16",
+                 "-o", str(out)]) == 0
     text = out.read_text()
     assert "# Profile limo:" in text
     doc = yaml.safe_load(text)
@@ -66,7 +67,7 @@ def test_init_writes_the_profile_into_the_file(bags: Path, tmp_path: Path,
     capsys.readouterr()
     # a profile whose topics the recording lacks: one line naming topic and profile
     assert main(["init", "--profile", "limo", "--reference", str(bags / "jpeg" / "reference"),
-                 "-o", str(out), "--force"]) == 2
+                 "--tag-size", "0.16", "-o", str(out), "--force"]) == 2
     line = one_error_line(capsys)
     assert "/detections" in line and "--profile limo" in line
 

@@ -165,7 +165,8 @@ def test_bad_camera_yaml_is_one_line(tmp_path: Path, capsys, case: str) -> None:
     with pytest.raises(SourceError) as info:  # one line at the source, not only once folded
         read_camera_file(folder / "camera.yaml")
     assert "\n" not in str(info.value)
-    assert main(["init", "--reference", str(folder), "-o", str(tmp_path / "p.yaml")]) == 2
+    assert main(["init", "--reference", str(folder), "--tag-size", "0.16",
+                 "-o", str(tmp_path / "p.yaml")]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1, err
     assert err[0].startswith(f"error: {folder / 'camera.yaml'}: ") and message in err[0], err[0]

@@ -174,7 +174,8 @@ def test_30hz_images_recorded_into_mcap_and_sqlite3(images: Path, bridge: Any,
     # the pipeline on both recordings
     project = tmp_path / "project"
     project.mkdir()
-    init = tagtrail(project, "init", "--profile", "limo-images", "--reference", str(out["mcap"]),
+    init = tagtrail(project, "init", "--profile", "limo-images", "--tag-size", "0.16",
+                    "--reference", str(out["mcap"]),
                     "--query", str(out["sqlite3"]))  # fmt: skip
     assert init.returncode == 0, init.stderr
     run = tagtrail(project, "run")

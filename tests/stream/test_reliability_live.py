@@ -138,7 +138,8 @@ def _record_onto_a_full_disk(detections: Path, port: int, small_disk: Path, kind
     project = small_disk.parent / "project"
     project.mkdir()
     init = subprocess.run([sys.executable, "-m", "tagtrail.cli", "init", "--profile", "limo",
-                           "--reference", str(bag)], cwd=project, capture_output=True,
+                           "--tag-size", "0.16", "--reference", str(bag)], cwd=project,
+                          capture_output=True,
                           text=True, timeout=120, env={**os.environ, "PYTHONPATH": str(REPO)})
     if found.get(DET, 0) and found.get(DET_INFO, 0):
         assert init.returncode == 0, init.stderr

@@ -321,7 +321,8 @@ def test_record_discovers_and_records_a_humble_camera(images: Path, peer: tuple[
     assert got[IMAGE] == src[IMAGE] and got[INFO] == src[INFO]  # nothing lost, in order
     project = tmp_path / "project"
     project.mkdir()
-    init = _tagtrail(project, "init", "--profile", "limo-images", "--reference", str(out))
+    init = _tagtrail(project, "init", "--profile", "limo-images", "--tag-size", "0.16",
+                     "--reference", str(out))
     assert init.returncode == 0, init.stderr
     run = _tagtrail(project, "run")
     assert run.returncode == 0, run.stderr[-2000:]
