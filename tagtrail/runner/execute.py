@@ -12,6 +12,7 @@ from typing import Any
 
 from tagtrail.errors import StageError, TagtrailError, storage_error
 from tagtrail.io.layouts import atomic_write_text
+from tagtrail.io.sources import source_kind
 from tagtrail.runner.cache import (
     SourceHasher,
     Store,
@@ -27,7 +28,7 @@ from tagtrail.runner.executors import (
     run_remote,
     timed_call,
 )
-from tagtrail.runner.paths import inside
+from tagtrail.runner.paths import RUN_LOG, check_project, clear_obstacles, inside
 from tagtrail.runner.spec import Pipeline
 from tagtrail.schemas.artifacts import VERSION as ARTIFACT_SCHEMA_VERSION
 
@@ -97,6 +98,7 @@ class Runner:
         if memo not in self._source_fp:
             ds = self.pipe.datasets[dataset]
             if special in ("source", "dataset"):
+                source_kind(ds.source)  # refuse `/usr` in a moment, before hashing it
                 doc = {
                     "source": self.hasher.hash(ds.source),
                     "topics": ds.topics.model_dump(mode="json"),
@@ -175,8 +177,7 @@ class Runner:
             else:
                 why = "forced" if force else self.why_stale(node, record)
                 states.append(NodeState(node.stage, node.dataset, "stale", why, key))
-        self.hasher.try_save()  # `status` needs no write access
-        return states
+        return states  # writes nothing (`status`, `show`): the hashes are saved by `run`
 
     # --- run --------------------------------------------------------------------------------
 
@@ -218,8 +219,10 @@ class Runner:
         keys: dict[Node, str] = {}
         states: dict[Node, NodeState] = {}
         failure: BaseException | None = None
+        check_project(self.pipe, ("artifacts",))  # before any work: no symlink leads out
         with self.store.lock(), open_executor(self.executor, self.jobs, self.scheduler,
                                               self.echo, self.store.root.resolve()) as pool:
+            clear_obstacles(self.pipe, ("artifacts",))
             running: dict[cf.Future[tuple[int | None, float]], tuple[Node, NodeState, float]] = {}
             pending = list(order)
             while pending or running:
@@ -261,9 +264,9 @@ class Runner:
                         st.reason = f"{type(err).__name__}: {err}"
                         failure = failure or self._wrap(node, err)
                     self.echo(st.line())
-        self.hasher.save()
-        result = [states[n] for n in order if n in states]
-        self._save_run_log(result)
+            self.hasher.save()  # under the lock: another run's clean-up never sees its temp
+            result = [states[n] for n in order if n in states]
+            self._save_run_log(result)
         if failure is not None:
             raise failure
         return result
@@ -287,7 +290,7 @@ class Runner:
         return wrapped
 
     def _save_run_log(self, states: list[NodeState]) -> None:
-        atomic_write_text(self.pipe.artifacts / "runs" / "last_run.json",
+        atomic_write_text(inside(self.pipe.artifacts / "runs", RUN_LOG),
                           pretty_json([asdict(s) for s in states]))
 
     def key_of(self, stage: str, dataset: str) -> str | None:
