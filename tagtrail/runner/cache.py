@@ -104,17 +104,11 @@ class SourceHasher:
         return h.hexdigest()
 
     def save(self) -> None:
+        """Write the remembered hashes (``run`` only, under the store's lock)."""
         if not self._dirty:
             return
         atomic_write_text(self.cache_file, json.dumps(self._cache))
         self._dirty = False
-
-    def try_save(self) -> None:
-        """Save if the store is writable: a read-only project only forgets the hashes."""
-        try:
-            self.save()
-        except OSError:
-            pass
 
 
 def _rows(value: Any) -> int | None:

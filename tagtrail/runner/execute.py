@@ -4,13 +4,15 @@ from __future__ import annotations
 
 import concurrent.futures as cf
 import logging
+import os
 import time
 import traceback
 from collections.abc import Callable
 from dataclasses import asdict, dataclass
+from pathlib import Path
 from typing import Any
 
-from tagtrail.errors import StageError, TagtrailError, storage_error
+from tagtrail.errors import SourceError, StageError, TagtrailError, storage_error
 from tagtrail.io.layouts import atomic_write_text
 from tagtrail.io.sources import source_kind
 from tagtrail.runner.cache import (
@@ -71,6 +73,17 @@ def _param_diff(old: dict[str, Any], new: dict[str, Any], prefix: str = "") -> s
     return ", ".join(parts)
 
 
+def _check_shape(source: Path) -> None:
+    """Refuse, before hashing it, a source folder that is no recording and holds folders (``/usr``
+    or a home folder would be hashed for minutes): the one-line reason of ``source_kind``."""
+    if source.is_dir():
+        try:
+            source_kind(source)
+        except SourceError:
+            if any(e.is_dir() for e in os.scandir(source)):
+                raise
+
+
 class Runner:
     """Executes a validated pipeline against its artifact store.
 
@@ -98,7 +111,7 @@ class Runner:
         if memo not in self._source_fp:
             ds = self.pipe.datasets[dataset]
             if special in ("source", "dataset"):
-                source_kind(ds.source)  # refuse `/usr` in a moment, before hashing it
+                _check_shape(ds.source)
                 doc = {
                     "source": self.hasher.hash(ds.source),
                     "topics": ds.topics.model_dump(mode="json"),

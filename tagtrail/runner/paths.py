@@ -4,10 +4,12 @@ The rule (README, "What tagtrail guarantees"): tagtrail writes only below the to
 ``outputs/``, ``artifacts/`` and ``sweeps/`` next to the pipeline file (and a file you name). A
 top folder may be a symlink you made (``artifacts/`` on a bigger disk): it is then the project's
 own, provided it leads to an existing folder that neither holds the project nor overlaps another
-top folder. Below a top folder, no path tagtrail writes or deletes may be a symlink that leads
-out of it or nowhere. A file where tagtrail keeps a folder, or a folder where it keeps a file, is
-replaced when empty and refused otherwise. Every path is resolved through every symlink at every
-level, and all are checked before a stage runs or a file is written (:func:`check_project`).
+top folder. Below a top folder, no path tagtrail writes or deletes may be a symlink (one leading
+out of it would take a write or a delete elsewhere; one leading nowhere fails the write; one
+leading to another of tagtrail's paths makes two of them one). A file where tagtrail keeps a
+folder, or a folder where it keeps a file, is replaced when empty and refused otherwise. Every
+path is resolved through every symlink at every level, and all are checked before a stage runs
+or a file is written (:func:`check_project`).
 
 Dataset names are validated when the pipeline is loaded; :func:`inside` is the second line of
 defence, so that no later code path can turn a name into a path outside its folder.
@@ -105,20 +107,27 @@ def _has_content(path: Path) -> bool:
     return path.stat().st_size > 0
 
 
+def _refuse_link(step: Path, top: Path, resolved_top: Path) -> None:
+    target = step.resolve()
+    if target == resolved_top or resolved_top not in target.parents:
+        raise SpecError(f"{step} is a symlink leading outside {top} (to {target}); tagtrail "
+                        "writes there: remove the link")
+    if not target.exists():
+        raise SpecError(f"{step} is a symlink to {target}, which does not exist; tagtrail "
+                        "writes there: remove the link")
+    raise SpecError(f"{step} is a symlink (to {target}); tagtrail writes there and follows no "
+                    f"symlink below {top}: remove the link")
+
+
 def check_below(root: Path, top: str, parts: tuple[str, ...], folder: bool,
                 resolved_top: Path) -> None:
-    """Refuse ``root/top/parts…`` if it, or any folder on the way, is a symlink leading out of
-    the top folder or nowhere, or if a non-empty file holds a folder's place (or the reverse)."""
+    """Refuse ``root/top/parts…`` if it, or any folder on the way, is a symlink (leading out
+    of the top folder, nowhere, or to another of tagtrail's own paths), or if a non-empty file
+    holds a folder's place (or the reverse)."""
     for i in range(1, len(parts) + 1):
         step = Path(root, top, *parts[:i])
         if step.is_symlink():
-            target = step.resolve()
-            if target == resolved_top or resolved_top not in target.parents:
-                raise SpecError(f"{step} is a symlink leading out of {Path(root) / top} (to "
-                                f"{target}); tagtrail writes there: remove the link")
-            if not target.exists():
-                raise SpecError(f"{step} is a symlink to {target}, which does not exist; "
-                                "tagtrail writes there: remove the link")
+            _refuse_link(step, Path(root) / top, resolved_top)
         if not step.exists():
             return  # made by tagtrail when needed
         wants_dir = folder or i < len(parts)
@@ -174,6 +183,14 @@ def check_project(pipe: Pipeline, tops: Iterable[str] = TOPS, sweep: str | None 
     resolved = check_tops(pipe.root, tops)
     for top, parts, folder in planned(pipe, tops, sweep):
         check_below(pipe.root, top, parts, folder, resolved[top])
+    if "artifacts" in tops:  # the cache entries: objects/<stage>/<key>
+        objects = Path(pipe.root, "artifacts", "objects")
+        for stage in pipe.stages:
+            entries = objects / stage
+            if entries.is_dir() and not entries.is_symlink():
+                for e in os.scandir(entries):
+                    if e.is_symlink():
+                        _refuse_link(Path(e.path), objects.parent, resolved["artifacts"])
 
 
 def clear_obstacles(pipe: Pipeline, tops: Iterable[str], sweep: str | None = None) -> None:

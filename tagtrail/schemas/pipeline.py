@@ -42,7 +42,7 @@ def check_dataset_name(name: object) -> str:
     ``_``, ``-``, ``.``; not ``.`` or ``..``; at most 100 characters; not a name tagtrail
     uses for its own files (``last_run.json``, ``.tagtrail…``). Returns the name; raises
     ``ValueError``."""
-    shown = repr(name) if not isinstance(name, str) or len(name) <= 40 else repr(name[:37] + "…")
+    shown = repr(name) if not isinstance(name, str) or len(name) <= 120 else repr(name[:60] + "…")
     if not isinstance(name, str) or not _DATASET_NAME.fullmatch(name) or name in (".", ".."):
         raise ValueError(
             f"dataset name {shown} is not allowed: use letters, digits, '_', '-' and '.' "
