@@ -374,3 +374,17 @@ def test_output_files_list_is_what_the_exporters_write(done: Path) -> None:
     """The list the paths are checked against names every file an export writes."""
     written = {p.name for p in (done / "outputs").rglob("*") if p.is_file()}
     assert written <= set(OUTPUT_FILES)
+
+
+def test_demo_refuses_a_link_out_before_any_stage_runs(tmp_path, victim, monkeypatch, capsys):
+    """Probe: ``demo --dir`` (run + export in one command) checked outputs/ only after the
+    stages ran; now before."""
+    demo = tmp_path / "demo"
+    (demo / "outputs").mkdir(parents=True)
+    (demo / "outputs" / "reference").symlink_to(victim)
+    before = tree(victim)
+    monkeypatch.chdir(tmp_path)
+    assert main(["demo", "--dir", str(demo), "--frames", "30"]) == 2
+    assert "outputs/reference is a symlink leading outside" in last_error_line(capsys)
+    assert not (demo / "artifacts").exists()
+    assert tree(victim) == before
