@@ -282,21 +282,27 @@ def test_a_source_that_is_no_recording_is_refused_at_once(tmp_path, monkeypatch,
 
 def test_two_runs_at_once_both_succeed(bags, tmp_path) -> None:
     """Item 8: the first of two simultaneous runs failed 3 times in 4 with ``FileNotFoundError:
-    …/.sources.json.XXXX`` (state written after the lock was released). Now the second waits."""
-    for trial in range(3):
-        project = tmp_path / f"p{trial}"
-        write_pipeline(project, bags)
-        cmd = [sys.executable, "-m", "tagtrail.cli", "run", "edges"]
-        procs = [subprocess.Popen(cmd, cwd=project, stdout=subprocess.PIPE,
-                                  stderr=subprocess.PIPE, text=True) for _ in range(2)]
-        results = [(p.wait(timeout=300), p.stderr.read() if p.stderr else "") for p in procs]
-        for p in procs:
-            for f in (p.stdout, p.stderr):
-                f and f.close()
-        assert [rc for rc, _ in results] == [0, 0], results
-        assert (project / "artifacts" / "sources.json").is_file()
-        left = [p.name for p in (project / "artifacts").rglob(".tagtrail-tmp-*")]
-        assert left == []
+    …/.sources.json.XXXX`` (state written after the lock was released; the other run's clean-up
+    removed the temporary file). Here the first run pauses 8 s with ``sources.json`` written but
+    not yet in place and the second starts then, which made the first fail every time; now the
+    first holds the lock while it writes its state and the second waits."""
+    project = tmp_path / "p"
+    write_pipeline(project, bags)
+    env = {k: v for k, v in os.environ.items() if k != "TAGTRAIL_FAULT"}
+    cmd = [sys.executable, "-m", "tagtrail.cli", "run", "extract"]
+    pause = {**env, "TAGTRAIL_FAULT": "sleep@written:sources.json=8"}
+    first = subprocess.Popen(cmd, cwd=project, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                             text=True, env=pause)
+    deadline = time.monotonic() + 120
+    while not list(project.glob("artifacts/.*sources.json.*")) and time.monotonic() < deadline:
+        time.sleep(0.02)  # the first run is writing its state
+    second = subprocess.Popen(cmd, cwd=project, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                              text=True, env=env)
+    results = [(p.returncode, err) for p in (first, second) for _, err in [p.communicate(300)]]
+    assert [rc for rc, _ in results] == [0, 0], results
+    assert "waiting for another tagtrail run" in results[1][1]
+    assert (project / "artifacts" / "sources.json").is_file()
+    assert list((project / "artifacts").rglob(".tagtrail-tmp-*")) == []
 
 
 # --- item 12: a path in the way of an output ---------------------------------------------------

@@ -57,6 +57,7 @@ def atomic_write(path: Path, write: Callable[[Path], object]) -> None:
         fcntl.flock(fd, fcntl.LOCK_EX)  # released when fd closes, after the rename
         faults.point(f"write:{path.name}")
         write(Path(tmp))
+        faults.point(f"written:{path.name}")  # written, not yet in place
         umask = os.umask(0)
         os.umask(umask)
         os.chmod(tmp, 0o666 & ~umask)  # mkstemp creates 0600; outputs are ordinary files
