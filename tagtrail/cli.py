@@ -68,6 +68,9 @@ def cmd_run(args: argparse.Namespace) -> int:
             what = "would run" if st.status == "stale" else "cached"
             print(f"{st.stage + ' [' + st.dataset + ']':<28} {what:<9} ({st.reason})")
         return 0
+    from tagtrail.runner.paths import check_project
+
+    check_project(runner.pipe)  # every path the run and its export write, before any work
     t0 = time.perf_counter()
     states = runner.run(args.stages, force=args.force)
     written = export_outputs(runner, force=args.force)

@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import os
 import signal
+import time
 
 ENV = "TAGTRAIL_FAULT"
 
@@ -21,11 +22,15 @@ SIGNALS = ("SIGINT", "SIGTERM", "SIGHUP")
 
 def point(name: str) -> None:
     """Die here, as ``kill -9`` would, if ``TAGTRAIL_FAULT`` is ``kill@<name>``; signal this
-    process if it is ``SIGINT@<name>`` (``SIGTERM``, ``SIGHUP``)."""
+    process if it is ``SIGINT@<name>`` (``SIGTERM``, ``SIGHUP``); pause here for S seconds if it
+    is ``sleep@<name>=S`` (to widen a race window in a test)."""
     fault = os.environ.get(ENV)
     if fault is None:
         return
     action, _, where = fault.partition("@")
+    if action == "sleep" and where.rpartition("=")[0] == name:
+        time.sleep(float(where.rpartition("=")[2]))
+        return
     if where != name:
         return
     if action == "kill":

@@ -86,13 +86,14 @@ def test_output_folder_symlinked_outside_is_refused(bags, tmp_path, monkeypatch,
 
 
 def test_temp_files_of_killed_writes_are_cleaned(tmp_path: Path) -> None:
-    (tmp_path / ".map.png.ab_c12d9").write_bytes(b"")
-    (tmp_path / ".sources.x1y2z3w4").write_bytes(b"{")
+    (tmp_path / ".tagtrail-tmp-map.png.ab_c12d9").write_bytes(b"")
+    (tmp_path / ".tagtrail-tmp-sources.json.x1y2z3w4").write_bytes(b"{")
     (tmp_path / ".keep").write_text("a user's dotfile")
+    (tmp_path / ".notes.20241203").write_text("a user's file named like a temp (issue 26)")
     (tmp_path / "map.png").write_bytes(b"png")
     removed = {p.name for p in clean_temp_files(tmp_path)}
-    assert removed == {".map.png.ab_c12d9", ".sources.x1y2z3w4"}
-    assert sorted(p.name for p in tmp_path.iterdir()) == [".keep", "map.png"]
+    assert removed == {".tagtrail-tmp-map.png.ab_c12d9", ".tagtrail-tmp-sources.json.x1y2z3w4"}
+    assert sorted(p.name for p in tmp_path.iterdir()) == [".keep", ".notes.20241203", "map.png"]
 
 
 # --- 6. parameters are numbers, finite, once -------------------------------------------------

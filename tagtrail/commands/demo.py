@@ -66,12 +66,14 @@ def truth_d_phi(gt_reference: Path, gt_query: Path, plane: str) -> dict[str, Any
 def main(args: argparse.Namespace) -> int:
     from tagtrail.runner.execute import Runner
     from tagtrail.runner.export import export_outputs
+    from tagtrail.runner.paths import check_project
     from tagtrail.runner.spec import load_pipeline
     from tagtrail.stages import REGISTRY
 
     folder = Path(args.dir)
     pipe_file = prepare(folder, args.frames, args.resimulate)
     runner = Runner(load_pipeline(pipe_file, REGISTRY), jobs=args.jobs, echo=print)
+    check_project(runner.pipe)  # every path the run and its export write, before any work
     runner.run()
     written = export_outputs(runner)
     print()

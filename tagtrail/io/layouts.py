@@ -10,10 +10,11 @@ a half-written file.
 
 from __future__ import annotations
 
+import fcntl
 import os
 import re
 import tempfile
-from collections.abc import Callable
+from collections.abc import Callable, Collection
 from pathlib import Path
 from typing import Any, cast
 
@@ -37,15 +38,26 @@ _CSV_TRAJ_HEADER = ["stamp_sec", "stamp_nanosec", "x", "y", "z", "qx", "qy", "qz
 _CSV_TAG_HEADER = ["tag", "x", "y", "z", "qx", "qy", "qz", "qw", "n_obs"]
 
 
+TEMP_PREFIX = ".tagtrail-tmp-"
+"""Every temporary file and folder tagtrail makes starts with this; clean-ups remove only these."""
+_TEMP_NAME = re.compile(r"^\.tagtrail-tmp-(.+)\.[A-Za-z0-9_]{8}$")  # mkstemp adds 8 characters
+
+
 def atomic_write(path: Path, write: Callable[[Path], object]) -> None:
-    """Call ``write(tmp)`` on a temporary sibling of ``path``, then rename it into place."""
+    """Call ``write(tmp)`` on a temporary sibling of ``path``, then rename it into place.
+
+    The sibling is named ``.tagtrail-tmp-<name>.XXXXXXXX`` and holds an ``flock`` while it is
+    written, so a clean-up (:func:`remove_stale_temps`) never takes a file another process is
+    still writing; the stale ones of earlier writes to ``path`` that were killed are removed."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", dir=path.parent)
-    os.close(fd)
+    remove_stale_temps(path.parent, (path.name,))
+    fd, tmp = tempfile.mkstemp(prefix=f"{TEMP_PREFIX}{path.name}.", dir=path.parent)
     try:
+        fcntl.flock(fd, fcntl.LOCK_EX)  # released when fd closes, after the rename
         faults.point(f"write:{path.name}")
         write(Path(tmp))
+        faults.point(f"written:{path.name}")  # written, not yet in place
         umask = os.umask(0)
         os.umask(umask)
         os.chmod(tmp, 0o666 & ~umask)  # mkstemp creates 0600; outputs are ordinary files
@@ -55,6 +67,45 @@ def atomic_write(path: Path, write: Callable[[Path], object]) -> None:
         if isinstance(err, OSError) and err.filename is None:
             err.filename = str(path)  # a failed write() names no file; say which
         raise
+    finally:
+        os.close(fd)
+
+
+def temp_target(name: str) -> str | None:
+    """The file a temporary file of :func:`atomic_write` was for, or None if ``name`` is not
+    one of tagtrail's temporary names."""
+    m = _TEMP_NAME.match(name)
+    return m.group(1) if m else None
+
+
+def remove_stale_temps(folder: Path, names: Collection[str] | None = None) -> list[Path]:
+    """Delete the temporary files killed writes left in ``folder`` (for files in ``names`` only,
+    when given): only regular files named by :func:`atomic_write` that no process holds (a
+    write in progress keeps its ``flock``). Returns what was removed."""
+    removed: list[Path] = []
+    try:
+        entries = list(os.scandir(folder))
+    except OSError:
+        return removed
+    for e in entries:
+        target = temp_target(e.name)
+        if target is None or (names is not None and target not in names):
+            continue
+        if not e.is_file(follow_symlinks=False):
+            continue
+        try:
+            fd = os.open(e.path, os.O_RDONLY | os.O_NOFOLLOW)
+        except OSError:
+            continue
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+            os.unlink(e.path)
+            removed.append(Path(e.path))
+        except OSError:
+            pass  # being written right now (or already gone)
+        finally:
+            os.close(fd)
+    return removed
 
 
 def atomic_write_text(path: Path, text: str) -> None:

@@ -120,38 +120,39 @@ class Source:
         self.close()
 
 
-def open_source(cfg: DatasetConfig) -> Source:
-    """The source a dataset names; raises :class:`SourceError` with one clear message."""
-    path = Path(cfg.source)
+def source_kind(path: Path) -> str:
+    """What ``path`` is as a dataset source, from its shape alone (a few ``stat`` calls and one
+    folder listing, nothing read): ``bag1``, ``bag2``, ``observations`` or ``images``; anything
+    else (``/usr``, an empty folder) raises :class:`SourceError` with one clear message."""
+    path = Path(path)
     if not path.exists():
         raise SourceError(f"{path}: no such file or folder (dataset source)")
     if path.is_file() and path.suffix in UNPACK:
         raise SourceError(f"{path}: a compressed file; unpack it first (`{UNPACK[path.suffix]} "
                           f"{path}`) and name {path.with_suffix('').name} as the source")
-    camera = _camera_override(cfg.camera)
     if path.is_file():
         if path.suffix == ".bag":
-            return BagSource(path, cfg, camera)
+            return "bag1"
         if path.suffix in BAG_FILE_SUFFIXES:
             if (path.parent / "metadata.yaml").is_file():
-                return BagSource(path.parent, cfg, camera)
+                return "bag2"
             raise SourceError(
                 f"{path}: no metadata.yaml next to it; a rosbag2 recording is a folder "
                 f"(`ros2 bag reindex {path.parent}` or `tagtrail stream record --recover "
                 f"{path.parent}` recreates a lost metadata.yaml)"
             )
         if path.name == "observations.csv":
-            return ObservationsSource(path.parent)
+            return "observations"
         raise SourceError(
             f"{path}: not a source (expected a rosbag2 folder, a ROS 1 .bag, an image folder or "
             "an observations folder)"
         )
     if (path / "metadata.yaml").is_file():
-        return BagSource(path, cfg, camera)
+        return "bag2"
     if (path / "observations.csv").is_file():
-        return ObservationsSource(path)
+        return "observations"
     if _image_files(path):
-        return ImageFolderSource(path, camera, cfg.camera)
+        return "images"
     if any(path.glob("*.mcap")) or any(path.glob("*.db3")):
         raise SourceError(
             f"{path}: bag files without metadata.yaml (`ros2 bag reindex {path}` or "
@@ -168,6 +169,20 @@ def open_source(cfg: DatasetConfig) -> Source:
         f"{path}: empty or unrecognised source folder (expected metadata.yaml of a rosbag2 "
         f"recording, jpg/png images, or observations.csv)"
     )
+
+
+def open_source(cfg: DatasetConfig) -> Source:
+    """The source a dataset names; raises :class:`SourceError` with one clear message."""
+    path = Path(cfg.source)
+    kind = source_kind(path)
+    camera = _camera_override(cfg.camera)
+    if kind == "bag1":
+        return BagSource(path, cfg, camera)
+    if kind == "bag2":
+        return BagSource(path if path.is_dir() else path.parent, cfg, camera)
+    if kind == "observations":
+        return ObservationsSource(path if path.is_dir() else path.parent)
+    return ImageFolderSource(path, camera, cfg.camera)
 
 
 def _camera_override(path: Path | None) -> CameraModel | None:

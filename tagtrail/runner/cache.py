@@ -29,8 +29,8 @@ import pyarrow.parquet as pq
 from tagtrail import faults
 from tagtrail.errors import ArtifactError, SourceError
 from tagtrail.io.camera_files import split_camera_path
-from tagtrail.io.layouts import atomic_write_text
-from tagtrail.runner.paths import clean_temp_files, inside
+from tagtrail.io.layouts import TEMP_PREFIX, atomic_write_text
+from tagtrail.runner.paths import clean_temp_files, clear_empty_obstacle, inside, is_temp_dir
 from tagtrail.schemas import documents
 from tagtrail.schemas.artifacts import conform
 
@@ -104,17 +104,11 @@ class SourceHasher:
         return h.hexdigest()
 
     def save(self) -> None:
+        """Write the remembered hashes (``run`` only, under the store's lock)."""
         if not self._dirty:
             return
         atomic_write_text(self.cache_file, json.dumps(self._cache))
         self._dirty = False
-
-    def try_save(self) -> None:
-        """Save if the store is writable: a read-only project only forgets the hashes."""
-        try:
-            self.save()
-        except OSError:
-            pass
 
 
 def _rows(value: Any) -> int | None:
@@ -129,6 +123,7 @@ class Store:
         self.objects = self.root / "objects"
         self.tmp = self.root / "tmp"
         self._verified: dict[Path, dict[str, Any]] = {}
+        self._held = 0  # depth of lock() in this process
 
     def entry(self, stage: str, key: str) -> Path:
         return self.objects / stage / key
@@ -154,7 +149,7 @@ class Store:
     ) -> dict[str, Any]:
         """Write all outputs of one stage run as a new entry, atomically."""
         self.tmp.mkdir(parents=True, exist_ok=True)
-        tmp = Path(tempfile.mkdtemp(dir=self.tmp, prefix=f"{stage}-{key[:12]}-"))
+        tmp = Path(tempfile.mkdtemp(dir=self.tmp, prefix=f"{TEMP_PREFIX}{stage}-{key[:12]}-"))
         try:
             files: dict[str, Any] = {}
             for name, value in outputs.items():
@@ -175,8 +170,11 @@ class Store:
             manifest = {"stage": stage, "key": key, "outputs": files, "record": record}
             (tmp / "manifest.json").write_text(pretty_json(manifest))
             final = self.entry(stage, key)
+            inside(self.objects, stage, key)  # no symlink leads the entry out of the store
             final.parent.mkdir(parents=True, exist_ok=True)
-            if final.exists():  # a corrupt entry under the same key: move it aside first
+            if final.is_symlink() or final.is_file():  # never deletes through a link
+                final.unlink()
+            elif final.exists():  # a corrupt entry under the same key: move it aside first
                 shutil.rmtree(final)
             os.replace(tmp, final)
         except BaseException as err:
@@ -199,29 +197,43 @@ class Store:
 
     @contextmanager
     def lock(self) -> Iterator[None]:
-        """Exclusive lock on the store for the duration of a run (waits for another run)."""
+        """Exclusive lock on the store for the duration of a run (waits for another run).
+        Re-entrant within one Store, so a run and its export can share one holding."""
+        if self._held:
+            self._held += 1
+            try:
+                yield
+            finally:
+                self._held -= 1
+            return
         self.root.mkdir(parents=True, exist_ok=True)
+        clear_empty_obstacle(self.root / ".lock", folder=False)
         with open(self.root / ".lock", "w") as fh:
             try:
                 fcntl.flock(fh, fcntl.LOCK_EX | fcntl.LOCK_NB)
             except BlockingIOError:
                 print("waiting for another tagtrail run to finish…", file=sys.stderr)
                 fcntl.flock(fh, fcntl.LOCK_EX)
+            self._held = 1
             try:
                 self._clean_tmp()
                 yield
             finally:
+                self._held = 0
                 fcntl.flock(fh, fcntl.LOCK_UN)
 
     def _clean_tmp(self) -> None:
-        """Remove leftovers of killed runs (only called while holding the lock)."""
-        if self.tmp.is_dir():
-            for p in self.tmp.iterdir():
-                shutil.rmtree(p, ignore_errors=True)
+        """Remove leftovers of killed runs (only called while holding the lock): tagtrail's own
+        temporary names only (``.tagtrail-tmp-…``), never through a symlink."""
+        if self.tmp.is_dir() and not self.tmp.is_symlink():
+            for e in os.scandir(self.tmp):
+                if is_temp_dir(e.name) and e.is_dir(follow_symlinks=False):
+                    shutil.rmtree(e.path, ignore_errors=True)
         clean_temp_files(self.root)
         runs = self.root / "runs"
-        if runs.is_dir():
-            for folder in (runs, *(p for p in runs.iterdir() if p.is_dir())):
+        if runs.is_dir() and not runs.is_symlink():
+            for folder in (runs, *(p for p in runs.iterdir()
+                                   if p.is_dir() and not p.is_symlink())):
                 clean_temp_files(folder)
 
     def record_path(self, dataset: str, stage: str) -> Path:

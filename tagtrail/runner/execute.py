@@ -4,14 +4,17 @@ from __future__ import annotations
 
 import concurrent.futures as cf
 import logging
+import os
 import time
 import traceback
 from collections.abc import Callable
 from dataclasses import asdict, dataclass
+from pathlib import Path
 from typing import Any
 
-from tagtrail.errors import StageError, TagtrailError, storage_error
+from tagtrail.errors import SourceError, StageError, TagtrailError, storage_error
 from tagtrail.io.layouts import atomic_write_text
+from tagtrail.io.sources import source_kind
 from tagtrail.runner.cache import (
     SourceHasher,
     Store,
@@ -27,7 +30,7 @@ from tagtrail.runner.executors import (
     run_remote,
     timed_call,
 )
-from tagtrail.runner.paths import inside
+from tagtrail.runner.paths import RUN_LOG, check_project, clear_obstacles, inside
 from tagtrail.runner.spec import Pipeline
 from tagtrail.schemas.artifacts import VERSION as ARTIFACT_SCHEMA_VERSION
 
@@ -95,6 +98,17 @@ def _param_changes(old: dict[str, Any], new: dict[str, Any], prefix: str) -> lis
     return parts
 
 
+def _check_shape(source: Path) -> None:
+    """Refuse, before hashing it, a source folder that is no recording and holds folders (``/usr``
+    or a home folder would be hashed for minutes): the one-line reason of ``source_kind``."""
+    if source.is_dir():
+        try:
+            source_kind(source)
+        except SourceError:
+            if any(e.is_dir() for e in os.scandir(source)):
+                raise
+
+
 class Runner:
     """Executes a validated pipeline against its artifact store.
 
@@ -122,6 +136,7 @@ class Runner:
         if memo not in self._source_fp:
             ds = self.pipe.datasets[dataset]
             if special in ("source", "dataset"):
+                _check_shape(ds.source)
                 doc = {
                     "source": self.hasher.hash(ds.source),
                     "topics": ds.topics.model_dump(mode="json"),
@@ -200,8 +215,7 @@ class Runner:
             else:
                 why = "forced" if force else self.why_stale(node, record)
                 states.append(NodeState(node.stage, node.dataset, "stale", why, key))
-        self.hasher.try_save()  # `status` needs no write access
-        return states
+        return states  # writes nothing (`status`, `show`): the hashes are saved by `run`
 
     # --- run --------------------------------------------------------------------------------
 
@@ -243,8 +257,10 @@ class Runner:
         keys: dict[Node, str] = {}
         states: dict[Node, NodeState] = {}
         failure: BaseException | None = None
+        check_project(self.pipe, ("artifacts",))  # before any work: no symlink leads out
         with self.store.lock(), open_executor(self.executor, self.jobs, self.scheduler,
                                               self.echo, self.store.root.resolve()) as pool:
+            clear_obstacles(self.pipe, ("artifacts",))
             running: dict[cf.Future[tuple[int | None, float]], tuple[Node, NodeState, float]] = {}
             pending = list(order)
             while pending or running:
@@ -286,9 +302,9 @@ class Runner:
                         st.reason = f"{type(err).__name__}: {err}"
                         failure = failure or self._wrap(node, err)
                     self.echo(st.line())
-        self.hasher.save()
-        result = [states[n] for n in order if n in states]
-        self._save_run_log(result)
+            self.hasher.save()  # under the lock: another run's clean-up never sees its temp
+            result = [states[n] for n in order if n in states]
+            self._save_run_log(result)
         if failure is not None:
             raise failure
         return result
@@ -312,7 +328,7 @@ class Runner:
         return wrapped
 
     def _save_run_log(self, states: list[NodeState]) -> None:
-        atomic_write_text(self.pipe.artifacts / "runs" / "last_run.json",
+        atomic_write_text(inside(self.pipe.artifacts / "runs", RUN_LOG),
                           pretty_json([asdict(s) for s in states]))
 
     def key_of(self, stage: str, dataset: str) -> str | None:

@@ -32,12 +32,18 @@ from tagtrail.runner.cache import (
     sha256_text,
 )
 from tagtrail.runner.execute import Runner
-from tagtrail.runner.paths import clean_temp_files, inside
+from tagtrail.runner.paths import (
+    EXPORT_STAMP,
+    check_project,
+    clean_temp_files,
+    clear_obstacles,
+    inside,
+)
 from tagtrail.runner.stage import code_fingerprint
 from tagtrail.schemas.artifacts import EVIDENCE_COLS, columns, per_frame, poses
 from tagtrail.stages import optimize
 
-STAMP = ".tagtrail-export.json"
+STAMP = EXPORT_STAMP
 #: stages whose parameters the exporters read (``get("params", stage)``); in the export stamp
 DRAWN_WITH = ("report",)
 
@@ -63,8 +69,11 @@ def export_outputs(runner: Runner, force: bool = False) -> dict[str, Path]:
     """Write every dataset's files from the up-to-date artifacts; returns dataset → folder.
 
     Runs under the store's lock, like the stages: leftovers of a killed export are removed.
+    The paths are checked first (:func:`tagtrail.runner.paths.check_project`).
     """
+    check_project(runner.pipe, ("outputs",))
     with runner.store.lock():
+        clear_obstacles(runner.pipe, ("outputs",))
         return _export(runner, force)
 
 

@@ -52,7 +52,7 @@ from tagtrail.runner.cache import SourceHasher, Store, pretty_json
 from tagtrail.runner.dag import Graph, Node, build_graph, select
 from tagtrail.runner.execute import NodeState, Runner
 from tagtrail.runner.executors import KINDS, dask_session
-from tagtrail.runner.paths import inside
+from tagtrail.runner.paths import check_project, clear_obstacles, inside
 from tagtrail.runner.spec import Pipeline, did_you_mean, load_pipeline, load_yaml, parse_override
 from tagtrail.schemas import documents
 
@@ -351,9 +351,10 @@ def varied_params(points: Sequence[Point]) -> list[str]:
 
 
 def check_name(name: str) -> str:
-    if not _NAME.fullmatch(name) or name in (".", ".."):
-        raise SpecError(f"sweep name {name!r} is not allowed: use letters, digits, '_', '-' and "
-                        "'.' (it names a folder under sweeps/)")  # fmt: skip
+    if not _NAME.fullmatch(name) or name in (".", "..") or len(name) > 120:
+        shown = name if len(name) <= 40 else f"{name[:37]}…"
+        raise SpecError(f"sweep name {shown!r} is not allowed: use letters, digits, '_', '-' and "
+                        "'.', at most 120 (it names a folder under sweeps/)")  # fmt: skip
     return name
 
 
@@ -507,7 +508,9 @@ class Sweep:
     def _run(
         self, progress: Callable[[str], None], echo: Callable[[str], None] | None
     ) -> list[PointResult]:
+        check_project(self.pipes[0], ("artifacts", "sweeps"), self.name)  # before any work
         folder = self.folder
+        clear_obstacles(self.pipes[0], ("sweeps",), self.name)
         atomic_write_text(folder / DEFINITION, pretty_json(self.definition()))
         times = self._load_times(folder, self.pipes[0].artifacts)
         store = Store(self.pipes[0].artifacts)

@@ -33,14 +33,27 @@ from tagtrail.schemas.ranges import (
 _DATASET_NAME = re.compile(r"[A-Za-z0-9_.-]+")
 
 
+MAX_NAME = 100  # characters: a name plus tagtrail's prefixes and suffixes stays below NAME_MAX
+RESERVED_NAMES = ("last_run.json",)  # tagtrail's own files beside the datasets' folders
+
+
 def check_dataset_name(name: object) -> str:
     """A dataset name names a folder under ``outputs/``, never a path (SPEC): letters, digits,
-    ``_``, ``-``, ``.``; not ``.`` or ``..``. Returns the name; raises ``ValueError``."""
+    ``_``, ``-``, ``.``; not ``.`` or ``..``; at most 100 characters; not a name tagtrail
+    uses for its own files (``last_run.json``, ``.tagtrail…``). Returns the name; raises
+    ``ValueError``."""
+    shown = repr(name) if not isinstance(name, str) or len(name) <= 120 else repr(name[:60] + "…")
     if not isinstance(name, str) or not _DATASET_NAME.fullmatch(name) or name in (".", ".."):
         raise ValueError(
-            f"dataset name {name!r} is not allowed: use letters, digits, '_', '-' and '.' "
+            f"dataset name {shown} is not allowed: use letters, digits, '_', '-' and '.' "
             "(not '.' or '..'); a dataset name names a folder under outputs/, never a path"
         )
+    if len(name) > MAX_NAME:
+        raise ValueError(f"dataset name {shown} is not allowed: {len(name)} characters, at most "
+                         f"{MAX_NAME} (it names folders and files)")
+    if name in RESERVED_NAMES or name.startswith(".tagtrail"):
+        raise ValueError(f"dataset name {shown} is not allowed: tagtrail names its own files so "
+                         "(artifacts/runs/last_run.json, .tagtrail-…); choose another")
     return name
 
 

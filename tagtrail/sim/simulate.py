@@ -107,7 +107,7 @@ def simulate(scenario: str, out: Path, **options: Any) -> dict[str, Path]:
         raise SpecError(f"unknown scenario {scenario!r}; choose one of {', '.join(SCENARIOS)}")
     opts = make_options(**options)
     out = Path(out)
-    existing = [out / n for n in RECORDINGS[scenario] if (out / n).exists()]
+    existing = [out / n for n in RECORDINGS[scenario] if os.path.lexists(out / n)]
     if existing and not opts.force:
         raise SpecError(f"{existing[0]} exists already; use --force to overwrite it")
     scenes = build(scenario, opts)
@@ -125,8 +125,10 @@ def simulate(scenario: str, out: Path, **options: Any) -> dict[str, Path]:
         result = {}
         for scene in scenes:
             dest = out / scene.name
-            if dest.exists():
-                shutil.rmtree(dest) if dest.is_dir() else dest.unlink()
+            if dest.is_symlink() or dest.is_file():  # a link itself, never what it leads to
+                dest.unlink()
+            elif dest.exists():
+                shutil.rmtree(dest)
             os.replace(tmp / scene.name, dest)
             result[scene.name] = dest
         return result
