@@ -27,7 +27,7 @@ from tagtrail.runner.spec import load_pipeline
 from tagtrail.sim import simulate
 from tagtrail.stages import REGISTRY
 from tests.cli_helpers import one_error_line
-from tests.runner.test_runner import ALL, executed, write_project
+from tests.runner.project import ALL, executed, write_project
 from tests.runner.toy import copy_stages, load_registry
 
 needs_dask = pytest.mark.skipif(

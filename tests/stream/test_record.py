@@ -29,21 +29,10 @@ from tagtrail.schemas.profiles import PROFILES
 from tagtrail.sim.simulate import simulate
 from tagtrail.stream.bagwriter import TAIL, recover
 from tagtrail.stream.record import normalize_type, parse_size, parse_topic, resolve_topics
-from tests.stream.helpers import REPO, Proc, free_port, loopback
+from tests.stream.helpers import REPO, Proc, free_port, loopback, router
 
 IMAGE, INFO = "/camera/color/image_raw", "/camera/color/camera_info"
 DET, DET_INFO = "/detections", "/camera_info"
-
-
-def router(port: int) -> zenoh.Session:
-    """A zenoh router on 127.0.0.1:``port`` only (no scouting): the bridge's stand-in."""
-    cfg = zenoh.Config()
-    cfg.insert_json5("mode", '"router"')
-    cfg.insert_json5("scouting/multicast/enabled", "false")
-    cfg.insert_json5("scouting/gossip/enabled", "false")
-    cfg.insert_json5("listen/endpoints", json.dumps([loopback(port)]))
-    cfg.insert_json5("connect/endpoints", "[]")
-    return zenoh.open(cfg)
 
 
 @pytest.fixture()
