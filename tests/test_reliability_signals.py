@@ -25,6 +25,8 @@ import yaml
 
 from tagtrail.sim import simulate
 
+pytestmark = pytest.mark.slow  # signals sent to real runs at every point (make test-all)
+
 REPO = Path(__file__).resolve().parents[1]
 STOP_S = 1.0  # the promise: a signal ends any command within a second
 TEMP = re.compile(r"^\..+\.[a-z0-9_]{8}$")  # mkstemp's names

@@ -30,6 +30,8 @@ from tests.cli_helpers import one_error_line
 from tests.runner.project import ALL, executed, write_project
 from tests.runner.toy import copy_stages, load_registry
 
+pytestmark = pytest.mark.slow  # Dask clusters (make test-all)
+
 needs_dask = pytest.mark.skipif(
     importlib.util.find_spec("distributed") is None and os.environ.get("CI") != "true",
     reason="dask.distributed not installed (pip install -e '.[test]')",

@@ -103,6 +103,7 @@ def detections(tmp_path_factory: pytest.TempPathFactory) -> Path:
                     detections=True)["circle"]  # fmt: skip
 
 
+@pytest.mark.slow
 def test_30hz_images_recorded_into_mcap_and_sqlite3(images: Path, bridge: Any,
                                                     tmp_path: Path) -> None:  # fmt: skip
     """The issue's done-when: 10 s of 30 Hz 640x480 images + camera_info over zenoh on
