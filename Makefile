@@ -5,7 +5,7 @@ BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed
 BENCH_STAMP := $(VENV)/.installed-bench
 
-.PHONY: demo test bench lint check clean
+.PHONY: demo test test-all bench lint check clean
 
 $(STAMP): pyproject.toml
 	@command -v $(PY) >/dev/null 2>&1 || { echo "error: $(PY) not found (need Python >= 3.11)"; exit 2; }
@@ -17,7 +17,12 @@ $(STAMP): pyproject.toml
 demo: $(STAMP)
 	$(BIN)/tagtrail demo
 
+# The fast tier (a few minutes): every test but those marked slow.
 test: $(STAMP)
+	$(BIN)/python -m pytest -q -m "not slow"
+
+# Every test, the slow ones included (accuracy, real data, clusters, crashes): what CI runs.
+test-all: $(STAMP)
 	$(BIN)/python -m pytest -q
 
 # The benchmarks' extra (gtsam) on top of the test install; `make test` does not need it.
@@ -33,7 +38,7 @@ lint: $(STAMP)
 	$(BIN)/ruff check tagtrail tests bench
 	$(BIN)/mypy tagtrail
 
-check: lint test
+check: lint test-all
 
 clean:
 	rm -rf $(VENV) artifacts outputs demo

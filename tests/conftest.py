@@ -8,6 +8,8 @@ from pathlib import Path
 
 import pytest
 
+from tests.cli_helpers import detection_bags
+
 REPO = Path(__file__).resolve().parents[1]
 REALDATA = REPO.parent / "shared" / "realdata"
 
@@ -19,3 +21,10 @@ def realdata() -> Path:
             pytest.fail(f"real data folder {REALDATA} is missing (required under CI=true)")
         pytest.skip(f"real data folder {REALDATA} not present")
     return REALDATA
+
+
+@pytest.fixture(scope="session")
+def room_bags(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """The `room` recordings (reference + parked queries) as sqlite3 detection bags, simulated
+    once per session and shared: tests read them and never write into the folder."""
+    return detection_bags(tmp_path_factory.mktemp("room_bags"))

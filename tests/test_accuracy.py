@@ -50,6 +50,8 @@ from tagtrail.runner.spec import load_pipeline
 from tagtrail.sim import simulate
 from tagtrail.stages import REGISTRY
 
+pytestmark = pytest.mark.slow  # accuracy against ground truth on rendered scenes (make test-all)
+
 
 def run(folder: Path, pipeline: str) -> Runner:
     (folder / "pipeline.yaml").write_text(pipeline)

@@ -8,12 +8,12 @@ import pytest
 import yaml
 
 from tagtrail.cli import main
-from tests.cli_helpers import detection_bags, one_error_line
+from tests.cli_helpers import one_error_line
 
 
 @pytest.fixture(scope="module")
-def bags(tmp_path_factory: pytest.TempPathFactory) -> Path:
-    return detection_bags(tmp_path_factory.mktemp("bags"))
+def bags(room_bags: Path) -> Path:
+    return room_bags
 
 
 def test_init_then_run_then_show(bags: Path, tmp_path: Path, monkeypatch, capsys) -> None:

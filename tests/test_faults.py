@@ -22,6 +22,8 @@ from tagtrail.runner.export import EXPORTERS
 from tagtrail.sim import simulate
 from tagtrail.stages import REGISTRY
 
+pytestmark = pytest.mark.slow  # the crash suite: kill -9 everywhere, a full disk (make test-all)
+
 TEMP = re.compile(r"^\..+\.[a-z0-9_]{8}$")  # mkstemp's names
 
 

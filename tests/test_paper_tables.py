@@ -17,6 +17,8 @@ from tagtrail.runner.spec import load_pipeline
 from tagtrail.sim import simulate
 from tagtrail.stages import REGISTRY
 
+pytestmark = pytest.mark.slow  # the paper's tables (make test-all)
+
 
 def run_observations(tmp_path: Path, *overrides: str, **sim: float) -> dict:
     simulate("observations", tmp_path / "data", **sim)

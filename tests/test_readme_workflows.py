@@ -24,8 +24,9 @@ from pathlib import Path
 import pytest
 
 from tagtrail.sim.simulate import simulate
-from tests.stream.helpers import free_port
-from tests.stream.test_record import router
+from tests.stream.helpers import free_port, router
+
+pytestmark = pytest.mark.slow  # the README's workflows end to end over zenoh (make test-all)
 
 REPO = Path(__file__).resolve().parents[1]
 ROBOT = "tcp/192.168.1.10:7447"

@@ -8,12 +8,15 @@ import shutil
 from pathlib import Path
 
 import numpy as np
+import pytest
 from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
 
 from tagtrail.runner.execute import Runner
 from tagtrail.runner.spec import load_pipeline
 from tagtrail.stages import REGISTRY
+
+pytestmark = pytest.mark.slow  # maps of the real photo sets (make test-all)
 
 
 def run_map(tmp_path: Path, source: Path, tag_size: float, *overrides: str) -> Runner:

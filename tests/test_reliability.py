@@ -15,12 +15,12 @@ from tagtrail.cli import main
 from tagtrail.errors import SpecError
 from tagtrail.runner.cache import Store
 from tagtrail.runner.paths import clean_temp_files, inside
-from tests.cli_helpers import detection_bags, one_error_line
+from tests.cli_helpers import one_error_line
 
 
 @pytest.fixture(scope="module")
-def bags(tmp_path_factory: pytest.TempPathFactory) -> Path:
-    return detection_bags(tmp_path_factory.mktemp("bags"))
+def bags(room_bags: Path) -> Path:
+    return room_bags
 
 
 def tree(root: Path) -> dict[str, bytes]:

@@ -24,7 +24,8 @@ import pytest
 import yaml
 
 from tagtrail.sim import simulate
-from tests.cli_helpers import detection_bags
+
+pytestmark = pytest.mark.slow  # signals sent to real runs at every point (make test-all)
 
 REPO = Path(__file__).resolve().parents[1]
 STOP_S = 1.0  # the promise: a signal ends any command within a second
@@ -143,8 +144,8 @@ def images_good(tmp_path_factory: pytest.TempPathFactory, images: Path) -> dict[
 
 
 @pytest.fixture(scope="module")
-def dets(tmp_path_factory: pytest.TempPathFactory) -> Path:
-    return detection_bags(tmp_path_factory.mktemp("dets"))
+def dets(room_bags: Path) -> Path:
+    return room_bags
 
 
 @pytest.fixture(scope="module")

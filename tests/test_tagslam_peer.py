@@ -39,6 +39,8 @@ from tests.tagslam import (
     unpack,
 )
 
+pytestmark = pytest.mark.slow  # TagSLAM's recordings against its own trajectory (make test-all)
+
 CASES = {  # name: (default trajectory mm / deg, trajectory_raw.csv mm / deg) bounds
     "tagslam_test_16": ((8.0, 0.15), (1.0, 0.05)),
     "tagslam_test_1": ((16.0, 0.5), (10.0, 0.5)),

@@ -13,7 +13,7 @@ import yaml
 
 from tagtrail.cli import main
 from tests.cli_helpers import one_error_line
-from tests.stages.test_survey import _artifact
+from tests.stages.pipelines import artifact as _artifact
 
 
 def test_init_survey_tagslam_yaml_then_run(realdata: Path, tmp_path: Path,

@@ -200,6 +200,7 @@ def test_show_opens_a_points_artifacts(swept: tuple[Path, str, str], capsys: Cap
     assert f"artifact {row['key.optimize[reference]'][:12]}" in capsys.readouterr().out
 
 
+@pytest.mark.slow
 @pytest.mark.skipif(importlib.util.find_spec("distributed") is None,
                     reason="dask.distributed not installed (pip install -e '.[test]')")
 def test_a_sweep_on_a_2_worker_dask_cluster_matches_the_local_one(
@@ -246,6 +247,7 @@ def test_rerun_of_a_finished_sweep_runs_nothing(swept: tuple[Path, str, str], ca
     assert strip(after) == strip(before) and all(r["ran"] == "0" for r in after)
 
 
+@pytest.mark.slow
 def test_a_killed_sweep_resumes_without_redoing_finished_points(
     data: Path, tmp_path: Path
 ) -> None:

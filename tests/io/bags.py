@@ -167,3 +167,25 @@ def write_ros1_bag(path: Path, frames: Sequence[np.ndarray], cam: CameraModel) -
             w.write(ci, t, ts.serialize_ros1(camera_info_msg(cam, t, ts), msgs.CAMERA_INFO))
             w.write(im, t, ts.serialize_ros1(msg, msgs.IMAGE))
     return path
+
+
+def isaac_bag(tmp_path: Path, cam: CameraModel, storage: str = "mcap") -> tuple[Path, list]:
+    """An Isaac ROS recording: ``/tag_detections`` (isaac_ros_apriltag_interfaces) of two tags
+    seen from a moving camera, corners in the C library's convention (+0.5 px), with the
+    rectified image's ``/camera_info_rect``."""
+    from tagtrail.geometry.rotations import R_from_rotvec
+    from tagtrail.geometry.se3 import make_T
+    from tests.vision.exact_tag import true_corners
+
+    out, truth = [("/camera_info_rect", T0_NS, camera_info_msg(cam))], []
+    for k in range(5):
+        t = T0_NS + k * 33_333_333
+        dets = []
+        for tag_id, x in ((3, -0.15), (7, 0.2)):
+            cam_T_tag = make_T(R_from_rotvec([np.pi + 0.1 * k, 0.2, 0.0]),
+                               np.array([x + 0.02 * k, 0.05, 1.2]))
+            px = true_corners(cam, cam_T_tag, 0.16)
+            truth.append(px)
+            dets.append((tag_id, px + 0.5, cam_T_tag))
+        out.append(("/tag_detections", t, isaac_msg(t, dets)))
+    return write_bag(tmp_path / f"isaac_{storage}", out, storage), truth

@@ -289,28 +289,6 @@ def test_image_folder_without_stamps_is_not_timed(realdata: Path, tmp_path: Path
     assert open_source(DatasetConfig(source=folder)).timed
 
 
-def _isaac_bag(tmp_path: Path, cam: CameraModel, storage: str = "mcap") -> tuple[Path, list]:
-    """An Isaac ROS recording: ``/tag_detections`` (isaac_ros_apriltag_interfaces) of two tags
-    seen from a moving camera, corners in the C library's convention (+0.5 px), with the
-    rectified image's ``/camera_info_rect``."""
-    from tagtrail.geometry.rotations import R_from_rotvec
-    from tagtrail.geometry.se3 import make_T
-    from tests.vision.exact_tag import true_corners
-
-    out, truth = [("/camera_info_rect", bags.T0_NS, bags.camera_info_msg(cam))], []
-    for k in range(5):
-        t = bags.T0_NS + k * 33_333_333
-        dets = []
-        for tag_id, x in ((3, -0.15), (7, 0.2)):
-            cam_T_tag = make_T(R_from_rotvec([np.pi + 0.1 * k, 0.2, 0.0]),
-                               np.array([x + 0.02 * k, 0.05, 1.2]))
-            px = true_corners(cam, cam_T_tag, 0.16)
-            truth.append(px)
-            dets.append((tag_id, px + 0.5, cam_T_tag))
-        out.append(("/tag_detections", t, bags.isaac_msg(t, dets)))
-    return bags.write_bag(tmp_path / f"isaac_{storage}", out, storage), truth
-
-
 @pytest.mark.parametrize("storage", ["mcap", "sqlite3"])
 def test_isaac_ros_detections(tmp_path: Path, storage: str, caplog) -> None:
     """isaac_ros_apriltag's detections (its .msg registered in the typestore: a Humble bag
@@ -318,7 +296,7 @@ def test_isaac_ros_detections(tmp_path: Path, storage: str, caplog) -> None:
     family as the message names it; the declared convention is logged."""
     cam = CameraModel.from_dict({"width": 640, "height": 480, "distortion_model": "plumb_bob",
                                  "K": [500, 0, 320, 0, 500, 240, 0, 0, 1], "D": [0] * 5})
-    bag, truth = _isaac_bag(tmp_path, cam, storage)
+    bag, truth = bags.isaac_bag(tmp_path, cam, storage)
     if storage == "sqlite3":
         bags.make_humble(bag)
     with caplog.at_level(logging.INFO, logger="tagtrail.sources"):
@@ -337,7 +315,7 @@ def test_isaac_ros_detections_warn_of_a_distorted_camera(tmp_path: Path, caplog)
     cam = CameraModel.from_dict({"width": 640, "height": 480, "distortion_model": "plumb_bob",
                                  "K": [500, 0, 320, 0, 500, 240, 0, 0, 1],
                                  "D": [0.05, -0.02, 0, 0, 0]})
-    bag, _ = _isaac_bag(tmp_path, cam)
+    bag, _ = bags.isaac_bag(tmp_path, cam)
     with caplog.at_level(logging.WARNING, logger="tagtrail.sources"):
         open_source(DatasetConfig(source=bag))
     assert "detects in the rectified image, but the camera (CameraInfo of /camera_info_rect) " \

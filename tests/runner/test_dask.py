@@ -27,8 +27,10 @@ from tagtrail.runner.spec import load_pipeline
 from tagtrail.sim import simulate
 from tagtrail.stages import REGISTRY
 from tests.cli_helpers import one_error_line
-from tests.runner.test_runner import ALL, executed, write_project
+from tests.runner.project import ALL, executed, write_project
 from tests.runner.toy import copy_stages, load_registry
+
+pytestmark = pytest.mark.slow  # Dask clusters (make test-all)
 
 needs_dask = pytest.mark.skipif(
     importlib.util.find_spec("distributed") is None and os.environ.get("CI") != "true",

@@ -38,6 +38,7 @@ def files(root: Path) -> dict[str, bytes]:
             if p.is_file()}
 
 
+@pytest.mark.slow
 def test_kill_9_then_rerun_gives_byte_identical_outputs(tmp_path: Path, data: Path) -> None:
     a = project(tmp_path / "a", data)
     out, err = tagtrail(a, "run").communicate(timeout=300)

@@ -12,7 +12,7 @@ from tagtrail.errors import SpecError
 from tagtrail.runner.execute import Runner
 from tagtrail.runner.show import show
 from tagtrail.runner.spec import load_pipeline
-from tests.runner.test_runner import write_project
+from tests.runner.project import write_project
 from tests.runner.toy import copy_stages, load_registry
 
 SLEEP = 0.4

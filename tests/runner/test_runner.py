@@ -15,22 +15,10 @@ import yaml
 from tagtrail.errors import SpecError
 from tagtrail.runner.execute import Runner
 from tagtrail.runner.spec import load_pipeline
+from tests.runner.project import ALL, cached, executed, write_project
 from tests.runner.toy import copy_stages, load_registry
 
 DRIVER = Path(__file__).parent / "toy" / "driver.py"
-
-
-def write_project(root: Path, stages: dict | None = None, **datasets: str) -> Path:
-    root.mkdir(parents=True, exist_ok=True)
-    datasets = datasets or {"reference": "value\n1\n2\n3\n", "query": "value\n4\n5\n"}
-    for name, text in datasets.items():
-        (root / f"{name}.csv").write_text(text)
-    doc = {
-        "datasets": {n: {"source": f"{n}.csv"} for n in datasets},
-        "stages": stages or {"scale": {"factor": 2.0}},
-    }
-    (root / "pipeline.yaml").write_text(yaml.safe_dump(doc))
-    return root / "pipeline.yaml"
 
 
 @pytest.fixture
@@ -45,22 +33,6 @@ def project(tmp_path: Path):
     runner.stages_dir = stages_dir  # type: ignore[attr-defined]
     runner.pipe_file = pipe_file  # type: ignore[attr-defined]
     return runner
-
-
-def executed(states) -> set[tuple[str, str]]:
-    return {(s.stage, s.dataset) for s in states if s.status == "ran"}
-
-
-def cached(states) -> set[tuple[str, str]]:
-    return {(s.stage, s.dataset) for s in states if s.status == "cached"}
-
-
-ALL = {
-    (s, d)
-    for s in ("load", "scale", "slow", "total", "compare")
-    for d in ("reference", "query")
-    if not (s == "compare" and d == "reference")
-}
 
 
 def test_second_run_executes_nothing(project) -> None:

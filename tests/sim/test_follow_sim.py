@@ -17,6 +17,8 @@ from tagtrail.sim.follow import COLUMNS, eight_poly
 from tagtrail.stream import codec
 from tests.sim.helpers import detector, image_of
 
+pytestmark = pytest.mark.slow  # closed-loop simulations (make test-all)
+
 
 def test_kinematics_obey_the_limos_limits() -> None:
     k = limo.Kinematics()

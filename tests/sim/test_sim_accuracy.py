@@ -12,6 +12,7 @@ from pathlib import Path
 
 import cv2
 import numpy as np
+import pytest
 
 from tagtrail.geometry.camera import CameraModel
 from tagtrail.geometry.se3 import (
@@ -27,6 +28,8 @@ from tagtrail.io.layouts import POSE_COLS, read_tag_map, read_trajectory
 from tagtrail.sim import simulate
 from tagtrail.vision.corners import refine_corners
 from tests.sim.helpers import detector, image_of, read_topic
+
+pytestmark = pytest.mark.slow  # accuracy of rendered recordings (make test-all)
 
 # SPEC corners 0..3 of a tag of edge s: (-,-), (+,-), (+,+), (-,+). IPPE_SQUARE insists on its
 # own order (-,+), (+,+), (+,-), (-,-) (OpenCV 5 ignores other orders): SPEC corners 3, 2, 1, 0.

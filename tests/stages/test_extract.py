@@ -228,6 +228,7 @@ def main():
 """
 
 
+@pytest.mark.slow
 def test_repeated_runs_in_subprocesses_always_exit_0(upenn_dir: Path, tmp_path: Path) -> None:
     """pupil-apriltags can segfault at interpreter exit (pupil-labs/apriltags#46): 20 runs."""
     for f in ("frame0000.jpg", "frame0001.jpg", "camera.yaml"):

@@ -65,9 +65,8 @@ def test_max_hamming_auto_resolves_per_source_kind() -> None:
 def test_unapplied_quality_filters_are_said_once(tmp_path: Path, caplog) -> None:
     """Isaac ROS detections carry neither hamming nor decision margin: both filters are not
     applied, each said once for the whole recording; the table reads -1 / NaN."""
-    from tests.io.test_sources import _isaac_bag
 
-    bag, truth = _isaac_bag(tmp_path, CAM)
+    bag, truth = bags.isaac_bag(tmp_path, CAM)
     with caplog.at_level(logging.INFO, logger="tagtrail.extract"):
         det = extract_from(bag)["detections"]
     lines = [r.getMessage() for r in caplog.records]

@@ -18,31 +18,14 @@ from tagtrail.errors import DataError, SpecError
 from tagtrail.geometry.registration import umeyama
 from tagtrail.geometry.rotations import geodesic_angle
 from tagtrail.geometry.se3 import rotation_angle
-from tagtrail.runner.execute import Runner
 from tagtrail.runner.spec import load_pipeline
 from tagtrail.schemas.artifacts import POSE_COLS
 from tagtrail.stages import REGISTRY, optimize
+from tests.stages.pipelines import artifact as _artifact
+from tests.stages.pipelines import pipeline_file as _pipeline
+from tests.stages.pipelines import run_stages as _run
 from tests.tagslam import poses as _poses
 from tests.tagslam import tagslam_reference as _tagslam_reference
-
-
-def _pipeline(tmp_path: Path, dataset: str, stages: dict) -> Path:
-    path = tmp_path / "pipeline.yaml"
-    path.write_text(yaml.safe_dump({"datasets": {"reference": yaml.safe_load(dataset)},
-                                    "stages": stages}))
-    return path
-
-
-def _run(path: Path, *stages: str) -> Runner:
-    runner = Runner(load_pipeline(path, REGISTRY))
-    runner.run(list(stages))
-    return runner
-
-
-def _artifact(runner: Runner, stage: str, output: str) -> pd.DataFrame:
-    key = next(s.key for s in runner.plan([stage]) if s.stage == stage)
-    out: pd.DataFrame = runner.store.load(stage, key, output)
-    return out
 
 
 def test_tagslam_yaml_reproduces_tagslams_world_on_test_16(realdata: Path, tmp_path: Path,

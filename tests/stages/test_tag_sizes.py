@@ -18,7 +18,9 @@ from tagtrail.errors import SpecError
 from tagtrail.io.layouts import write_tag_map
 from tagtrail.runner.spec import load_pipeline
 from tagtrail.stages import REGISTRY
-from tests.stages.test_survey import _artifact, _pipeline, _run
+from tests.stages.pipelines import artifact as _artifact
+from tests.stages.pipelines import pipeline_file as _pipeline
+from tests.stages.pipelines import run_stages as _run
 from tests.tagslam import tagslam_reference as _tagslam_reference
 
 

@@ -168,3 +168,14 @@ def localize_replayed(
             sub.close()
         assert node.stop(sig=sig) == 0, node.output
     return poses, node
+
+
+def router(port: int) -> zenoh.Session:
+    """A zenoh router on 127.0.0.1:``port`` only (no scouting): the bridge's stand-in."""
+    cfg = zenoh.Config()
+    cfg.insert_json5("mode", '"router"')
+    cfg.insert_json5("scouting/multicast/enabled", "false")
+    cfg.insert_json5("scouting/gossip/enabled", "false")
+    cfg.insert_json5("listen/endpoints", json.dumps([loopback(port)]))
+    cfg.insert_json5("connect/endpoints", "[]")
+    return zenoh.open(cfg)

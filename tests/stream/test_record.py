@@ -29,21 +29,10 @@ from tagtrail.schemas.profiles import PROFILES
 from tagtrail.sim.simulate import simulate
 from tagtrail.stream.bagwriter import TAIL, recover
 from tagtrail.stream.record import normalize_type, parse_size, parse_topic, resolve_topics
-from tests.stream.helpers import REPO, Proc, free_port, loopback
+from tests.stream.helpers import REPO, Proc, free_port, loopback, router
 
 IMAGE, INFO = "/camera/color/image_raw", "/camera/color/camera_info"
 DET, DET_INFO = "/detections", "/camera_info"
-
-
-def router(port: int) -> zenoh.Session:
-    """A zenoh router on 127.0.0.1:``port`` only (no scouting): the bridge's stand-in."""
-    cfg = zenoh.Config()
-    cfg.insert_json5("mode", '"router"')
-    cfg.insert_json5("scouting/multicast/enabled", "false")
-    cfg.insert_json5("scouting/gossip/enabled", "false")
-    cfg.insert_json5("listen/endpoints", json.dumps([loopback(port)]))
-    cfg.insert_json5("connect/endpoints", "[]")
-    return zenoh.open(cfg)
 
 
 @pytest.fixture()
@@ -114,6 +103,7 @@ def detections(tmp_path_factory: pytest.TempPathFactory) -> Path:
                     detections=True)["circle"]  # fmt: skip
 
 
+@pytest.mark.slow
 def test_30hz_images_recorded_into_mcap_and_sqlite3(images: Path, bridge: Any,
                                                     tmp_path: Path) -> None:  # fmt: skip
     """The issue's done-when: 10 s of 30 Hz 640x480 images + camera_info over zenoh on

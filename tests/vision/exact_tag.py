@@ -69,3 +69,9 @@ def compose(images: list[NDArray[np.uint8]], background: float = 90.0) -> NDArra
         mask = img != np.uint8(round(background))
         out[mask] = img[mask]
     return out
+
+
+# Cameras of the corner tests: the LIMO's calibration (NOTES.md), and a fisheye with its K.
+K = np.array([[442.17, 0.0, 323.04], [0.0, 443.88, 246.51], [0.0, 0.0, 1.0]])
+LIMO = CameraModel(640, 480, K, np.array([0.0449, -0.0770, 0.0025, 0.0012, 0.0]))
+FISHEYE = CameraModel(640, 480, K, np.array([0.05, -0.01, 0.002, 0.0]), "equidistant")

@@ -16,12 +16,9 @@ from tagtrail.vision.corners import refine_corners, refine_many, truncated
 from tagtrail.vision.detector import C_LIBRARY_PIXEL_OFFSET
 from tests.extracting import extract_from
 from tests.sim.helpers import detector
-from tests.vision.exact_tag import compose, render_tag, true_corners
+from tests.vision.exact_tag import FISHEYE, LIMO, compose, render_tag, true_corners
 
 SIZE = 0.16
-K = np.array([[442.17, 0.0, 323.04], [0.0, 443.88, 246.51], [0.0, 0.0, 1.0]])
-LIMO = CameraModel(640, 480, K, np.array([0.0449, -0.0770, 0.0025, 0.0012, 0.0]))
-FISHEYE = CameraModel(640, 480, K, np.array([0.05, -0.01, 0.002, 0.0]), "equidistant")
 
 
 def random_views(n: int, seed: int) -> list[tuple[np.ndarray, int]]:

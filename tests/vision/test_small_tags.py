@@ -13,8 +13,7 @@ import pytest
 
 from tagtrail.geometry.se3 import R_from_rotvec, make_T
 from tagtrail.stages import extract
-from tests.vision.exact_tag import compose, render_tag, true_corners
-from tests.vision.test_corners import LIMO
+from tests.vision.exact_tag import LIMO, compose, render_tag, true_corners
 
 MODES = {"full": {"quad_decimate": 1.0, "small_tags": "off"},
          "dec2": {"quad_decimate": 2.0, "small_tags": "off"},
