@@ -15,44 +15,18 @@ from __future__ import annotations
 import csv
 import json
 import math
-import os
 import re
-import subprocess
-import sys
 from pathlib import Path
 
 import pytest
 
 from tagtrail.sim.simulate import simulate
+from tests.readme import run_script, section, shell_blocks
 from tests.stream.helpers import free_port, router
 
 pytestmark = pytest.mark.slow  # the README's workflows end to end over zenoh (make test-all)
 
-REPO = Path(__file__).resolve().parents[1]
 ROBOT = "tcp/192.168.1.10:7447"
-
-
-def section(title: str) -> str:
-    text = (REPO / "README.md").read_text()
-    start = text.index(f"## {title}")
-    end = text.find("\n## ", start + 3)
-    return text[start:end if end >= 0 else None]
-
-
-def shell_blocks(text: str) -> list[str]:
-    return re.findall(r"^```sh\n(.*?)^```", text, re.S | re.M)
-
-
-def run_script(script: str, cwd: Path, timeout: float = 900) -> str:
-    """Run ``script`` with bash (``set -e``), ``tagtrail`` on the PATH; returns its output."""
-    env = {**os.environ, "PATH": f"{Path(sys.executable).parent}{os.pathsep}{os.environ['PATH']}",
-           "PYTHONUNBUFFERED": "1"}  # fmt: skip
-    done = subprocess.run(["bash", "-c", "set -e\n" + script], cwd=cwd, env=env, text=True,
-                          stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
-                          timeout=timeout)  # fmt: skip
-    assert done.returncode == 0, f"{script}\n---\n{done.stdout[-6000:]}"
-    assert "error:" not in done.stdout, done.stdout[-6000:]
-    return done.stdout
 
 
 def states(output: str) -> list[dict[str, float]]:
