@@ -78,7 +78,7 @@ def test_imports_follow_the_rules(path: Path) -> None:
 
 def test_the_rules_cover_every_room() -> None:
     rooms = {room_of(p) for p in PACKAGE.rglob("*.py")}
-    top = {"cli", "commands", "sim", "stream", "__init__"}  # the shells: may import any room
+    top = {"cli", "commands", "sim", "stream", "docs_params", "__init__"}  # shells: import any room
     assert rooms <= set(ALLOWED) | top, rooms - set(ALLOWED) - top
 
 
