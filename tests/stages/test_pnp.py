@@ -96,7 +96,7 @@ def test_pass_through_and_empty_inputs() -> None:
     det = detections_table(np.ones((1, 4, 2)), np.array([1]))
     with pytest.raises(SourceError, match="extract.camera is empty"):
         pnp.run(det, None, empty_obs(), pnp.Params())
-    with pytest.raises(ValueError, match=r"tag_sizes.3\n  Input should be greater than or equal to 0.001"):
+    with pytest.raises(ValueError, match=r"tag_sizes.3\n.*greater than or equal to 0.001"):
         pnp.Params(tag_sizes={3: 0.0})
 
 
