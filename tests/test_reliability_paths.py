@@ -280,6 +280,7 @@ def test_a_source_that_is_no_recording_is_refused_at_once(tmp_path, monkeypatch,
 
 # --- item 8: two runs at once ------------------------------------------------------------------
 
+@pytest.mark.slow
 def test_two_runs_at_once_both_succeed(bags, tmp_path) -> None:
     """Item 8: the first of two simultaneous runs failed 3 times in 4 with ``FileNotFoundError:
     …/.sources.json.XXXX`` (state written after the lock was released; the other run's clean-up

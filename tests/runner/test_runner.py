@@ -191,6 +191,7 @@ def test_stage_failure_names_stage_and_keeps_finished_artifacts(project) -> None
     assert plan[("load", "reference")] == "cached"
 
 
+@pytest.mark.slow
 def test_kill_9_mid_stage_then_rerun_is_identical(project, tmp_path: Path) -> None:
     cwd = project.pipe_file.parent
     proc = subprocess.Popen(

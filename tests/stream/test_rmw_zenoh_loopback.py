@@ -279,6 +279,7 @@ def bag_messages(bag: Path) -> tuple[dict[str, list[bytes]], dict[str, str]]:
         reader.close()
 
 
+@pytest.mark.slow
 def test_record_discovers_and_records_a_humble_camera(images: Path, peer: tuple[RosPeer, int],
                                                       tmp_path: Path) -> None:  # fmt: skip
     """A Humble camera driver on rmw_zenoh (tokens, keys, attachments; sensor-data QoS):

@@ -86,6 +86,7 @@ def _common(a: list[tuple[Any, Any]], b: list[tuple[Any, Any]]) -> int:
     return sum(len(set(x[0][:, 0]) & set(y[0][:, 0])) for x, y in zip(a, b, strict=True))
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("frames", ["swatbotics", "duckietown", "rendered"])
 def test_default_finds_what_full_resolution_finds(frames: str, request: Any) -> None:
     res = request.getfixturevalue(frames)[0]
