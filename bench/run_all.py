@@ -115,6 +115,7 @@ def demo_pipeline(datasets: dict[str, dict[str, object]]) -> str:
 
 def query(source: Path) -> dict[str, object]:
     return {"source": str(source), "inputs": {"trajectory.tag_map": "reference:optimize.tag_map",
+                                              "trajectory.map_report": "reference:optimize.report",
                                               "align.tag_map": "reference:optimize.tag_map"}}
 
 

@@ -253,8 +253,8 @@ def test_ground_plane_and_wheels_keep_a_corridor_of_tags_level_and_straight(
         r.run()
         return artifact(r, "eval", "evaluation", "reference")["gauge_free"]
 
-    ev_free = other("optimize.drive=free", "trajectory.drive=free")
-    ev_none = other("optimize.ground=none", "trajectory.ground=none")
+    ev_free = other("optimize.joint.drive=free")  # the trajectory takes the map's settings
+    ev_none = other("optimize.joint.ground=none")
     print(f"\ncorridor, 0.6 px: trajectory {mm(ev, 'trajectory'):.1f} mm (max "
           f"{mm(ev, 'trajectory', 'max'):.1f}), tags {mm(ev, 'tags'):.1f} mm; drive free "
           f"{mm(ev_free, 'trajectory'):.1f} / {mm(ev_free, 'tags'):.1f} mm; ground none "

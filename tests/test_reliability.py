@@ -106,7 +106,7 @@ def test_temp_files_of_killed_writes_are_cleaned(tmp_path: Path) -> None:
         ({"pnp": {"tag_size": float("inf")}}, None, "tag_size: Input should be a finite number"),
         ({"pnp": {"tag_size": float("nan")}}, None, "tag_size: Input should be a finite number"),
         ({"pnp": {"tag_sizes": {7: True}}}, None, "stages.pnp.tag_sizes.7"),
-        ({"optimize": {"max_nfev": 10.5}}, None, "stages.optimize.max_nfev"),
+        ({"optimize": {"joint_min_frames": 10.5}}, None, "stages.optimize.joint_min_frames"),
         ({"extract": {"refit_corners": 1}}, None, "stages.extract.refit_corners"),
         (None, "pnp.tag_size=1e400", "tag_size: Input should be a finite number"),
         (None, "pnp.tag_size=.inf", "tag_size: Input should be a finite number"),
@@ -170,6 +170,7 @@ def test_damaged_outputs_are_restored_and_force_rewrites(bags, tmp_path, monkeyp
         "reference": {"source": str(bags / "reference")},
         "query": {"source": str(bags / "query_1"),
                   "inputs": {"trajectory.tag_map": "reference:optimize.tag_map",
+                             "trajectory.map_report": "reference:optimize.report",
                              "align.tag_map": "reference:optimize.tag_map"}},
     })
     assert main(["run"]) == 0

@@ -91,7 +91,7 @@ def test_tagslam_recordings_with_nothing_but_init(name: str, realdata: Path, tmp
     moved = np.linalg.norm(poses(default)[:, :3, 3] - poses(raw)[:, :3, 3], axis=1)
     np.testing.assert_allclose(evidence["shift_m"], moved, atol=1e-9)
     # the frames alone are what a run without the motion prior gives (solved from its own start)
-    assert main(["run", "-S", "trajectory.motion=none"]) == 0
+    assert main(["run", "-S", "trajectory.priors=none"]) == 0
     no_prior = read_trajectory(out / "trajectory_raw.csv")
     np.testing.assert_allclose(poses(no_prior)[:, :3, 3], poses(raw)[:, :3, 3], atol=1e-5)
 

@@ -32,7 +32,7 @@ sparse LU (SuperLU, minimum degree on ``A^T + A``). Stops when the relative cost
 below ``1e-12`` or a step below ``1e-10`` (m, rad): the map's weak directions (long chains) move
 the tags by millimetres at cost changes near ``1e-8``, so a loose stop costs accuracy.
 
-:mod:`tagtrail.geometry.bundle` then refines such a map on the tags' corners themselves, jointly
+:mod:`tagtrail.geometry.joint` then refines such a map on the tags' corners themselves, jointly
 with the camera poses (stage ``optimize``, ``method="joint"``).
 """
 

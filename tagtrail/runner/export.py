@@ -20,7 +20,7 @@ import numpy as np
 import pandas as pd
 
 from tagtrail import faults
-from tagtrail.geometry.bundle import SHIFT_SIGMA_BOUND
+from tagtrail.geometry.joint import SHIFT_SIGMA_BOUND
 from tagtrail.geometry.reference_path import reference_plane
 from tagtrail.io import layouts, reloc_files
 from tagtrail.io.layouts import atomic_write_text

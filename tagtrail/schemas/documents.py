@@ -14,6 +14,7 @@ from pydantic import BaseModel, ConfigDict, ValidationError
 
 from tagtrail.errors import ArtifactError
 from tagtrail.geometry.camera import CameraModel
+from tagtrail.geometry.joint.settings import JointSettings
 
 
 class Document(BaseModel):
@@ -89,7 +90,7 @@ class TagGraph(Document):
 
 
 class DriveSummary(Document):
-    """The wheeled-drive prior (``optimize.report.bundle.ground.drive``, geometry.drive): the
+    """The wheeled-drive prior (``optimize.report.bundle.ground.drive``, geometry.joint.drive): the
     mode, whether it was applied, the strain that decided ``auto`` (the prior's robust chi^2 per
     step in the solution solved with it, in its variance factor; wheeled below 2; NaN without
     steps), then, of that solution, the camera's lever
@@ -107,7 +108,7 @@ class DriveSummary(Document):
 
 
 class GroundSummary(Document):
-    """The ground-plane prior (``optimize.report.bundle.ground``, geometry.ground): the mode,
+    """The ground-plane prior (``optimize.report.bundle.ground``, geometry.joint.ground): the mode,
     whether it was applied, the planarity figure that decided ``auto`` (median normalised
     chi^2 per degree of freedom of the solution without it; planar below 2), the plane's
     normal in the world, the camera's tilt to it (deg from its y axis), the RMS height (m) and
@@ -123,6 +124,8 @@ class GroundSummary(Document):
     tilt_rms_deg: float
     frames_off: int
     drive: DriveSummary | None = None
+    note: str = ""
+    """Why ``auto`` was not decided on this dataset (a parked or few-second one), in words."""
 
 
 class BundleSummary(Document):
@@ -204,6 +207,9 @@ class OptimizeReport(Document):
     bundle: BundleSummary | None
     survey: SurveySummary | None = None
     components: list[PlacedComponent] = []
+    joint: JointSettings | None = None
+    """The joint solve's settings the map was made with (``optimize.joint``): what
+    ``trajectory`` solves with (its ``map_report`` input)."""
 
 
 class ErrorStats(Document):

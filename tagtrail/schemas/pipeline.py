@@ -73,8 +73,9 @@ class DatasetConfig(BaseModel):
     observations folder (``observations.csv`` of camera→tag poses, as ``tagtrail simulate
     observations`` writes). ``camera``: camera_info YAML (image folders; overrides the bag's).
     ``ground_truth``: folder with SPEC-layout ground truth (default ``<source>/ground_truth`` if
-    present). ``inputs``: rewiring, e.g. ``{"trajectory.tag_map": "reference:optimize.tag_map"}``
-    localizes this dataset directly against the reference map. ``params``: per-stage parameter
+    present). ``inputs``: rewiring, e.g. ``{"trajectory.tag_map": "reference:optimize.tag_map",
+    "trajectory.map_report": "reference:optimize.report"}`` localizes this dataset directly
+    against the reference map, under the map's joint-solve settings. ``params``: per-stage parameter
     overrides for this dataset only (merged over the pipeline's ``stages:``).
     """
 

@@ -69,6 +69,16 @@ class StageParams(BaseModel):
         return self.model_dump(mode="json", exclude=set(self.EXECUTION_ONLY))
 
 
+def refuse_old_keys(stage: str, data: Any, moved: Mapping[str, str]) -> Any:
+    """``data`` (a stage's raw parameters) unchanged unless it holds a key of ``moved`` (a name
+    that was once a setting -> where it is now): then a ValueError in one line naming it."""
+    if isinstance(data, dict):
+        for old, new in moved.items():
+            if old in data:
+                raise ValueError(f"{stage}.{old} is no longer a setting: {new}")
+    return data
+
+
 class StageModule(Protocol):
     """What a stage module exposes (checked at load time by ``runner.stage.stage_spec``)."""
 

@@ -9,18 +9,19 @@ maths. That map then checks each observation's IPPE solution in its frame
 (``branch_check``, :func:`tagtrail.geometry.ippe.map_branches`): edges built from a solution the
 map disagrees with are rebuilt from the other, and the graph solved again.
 
-``method="joint"`` (the default; datasets with detections and a camera) then solves the tag poses
-and the camera pose of every frame that sees a mapped tag jointly on the corner reprojection
-error, the frames held together in time by a constant-velocity motion prior
-(:mod:`tagtrail.geometry.bundle`: units, weights and the solver). It starts from the pose-graph
-map, each frame at the IPPE solution its neighbours agree with; tags the pose graph left out
-(seen with the map only ambiguously, or never together with it) are placed through the
-trajectory first (``link_tags``). The pairwise edges of Eq. 3.2 carry the bias of single-tag PnP
-(a small tag's out-of-plane rotation error levered over the distance to the other tag) and the
-pose graph inherits it; the joint solve does not. Each tag gets its standard deviation
-(``std_pos_m``, ``std_rot_deg``; the anchor 0). The edge residuals and per-tag RMS are those of
-the final map. ``"pairwise"``: the paper's pose graph alone, also what observation-only datasets
-get.
+``method="joint"`` (the default; datasets with detections and a camera) then solves the tag
+poses and the camera pose of every frame that sees a mapped tag jointly on the corner
+reprojection error, the frames held together in time by a constant-velocity motion prior, and on
+a ground robot by the ground-plane and wheeled-drive priors (:mod:`tagtrail.geometry.joint`:
+units, weights, priors and the solver; its settings ``joint``, which ``trajectory`` takes too).
+It starts from the pose-graph map, each frame at the IPPE solution its neighbours agree with;
+tags the pose graph left out (seen with the map only ambiguously, or never together with it) are
+placed through the trajectory first (``link_tags``). The pairwise edges of Eq. 3.2 carry the
+bias of single-tag PnP (a small tag's out-of-plane rotation error levered over the distance to
+the other tag) and the pose graph inherits it; the joint solve does not. Each tag gets its
+standard deviation (``std_pos_m``, ``std_rot_deg``; the anchor 0). The edge residuals and
+per-tag RMS are those of the final map. ``"pairwise"``: the paper's pose graph alone, also what
+observation-only datasets get.
 
 The joint solve needs redundancy: its gain is averaging many frames; from a handful of photos the
 shared camera pose couples the tags' model errors instead (a miscalibrated lens: a near tag
@@ -32,9 +33,9 @@ Old parameter names (``refine: corners|none``, ``ba_*``) still work with a depre
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 from collections.abc import Callable
-from functools import partial
 from typing import Any, Literal
 
 import numpy as np
@@ -44,19 +45,19 @@ from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
 
 from tagtrail.errors import DataError
-from tagtrail.geometry.bundle import (
-    MotionPrior,
-    corner_observations,
-    corner_sigma,
-    initial_cameras,
-    link_tags,
-    solve_grounded,
-    solve_joint,
-)
 from tagtrail.geometry.camera import CameraModel
-from tagtrail.geometry.drive import WHEELED_BOUND, DrivePrior
-from tagtrail.geometry.ground import PLANAR_BOUND, GroundPrior
 from tagtrail.geometry.ippe import map_branches
+from tagtrail.geometry.joint import (
+    CornerProblem,
+    GroundReport,
+    JointSettings,
+    corner_problem,
+    link_tags,
+    solve_on_corners,
+)
+from tagtrail.geometry.joint.drive import WHEELED_BOUND
+from tagtrail.geometry.joint.ground import PLANAR_BOUND
+from tagtrail.geometry.joint.settings import JOINT_OLD_KEYS
 from tagtrail.geometry.posegraph import PoseGraph, PoseGraphResult, relative_residuals, solve
 from tagtrail.geometry.robust import LossName
 from tagtrail.geometry.rotations import geodesic_angle
@@ -79,7 +80,7 @@ from tagtrail.schemas.artifacts import (
 )
 from tagtrail.schemas.documents import OptimizeReport, PlacedComponent, RivalPair, TagGraph
 from tagtrail.schemas.pipeline import SurveyConfig
-from tagtrail.stages.base import StageParams
+from tagtrail.stages.base import StageParams, refuse_old_keys
 
 log = logging.getLogger(__name__)
 
@@ -87,9 +88,27 @@ TAG_MAP_COLS = columns("optimize.tag_map")
 RESIDUAL_COLS = columns("optimize.edge_residuals")
 
 
-_RENAMED = {"ba_loss": "joint_loss", "ba_f_scale_px": "joint_f_scale_px",
-            "ba_max_iter": "joint_max_iter", "ba_min_frames": "joint_min_frames"}
-_REFINE = {"corners": "joint", "none": "pairwise"}
+# Fixed, once settings (refused with a line saying so, :data:`OLD_KEYS`): the paper's plain
+# stacking of metres and radians in an edge residual; the pose graph converges in 10-30
+# evaluations; rival hypotheses are few (the closest 16 are tried, each scored by 10 iterations
+# of the joint solve); tags the pose graph left out are always linked through the trajectory
+# when the stamps are capture times.
+ROT_WEIGHT_M = 1.0
+MAX_NFEV = 100
+RIVAL_MAX_PAIRS = 16
+RIVAL_MAX_ITER = 10
+
+OLD_KEYS = {
+    "refine": "use optimize.method (joint | pairwise)",
+    "ba_min_frames": "use optimize.joint_min_frames",
+    "rot_weight_m": "an edge weighs 1 m per radian (the paper's plain stacking), fixed",
+    "max_nfev": "the pose graph stops after 100 evaluations, fixed",
+    "rival_max_pairs": "the 16 closest rival pairs are tried, fixed",
+    "rival_max_iter": "each rival is scored by 10 iterations of the joint solve, fixed",
+    "link_tags": "tags are always linked through the trajectory (stamps that are capture "
+                 "times)",
+    **{k: v.format(joint="optimize.joint") for k, v in JOINT_OLD_KEYS.items()},
+}
 
 
 class Params(StageParams):
@@ -99,60 +118,8 @@ class Params(StageParams):
     pose graph is kept). ``pairwise``: the paper's pose graph alone (Eq. 3.4-3.7)."""
     loss: LossName = "soft_l1"
     """Robust loss on each edge's residual norm (Eq. 3.7): linear, soft_l1, huber, cauchy."""
-    f_scale: float = Field(0.1, ge=1e-6, le=100.0)
+    f_scale: float = Field(0.1, gt=0.0)
     """Residual norm (m) where the robust loss turns from quadratic to sub-quadratic."""
-    rot_weight_m: float = Field(1.0, ge=1e-6, le=1000.0)
-    """Metres of residual per radian of rotation residual (1.0: the paper's plain stacking)."""
-    max_nfev: int = Field(100, ge=1, le=100_000)
-    """Iterations (function evaluations) of the pose-graph solve at most."""
-    joint_loss: LossName = "huber"
-    """Robust loss of the joint solve, on each tag's 8-vector of corner errors (px)."""
-    joint_f_scale_px: float = Field(1.0, ge=1e-3, le=1000.0)
-    """Corner error norm (px) where the joint solve's loss turns sub-quadratic."""
-    joint_max_iter: int = Field(50, ge=1, le=10_000)
-    """Iterations of the joint solve at most (a warning when it stops before converging)."""
-    joint_min_frames: int = Field(30, ge=1, le=10_000_000)
-    """Frames seeing a mapped tag needed for the joint solve; with fewer, the pose graph is
-    kept (module docstring)."""
-    corner_sigma_px: float = Field(0.5, ge=1e-3, le=100.0)
-    """Corner noise (px, per coordinate) of the joint solve for a tag of 20 px sides: weighs the
-    corners against the motion prior and scales the reported standard deviations."""
-    corner_noise: Literal["estimated", "given"] = "given"
-    """``estimated``: ``corner_sigma_px`` is the start, rescaled to what the corner residuals show
-    (then solved again); ``given``: taken as it is."""
-    corner_weighting: Literal["size", "none"] = "size"
-    """``size``: a tag's corner noise grows as its sides shrink (small, far, oblique tags; see
-    geometry.bundle.corner_sigma); ``none``: ``corner_sigma_px`` for every tag."""
-    motion: Literal["constant_velocity", "none"] = "constant_velocity"
-    """Motion prior between consecutive frames of the joint solve (geometry.bundle)."""
-    motion_acc_sigma: float = Field(0.1, ge=1e-6, le=1000.0)
-    """Linear acceleration noise density of the motion prior (m/s^2/sqrt(Hz)): smaller holds
-    the camera path straighter."""
-    motion_ang_sigma_deg: float = Field(30.0, ge=1e-4, le=1e5)
-    """Angular acceleration noise density of the motion prior (deg/s^2/sqrt(Hz))."""
-    max_gap_s: float = Field(0.5, gt=0.0, le=1e6)
-    """Frames further apart than this are not linked by the motion prior (gaps stay gaps)."""
-    ground: Literal["auto", "plane", "none"] = "auto"
-    """Ground-plane prior of the joint solve (geometry.ground): ``plane``: the camera rides at a
-    fixed height and tilt above a plane (a ground robot), the plane solved with the map;
-    ``auto`` (default): the same when the solution without it moves in a plane (a robot, a
-    panning tripod), not for a hand-held camera (``geometry.ground.planarity``); ``none``:
-    free 6-dof motion. Only with the motion prior (frames on their own get neither)."""
-    ground_height_sigma_m: float = Field(0.01, ge=1e-6, le=10.0)
-    """How far the camera rises or sinks from its plane (m, per frame)."""
-    ground_tilt_sigma_deg: float = Field(1.0, ge=1e-4, le=90.0)
-    """How far the camera rolls or pitches from its mean tilt to the plane (deg, per frame)."""
-    drive: Literal["auto", "wheeled", "free"] = "auto"
-    """Wheeled-drive prior, on top of the ground plane (geometry.drive): ``wheeled``: the robot
-    moves along its heading (differential drive, Ackermann), the camera sideways only by its
-    lever arm as it turns (the lever arm and the camera's yaw on the robot solved with the
-    map); ``auto`` (default): the same when it costs the corners little
-    (``geometry.drive.strain`` below 2), not for a robot or camera that moves sideways
-    (mecanum, omni wheels, a panning camera); ``free``: no such prior. Only where the ground
-    plane is applied."""
-    drive_lateral_sigma: float = Field(0.01, ge=1e-6, le=100.0)
-    """Lateral velocity noise density of the wheeled-drive prior (m/s/sqrt(Hz)): wheel slip and
-    skid beyond the lever arm; over T seconds the camera may drift sideways this times sqrt(T)."""
     branch_check: Literal["map", "none"] = "map"
     """``map`` (default): after the pose graph's solve, each observation takes the IPPE solution
     the map agrees with in its frame (geometry.ippe.map_branches), the edges it changes are
@@ -162,13 +129,12 @@ class Params(StageParams):
     rival_search: bool = True
     """Joint solve: decide the tag pairs with a close rival hypothesis (``edges.rival_pairs``)
     by the frames' continuity (``choose_hypotheses``)."""
-    rival_max_pairs: int = Field(16, ge=0, le=10_000)
-    """At most this many rival pairs are tried, closest calls first."""
-    rival_max_iter: int = Field(10, ge=1, le=1000)
-    """Iterations of the joint solve that scores each hypothesis."""
-    link_tags: bool = True
-    """Joint solve: place tags the pose graph left out (never seen together with the map without
-    ambiguity) through the trajectory, then solve them with the rest (geometry.bundle.link_tags)."""
+    joint_min_frames: int = Field(30, ge=1)
+    """Frames seeing a mapped tag needed for the joint solve; with fewer, the pose graph is
+    kept (module docstring)."""
+    joint: JointSettings = JointSettings()
+    """The joint solve's settings (geometry.joint.settings): corner noise, motion prior, gap,
+    ground plane, wheeled drive. ``trajectory`` takes the map's (``optimize.report.joint``)."""
 
     survey: SurveyConfig | None = None
     """A surveyed world: known tag poses (a ``tagslam.yaml``, a WPILib/PhotonVision field
@@ -176,43 +142,11 @@ class Params(StageParams):
     trajectory) is expressed in their frame by a rigid fit (``model: similarity`` adds a scale),
     the residuals at the known tags reported (schemas.pipeline.SurveyConfig)."""
 
-    def ground_prior(self) -> GroundPrior | None:
-        """The ground-plane prior, None without."""
-        if self.ground == "none":
-            return None
-        return GroundPrior.of(self.ground_height_sigma_m, self.ground_tilt_sigma_deg)
-
-    def drive_prior(self) -> DrivePrior | None:
-        """The wheeled-drive prior, None without."""
-        return None if self.drive == "free" else DrivePrior(self.drive_lateral_sigma)
-
-    def prior(self) -> tuple[float, float] | None:
-        """``(acc_sigma m/s^2/sqrt(Hz), ang_sigma rad/s^2/sqrt(Hz))``, None without a prior."""
-        if self.motion == "none":
-            return None
-        return self.motion_acc_sigma, float(np.radians(self.motion_ang_sigma_deg))
-
     @model_validator(mode="before")
     @classmethod
     def _old_names(cls, data: Any) -> Any:
-        """``refine: corners|none`` and ``ba_*`` still work, with one deprecation line each."""
-        if not isinstance(data, dict):
-            return data
-        out = dict(data)
-        if "refine" in out:
-            old = out.pop("refine")
-            if "method" in out:
-                raise ValueError("give optimize.method only (optimize.refine is its old name)")
-            new = _REFINE.get(old, old)
-            log.warning("optimize.refine is deprecated: use optimize.method: %s", new)
-            out["method"] = new
-        for old, new in _RENAMED.items():
-            if old in out:
-                if new in out:
-                    raise ValueError(f"give optimize.{new} only (optimize.{old} is its old name)")
-                log.warning("optimize.%s is deprecated: use optimize.%s", old, new)
-                out[new] = out.pop(old)
-        return out
+        """A key that was once a setting: one line naming its new place."""
+        return refuse_old_keys("optimize", data, OLD_KEYS)
 
 
 INPUTS = {
@@ -289,20 +223,50 @@ def surveyed_world(tag_map: pd.DataFrame, cfg: SurveyConfig) -> tuple[pd.DataFra
     return out, block
 
 
+def _problem(m: pd.DataFrame, k: np.ndarray, cam_T_tag: np.ndarray, camera: CameraModel,
+             settings: JointSettings, timed: bool) -> CornerProblem:
+    """The joint problem of ``corner_rows`` ``m`` (tag indices ``k``, IPPE solutions
+    ``cam_T_tag``)."""
+    return corner_problem(
+        m["frame_idx"].to_numpy(np.int64), m["t_ns"].to_numpy(np.int64), k,
+        m[CORNER_COLS].to_numpy(np.float64).reshape(-1, 4, 2), m["size_m"].to_numpy(np.float64),
+        cam_T_tag, camera, settings, timed)
+
+
+def log_priors(stage: str, ground: GroundReport | None) -> None:
+    """The ground-plane and wheeled-drive decisions, in a line each."""
+    if ground is None:
+        return
+    if ground.note:
+        log.info("%s: ground plane and wheeled drive %s: %s", stage,
+                 "applied" if ground.applied else "not applied", ground.note)
+        return
+    log.info("%s: ground plane %s (planarity %.2f, bound %.1f): camera %.1f deg from level, "
+             "%.1f mm / %.2f deg RMS off the plane", stage,
+             "applied" if ground.applied else "not applied", ground.planarity, PLANAR_BOUND,
+             ground.camera_tilt_deg, 1e3 * ground.height_rms_m, ground.tilt_rms_deg)
+    wheels = ground.drive
+    if wheels is not None:
+        log.info("%s: wheeled drive %s (strain %.2f, bound %.1f): lever arm %.3f m, camera yaw "
+                 "%.1f deg, %.1f mm/s RMS sideways", stage,
+                 "applied" if wheels.applied else "not applied", wheels.strain, WHEELED_BOUND,
+                 wheels.lever_m, wheels.camera_yaw_deg, 1e3 * wheels.lateral_rms_mps)
+
+
 def refine_on_corners(
     R: np.ndarray, t: np.ndarray, tags: np.ndarray, anchor: int, observations: pd.DataFrame,
-    detections: pd.DataFrame, camera: CameraModel, params: Params,
+    detections: pd.DataFrame, camera: CameraModel, params: Params, is_timed: bool,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, dict[str, Any]] | None:
     """The joint solve from the pose-graph map ``R (T, 3, 3)``, ``t (T, 3)`` of the sorted ids
     ``tags``: the ids it maps (``tags`` plus tags linked through the trajectory), their
     ``world_T_tag`` (R, t), standard deviations ``(N, 2)`` (m, rad) and a report block; None when
-    too few frames see a mapped tag (``joint_min_frames``)."""
+    too few frames see a mapped tag (``joint_min_frames``). ``is_timed``: the stamps are capture
+    times (else no prior and no tag linked through the trajectory)."""
     m = corner_rows(observations, detections, np.unique(observations["tag_id"].to_numpy()))
     n_frames = int(m.loc[m["tag_id"].isin(tags), "frame_idx"].nunique())
     if n_frames < params.joint_min_frames:
-        log.info("optimize: only %d frames see a mapped tag (joint_min_frames %d): the map from "
-                 "tag pairs is kept, not refined over all frames together", n_frames,
-                 params.joint_min_frames)
+        log.info("optimize: %d frames see a mapped tag (< joint_min_frames %d): no joint solve, "
+                 "the pose-graph map is kept", n_frames, params.joint_min_frames)
         return None
     ids = np.union1d(tags, m["tag_id"].to_numpy(np.int64))
     W = np.full((len(ids), 4, 4), np.nan)
@@ -311,13 +275,11 @@ def refine_on_corners(
     cam_T_tag = both_solutions(m)
     k = np.searchsorted(ids, m["tag_id"].to_numpy(np.int64))
     linked: list[int] = []
-    if params.link_tags and not known[k].all():
-        ob, t_ns = corner_observations(
-            m["frame_idx"].to_numpy(np.int64), m["t_ns"].to_numpy(np.int64), k,
-            m[CORNER_COLS].to_numpy(np.float64).reshape(-1, 4, 2),
-            m["size_m"].to_numpy(np.float64), camera)
-        W, now = link_tags(W, known, cam_T_tag, ob, (t_ns - t_ns[0]) * 1e-9,
-                           px_per_unit=camera.focal_px, max_gap_s=params.max_gap_s)
+    settings = params.joint
+    if is_timed and not known[k].all():
+        pb = _problem(m, k, cam_T_tag, camera, settings, is_timed)
+        W, now = link_tags(W, known, cam_T_tag, pb.ob, pb.t_s, px_per_unit=camera.focal_px,
+                           max_gap_s=pb.max_gap_s)
         linked = ids[now & ~known].tolist()
         if linked:
             log.info("optimize: tags %s linked to the map through the trajectory", linked)
@@ -326,57 +288,22 @@ def refine_on_corners(
     m, cam_T_tag = m[keep].reset_index(drop=True), cam_T_tag[keep]
     ids, W = ids[known], W[known]
     k = np.searchsorted(ids, m["tag_id"].to_numpy(np.int64))
-    ob, t_ns = corner_observations(
-        m["frame_idx"].to_numpy(np.int64), m["t_ns"].to_numpy(np.int64), k,
-        m[CORNER_COLS].to_numpy(np.float64).reshape(-1, 4, 2), m["size_m"].to_numpy(np.float64),
-        camera)
-    t_s = (t_ns - t_ns[0]) * 1e-9
-    cam_T_world, choice, _ = initial_cameras(W[k], cam_T_tag, ob, t_s, px_per_unit=camera.focal_px,
-                                          max_gap_s=params.max_gap_s)
-    prior = params.prior()
-    mp = None if prior is None else MotionPrior(t_s, *prior, params.max_gap_s)
+    pb = _problem(m, k, cam_T_tag, camera, settings, is_timed)
     a = int(np.searchsorted(ids, tags[anchor]))
     free = (np.arange(len(ids)) != a) & (np.bincount(k, minlength=len(ids)) > 0)
-    sigma = (params.corner_sigma_px if params.corner_weighting == "none" else
-             corner_sigma(m[CORNER_COLS].to_numpy(np.float64), params.corner_sigma_px))
-    solve = partial(solve_joint, ob=ob, free=free, px_per_unit=camera.focal_px,
-                    loss=params.joint_loss, sigma_px=sigma, f_scale_px=params.joint_f_scale_px,
-                    max_iter=params.joint_max_iter, prior=mp, covariance=True,
-                    estimate_noise=params.corner_noise == "estimated")
-    res = solve(W[:, :3, :3], W[:, :3, 3], cam_T_world[:, :3, :3], cam_T_world[:, :3, 3])
-    ground, ground_block = params.ground_prior(), None
-    if ground is not None and mp is not None:  # frames held together: in time, and on a plane
-        res, ground_block = solve_grounded(
-            res, lambda r, **kw: solve(r.R_tag, r.t_tag, r.R_cam, r.t_cam, **kw),
-            ground, params.ground, params.drive_prior(), params.drive, mp)
-        log.info("optimize: %s (off-plane score %.2f, limit %.1f); the camera's up axis is "
-                 "%.1f deg from that plane's normal, and it stays within %.1f mm / %.2f deg "
-                 "RMS of the plane",
-                 "the camera moves in one plane at a fixed tilt, as on a robot: the map is "
-                 "solved with it held there" if ground_block["applied"] else "the camera "
-                 "leaves a single plane: the map is solved without holding it to one",
-                 ground_block["planarity"], PLANAR_BOUND, ground_block["camera_tilt_deg"],
-                 1e3 * ground_block["height_rms_m"], ground_block["tilt_rms_deg"])
-        wheels = ground_block["drive"]
-        if wheels is not None:
-            log.info("optimize: %s (sideways-motion score %.2f, limit %.1f); the camera sits "
-                     "%.3f m from the turning point, looks %.1f deg off the direction of travel "
-                     "and slides %.1f mm/s RMS sideways",
-                     "the camera moves like a wheeled robot's, never sliding sideways: the map "
-                     "is solved with it held so" if wheels["applied"] else "the camera moves "
-                     "sideways too: the map is solved without a wheeled robot's motion",
-                     wheels["strain"], WHEELED_BOUND, wheels["lever_m"],
-                     wheels["camera_yaw_deg"], 1e3 * wheels["lateral_rms_mps"])
+    out = solve_on_corners(pb, W, free, settings)
+    res = out.res
+    log_priors("optimize", out.ground)
     if not res.converged:
-        log.warning("optimize: the joint solve stopped after %d iterations (joint_max_iter) "
-                    "before converging", res.iters)
-    n_tags = np.bincount(ob.frame, minlength=len(t_ns))
+        log.warning("optimize: the joint solve stopped after %d iterations before converging",
+                    res.iters)
+    n_tags = np.bincount(pb.ob.frame, minlength=len(pb.t_ns))
     block = {
-        "frames": int(len(t_ns)),
+        "frames": int(len(pb.t_ns)),
         "single_tag_frames": int((n_tags == 1).sum()),
         "observations": int(len(m)),
         "motion_prior_frames": res.prior_terms,
-        "ippe_second_solution": int((choice % 2 == 1).sum()),
+        "ippe_second_solution": int((out.choice % 2 == 1).sum()),
         "linked_tags": linked,
         "iterations": res.iters,
         "converged": res.converged,
@@ -385,7 +312,7 @@ def refine_on_corners(
         "corner_sigma_px": res.sigma_px,
         "rms_px": float(np.sqrt(np.mean(res.res_px**2))),
         "p95_px": float(np.percentile(res.res_px, 95)),
-        "ground": ground_block,
+        "ground": None if out.ground is None else dataclasses.asdict(out.ground),
     }
     assert res.tag_std is not None
     fixed = np.where(np.arange(len(ids)) == a, 0.0, np.nan)[:, None]  # the anchor; unobserved
@@ -400,54 +327,40 @@ def choose_hypotheses(
     camera: CameraModel, params: Params,
 ) -> tuple[np.ndarray, PoseGraphResult, list[list[int]]]:
     """Decide the tag pairs with a rival hypothesis (``edges.rival_pairs``) by the frames'
-    continuity: for each, closest call first (at most ``rival_max_pairs``), the pose graph is
+    continuity: for each, closest call first (at most ``RIVAL_MAX_PAIRS``), the pose graph is
     solved with the pair's rival edges instead and kept if the joint solve from there (corners
-    and motion prior, ``rival_max_iter`` iterations from ``initial_cameras``' start) costs
+    and motion prior, ``RIVAL_MAX_ITER`` iterations from ``initial_cameras``' start) costs
     less. A mirrored tag seen only while
     the view hardly changes agrees with itself across those frames; the frames before and after
     do not agree with it. Returns the edge rows to use, the pose graph's solution and the
     flipped pairs."""
     m = corner_rows(observations, detections, tags)
     k = np.searchsorted(tags, m["tag_id"].to_numpy(np.int64))
-    ob, t_ns = corner_observations(
-        m["frame_idx"].to_numpy(np.int64), m["t_ns"].to_numpy(np.int64), k,
-        m[CORNER_COLS].to_numpy(np.float64).reshape(-1, 4, 2), m["size_m"].to_numpy(np.float64),
-        camera)
-    t_s = (t_ns - t_ns[0]) * 1e-9
-    cam_T_tag = both_solutions(m)
-
-    prior = params.prior()
-    mp = None if prior is None else MotionPrior(t_s, *prior, params.max_gap_s)
+    pb = _problem(m, k, both_solutions(m), camera, params.joint, True)
     anchor = int(np.searchsorted(tags, edges_anchor))
     free = (np.arange(len(tags)) != anchor) & (np.bincount(k, minlength=len(tags)) > 0)
-    sigma = (params.corner_sigma_px if params.corner_weighting == "none" else
-             corner_sigma(m[CORNER_COLS].to_numpy(np.float64), params.corner_sigma_px))
 
     def cost(r: PoseGraphResult) -> float:
-        W = make_T(r.R, r.t)
-        cams = initial_cameras(W[k], cam_T_tag, ob, t_s, px_per_unit=camera.focal_px,
-                               max_gap_s=params.max_gap_s)[0]
-        return solve_joint(
-            r.R, r.t, cams[:, :3, :3], cams[:, :3, 3], ob, free, px_per_unit=camera.focal_px,
-            loss=params.joint_loss, sigma_px=sigma, f_scale_px=params.joint_f_scale_px,
-            max_iter=params.rival_max_iter, prior=mp).cost
+        return solve_on_corners(pb, make_T(r.R, r.t), free, params.joint,
+                                max_iter=RIVAL_MAX_ITER, covariance=False,
+                                decide=False).res.cost
 
     key = edges["tag_i"].to_numpy(np.int64) * (1 << 32) + edges["tag_j"].to_numpy(np.int64)
-    ranked = sorted(rivals, key=lambda p: -p.support_ratio)[:params.rival_max_pairs]
+    ranked = sorted(rivals, key=lambda p: -p.support_ratio)[:RIVAL_MAX_PAIRS]
     order = [p.tag_i * (1 << 32) + p.tag_j for p in ranked]
     use, best = hyp == 0, cost(res)
     flipped: list[list[int]] = []
     for r in order:
         trial = np.where(key == r, hyp == 1, use)
         r_res = solve(graph_of(trial), loss=params.loss, f_scale=params.f_scale,
-                      max_nfev=params.max_nfev)  # afresh: a flip turns a whole branch
+                      max_nfev=MAX_NFEV)  # afresh: a flip turns a whole branch
         c = cost(r_res)
         if c < best:
             use, res, best = trial, r_res, c
             flipped.append([int(r >> 32), int(r & 0xFFFFFFFF)])
     if flipped:
-        log.info("optimize: tag pairs %s: the other of the two mirror-image poses fits the "
-                 "camera's smooth motion better and is used", flipped)
+        log.info("optimize: tag pairs %s take their rival solution (the frames' continuity "
+                 "agrees better)", flipped)
     return use, res, flipped
 
 
@@ -598,10 +511,10 @@ def _solve(
         return PoseGraph(
             n_tags=len(tags), anchor=int(np.searchsorted(tags, anchor)), idx_i=ii[use],
             idx_j=jj[use], R_obs=R_from_quat_xyzw(vals[:, 3:]), t_obs=vals[:, :3],
-            weight=edges["weight"].to_numpy(np.float64)[use], rot_weight_m=params.rot_weight_m)
+            weight=edges["weight"].to_numpy(np.float64)[use], rot_weight_m=ROT_WEIGHT_M)
 
     g = graph_of(use)
-    res = solve(g, loss=params.loss, f_scale=params.f_scale, max_nfev=params.max_nfev)
+    res = solve(g, loss=params.loss, f_scale=params.f_scale, max_nfev=MAX_NFEV)
     rebuilt = 0
     for _ in range(3 if params.branch_check == "map" else 0):
         edges, n = map_checked_edges(edges, use, tags, res, observations, graph.rival_pairs)
@@ -609,10 +522,10 @@ def _solve(
             break
         rebuilt += n
         g = graph_of(use)
-        res = solve(g, loss=params.loss, f_scale=params.f_scale, max_nfev=params.max_nfev)
+        res = solve(g, loss=params.loss, f_scale=params.f_scale, max_nfev=MAX_NFEV)
     if rebuilt:
-        log.info("optimize: %d tag-pair links rebuilt from the mirror-image poses the map agrees "
-                 "with", rebuilt)
+        log.info("optimize: %d edges rebuilt from the IPPE solutions the map agrees with",
+                 rebuilt)
     joint = (params.method == "joint" and detections is not None and len(detections) > 0
              and camera is not None)
     flipped: list[list[int]] = []
@@ -630,13 +543,12 @@ def _solve(
     std[g.anchor] = 0.0
     if joint:
         assert detections is not None and camera is not None
-        if not timed(frames) and params.motion != "none":
+        is_timed = timed(frames)
+        if not is_timed and params.joint.motion != "none":
             log.info("optimize: the stamps are the files' order, not capture times: no motion "
                      "prior, no tags linked through the trajectory")
-            params = params.model_copy(update={"motion": "none", "link_tags": False,
-                                               "max_gap_s": 1e-9})
         out = refine_on_corners(R_map, t_map, tags, g.anchor, observations, detections, camera,
-                                params)
+                                params, is_timed)
         if out is not None:
             ids, R_map, t_map, std, bundle = out
             bundle["rival_pairs_flipped"] = flipped
@@ -687,6 +599,7 @@ def _solve(
         "edges_rebuilt": rebuilt,
         "bundle": bundle,
         "survey": survey,
+        "joint": params.joint,
     }
     return {"tag_map": tag_map, "edge_residuals": residuals,
             "report": OptimizeReport.model_validate(report)}

@@ -1,14 +1,17 @@
 """trajectory: ``world_T_cam`` per frame from the tag map and that frame's observations (Eq. 3.8).
 
 ``joint`` (what ``auto`` picks when the dataset has detections and a camera): every frame's
-camera pose on its tags' corners against the fixed map, held together in time by the motion
-prior of :mod:`tagtrail.geometry.bundle` (the same problem as ``optimize``'s joint solve with the
-map fixed, so on the reference recording with the same settings it is the joint solution's
-trajectory). Each frame starts from the IPPE solution its neighbours agree with; a single-tag
+camera pose on its tags' corners against the fixed map, held together in time by the priors of
+:mod:`tagtrail.geometry.joint` -- the same problem as ``optimize``'s joint solve with the map
+fixed, under the map's settings (``optimize.report.joint``, the ``map_report`` input: wire it to
+the dataset whose ``tag_map`` you use, e.g. ``reference:optimize.report`` for a query), so on the
+reference recording it is the joint solution's trajectory. On data too short or too still to
+decide the ground-plane and wheeled-drive priors on (a parked query), the map's decisions are
+taken. Each frame starts from the IPPE solution its neighbours agree with; a single-tag
 frame is held by its neighbours; frames further apart than ``max_gap_s`` are not linked, and
 frames without a tag get no pose. Rows carry ``std_pos_m`` / ``std_rot_deg`` (the frame's
 standard deviation given the map), ``motion_prior`` (True: the smoother adds nothing) and the
-frame's evidence (:class:`tagtrail.geometry.bundle.FrameEvidence`): ``reproj_px`` (its RMS
+frame's evidence (:class:`tagtrail.geometry.joint.FrameEvidence`): ``reproj_px`` (its RMS
 corner error), ``alone_reproj_px`` (that of the frame on its own corners, the per-frame
 solution), ``shift_m`` / ``shift_deg`` / ``shift_sigma`` (how far the motion prior moved it from
 there, in metres, degrees and the per-frame solution's standard deviations) and that per-frame
@@ -33,30 +36,26 @@ Frames without a mapped tag get no pose. Output rows are sorted by ``t_ns``.
 from __future__ import annotations
 
 import logging
-from functools import partial
 from typing import Any, Literal
 
 import numpy as np
 import pandas as pd
-from pydantic import Field
+from pydantic import Field, model_validator
 
 from tagtrail.errors import DataError
-from tagtrail.geometry.bundle import (
-    MotionPrior,
+from tagtrail.geometry.camera import CameraModel
+from tagtrail.geometry.fusion import frame_poses
+from tagtrail.geometry.ippe import map_branches
+from tagtrail.geometry.joint import (
+    JointSettings,
     corner_observations,
-    corner_sigma,
+    corner_problem,
     frame_evidence,
     frame_rms_px,
-    initial_cameras,
     observation_rms_px,
-    solve_grounded,
-    solve_joint,
+    solve_on_corners,
 )
-from tagtrail.geometry.camera import CameraModel
-from tagtrail.geometry.drive import DrivePrior
-from tagtrail.geometry.fusion import frame_poses
-from tagtrail.geometry.ground import GroundPrior
-from tagtrail.geometry.ippe import map_branches
+from tagtrail.geometry.joint.settings import JOINT_OLD_KEYS
 from tagtrail.geometry.robust import LossName
 from tagtrail.geometry.se3 import T_from_xyz_quat, inv, make_T, xyz_quat_from_T
 from tagtrail.schemas.artifacts import (
@@ -70,58 +69,37 @@ from tagtrail.schemas.artifacts import (
     corner_rows,
     timed,
 )
-from tagtrail.stages.base import StageParams
+from tagtrail.schemas.documents import OptimizeReport
+from tagtrail.stages.base import StageParams, refuse_old_keys
 
 log = logging.getLogger(__name__)
 
 TRAJ_COLS = columns("trajectory.trajectory")
 
 
+OLD_KEYS = {k: v.format(joint="optimize.joint") + "; trajectory takes the map's settings "
+            "(its map_report input)" for k, v in JOINT_OLD_KEYS.items()}
+
+
 class Params(StageParams):
     method: Literal["auto", "joint", "avg", "lsq", "pnp"] = "auto"
-    """How each frame's camera pose is found: ``joint`` (all frames on their tags' corners, held
-    together by the motion prior), ``avg``, ``lsq`` or ``pnp`` (frame by frame); ``auto``:
-    ``joint`` with detections and a camera, else ``lsq``."""
     loss: LossName = "soft_l1"
     """Robust loss of the ``lsq`` fusion (per tag, on the 6-vector residual)."""
-    f_scale: float = Field(0.1, ge=1e-6, le=100.0)
+    f_scale: float = Field(0.1, gt=0.0)
     """Residual norm (m) where the ``lsq`` loss turns sub-quadratic."""
-    rot_weight_m: float = Field(1.0, ge=1e-6, le=1000.0)
-    """``lsq``: metres of residual per radian of rotation residual."""
-    ransac_px: float = Field(3.0, gt=0.0, le=1000.0)
+    rot_weight_m: float = Field(1.0, gt=0.0)
+    ransac_px: float = Field(3.0, gt=0.0)
     """``pnp``: RANSAC inlier threshold (pixels)."""
-    corner_sigma_px: float = Field(0.5, ge=1e-3, le=100.0)
-    """``joint``: corner noise (px, 20 px tag), as optimize's (same default)."""
-    corner_noise: Literal["estimated", "given"] = "given"
-    """``estimated``: ``corner_sigma_px`` is the start, rescaled to what the corner residuals show
-    (then solved again); ``given``: taken as it is."""
-    corner_weighting: Literal["size", "none"] = "size"
-    """``joint``: as optimize's."""
-    joint_loss: LossName = "huber"
-    """``joint``: robust loss on each tag's corner errors, as optimize's."""
-    joint_f_scale_px: float = Field(1.0, ge=1e-3, le=1000.0)
-    """``joint``: corner error norm (px) where the loss turns sub-quadratic, as optimize's."""
-    joint_max_iter: int = Field(50, ge=1, le=10_000)
-    """``joint``: iterations at most, as optimize's."""
-    motion: Literal["constant_velocity", "none"] = "constant_velocity"
-    """``joint``: motion prior between consecutive frames, as optimize's (``none``: frames solved
-    alone)."""
-    motion_acc_sigma: float = Field(0.1, ge=1e-6, le=1000.0)
-    """``joint``: linear acceleration noise density (m/s^2/sqrt(Hz)), as optimize's."""
-    motion_ang_sigma_deg: float = Field(30.0, ge=1e-4, le=1e5)
-    """``joint``: angular acceleration noise density (deg/s^2/sqrt(Hz)), as optimize's."""
-    max_gap_s: float = Field(0.5, gt=0.0, le=1e6)
-    """``joint``: frames further apart than this are not linked (gaps stay gaps)."""
-    ground: Literal["auto", "plane", "none"] = "auto"
-    """``joint``: the ground-plane prior, as optimize's (``auto``: decided on this dataset)."""
-    ground_height_sigma_m: float = Field(0.01, ge=1e-6, le=10.0)
-    """``joint``: as optimize's (m)."""
-    ground_tilt_sigma_deg: float = Field(1.0, ge=1e-4, le=90.0)
-    """``joint``: as optimize's (deg)."""
-    drive: Literal["auto", "wheeled", "free"] = "auto"
-    """``joint``: the wheeled-drive prior, as optimize's (``auto``: decided on this dataset)."""
-    drive_lateral_sigma: float = Field(0.01, ge=1e-6, le=100.0)
-    """``joint``: as optimize's (m/s/sqrt(Hz))."""
+    priors: Literal["map", "none"] = "map"
+    """``joint``: ``map`` (default): the priors the map was made with (its joint settings and,
+    on data too short or still to decide on, its decisions); ``none``: each frame on its own
+    corners against the map."""
+
+    @model_validator(mode="before")
+    @classmethod
+    def _old_names(cls, data: Any) -> Any:
+        """A joint-solve key: one line saying the settings are the map's now."""
+        return refuse_old_keys("trajectory", data, OLD_KEYS)
 
 
 INPUTS = {
@@ -129,6 +107,7 @@ INPUTS = {
     "detections": "extract.detections",
     "camera": "extract.camera",
     "tag_map": "optimize.tag_map",
+    "map_report": "optimize.report",
     "frames": "extract.frames",
 }
 OUTPUTS = ("trajectory",)
@@ -159,48 +138,33 @@ def _extra(out: pd.DataFrame, std: np.ndarray | None = None, prior: bool = False
 
 
 def joint_trajectory(rows: pd.DataFrame, ids: np.ndarray, W_map: np.ndarray,
-                     camera: CameraModel, params: Params) -> pd.DataFrame:
-    """The ``joint`` method on ``corner_rows`` of the mapped tags ``ids`` (map ``W_map``)."""
+                     camera: CameraModel, settings: JointSettings, is_timed: bool,
+                     fallback: tuple[bool, bool] | None, priors: bool = True) -> pd.DataFrame:
+    """The ``joint`` method on ``corner_rows`` of the mapped tags ``ids`` (map ``W_map``) under
+    the map's ``settings``; ``fallback``: the map's ground-plane and drive decisions, for data
+    too short or too still to decide on; ``priors`` False: each frame on its own corners."""
     k = np.searchsorted(ids, rows["tag_id"].to_numpy(np.int64))
-    ob, t_ns = corner_observations(
+    pb = corner_problem(
         rows["frame_idx"].to_numpy(np.int64), rows["t_ns"].to_numpy(np.int64), k,
         rows[CORNER_COLS].to_numpy(np.float64).reshape(-1, 4, 2),
-        rows["size_m"].to_numpy(np.float64), camera)
-    t_s = (t_ns - t_ns[0]) * 1e-9
-    cam_T_world, _, _ = initial_cameras(W_map[k], both_solutions(rows), ob, t_s,
-                                     px_per_unit=camera.focal_px, max_gap_s=params.max_gap_s)
-    prior = None
-    if params.motion != "none":
-        prior = MotionPrior(t_s, params.motion_acc_sigma, np.radians(params.motion_ang_sigma_deg),
-                            params.max_gap_s)
-    sigma = (params.corner_sigma_px if params.corner_weighting == "none" else
-             corner_sigma(rows[CORNER_COLS].to_numpy(np.float64), params.corner_sigma_px))
-    estimate = params.corner_noise == "estimated"
-    solve = partial(solve_joint, W_map[:, :3, :3], W_map[:, :3, 3], ob=ob,
-                    free=np.zeros(len(ids), bool), px_per_unit=camera.focal_px, sigma_px=sigma,
-                    loss=params.joint_loss, f_scale_px=params.joint_f_scale_px,
-                    max_iter=params.joint_max_iter, prior=prior, covariance=True,
-                    estimate_noise=estimate)
-    res = solve(R_cam=cam_T_world[:, :3, :3], t_cam=cam_T_world[:, :3, 3])
-    if params.ground != "none" and prior is not None:  # frames on their own get neither
-        ground = GroundPrior.of(params.ground_height_sigma_m, params.ground_tilt_sigma_deg)
-        drive = None if params.drive == "free" else DrivePrior(params.drive_lateral_sigma)
-        res, block = solve_grounded(
-            res, lambda r, **kw: solve(R_cam=r.R_cam, t_cam=r.t_cam, **kw),
-            ground, params.ground, drive, params.drive, prior)
-        log.info("trajectory: %s (off-plane score %.2f)",
-                 "the camera moves in one plane at a fixed tilt, as on a robot: held there"
-                 if block["applied"] else "the camera leaves a single plane: its height and tilt "
-                 "left free", block["planarity"])
-        if block["drive"] is not None:
-            log.info("trajectory: %s (sideways-motion score %.2f)",
-                     "the camera moves like a wheeled robot's, never sliding sideways: held so"
-                     if block["drive"]["applied"] else "the camera moves sideways too: not "
-                     "held to a wheeled robot's motion", block["drive"]["strain"])
+        rows["size_m"].to_numpy(np.float64), both_solutions(rows), camera, settings, is_timed,
+        priors)
+    ob, t_ns, prior = pb.ob, pb.t_ns, pb.motion
+    solved = solve_on_corners(pb, W_map, np.zeros(len(ids), bool), settings, fallback=fallback)
+    res, ground = solved.res, solved.ground
+    if ground is not None and ground.note:
+        log.info("trajectory: ground plane %s, wheeled drive %s: %s",
+                 "applied" if ground.applied else "not applied",
+                 "applied" if ground.drive is not None and ground.drive.applied
+                 else "not applied", ground.note)
+    elif ground is not None:
+        log.info("trajectory: ground plane %s (planarity %.2f)",
+                 "applied" if ground.applied else "not applied", ground.planarity)
+        if ground.drive is not None:
+            log.info("trajectory: wheeled drive %s (strain %.2f)",
+                     "applied" if ground.drive.applied else "not applied", ground.drive.strain)
     if prior is not None:
-        ev = frame_evidence(res, ob, px_per_unit=camera.focal_px, sigma_px=sigma,
-                            loss=params.joint_loss, f_scale_px=params.joint_f_scale_px,
-                            estimate_noise=estimate, max_iter=params.joint_max_iter)
+        ev = frame_evidence(res, ob, pb.corners)
         evidence = {c: getattr(ev, c) for c in EVIDENCE_COLS}
         alone = np.concatenate(xyz_quat_from_T(inv(make_T(ev.R_alone, ev.t_alone))), axis=1)
     else:  # each frame on its own corners: it is its own evidence
@@ -210,15 +174,14 @@ def joint_trajectory(rows: pd.DataFrame, ids: np.ndarray, W_map: np.ndarray,
                         shift_sigma=zero)
         alone = None
     if not res.converged:
-        log.warning("trajectory: the joint solve stopped after %d iterations (joint_max_iter) "
-                    "before converging", res.iters)
+        log.warning("trajectory: the joint solve stopped after %d iterations before "
+                    "converging", res.iters)
     xyz, q = xyz_quat_from_T(inv(make_T(res.R_cam, res.t_cam)))
     out = pd.DataFrame({"t_ns": t_ns})
     out[POSE_COLS] = np.concatenate([xyz, q], axis=1)
     out["n_tags"] = np.bincount(ob.frame, minlength=len(t_ns)).astype(np.int32)
-    log.info("trajectory: %d frames solved together (%d tied to their neighbours by smooth "
-             "motion); tag corners fit to %.2f px RMS", len(t_ns), res.prior_terms,
-             float(np.sqrt(np.mean(res.res_px**2))))
+    log.info("trajectory: joint solve of %d frames (%d held by the motion prior), corner RMS "
+             "%.2f px", len(t_ns), res.prior_terms, float(np.sqrt(np.mean(res.res_px**2))))
     return _extra(out, res.cam_std, prior is not None, evidence, alone)
 
 
@@ -274,12 +237,20 @@ def run(
     tag_map: pd.DataFrame,
     params: Params,
     frames: pd.DataFrame | None = None,
+    map_report: OptimizeReport | None = None,
 ) -> dict[str, Any]:
-    """One ``world_T_cam`` per frame with a mapped tag: ``TRAJ_COLS``."""
-    if not timed(frames) and params.motion != "none":
+    """One ``world_T_cam`` per frame with a mapped tag: ``TRAJ_COLS``. ``map_report``: the
+    map's ``optimize.report`` (its joint settings and decisions; None: the defaults)."""
+    settings = JointSettings() if map_report is None or map_report.joint is None \
+        else map_report.joint
+    bundle = None if map_report is None else map_report.bundle
+    decided = None if bundle is None else bundle.ground
+    fallback = None if decided is None else (
+        decided.applied, decided.drive is not None and decided.drive.applied)
+    is_timed = timed(frames)
+    if not is_timed and settings.motion != "none":
         log.info("trajectory: the stamps are the files' order, not capture times: no motion "
                  "prior")
-        params = params.model_copy(update={"motion": "none", "max_gap_s": 1e-9})
     if tag_map is None or len(tag_map) == 0:
         raise DataError("trajectory: the tag map is empty (did optimize map any tag?)")
     ids = tag_map["tag_id"].to_numpy(np.int64)
@@ -301,7 +272,8 @@ def run(
     if has_pix and params.method in ("auto", "joint"):
         assert camera is not None
         if len(rows):
-            parts.append(joint_trajectory(rows, ids, W_map, camera, params))
+            parts.append(joint_trajectory(rows, ids, W_map, camera, settings, is_timed,
+                                          fallback, params.priors == "map"))
             # frames without usable corners fall back to the frame-by-frame fusion
             obs = obs[~obs["frame_idx"].isin(rows["frame_idx"].unique())]
             if obs.empty:

@@ -13,7 +13,8 @@ implementation, two drivers): the extract stage's filters, IPPE per tag
 the trajectory stage's per-frame method (Eq. 3.8; ``auto`` = one RANSAC PnP over every corner
 of every mapped tag when >= 2 are seen, else the robust fusion of the per-tag estimates; the
 offline default ``joint`` holds frames together in time, which a node answering each frame at
-once cannot, so it poses such a pipeline's frames by ``auto``). A frame's tags are taken in
+once cannot: a pipeline that names ``method: joint`` gets its frames posed by ``auto``, and the
+node says so in a warning line when it starts). A frame's tags are taken in
 the trajectory stage's order (by tag id); a tag seen twice is left out, as offline. Tag sizes:
 the map's (``size_m``), else the pnp stage's ``tag_sizes`` / ``tag_size``. A map made by the
 pipeline carries the sizes its pnp stage used, so the node's poses are the offline trajectory
@@ -25,7 +26,7 @@ from __future__ import annotations
 import logging
 from collections import Counter
 from dataclasses import dataclass, field
-from typing import Any
+from typing import Any, Literal
 
 import cv2
 import numpy as np
@@ -105,6 +106,14 @@ class Localizer:
         self.pose_key = pose_key
         self.stats = stats
         self._enc = codec.PoseStampedEncoder(frame_id)
+        method = self.params.trajectory.method
+        self.method: Literal["auto", "avg", "lsq", "pnp"] = "auto" if method == "joint" else method
+        if method == "joint":
+            log.warning("localize: trajectory.method is joint, which holds a recording's frames "
+                        "together in time; a live node answers each frame at once, so it poses "
+                        "frames by auto (one RANSAC PnP over the corners of >= 2 mapped tags, "
+                        "else the fusion of the per-tag poses). Set trajectory.method: auto for "
+                        "the live node to silence this")
 
     def frame_pose(self, corners_px: F64, tag_ids: NDArray[np.integer]) -> tuple[F64 | None, int]:
         """``world_T_cam (4, 4)`` of one frame and the number of mapped tags used (None, 0 if
@@ -130,7 +139,7 @@ class Localizer:
         res = frame_poses(
             self.world_T_tag[k[good]], cam_T_tag[good, 0], np.zeros(len(sel), np.int64), 1,
             corners_px=corners, size_m=self.size_m[k[good]], camera=self.camera,
-            method="auto" if p.method == "joint" else p.method, loss=p.loss, f_scale=p.f_scale,
+            method=self.method, loss=p.loss, f_scale=p.f_scale,
             rot_weight_m=p.rot_weight_m, ransac_px=p.ransac_px,
         )
         return res.world_T_cam[0], int(res.n_tags[0])

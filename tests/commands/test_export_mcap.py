@@ -34,6 +34,7 @@ PIPELINE = """datasets:
     source: bags/query_1
     inputs:
       trajectory.tag_map: reference:optimize.tag_map
+      trajectory.map_report: reference:optimize.report
       align.tag_map: reference:optimize.tag_map
 stages:
   pnp: {tag_size: 0.16}

@@ -1,4 +1,4 @@
-"""The joint solve (geometry.bundle): exact recovery, robustness, the motion prior's Jacobian and
+"""The joint solve (geometry.joint): exact recovery, robustness, the motion prior's Jacobian and
 its effect, the IPPE choice by continuity, and standard deviations that match the scatter."""
 
 from __future__ import annotations
@@ -7,21 +7,20 @@ import dataclasses
 
 import numpy as np
 
-from tagtrail.geometry.bundle import (
-    SHIFT_SIGMA_BOUND,
-    CornerObservations,
-    MotionPrior,
-    _Prior,
-    frame_evidence,
-    initial_cameras,
-    left_update,
-    link_tags,
-    same_frame_pairs,
-    solve_joint,
-)
 from tagtrail.geometry.camera import CameraModel
 from tagtrail.geometry.fusion import tag_corners
 from tagtrail.geometry.ippe import solve_ippe
+from tagtrail.geometry.joint import (
+    SHIFT_SIGMA_BOUND,
+    CornerObservations,
+    Corners,
+    MotionPrior,
+    frame_evidence,
+    initial_cameras,
+    link_tags,
+    solve_joint,
+)
+from tagtrail.geometry.joint.problem import left_update, same_frame_pairs
 from tagtrail.geometry.rotations import geodesic_angle
 from tagtrail.geometry.se3 import R_from_rotvec, inv, make_T
 from tests.stages.mapping_scene import ring_scene
@@ -57,10 +56,14 @@ def perturbed(T: np.ndarray, seed: int, rot: float, trans: float, keep: int | No
     return out
 
 
-def solve(ob: CornerObservations, W: np.ndarray, C: np.ndarray, anchor: int, **kw: object):  # type: ignore[no-untyped-def]
+def solve(ob: CornerObservations, W: np.ndarray, C: np.ndarray, anchor: int,  # type: ignore[no-untyped-def]
+          prior: MotionPrior | None = None, covariance: bool = False, **kw: object):
+    """The joint solve of the map (all but the anchor free) from ``W``, ``C``; ``kw``: the
+    :class:`Corners` settings."""
     free = np.arange(len(W)) != anchor
     return solve_joint(W[:, :3, :3], W[:, :3, 3], C[:, :3, :3], C[:, :3, 3], ob, free,
-                       px_per_unit=FOCAL_PX, **kw)  # type: ignore[arg-type]
+                       Corners(FOCAL_PX, **kw), [] if prior is None else [prior],  # type: ignore[arg-type]
+                       covariance=covariance)
 
 
 def test_same_frame_pairs_are_all_ordered_pairs_within_each_frame() -> None:
@@ -77,15 +80,15 @@ def test_motion_prior_jacobian_matches_finite_differences() -> None:
     R, t = R_from_rotvec(rng.normal(size=(n, 3)) * 0.4), rng.normal(size=(n, 3))
     t_s = np.cumsum(rng.uniform(0.02, 0.06, n))
     t_s[4:] += 2.0  # a gap: frames 3 and 4 are not linked
-    pr = _Prior(MotionPrior(t_s, 0.5, 0.7, 1.0), n)
+    pr = MotionPrior(t_s, 0.5, 0.7, 1.0)
     assert pr.k.tolist() == [1, 2, 5]
-    m, J = pr.evaluate(R, t)
+    m, J = pr.residuals(R, t)
     eps = 1e-7
     for f in range(n):
         for c in range(6):
             d = np.zeros((n, 6))
             d[f, c] = eps
-            num = (pr.evaluate(*left_update(R, t, d))[0] - m) / eps
+            num = (pr.residuals(*left_update(R, t, d))[0] - m) / eps
             ana = sum(np.where(((pr.k - 1 + i) == f)[:, None], J[:, i, :, c], 0.0)
                       for i in range(3))
             np.testing.assert_allclose(num, ana, atol=2e-5)
@@ -96,8 +99,8 @@ def test_motion_prior_is_zero_on_constant_velocity_motion() -> None:
     w, v = np.array([0.1, -0.3, 0.2]), np.array([0.5, 0.0, -0.2])
     world_T_cam = make_T(R_from_rotvec(t_s[:, None] * w), t_s[:, None] * v)
     cam_T_world = inv(world_T_cam)
-    m, _ = _Prior(MotionPrior(t_s, 1.0, 1.0, 1.0), 4).evaluate(cam_T_world[:, :3, :3],
-                                                                 cam_T_world[:, :3, 3])
+    m, _ = MotionPrior(t_s, 1.0, 1.0, 1.0).residuals(cam_T_world[:, :3, :3],
+                                                      cam_T_world[:, :3, 3])
     # constant body rate and constant world velocity of the centre: no acceleration
     assert np.abs(m[:, :3]).max() < 1e-12 and np.abs(m[:, 3:]).max() < 1e-9
 
@@ -118,8 +121,8 @@ def test_fixed_map_solves_the_cameras_only() -> None:
     ob, W, C, _, t_s = corner_problem()
     C0 = perturbed(C, 2, 0.02, 0.03)
     res = solve_joint(W[:, :3, :3], W[:, :3, 3], C0[:, :3, :3], C0[:, :3, 3], ob,
-                      np.zeros(len(W), bool), px_per_unit=FOCAL_PX,
-                      prior=MotionPrior(t_s, 1.0, 1.0, 1.0))
+                      np.zeros(len(W), bool), Corners(FOCAL_PX),
+                      [MotionPrior(t_s, 1.0, 1.0, 1.0)])
     assert np.array_equal(res.t_tag, W[:, :3, 3])
     # the ring's constant-rate path is nearly constant velocity: the prior barely moves it
     assert np.abs(res.t_cam - C[:, :3, 3]).max() < 1e-3
@@ -219,7 +222,7 @@ def test_single_tag_stretch_is_held_by_its_neighbours() -> None:
         err = {}
         for name, pr in (("none", None), ("prior", prior)):
             res = solve_joint(W[:, :3, :3], W[:, :3, 3], start[:, :3, :3], start[:, :3, 3], ob,
-                              np.zeros(2, bool), px_per_unit=FOCAL_PX, sigma_px=0.3, prior=pr)
+                              np.zeros(2, bool), Corners(FOCAL_PX, 0.3), [] if pr is None else [pr])
             c = -np.einsum("fji,fj->fi", res.R_cam, res.t_cam)
             err[name] = np.linalg.norm(c - centre, axis=1)
         assert err["prior"].mean() <= 0.025 and err["prior"].max() <= 0.10
@@ -259,8 +262,8 @@ def test_tags_never_seen_together_are_linked_through_the_trajectory() -> None:
                           max_gap_s=0.5)
     C0, _, _ = initial_cameras(Wl[tag], sol, ob, t_s, px_per_unit=FOCAL_PX, max_gap_s=0.5)
     res = solve_joint(Wl[:, :3, :3], Wl[:, :3, 3], C0[:, :3, :3], C0[:, :3, 3], ob,
-                      np.array([False, True]), px_per_unit=FOCAL_PX, sigma_px=0.2,
-                      prior=MotionPrior(t_s, 0.1, np.radians(30.0), 0.5))
+                      np.array([False, True]), Corners(FOCAL_PX, 0.2),
+                      [MotionPrior(t_s, 0.1, np.radians(30.0), 0.5)])
     assert np.linalg.norm(res.t_tag[1] - W[1, :3, 3]) < 0.03
 
 
@@ -280,7 +283,7 @@ def test_frame_evidence_measures_a_move_in_the_frames_own_standard_deviations() 
     ob, W, C, _, _ = corner_problem(noise_px=0.3, n_frames=60)
     fixed = np.zeros(len(W), bool)
     alone = solve_joint(W[:, :3, :3], W[:, :3, 3], C[:, :3, :3], C[:, :3, 3], ob, fixed,
-                        px_per_unit=FOCAL_PX, sigma_px=0.3, covariance=True)
+                        Corners(FOCAL_PX, 0.3), covariance=True)
     assert alone.cam_cov is not None
     moved, k_sigma = np.arange(0, 60, 7), 8.0
     rng = np.random.default_rng(3)
@@ -291,10 +294,9 @@ def test_frame_evidence_measures_a_move_in_the_frames_own_standard_deviations() 
         d[f] = k_sigma * (L @ u) / np.linalg.norm(u)
     Rc, tc = left_update(alone.R_cam, alone.t_cam, d)
     res = dataclasses.replace(alone, R_cam=Rc, t_cam=tc, res_px=solve_joint(
-        W[:, :3, :3], W[:, :3, 3], Rc, tc, ob, fixed, px_per_unit=FOCAL_PX, sigma_px=0.3,
+        W[:, :3, :3], W[:, :3, 3], Rc, tc, ob, fixed, Corners(FOCAL_PX, 0.3),
         max_iter=0).res_px)
-    ev = frame_evidence(res, ob, px_per_unit=FOCAL_PX, sigma_px=0.3, loss="huber",
-                        f_scale_px=1.0)
+    ev = frame_evidence(res, ob, Corners(FOCAL_PX, 0.3, "huber", 1.0))
     rest = np.setdiff1d(np.arange(60), moved)
     np.testing.assert_allclose(ev.shift_sigma[moved], k_sigma, rtol=0.1)
     assert (ev.shift_sigma[moved] > SHIFT_SIGMA_BOUND).all()

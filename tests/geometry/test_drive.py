@@ -1,18 +1,20 @@
-"""The wheeled-drive prior (geometry.drive): its Jacobians, the mount fit, the test that decides
-``auto`` (a wheeled robot from one that slides sideways), and what it buys the joint solve."""
+"""The wheeled-drive prior (geometry.joint.drive): its Jacobians, the mount fit, the test that
+decides ``auto`` (a wheeled robot from one that slides sideways), and what it buys the joint
+solve."""
 
 from __future__ import annotations
 
 import numpy as np
 
-from tagtrail.geometry.bundle import (
+from tagtrail.geometry.fusion import tag_corners
+from tagtrail.geometry.joint import (
     CornerObservations,
+    Corners,
     MotionPrior,
-    left_update,
     solve_grounded,
     solve_joint,
 )
-from tagtrail.geometry.drive import (
+from tagtrail.geometry.joint.drive import (
     WHEELED_BOUND,
     DrivePrior,
     Mount,
@@ -21,8 +23,8 @@ from tagtrail.geometry.drive import (
     steps,
     strain,
 )
-from tagtrail.geometry.fusion import tag_corners
-from tagtrail.geometry.ground import GroundPrior, Plane, centres, fit_plane
+from tagtrail.geometry.joint.ground import GroundPrior, Plane, fit_plane
+from tagtrail.geometry.joint.problem import centres, left_update
 from tagtrail.geometry.registration import umeyama
 from tagtrail.geometry.se3 import R_from_rotvec, inv, make_T
 from tests.geometry.test_bundle import FOCAL_PX, corner_problem, perturbed
@@ -141,15 +143,14 @@ def grounded_and_driven(C: np.ndarray, t_s: np.ndarray, W: np.ndarray, ob: Corne
     free = np.arange(len(W)) != 0
     motion = MotionPrior(t_s, 0.1, 1.0, 0.5)
 
-    def solve(**kw: object):  # type: ignore[no-untyped-def]
+    def solve(priors=()):  # type: ignore[no-untyped-def]
         return solve_joint(W[:, :3, :3], W[:, :3, 3], C[:, :3, :3], C[:, :3, 3], ob, free,
-                           px_per_unit=FOCAL_PX, prior=motion, covariance=True,
-                           **kw)  # type: ignore[arg-type]
+                           Corners(FOCAL_PX), [motion, *priors], covariance=True)
 
-    grounded, _ = solve_grounded(solve(), lambda r, **kw: solve(**kw), GROUND, "plane")
-    out, block = solve_grounded(solve(), lambda r, **kw: solve(**kw), GROUND, "plane", DRIVE,
+    grounded, _ = solve_grounded(solve(), lambda r, priors: solve(priors), GROUND, "plane")
+    out, block = solve_grounded(solve(), lambda r, priors: solve(priors), GROUND, "plane", DRIVE,
                                 drive_mode, motion)
-    return grounded, out, block["drive"]
+    return grounded, out, block.drive
 
 
 def across_rms(r, W: np.ndarray, C: np.ndarray) -> float:  # type: ignore[no-untyped-def]
@@ -196,8 +197,8 @@ def test_drive_prior_holds_a_wheeled_camera_to_its_heading() -> None:
     W = wall_tags(C)
     ob = corners(C, W, 1.0)
     grounded, driven, block = grounded_and_driven(C, t_s, W, ob)
-    assert block["applied"] and block["strain"] < 0.5 * WHEELED_BOUND
-    assert abs(block["lever_m"] - 0.084) < 0.02 and abs(abs(block["camera_yaw_deg"]) - 10) < 1.0
+    assert block.applied and block.strain < 0.5 * WHEELED_BOUND
+    assert abs(block.lever_m - 0.084) < 0.02 and abs(abs(block.camera_yaw_deg) - 10) < 1.0
     assert across_rms(driven, W, C) < 0.8 * across_rms(grounded, W, C)  # 6.0 vs 8.5 mm
 
 
@@ -209,11 +210,11 @@ def test_auto_leaves_a_sliding_robot_and_a_panning_camera_alone() -> None:
     W = wall_tags(C)
     ob = corners(C, W, 1.0)
     grounded, out, block = grounded_and_driven(C, t_s, W, ob)
-    assert not block["applied"] and block["strain"] > 2 * WHEELED_BOUND
+    assert not block.applied and block.strain > 2 * WHEELED_BOUND
     assert out is grounded or np.allclose(out.t_cam, grounded.t_cam)
     _, forced, _ = grounded_and_driven(C, t_s, W, ob, "wheeled")
     assert across_rms(forced, W, C) > 1.5 * across_rms(grounded, W, C)  # 13.0 vs 2.6 mm
 
     ob, W, C, _, t_s = corner_problem(noise_px=1.0, seed=5)
     grounded, out, block = grounded_and_driven(C, t_s, W, ob)
-    assert not block["applied"] and block["strain"] > 2 * WHEELED_BOUND
+    assert not block.applied and block.strain > 2 * WHEELED_BOUND

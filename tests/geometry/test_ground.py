@@ -1,20 +1,20 @@
-"""The ground-plane prior (geometry.ground): its Jacobians, the plane fit, the planarity test that
-decides ``auto``, and what it buys the joint solve on a robot's planar path."""
+"""The ground-plane prior (geometry.joint.ground): its Jacobians, the plane fit, the planarity
+test that decides ``auto``, and what it buys the joint solve on a robot's planar path."""
 
 from __future__ import annotations
 
 import numpy as np
 
-from tagtrail.geometry.bundle import MotionPrior, left_update, solve_grounded, solve_joint
-from tagtrail.geometry.ground import (
+from tagtrail.geometry.joint import Corners, MotionPrior, solve_grounded, solve_joint
+from tagtrail.geometry.joint.ground import (
     PLANAR_BOUND,
     GroundPrior,
     Plane,
-    centres,
     fit_plane,
     planarity,
     plane_terms,
 )
+from tagtrail.geometry.joint.problem import centres, left_update
 from tagtrail.geometry.registration import umeyama
 from tagtrail.geometry.se3 import R_from_rotvec, inv, make_T
 from tests.geometry.test_bundle import FOCAL_PX, corner_problem, perturbed
@@ -93,16 +93,15 @@ def test_ground_prior_holds_a_noisy_ring_in_its_plane() -> None:
     free = np.arange(len(W)) != anchor
     truth = fit_plane(C[:, :3, :3], C[:, :3, 3], PRIOR)
 
-    def solve(**kw: object):  # type: ignore[no-untyped-def]
+    def solve(priors=()):  # type: ignore[no-untyped-def]
         return solve_joint(W[:, :3, :3], W[:, :3, 3], C[:, :3, :3], C[:, :3, 3], ob, free,
-                           px_per_unit=FOCAL_PX, prior=MotionPrior(t_s, 0.3, 1.0, 1.0),
-                           covariance=True, **kw)  # type: ignore[arg-type]
+                           Corners(FOCAL_PX), [MotionPrior(t_s, 0.3, 1.0, 1.0), *priors],
+                           covariance=True)
 
     free_res = solve()
-    res, block = solve_grounded(
-        free_res, lambda r, **kw: solve(**kw), PRIOR, "auto")
-    assert block["applied"] and block["planarity"] < PLANAR_BOUND
-    assert res.plane is not None
+    res, block = solve_grounded(free_res, lambda r, priors: solve(priors), PRIOR, "auto")
+    assert block.applied and block.planarity < PLANAR_BOUND
+    plane = res.unknowns["ground"]
 
     def errors(r):  # type: ignore[no-untyped-def]
         _, Rf, tf = umeyama(r.t_tag, W[:, :3, 3], with_scale=False)
@@ -115,7 +114,7 @@ def test_ground_prior_holds_a_noisy_ring_in_its_plane() -> None:
     h1, tags1, Rf = errors(res)
     assert h1 < 0.4 * h0
     assert tags1 < tags0
-    assert np.degrees(np.arccos(abs((Rf @ res.plane.n) @ truth.n))) < 0.5
+    assert np.degrees(np.arccos(abs((Rf @ plane.n) @ truth.n))) < 0.5
 
 
 def test_auto_leaves_a_hand_held_path_alone() -> None:
@@ -131,8 +130,8 @@ def test_auto_leaves_a_hand_held_path_alone() -> None:
     ob2 = type(ob)(ob.frame[ok], ob.tag[ok], ob.pts_tag[ok], uv[ok])
     free = np.arange(len(W)) != anchor
     res = solve_joint(W[:, :3, :3], W[:, :3, 3], C2[:, :3, :3], C2[:, :3, 3], ob2, free,
-                      px_per_unit=FOCAL_PX, covariance=True)
-    out, block = solve_grounded(res, lambda r, **kw: solve_joint(
-        r.R_tag, r.t_tag, r.R_cam, r.t_cam, ob2, free, px_per_unit=FOCAL_PX, **kw), PRIOR, "auto")
-    assert not block["applied"] and block["planarity"] > 5 * PLANAR_BOUND
+                      Corners(FOCAL_PX), covariance=True)
+    out, block = solve_grounded(res, lambda r, priors: solve_joint(
+        r.R_tag, r.t_tag, r.R_cam, r.t_cam, ob2, free, Corners(FOCAL_PX), priors), PRIOR, "auto")
+    assert not block.applied and block.planarity > 5 * PLANAR_BOUND
     assert out is res

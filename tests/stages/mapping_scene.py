@@ -14,6 +14,7 @@ import numpy as np
 import pandas as pd
 
 from tagtrail.geometry.camera import CameraModel
+from tagtrail.geometry.joint import JointSettings
 from tagtrail.geometry.se3 import (
     inv,
     make_T,
@@ -21,6 +22,7 @@ from tagtrail.geometry.se3 import (
     transform_points,
     xyz_quat_from_T,
 )
+from tagtrail.schemas.documents import OptimizeReport
 
 POSE = ["x_m", "y_m", "z_m", "qx", "qy", "qz", "qw"]
 ALT = [f"alt_{c}" for c in POSE]
@@ -150,3 +152,11 @@ def tag_map_frame(world_T_tag: np.ndarray, ids: np.ndarray | None = None) -> pd.
     df["n_obs"] = 1
     df["size_m"] = 0.16
     return df
+
+
+def map_report(**joint: object) -> OptimizeReport:
+    """An ``optimize.report`` of a pose-graph map made under the joint settings ``joint``: what
+    ``trajectory`` takes its settings from (its ``map_report`` input)."""
+    return OptimizeReport(anchor_id=0, loss="soft_l1", f_scale=0.1, cost=0.0, nfev=1, status=1,
+                          rms_t_m=0.0, rms_r_deg=0.0, method="pairwise", bundle=None,
+                          joint=JointSettings.model_validate(joint))

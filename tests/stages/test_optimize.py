@@ -25,7 +25,7 @@ TAG_MAP_COLS = ["tag_id", *POSE, "n_obs", "size_m", "res_t_rms_m", "res_r_rms_de
                 "std_rot_deg"]
 CORNERS = [f"c{k}{a}" for k in range(4) for a in "xy"]
 REPORT_KEYS = {"anchor_id", "loss", "f_scale", "cost", "nfev", "status", "rms_t_m", "rms_r_deg",
-               "method", "edges_rebuilt", "bundle", "survey", "components"}
+               "method", "edges_rebuilt", "bundle", "survey", "components", "joint"}
 
 
 def paper_scene() -> Scene:
@@ -198,14 +198,13 @@ def test_corner_refinement_beats_the_pose_graph() -> None:
     assert o["report"]["method"] == "pairwise"
 
 
-def test_joint_is_the_default_and_old_names_still_work(caplog: pytest.LogCaptureFixture) -> None:
+def test_joint_is_the_default_and_old_names_are_refused_naming_the_new_place() -> None:
     assert optimize.Params().method == "joint"
-    with caplog.at_level("WARNING"):
-        old = optimize.Params.model_validate({"refine": "none", "ba_f_scale_px": 2.0})
-    assert old.method == "pairwise" and old.joint_f_scale_px == 2.0
-    assert "optimize.refine is deprecated: use optimize.method: pairwise" in caplog.text
-    assert "optimize.ba_f_scale_px is deprecated: use optimize.joint_f_scale_px" in caplog.text
-    assert optimize.Params.model_validate({"refine": "corners"}).key_dump() == \
-        optimize.Params().key_dump()  # the same cache key under either spelling
-    with pytest.raises(ValueError, match="give optimize.method only"):
-        optimize.Params.model_validate({"refine": "none", "method": "joint"})
+    for old, where in (("refine", "use optimize.method"),
+                       ("ba_min_frames", "use optimize.joint_min_frames"),
+                       ("corner_sigma_px", "use optimize.joint.corner_sigma_px"),
+                       ("motion_acc_sigma", "use optimize.joint.motion"),
+                       ("ba_f_scale_px", "the corners. loss is fixed")):
+        with pytest.raises(pydantic.ValidationError,
+                           match=f"optimize.{old} is no longer a setting: {where}"):
+            optimize.Params.model_validate({old: 1.0})

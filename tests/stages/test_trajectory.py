@@ -10,7 +10,7 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from tagtrail.errors import DataError
-from tagtrail.geometry.bundle import SHIFT_SIGMA_BOUND
+from tagtrail.geometry.joint import SHIFT_SIGMA_BOUND
 from tagtrail.geometry.se3 import T_from_xyz_quat, make_T, pose_error
 from tagtrail.runner.stage import stage_spec
 from tagtrail.schemas.artifacts import ALONE_POSE_COLS, EVIDENCE_COLS
@@ -20,6 +20,7 @@ from tests.stages.mapping_scene import (
     POSE,
     Scene,
     detections,
+    map_report,
     observations,
     ring_scene,
     tag_map_frame,
@@ -68,9 +69,9 @@ EXTRA = ["std_pos_m", "std_rot_deg", "motion_prior", *EVIDENCE_COLS, *ALONE_POSE
 @pytest.mark.parametrize("method", ["avg", "lsq", "pnp", "joint-none"])
 def test_exact_observations_give_exact_poses(scene: Scene, method: str) -> None:
     if method == "joint-none":  # the joint method without the motion prior: exact too
-        params = trajectory.Params(method="joint", motion="none")
         traj = trajectory.run(observations(scene), detections(scene), CAMERA,
-                              tag_map_frame(scene.world_T_tag), params)["trajectory"]
+                              tag_map_frame(scene.world_T_tag), trajectory.Params(method="joint"),
+                              map_report=map_report(motion="none"))["trajectory"]
         assert np.isfinite(traj["std_pos_m"]).all() and not traj["motion_prior"].any()
     else:
         traj = run(scene, observations(scene), method)
@@ -154,10 +155,10 @@ def test_joint_frames_report_how_far_the_motion_prior_moved_them(scene: Scene) -
     det = _noisy_detections(scene, 0.3)
     tm = tag_map_frame(scene.world_T_tag)
     obs = observations(scene)
-    traj = trajectory.run(obs, det, CAMERA, tm, trajectory.Params(corner_sigma_px=0.3,
-                                                                  corner_weighting="none"))
-    alone = trajectory.run(obs, det, CAMERA, tm, trajectory.Params(
-        corner_sigma_px=0.3, corner_weighting="none", motion="none"))["trajectory"]
+    traj = trajectory.run(obs, det, CAMERA, tm, trajectory.Params(),
+                          map_report=map_report(corner_sigma_px=0.3))
+    alone = trajectory.run(obs, det, CAMERA, tm, trajectory.Params(),
+                           map_report=map_report(corner_sigma_px=0.3, motion="none"))["trajectory"]
     traj = traj["trajectory"]
     assert (traj["shift_m"] > 0).all() and (alone["shift_m"] == 0).all()
     np.testing.assert_allclose(alone["reproj_px"], alone["alone_reproj_px"])
@@ -177,10 +178,9 @@ def test_a_prior_far_too_stiff_still_leaves_the_frames_with_their_evidence(scene
     its robust (Cauchy) loss lets go where the motion disagrees, so the frames stay within their
     own corners' uncertainty (measured: 1 % beyond the 99.9 % bound, corner RMS 1.10x)."""
     det = _noisy_detections(scene, 0.3)
-    params = trajectory.Params(corner_sigma_px=0.3, corner_weighting="none",
-                               motion_acc_sigma=0.001, motion_ang_sigma_deg=0.3)
     traj = trajectory.run(observations(scene), det, CAMERA, tag_map_frame(scene.world_T_tag),
-                          params)["trajectory"]
+                          trajectory.Params(),
+                          map_report=map_report(corner_sigma_px=0.3, motion=0.001))["trajectory"]
     assert (traj["shift_sigma"] > SHIFT_SIGMA_BOUND).mean() <= 0.02
     assert np.median(traj["reproj_px"]) <= 1.2 * np.median(traj["alone_reproj_px"])
 
@@ -196,7 +196,8 @@ def test_a_map_at_another_scale_than_pnp_sizes_gives_the_maps_scale(
     tm = tag_map_frame(W)
     tm["size_m"] = 0.2
     traj = trajectory.run(observations(scene), detections(scene), CAMERA, tm,
-                          trajectory.Params(method=method, motion="none"))["trajectory"]  # type: ignore[arg-type]
+                          trajectory.Params(method=method),  # type: ignore[arg-type]
+                          map_report=map_report(motion="none"))["trajectory"]
     idx = np.searchsorted(scene.t_ns, traj["t_ns"].to_numpy())
     np.testing.assert_allclose(traj[POSE[:3]].to_numpy(),
                                1.25 * scene.world_T_cam[idx, :3, 3], atol=1e-6)

@@ -9,7 +9,7 @@ frames ``j, j+1`` (``cam_T_world = (R, t)``, centres ``c``, step ``h_j`` s)::
     theta_j = (R_j n) . Log(R_j R_{j+1}^T)               its yaw about the plane's normal (rad)
     q_j     = (s . x_j - lever_m theta_j) / (lateral_sigma sqrt(h_j))
 
-``n`` is the ground plane's normal (:mod:`tagtrail.geometry.ground`; the drive prior rides on
+``n`` is the ground plane's normal (:mod:`tagtrail.geometry.joint.ground`; the drive prior rides on
 it), ``s`` the robot's lateral axis seen from the camera (unit, ``up x forward``, across the
 plane's normal: the mount's yaw) and ``lever_m`` the camera's distance ahead of the centre of
 rotation: both unknowns of the solve, the camera's :class:`Mount`. ``lateral_sigma``
@@ -30,12 +30,16 @@ dl``: 2 parameters, after the plane's 6.
 
 from __future__ import annotations
 
+from collections.abc import Mapping
 from dataclasses import dataclass
+from functools import cached_property
+from typing import Any
 
 import numpy as np
 
 from tagtrail.geometry.arrays import F64, I64
-from tagtrail.geometry.ground import Plane, centres
+from tagtrail.geometry.joint.ground import Plane
+from tagtrail.geometry.joint.problem import Terms, centres
 from tagtrail.geometry.robust import LossName, rho
 from tagtrail.geometry.rotations import hat, log_so3, right_jacobian_inv
 from tagtrail.geometry.se3 import R_from_rotvec
@@ -171,6 +175,41 @@ def fit_mount(R_cam: F64, t_cam: F64, t_s: F64, j: I64, plane: Plane) -> Mount:
     return mount
 
 
+@dataclass(frozen=True)
+class WheeledDrive:
+    """The wheeled-drive prior as a part of the joint solve (:class:`~.problem.Prior`): its
+    noise model ``prior`` on the steps between frames stamped ``t_s`` (s) within ``max_gap_s``
+    (the motion prior's), riding on the ground prior's plane; its unknown, the camera's
+    :class:`Mount` (2 parameters, from ``start``)."""
+
+    prior: DrivePrior
+    t_s: F64
+    max_gap_s: float
+    start: Mount
+
+    name = "drive"
+    n_params = N_MOUNT
+    uses = ("ground", "drive")
+
+    @cached_property
+    def j(self) -> I64:
+        """The steps ``j (P,)``: frames whose successor follows within ``max_gap_s``."""
+        return steps(self.t_s, self.max_gap_s)
+
+    def terms(self, R_cam: F64, t_cam: F64, values: Mapping[str, Any]) -> Terms:
+        """Each step's whitened lateral velocity; 1 degree of freedom a step less the mount's 2."""
+        q, Jc, Jg = drive_terms(R_cam, t_cam, self.t_s, self.j, values["ground"],
+                                values[self.name], self.prior)
+        val, w = robust_weights(q, self.prior)
+        s = np.sqrt(w)
+        return Terms(float(val.sum()), (q * s)[:, None], self.j,
+                     (Jc * s[:, None, None])[:, :, None], (Jg * s[:, None])[:, None],
+                     len(self.j) - N_MOUNT)
+
+    def update(self, value: Mount, step: F64, values: Mapping[str, Any]) -> Mount:
+        return value.update(step, values["ground"].u)
+
+
 WHEELED_BOUND = 2.0  # the drive prior's robust chi^2 per step, in the variance factor
 
 
@@ -184,3 +223,37 @@ def strain(q: F64, prior: DrivePrior, variance_factor: float) -> float:
         return float("nan")
     _, w = robust_weights(q, prior)
     return float(np.mean(q * q * w)) / max(variance_factor, 1e-12)
+
+
+@dataclass(frozen=True)
+class DriveReport:
+    """What the wheeled-drive prior decided and found, of the solution solved with it: the
+    mode, whether it was applied, the strain that decided ``auto`` (:func:`strain`), the
+    camera's lever arm (m) and its yaw from the robot's forward axis (deg, about the plane's
+    normal, positive to the left), the RMS lateral velocity beyond the lever arm (m/s) and the
+    steps the robust loss let go (beyond its scale)."""
+
+    mode: str
+    applied: bool
+    strain: float
+    lever_m: float
+    camera_yaw_deg: float
+    lateral_rms_mps: float
+    steps_off: int
+
+
+def drive_report(q: F64, part: WheeledDrive, plane: Plane, mount: Mount, mode: str,
+                 applied: bool, fit: float) -> DriveReport:
+    """The :class:`DriveReport` of a solution with the ``plane`` and ``mount`` it solved and
+    its whitened steps ``q (P,)``."""
+    j = part.j
+    h = part.t_s[j + 1] - part.t_s[j]
+    u = plane.u / max(float(np.linalg.norm(plane.u)), 1e-300)
+    fwd = np.cross(mount.lateral(u)[0], u)  # the robot's forward axis, camera frame
+    z = np.array([0.0, 0.0, 1.0]) - u[2] * u
+    yaw = np.degrees(np.arctan2(np.cross(fwd, z) @ u, fwd @ z))
+    lat = q * part.prior.lateral_sigma / np.sqrt(h)  # m/s
+    return DriveReport(mode=mode, applied=bool(applied), strain=fit, lever_m=mount.lever_m,
+                       camera_yaw_deg=float(yaw),
+                       lateral_rms_mps=float(np.sqrt(np.mean(lat**2))) if len(lat) else 0.0,
+                       steps_off=int((q * q > part.prior.f_scale**2).sum()))

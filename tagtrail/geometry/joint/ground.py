@@ -23,11 +23,14 @@ solve's left ones, ``R <- Exp(w) R``, ``t <- Exp(w) t + v`` (so ``c <- c - R^T v
 
 from __future__ import annotations
 
+from collections.abc import Mapping
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 
 from tagtrail.geometry.arrays import F64
+from tagtrail.geometry.joint.problem import Terms, centres
 from tagtrail.geometry.robust import LossName, rho
 from tagtrail.geometry.rotations import hat
 from tagtrail.geometry.se3 import R_from_rotvec
@@ -70,11 +73,6 @@ class Plane:
         """The plane after the step ``[a (2) ; dd ; du (3)]``."""
         n = R_from_rotvec((self.basis() @ step[:2])[None])[0] @ self.n
         return Plane(n / np.linalg.norm(n), self.d + float(step[2]), self.u + step[3:])
-
-
-def centres(R_cam: F64, t_cam: F64) -> F64:
-    """Camera centres in the world ``(F, 3)`` of ``cam_T_world`` ``(F, 3, 3), (F, 3)``."""
-    return np.asarray(-np.einsum("fji,fj->fi", R_cam, t_cam))
 
 
 def fit_plane(R_cam: F64, t_cam: F64, prior: GroundPrior) -> Plane:
@@ -121,6 +119,31 @@ def robust_weights(p: F64, prior: GroundPrior) -> tuple[F64, F64]:
     return f2 * val, w
 
 
+@dataclass(frozen=True)
+class GroundPlane:
+    """The ground-plane prior as a part of the joint solve (:class:`~.problem.Prior`): its
+    noise model ``prior`` and its unknown, the :class:`Plane` (6 parameters, from ``start``)."""
+
+    prior: GroundPrior
+    start: Plane
+
+    name = "ground"
+    n_params = 6
+    uses = ("ground",)
+
+    def terms(self, R_cam: F64, t_cam: F64, values: Mapping[str, Any]) -> Terms:
+        """Each frame's whitened 4-vector (height, tilt); 3 degrees of freedom a frame less
+        the plane's 5."""
+        p, Jc, Jg = plane_terms(R_cam, t_cam, values[self.name], self.prior)
+        val, w = robust_weights(p, self.prior)
+        s = np.sqrt(w)
+        return Terms(float(val.sum()), p * s[:, None], np.arange(len(R_cam)),
+                     (Jc * s[:, None, None])[:, None], Jg * s[:, None, None], 3 * len(R_cam) - 5)
+
+    def update(self, value: Plane, step: F64, values: Mapping[str, Any]) -> Plane:
+        return value.update(step)
+
+
 PLANAR_BOUND = 2.0  # median normalised chi^2 per degree of freedom below which motion is planar
 
 
@@ -143,3 +166,38 @@ def planarity(R_cam: F64, t_cam: F64, cam_cov: F64, prior: GroundPrior) -> tuple
             + np.einsum("fi,fij,fj->f", p[:, 1:],
                         np.linalg.inv(np.eye(3) + var_g / st2 + 1e-9 * np.eye(3)), p[:, 1:]))
     return plane, float(np.median(chi2) / 3.0) if len(chi2) else float("inf")
+
+
+@dataclass(frozen=True)
+class GroundReport:
+    """What the ground-plane prior decided and found: the mode, whether it was applied, the
+    planarity figure that decided ``auto`` (:func:`planarity`), the plane's normal in the
+    world, the camera's tilt to it (deg from its y axis), the camera centres' RMS height off it
+    (m), the RMS tilt off the mean (deg), the frames the robust loss let go (beyond its scale),
+    the wheeled-drive prior's report (:class:`~.drive.DriveReport`; None without it) and, when
+    ``auto`` was not decided on this data, why (``note``, plain words)."""
+
+    mode: str
+    applied: bool
+    planarity: float
+    normal: tuple[float, ...]
+    camera_tilt_deg: float
+    height_rms_m: float
+    tilt_rms_deg: float
+    frames_off: int
+    drive: Any = None
+    note: str = ""
+
+
+def ground_report(R_cam: F64, t_cam: F64, plane: Plane, prior: GroundPrior, mode: str,
+                  applied: bool, stat: float, drive: Any = None, note: str = "") -> GroundReport:
+    """The :class:`GroundReport` of cameras ``cam_T_world`` against ``plane``."""
+    p, _, _ = plane_terms(R_cam, t_cam, plane, prior)
+    u = plane.u / max(float(np.linalg.norm(plane.u)), 1e-300)
+    return GroundReport(
+        mode=mode, applied=bool(applied), planarity=stat, normal=tuple(float(v) for v in plane.n),
+        camera_tilt_deg=float(np.degrees(np.arccos(np.clip(-u[1], -1.0, 1.0)))),
+        height_rms_m=float(np.sqrt(np.mean(p[:, 0] ** 2))) * prior.height_sigma_m,
+        tilt_rms_deg=float(np.degrees(np.sqrt(np.mean(np.sum(p[:, 1:] ** 2, axis=1)))
+                                      * prior.tilt_sigma_rad)),
+        frames_off=int((np.sum(p * p, axis=1) > prior.f_scale**2).sum()), drive=drive, note=note)

@@ -1,0 +1,50 @@
+"""The joint solve: tag poses and camera poses on the tags' corners, held together by priors.
+
+- :mod:`.problem` -- what is observed (:class:`CornerObservations`), how corners are weighed
+  (:class:`Corners`), what a prior gives the solver (:class:`Terms`, :class:`Prior`), the
+  :class:`JointResult`;
+- :mod:`.motion`, :mod:`.ground`, :mod:`.drive` -- the priors (constant velocity, ground plane,
+  wheeled drive), each with its residuals, Jacobians, own unknowns and report;
+- :mod:`.solver` -- :func:`solve_joint`, Levenberg-Marquardt over the corners and a list of
+  priors;
+- :mod:`.decide` -- the ground plane's and wheeled drive's ``auto`` decisions
+  (:func:`solve_grounded`), taken only on data that can support them;
+- :mod:`.start` -- the starting poses (:func:`initial_cameras`, :func:`link_tags`);
+- :mod:`.evidence` -- how far the priors moved each frame from its own corners
+  (:func:`frame_evidence`);
+- :mod:`.settings` -- :class:`JointSettings`, what a user sets, and the fixed constants;
+- :mod:`.setup` -- one dataset's problem from its settings and its solve
+  (:func:`corner_problem`, :func:`solve_on_corners`), for ``optimize`` and ``trajectory``.
+"""
+
+from __future__ import annotations
+
+from tagtrail.geometry.joint.decide import Travel, solve_grounded, travel
+from tagtrail.geometry.joint.drive import DrivePrior, DriveReport, Mount, WheeledDrive
+from tagtrail.geometry.joint.evidence import SHIFT_SIGMA_BOUND, FrameEvidence, frame_evidence
+from tagtrail.geometry.joint.ground import GroundPlane, GroundPrior, GroundReport, Plane
+from tagtrail.geometry.joint.motion import MotionPrior
+from tagtrail.geometry.joint.problem import (
+    CornerObservations,
+    Corners,
+    JointResult,
+    Prior,
+    Terms,
+    corner_observations,
+    corner_sigma,
+    frame_rms_px,
+    observation_rms_px,
+)
+from tagtrail.geometry.joint.settings import JointSettings
+from tagtrail.geometry.joint.setup import CornerProblem, Solved, corner_problem, solve_on_corners
+from tagtrail.geometry.joint.solver import solve_joint
+from tagtrail.geometry.joint.start import initial_cameras, link_tags
+
+__all__ = [
+    "SHIFT_SIGMA_BOUND", "CornerObservations", "CornerProblem", "Corners", "DrivePrior",
+    "DriveReport", "FrameEvidence", "GroundPlane", "GroundPrior", "GroundReport",
+    "JointResult", "JointSettings", "MotionPrior", "Mount", "Plane", "Prior", "Solved", "Terms",
+    "Travel", "WheeledDrive", "corner_observations", "corner_problem", "corner_sigma",
+    "frame_evidence", "frame_rms_px", "initial_cameras", "link_tags", "observation_rms_px",
+    "solve_grounded", "solve_joint", "solve_on_corners", "travel",
+]
