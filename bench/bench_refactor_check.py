@@ -15,8 +15,9 @@ tag map, the unsmoothed trajectory). The recordings are simulated once into ``--
 (the simulator is not under test); artifacts and outputs are cleared before every run.
 
 ``compare A.json B.json`` prints, per case and file, the largest difference of lengths (m and
-everything not in degrees) and of angles (columns/keys naming ``deg``), and the files or columns
-present on one side only. The target where the algorithm is unchanged: 1e-6 m / 1e-4 deg.
+everything not in degrees), of angles (columns/keys naming ``deg``) and, apart, of stamps and
+indices (which frame a row names), and the files or columns present on one side only. The
+target where the algorithm is unchanged: 1e-6 m / 1e-4 deg.
 
 Run (each side with its own code on ``PYTHONPATH``)::
 
@@ -49,6 +50,7 @@ SCENES = {  # case -> simulate arguments
     "corridor": ["corridor", "--detections"],
     "corridor_img": ["corridor", "--compressed", "--frames", "150"],
 }
+STAMPS = ("stamp_", "t_ns", "t_rel_s", "_idx")  # columns naming a frame, compared apart
 QUERY_INPUTS = {"trajectory.tag_map": "reference:optimize.tag_map",
                 "align.tag_map": "reference:optimize.tag_map"}
 
@@ -190,12 +192,14 @@ def compare(a_path: Path, b_path: Path, show: int) -> int:
                 print(f"   {f}: only in {a_path.name if f in a[case] else b_path.name}")
                 continue
             fa, fb = a[case][f], b[case][f]
-            dm = dd = 0.0
+            dm = dd = ds = 0.0
             worst: list[tuple[float, str]] = []
             for col in sorted(set(fa) & set(fb)):
                 d = _maxdiff(fa[col], fb[col])
                 worst.append((d, col))
-                if "deg" in col:
+                if any(w in col for w in STAMPS):  # which frame: not a length
+                    ds = max(ds, d)
+                elif "deg" in col:
                     dd = max(dd, d)
                 else:
                     dm = max(dm, d)
@@ -203,6 +207,7 @@ def compare(a_path: Path, b_path: Path, show: int) -> int:
             worst.sort(reverse=True)
             detail = ", ".join(f"{c} {d:.2g}" for d, c in worst[:show] if d > 0)
             print(f"   {f}: max |d| {dm:.3g} (m, other), {dd:.3g} deg"
+                  + (f", stamps/indices {ds:.3g}" if ds else "")
                   + (f"  [{detail}]" if detail else "")
                   + (f"  one side only: {only[:6]}" if only else ""))
             worst_m, worst_deg = max(worst_m, dm), max(worst_deg, dd)

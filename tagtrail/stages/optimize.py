@@ -118,7 +118,7 @@ class Params(StageParams):
     pose graph is kept). ``pairwise``: the paper's pose graph alone (Eq. 3.4-3.7)."""
     loss: LossName = "soft_l1"
     """Robust loss on each edge's residual norm (Eq. 3.7): linear, soft_l1, huber, cauchy."""
-    f_scale: float = Field(0.1, gt=0.0)
+    f_scale: float = Field(0.1, ge=1e-6, le=100.0)
     """Residual norm (m) where the robust loss turns from quadratic to sub-quadratic."""
     branch_check: Literal["map", "none"] = "map"
     """``map`` (default): after the pose graph's solve, each observation takes the IPPE solution
@@ -129,7 +129,7 @@ class Params(StageParams):
     rival_search: bool = True
     """Joint solve: decide the tag pairs with a close rival hypothesis (``edges.rival_pairs``)
     by the frames' continuity (``choose_hypotheses``)."""
-    joint_min_frames: int = Field(30, ge=1)
+    joint_min_frames: int = Field(30, ge=1, le=10_000_000)
     """Frames seeing a mapped tag needed for the joint solve; with fewer, the pose graph is
     kept (module docstring)."""
     joint: JointSettings = JointSettings()

@@ -85,10 +85,10 @@ class Params(StageParams):
     method: Literal["auto", "joint", "avg", "lsq", "pnp"] = "auto"
     loss: LossName = "soft_l1"
     """Robust loss of the ``lsq`` fusion (per tag, on the 6-vector residual)."""
-    f_scale: float = Field(0.1, gt=0.0)
+    f_scale: float = Field(0.1, ge=1e-6, le=100.0)
     """Residual norm (m) where the ``lsq`` loss turns sub-quadratic."""
-    rot_weight_m: float = Field(1.0, gt=0.0)
-    ransac_px: float = Field(3.0, gt=0.0)
+    rot_weight_m: float = Field(1.0, ge=1e-6, le=1000.0)
+    ransac_px: float = Field(3.0, gt=0.0, le=1000.0)
     """``pnp``: RANSAC inlier threshold (pixels)."""
     priors: Literal["map", "none"] = "map"
     """``joint``: ``map`` (default): the priors the map was made with (its joint settings and,

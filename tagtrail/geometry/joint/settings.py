@@ -44,16 +44,16 @@ class JointSettings(BaseModel):
 
     model_config = ConfigDict(extra="forbid", frozen=True, strict=True, allow_inf_nan=False)
 
-    corner_sigma_px: float = Field(0.5, gt=0.0)
+    corner_sigma_px: float = Field(0.5, ge=1e-3, le=100.0)
     """Corner noise (px, per coordinate) of a tag of 20 px sides; a smaller, farther or more
     oblique tag's grows as its sides shrink (geometry.joint.corner_sigma). Weighs the corners
     against the priors and scales the reported standard deviations."""
-    motion: Annotated[float, Field(gt=0.0)] | Literal["none"] = 0.1
+    motion: Annotated[float, Field(ge=1e-6, le=1000.0)] | Literal["none"] = 0.1
     """The constant-velocity motion prior between consecutive frames (geometry.joint.motion):
     its linear acceleration noise density (m/s^2/sqrt(Hz); smaller holds the camera path
     straighter; the angular density follows it in proportion: 30 deg/s^2/sqrt(Hz) at the
     default), or ``none``: frames on their own (then neither ground plane nor drive)."""
-    max_gap_s: float = Field(0.5, gt=0.0)
+    max_gap_s: float = Field(0.5, gt=0.0, le=1e6)
     """Frames further apart than this are not linked by the priors (gaps stay gaps)."""
     ground: Literal["auto", "plane", "none"] = "auto"
     """Ground-plane prior (geometry.joint.ground): ``plane``: the camera rides at a fixed height
