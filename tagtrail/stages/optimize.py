@@ -49,14 +49,11 @@ from tagtrail.geometry.camera import CameraModel
 from tagtrail.geometry.ippe import map_branches
 from tagtrail.geometry.joint import (
     CornerProblem,
-    GroundReport,
     JointSettings,
     corner_problem,
     link_tags,
     solve_on_corners,
 )
-from tagtrail.geometry.joint.drive import WHEELED_BOUND
-from tagtrail.geometry.joint.ground import PLANAR_BOUND
 from tagtrail.geometry.joint.settings import JOINT_OLD_KEYS
 from tagtrail.geometry.posegraph import PoseGraph, PoseGraphResult, relative_residuals, solve
 from tagtrail.geometry.robust import LossName
@@ -233,26 +230,6 @@ def _problem(m: pd.DataFrame, k: np.ndarray, cam_T_tag: np.ndarray, camera: Came
         cam_T_tag, camera, settings, timed)
 
 
-def log_priors(stage: str, ground: GroundReport | None) -> None:
-    """The ground-plane and wheeled-drive decisions, in a line each."""
-    if ground is None:
-        return
-    if ground.note:
-        log.info("%s: ground plane and wheeled drive %s: %s", stage,
-                 "applied" if ground.applied else "not applied", ground.note)
-        return
-    log.info("%s: ground plane %s (planarity %.2f, bound %.1f): camera %.1f deg from level, "
-             "%.1f mm / %.2f deg RMS off the plane", stage,
-             "applied" if ground.applied else "not applied", ground.planarity, PLANAR_BOUND,
-             ground.camera_tilt_deg, 1e3 * ground.height_rms_m, ground.tilt_rms_deg)
-    wheels = ground.drive
-    if wheels is not None:
-        log.info("%s: wheeled drive %s (strain %.2f, bound %.1f): lever arm %.3f m, camera yaw "
-                 "%.1f deg, %.1f mm/s RMS sideways", stage,
-                 "applied" if wheels.applied else "not applied", wheels.strain, WHEELED_BOUND,
-                 wheels.lever_m, wheels.camera_yaw_deg, 1e3 * wheels.lateral_rms_mps)
-
-
 def refine_on_corners(
     R: np.ndarray, t: np.ndarray, tags: np.ndarray, anchor: int, observations: pd.DataFrame,
     detections: pd.DataFrame, camera: CameraModel, params: Params, is_timed: bool,
@@ -293,7 +270,8 @@ def refine_on_corners(
     free = (np.arange(len(ids)) != a) & (np.bincount(k, minlength=len(ids)) > 0)
     out = solve_on_corners(pb, W, free, settings)
     res = out.res
-    log_priors("optimize", out.ground)
+    for line in [] if out.ground is None else out.ground.lines():
+        log.info("optimize: %s", line)
     if not res.converged:
         log.warning("optimize: the joint solve stopped after %d iterations before converging",
                     res.iters)

@@ -152,17 +152,8 @@ def joint_trajectory(rows: pd.DataFrame, ids: np.ndarray, W_map: np.ndarray,
     ob, t_ns, prior = pb.ob, pb.t_ns, pb.motion
     solved = solve_on_corners(pb, W_map, np.zeros(len(ids), bool), settings, fallback=fallback)
     res, ground = solved.res, solved.ground
-    if ground is not None and ground.note:
-        log.info("trajectory: ground plane %s, wheeled drive %s: %s",
-                 "applied" if ground.applied else "not applied",
-                 "applied" if ground.drive is not None and ground.drive.applied
-                 else "not applied", ground.note)
-    elif ground is not None:
-        log.info("trajectory: ground plane %s (planarity %.2f)",
-                 "applied" if ground.applied else "not applied", ground.planarity)
-        if ground.drive is not None:
-            log.info("trajectory: wheeled drive %s (strain %.2f)",
-                     "applied" if ground.drive.applied else "not applied", ground.drive.strain)
+    for line in [] if ground is None else ground.lines():
+        log.info("trajectory: %s", line)
     if prior is not None:
         ev = frame_evidence(res, ob, pb.corners)
         evidence = {c: getattr(ev, c) for c in EVIDENCE_COLS}

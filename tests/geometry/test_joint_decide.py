@@ -63,7 +63,7 @@ def test_a_parked_camera_gets_neither_prior_and_says_why() -> None:
     res, out, rep = decide()
     assert rep.planarity < PLANAR_BOUND  # what the planarity rule alone would have applied
     assert not rep.applied and rep.drive is None and out is res
-    assert "parked" in rep.note and "not applied" in rep.note
+    assert "parked" in rep.note and "too little to decide on" in rep.note
     assert "moved" in rep.note and "cm" in rep.note
 
 

@@ -113,7 +113,7 @@ def solve_grounded(
         else:
             ref = fallback or (False, False)
             note = moved.words() + (": the reference's decision" if fallback else
-                                    ": not decided on this data, not applied")
+                                    ": too little to decide on")
             use_ground = use_ground or (mode == "auto" and ref[0])
             use_drive = use_drive or (drive_mode == "auto" and ref[1])
     part = GroundPlane(ground, plane)

@@ -241,6 +241,13 @@ class DriveReport:
     lateral_rms_mps: float
     steps_off: int
 
+    def line(self) -> str:
+        """What was decided and found, in plain words (for the log)."""
+        return (f"wheeled drive {'applied' if self.applied else 'not applied'} (strain "
+                f"{self.strain:.2f}, bound {WHEELED_BOUND:.1f}): lever arm {self.lever_m:.3f} m, "
+                f"camera yaw {self.camera_yaw_deg:.1f} deg, {1e3 * self.lateral_rms_mps:.1f} "
+                "mm/s RMS sideways")
+
 
 def drive_report(q: F64, part: WheeledDrive, plane: Plane, mount: Mount, mode: str,
                  applied: bool, fit: float) -> DriveReport:

@@ -188,6 +188,22 @@ class GroundReport:
     drive: Any = None
     note: str = ""
 
+    def lines(self) -> list[str]:
+        """What was decided, in a line or two of plain words (for the log)."""
+        def said(applied: bool) -> str:
+            return "applied" if applied else "not applied"
+
+        wheels = self.drive
+        if self.note:
+            return [f"ground plane {said(self.applied)}, wheeled drive "
+                    f"{said(wheels is not None and wheels.applied)}: {self.note}"]
+        out = [f"ground plane {said(self.applied)} (planarity {self.planarity:.2f}, bound "
+               f"{PLANAR_BOUND:.1f}): camera {self.camera_tilt_deg:.1f} deg from level, "
+               f"{1e3 * self.height_rms_m:.1f} mm / {self.tilt_rms_deg:.2f} deg RMS off the plane"]
+        if wheels is not None:
+            out.append(wheels.line())
+        return out
+
 
 def ground_report(R_cam: F64, t_cam: F64, plane: Plane, prior: GroundPrior, mode: str,
                   applied: bool, stat: float, drive: Any = None, note: str = "") -> GroundReport:

@@ -110,6 +110,7 @@ class _Problem:
             self.pcol = np.broadcast_to(6 * self.n_free + np.arange(self.n_g)[None, :],
                                         (n_f, 6, self.n_g)).reshape(-1)
         self.bidx = _band_index(n_f)
+        self.last_step = 0.0  # the largest parameter change of the last step taken
         self.eye3 = np.broadcast_to(np.eye(3), (self.n_o, 4, 3, 3))
         # normalised coordinates -> units of each observation's corner noise
         self.set_noise(np.broadcast_to(np.asarray(corners.sigma_px, np.float64),
@@ -225,8 +226,8 @@ class _Problem:
                                    dg[self.offset[p.name]:self.offset[p.name] + p.n_params],
                                    s.values) for p in self.priors}
         new = self.evaluate(Rc, tc, Rt, tt, values)
-        self.last_step = max(np.abs(dt).max(initial=0.0), np.abs(dc).max(initial=0.0),
-                             np.abs(dg).max(initial=0.0))
+        self.last_step = float(max(np.abs(dt).max(initial=0.0), np.abs(dc).max(initial=0.0),
+                                   np.abs(dg).max(initial=0.0)))
         return new
 
 
