@@ -238,6 +238,12 @@ def run(
     decided = None if bundle is None else bundle.ground
     fallback = None if decided is None else (
         decided.applied, decided.drive is not None and decided.drive.applied)
+    if decided is not None and decided.note:  # a map that could not decide either
+        log.warning("trajectory: the map report decided no ground plane on its own data (%s); "
+                    "is it the map's? A query localized against the reference map wires "
+                    "trajectory.map_report: reference:optimize.report beside trajectory.tag_map",
+                    decided.note)
+        fallback = None
     is_timed = timed(frames)
     if not is_timed and settings.motion != "none":
         log.info("trajectory: the stamps are the files' order, not capture times: no motion "

@@ -49,7 +49,10 @@ def project(tmp_path_factory: pytest.TempPathFactory) -> Path:
     simulate("room", root / "data", frames=120, query_frames=30, detections=True)
     doc = {"reference": "reference", "datasets": {
         "reference": {"source": str(root / "data" / "reference")},
-        "query_1": {"source": str(root / "data" / "query_1"), "inputs": QUERY}},
+        "query_1": {"source": str(root / "data" / "query_1"), "inputs": QUERY},
+        # wired as before issue 27: the map from the reference, the settings its own
+        "query_2": {"source": str(root / "data" / "query_2"),
+                    "inputs": {k: v for k, v in QUERY.items() if "map_report" not in k}}},
         "stages": {"pnp": {"tag_size": 0.16}}}
     (root / "pipeline.yaml").write_text(yaml.safe_dump(doc))
     return root
@@ -76,7 +79,7 @@ def test_a_parked_query_takes_the_maps_decisions_and_says_so(
     """The reference (4 s of driving) decides the ground plane and the wheeled drive on its own
     data; the parked query's own map decides neither (the log and its report say why), and its
     trajectory, solved against the reference's map under its settings, takes the reference's
-    decisions."""
+    decisions. A query wired the old way (its own report beside the reference's map) is told."""
     monkeypatch.chdir(project)
     with caplog.at_level(logging.INFO, logger="tagtrail"):
         assert main(["run"]) == 0
@@ -91,6 +94,9 @@ def test_a_parked_query_takes_the_maps_decisions_and_says_so(
     assert len(said) == 1 and "parked" in said[0]
     applied = "applied" if ref.bundle.ground.applied else "not applied"
     assert said[0].startswith(f"trajectory: ground plane {applied},")
+    warned = [r.getMessage() for r in caplog.records if r.levelno == logging.WARNING
+              and "is it the map's?" in r.getMessage()]
+    assert len(warned) == 1 and "trajectory.map_report: reference:optimize.report" in warned[0]
     assert any(r.getMessage().startswith("optimize: ground plane not applied, wheeled drive not "
                                          "applied: the camera moved") and
                r.getMessage().endswith("too little to decide on") for r in caplog.records)
