@@ -2,7 +2,9 @@
 ``optimize`` (the map) and ``trajectory`` (which takes the map's, through ``optimize.report``).
 
 Five settings a user tunes; the rest of the solve is fixed here, each constant with its reason:
-they were parameters once, tuned on the simulator and the LIMO and never changed since.
+they were parameters once, tuned on the simulator and the LIMO and never changed since. This
+module imports no other part of the solve: the artifact schemas name :class:`JointSettings`, and
+every stage's cache key would otherwise follow the solver's code.
 """
 
 from __future__ import annotations
@@ -10,10 +12,8 @@ from __future__ import annotations
 from typing import Annotated, Literal
 
 import numpy as np
-from pydantic import BaseModel, ConfigDict, Field
+from pydantic import BaseModel, ConfigDict, Field, field_validator
 
-from tagtrail.geometry.joint.drive import DrivePrior
-from tagtrail.geometry.joint.ground import GroundPrior
 from tagtrail.geometry.robust import LossName
 
 # The corners' robust loss: Huber at 1 px (in units of the corner noise at the median tag): a
@@ -34,9 +34,9 @@ ESTIMATE_NOISE = False
 MOTION_ACC, MOTION_ANG_DEG = 0.1, 30.0
 # The ground plane: the camera rises or sinks 1 cm and rolls or pitches 1 deg from its plane
 # (floor unevenness, suspension) -- a LIMO on an office floor.
-GROUND = GroundPrior.of(0.01, 1.0)
+GROUND_HEIGHT_SIGMA_M, GROUND_TILT_SIGMA_DEG = 0.01, 1.0
 # The wheeled drive: 1 cm/s/sqrt(Hz) of sideways slip beyond the lever arm (1 cm over a second).
-DRIVE = DrivePrior(0.01)
+DRIVE_LATERAL_SIGMA = 0.01
 
 
 class JointSettings(BaseModel):
@@ -67,6 +67,19 @@ class JointSettings(BaseModel):
     lever arm and the camera's yaw on the robot solved with the rest); ``auto`` (default): the
     same when it costs the corners little (strain below 2), not for a base or camera that
     moves sideways (mecanum, omni wheels, a panning camera); ``free``: no such prior."""
+
+    @field_validator("motion", mode="before")
+    @classmethod
+    def _motion_word(cls, v: object) -> object:
+        """A word other than ``none`` or a number out of range: one plain line, not the
+        union's errors."""
+        word = isinstance(v, str) and v != "none"
+        out = (isinstance(v, int | float) and not isinstance(v, bool)
+               and not 1e-6 <= v <= 1000.0)
+        if word or out:
+            raise ValueError(f"a number from 1e-6 to 1000 (the acceleration noise density, "
+                             f"m/s^2/sqrt(Hz)) or none, not {v!r}")
+        return v
 
     def motion_sigmas(self) -> tuple[float, float] | None:
         """The motion prior's ``(acc_sigma m/s^2/sqrt(Hz), ang_sigma rad/s^2/sqrt(Hz))``; None

@@ -18,7 +18,8 @@ import numpy as np
 from tagtrail.geometry.arrays import F64, I64
 from tagtrail.geometry.camera import CameraModel
 from tagtrail.geometry.joint.decide import solve_grounded
-from tagtrail.geometry.joint.ground import GroundReport
+from tagtrail.geometry.joint.drive import DrivePrior
+from tagtrail.geometry.joint.ground import GroundPrior, GroundReport
 from tagtrail.geometry.joint.motion import MotionPrior
 from tagtrail.geometry.joint.problem import (
     CornerObservations,
@@ -31,14 +32,18 @@ from tagtrail.geometry.joint.problem import (
 from tagtrail.geometry.joint.settings import (
     CORNER_F_SCALE_PX,
     CORNER_LOSS,
-    DRIVE,
+    DRIVE_LATERAL_SIGMA,
     ESTIMATE_NOISE,
-    GROUND,
+    GROUND_HEIGHT_SIGMA_M,
+    GROUND_TILT_SIGMA_DEG,
     MAX_ITER,
     JointSettings,
 )
 from tagtrail.geometry.joint.solver import solve_joint
 from tagtrail.geometry.joint.start import initial_cameras
+
+GROUND = GroundPrior.of(GROUND_HEIGHT_SIGMA_M, GROUND_TILT_SIGMA_DEG)
+DRIVE = DrivePrior(DRIVE_LATERAL_SIGMA)
 
 
 @dataclass(frozen=True)
