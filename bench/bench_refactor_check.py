@@ -52,6 +52,7 @@ SCENES = {  # case -> simulate arguments
 }
 STAMPS = ("stamp_", "t_ns", "t_rel_s", "_idx")  # columns naming a frame, compared apart
 QUERY_INPUTS = {"trajectory.tag_map": "reference:optimize.tag_map",
+                "trajectory.map_report": "reference:optimize.report",
                 "align.tag_map": "reference:optimize.tag_map"}
 
 
