@@ -17,6 +17,7 @@ import typing
 from pathlib import Path
 from typing import Any
 
+from pydantic import BaseModel
 from pydantic.fields import FieldInfo
 
 DOC = Path(__file__).resolve().parents[1] / "docs" / "PARAMETERS.md"
@@ -62,11 +63,14 @@ def unit(stage: str, name: str, info: FieldInfo) -> str:
 
 def kind(annotation: Any) -> str:
     """A field's type in words: a choice lists its values."""
+    if typing.get_origin(annotation) is typing.Annotated:  # a bounded member of a union
+        return kind(typing.get_args(annotation)[0])
     if typing.get_origin(annotation) is typing.Literal:
         return " | ".join(f"`{v}`" for v in typing.get_args(annotation))
     args = [a for a in typing.get_args(annotation) if a is not type(None)]
     if typing.get_origin(annotation) in (typing.Union, types.UnionType):
-        return " or ".join(kind(a) for a in args) + " or null"
+        optional = type(None) in typing.get_args(annotation)
+        return " or ".join(kind(a) for a in args) + (" or null" if optional else "")
     if isinstance(annotation, type):
         return annotation.__name__
     return str(annotation).replace("typing.", "")
@@ -93,6 +97,13 @@ def render() -> str:
                 if name in model.EXECUTION_ONLY else ""
             out.append(f"| `{name}` | {_cell(kind(info.annotation))} | `{default}` | "
                        f"{unit(stage, name, info)} | {_cell(info.description or '')}{note} |")
+            sub = info.annotation
+            if isinstance(sub, type) and issubclass(sub, BaseModel):  # nested settings: each
+                inner = sub().model_dump(mode="json")
+                for key, field in sub.model_fields.items():
+                    out.append(f"| `{name}.{key}` | {_cell(kind(field.annotation))} | "
+                               f"`{json.dumps(inner[key], ensure_ascii=False)}` | "
+                               f"{unit(stage, key, field)} | {_cell(field.description or '')} |")
         out.append("")
     return "\n".join(out)
 

@@ -404,11 +404,11 @@ def test_out_of_range_in_the_pipeline_file_names_the_file(project, capsys) -> No
     from tagtrail.cli import main
 
     doc = yaml.safe_load((project / "pipeline.yaml").read_text())
-    doc["stages"] = {"optimize": {"corner_sigma_px": 1e-300}}
+    doc["stages"] = {"optimize": {"joint": {"corner_sigma_px": 1e-300}}}
     (project / "pipeline.yaml").write_text(yaml.safe_dump(doc))
     assert main(["status"]) == 2
     err = capsys.readouterr().err.strip()
-    assert err.startswith("error: pipeline.yaml: stages.optimize.corner_sigma_px: "), err
+    assert err.startswith("error: pipeline.yaml: stages.optimize.joint.corner_sigma_px: "), err
 
 
 # --- 10. YAML alias bombs, bounded messages ---------------------------------------------------

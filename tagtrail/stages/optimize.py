@@ -242,8 +242,9 @@ def refine_on_corners(
     m = corner_rows(observations, detections, np.unique(observations["tag_id"].to_numpy()))
     n_frames = int(m.loc[m["tag_id"].isin(tags), "frame_idx"].nunique())
     if n_frames < params.joint_min_frames:
-        log.info("optimize: %d frames see a mapped tag (< joint_min_frames %d): no joint solve, "
-                 "the pose-graph map is kept", n_frames, params.joint_min_frames)
+        log.info("optimize: only %d frames see a mapped tag (joint_min_frames %d): the map from "
+                 "tag pairs is kept, not refined over all frames together", n_frames,
+                 params.joint_min_frames)
         return None
     ids = np.union1d(tags, m["tag_id"].to_numpy(np.int64))
     W = np.full((len(ids), 4, 4), np.nan)
@@ -337,8 +338,8 @@ def choose_hypotheses(
             use, res, best = trial, r_res, c
             flipped.append([int(r >> 32), int(r & 0xFFFFFFFF)])
     if flipped:
-        log.info("optimize: tag pairs %s take their rival solution (the frames' continuity "
-                 "agrees better)", flipped)
+        log.info("optimize: tag pairs %s: the other of the two mirror-image poses fits the "
+                 "camera's smooth motion better and is used", flipped)
     return use, res, flipped
 
 
@@ -502,8 +503,8 @@ def _solve(
         g = graph_of(use)
         res = solve(g, loss=params.loss, f_scale=params.f_scale, max_nfev=MAX_NFEV)
     if rebuilt:
-        log.info("optimize: %d edges rebuilt from the IPPE solutions the map agrees with",
-                 rebuilt)
+        log.info("optimize: %d tag-pair links rebuilt from the mirror-image poses the map agrees "
+                 "with", rebuilt)
     joint = (params.method == "joint" and detections is not None and len(detections) > 0
              and camera is not None)
     flipped: list[list[int]] = []

@@ -83,11 +83,15 @@ OLD_KEYS = {k: v.format(joint="optimize.joint") + "; trajectory takes the map's 
 
 class Params(StageParams):
     method: Literal["auto", "joint", "avg", "lsq", "pnp"] = "auto"
+    """How each frame's camera pose is found: ``joint`` (all frames on their tags' corners, held
+    together by the map's priors), ``avg``, ``lsq`` or ``pnp`` (frame by frame); ``auto``:
+    ``joint`` with detections and a camera, else ``lsq``."""
     loss: LossName = "soft_l1"
     """Robust loss of the ``lsq`` fusion (per tag, on the 6-vector residual)."""
     f_scale: float = Field(0.1, ge=1e-6, le=100.0)
     """Residual norm (m) where the ``lsq`` loss turns sub-quadratic."""
     rot_weight_m: float = Field(1.0, ge=1e-6, le=1000.0)
+    """``lsq``: metres of residual per radian of rotation residual."""
     ransac_px: float = Field(3.0, gt=0.0, le=1000.0)
     """``pnp``: RANSAC inlier threshold (pixels)."""
     priors: Literal["map", "none"] = "map"
@@ -171,8 +175,9 @@ def joint_trajectory(rows: pd.DataFrame, ids: np.ndarray, W_map: np.ndarray,
     out = pd.DataFrame({"t_ns": t_ns})
     out[POSE_COLS] = np.concatenate([xyz, q], axis=1)
     out["n_tags"] = np.bincount(ob.frame, minlength=len(t_ns)).astype(np.int32)
-    log.info("trajectory: joint solve of %d frames (%d held by the motion prior), corner RMS "
-             "%.2f px", len(t_ns), res.prior_terms, float(np.sqrt(np.mean(res.res_px**2))))
+    log.info("trajectory: %d frames solved together (%d tied to their neighbours by smooth "
+             "motion); tag corners fit to %.2f px RMS", len(t_ns), res.prior_terms,
+             float(np.sqrt(np.mean(res.res_px**2))))
     return _extra(out, res.cam_std, prior is not None, evidence, alone)
 
 

@@ -92,11 +92,13 @@ def test_a_parked_query_takes_the_maps_decisions_and_says_so(
     lines = [r.getMessage() for r in caplog.records if r.name.endswith("stages.trajectory")]
     said = [m for m in lines if "the reference's decision" in m]
     assert len(said) == 1 and "parked" in said[0]
-    applied = "applied" if ref.bundle.ground.applied else "not applied"
-    assert said[0].startswith(f"trajectory: ground plane {applied},")
+    assert said[0].startswith("trajectory: whether the camera moves in one plane like a robot's "
+                              "is not decided on this data: the camera moved")
+    assert ref.bundle.ground.applied == ("held to one plane at a fixed tilt" in said[0])
     warned = [r.getMessage() for r in caplog.records if r.levelno == logging.WARNING
               and "is it the map's?" in r.getMessage()]
     assert len(warned) == 1 and "trajectory.map_report: reference:optimize.report" in warned[0]
-    assert any(r.getMessage().startswith("optimize: ground plane not applied, wheeled drive not "
-                                         "applied: the camera moved") and
-               r.getMessage().endswith("too little to decide on") for r in caplog.records)
+    assert any(r.getMessage().startswith("optimize: whether the camera moves in one plane like a "
+                                         "robot's is not decided on this data: the camera moved")
+               and r.getMessage().endswith("too little to decide on; held to neither")
+               for r in caplog.records)

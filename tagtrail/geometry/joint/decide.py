@@ -112,8 +112,8 @@ def solve_grounded(
             use_ground = use_ground or stat < PLANAR_BOUND
         else:
             ref = fallback or (False, False)
-            note = moved.words() + (": the reference's decision" if fallback else
-                                    ": too little to decide on")
+            note = moved.words() + (", so the reference's decision is taken" if fallback
+                                    else ", too little to decide on")
             use_ground = use_ground or (mode == "auto" and ref[0])
             use_drive = use_drive or (drive_mode == "auto" and ref[1])
     part = GroundPlane(ground, plane)

@@ -243,10 +243,13 @@ class DriveReport:
 
     def line(self) -> str:
         """What was decided and found, in plain words (for the log)."""
-        return (f"wheeled drive {'applied' if self.applied else 'not applied'} (strain "
-                f"{self.strain:.2f}, bound {WHEELED_BOUND:.1f}): lever arm {self.lever_m:.3f} m, "
-                f"camera yaw {self.camera_yaw_deg:.1f} deg, {1e3 * self.lateral_rms_mps:.1f} "
-                "mm/s RMS sideways")
+        return (("the camera moves like a wheeled robot's, never sliding sideways: held so"
+                 if self.applied else "the camera moves sideways too: not held to a wheeled "
+                 "robot's motion")
+                + f" (sideways-motion score {self.strain:.2f}, limit {WHEELED_BOUND:.1f}); the "
+                f"camera sits {self.lever_m:.3f} m from the turning point, looks "
+                f"{self.camera_yaw_deg:.1f} deg off the direction of travel and slides "
+                f"{1e3 * self.lateral_rms_mps:.1f} mm/s RMS sideways")
 
 
 def drive_report(q: F64, part: WheeledDrive, plane: Plane, mount: Mount, mode: str,

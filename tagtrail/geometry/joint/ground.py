@@ -190,16 +190,21 @@ class GroundReport:
 
     def lines(self) -> list[str]:
         """What was decided, in a line or two of plain words (for the log)."""
-        def said(applied: bool) -> str:
-            return "applied" if applied else "not applied"
-
         wheels = self.drive
         if self.note:
-            return [f"ground plane {said(self.applied)}, wheeled drive "
-                    f"{said(wheels is not None and wheels.applied)}: {self.note}"]
-        out = [f"ground plane {said(self.applied)} (planarity {self.planarity:.2f}, bound "
-               f"{PLANAR_BOUND:.1f}): camera {self.camera_tilt_deg:.1f} deg from level, "
-               f"{1e3 * self.height_rms_m:.1f} mm / {self.tilt_rms_deg:.2f} deg RMS off the plane"]
+            held = [name for name, on in (("one plane at a fixed tilt", self.applied),
+                                          ("a wheeled robot's motion", wheels is not None
+                                           and wheels.applied)) if on]
+            return [f"whether the camera moves in one plane like a robot's is not decided on "
+                    f"this data: {self.note}; "
+                    + (f"held to {' and '.join(held)}" if held else "held to neither")]
+        out = [("the camera moves in one plane at a fixed tilt, as on a robot: held there"
+                if self.applied else "the camera leaves a single plane: its height and tilt "
+                "left free")
+               + f" (off-plane score {self.planarity:.2f}, limit {PLANAR_BOUND:.1f}); the "
+               f"camera's up axis is {self.camera_tilt_deg:.1f} deg from that plane's normal, "
+               f"and it stays within {1e3 * self.height_rms_m:.1f} mm / "
+               f"{self.tilt_rms_deg:.2f} deg RMS of the plane"]
         if wheels is not None:
             out.append(wheels.line())
         return out

@@ -42,7 +42,8 @@ DRIVE_LATERAL_SIGMA = 0.01
 class JointSettings(BaseModel):
     """``optimize.joint``: the joint solve of tag and camera poses on the tags' corners."""
 
-    model_config = ConfigDict(extra="forbid", frozen=True, strict=True, allow_inf_nan=False)
+    model_config = ConfigDict(extra="forbid", frozen=True, strict=True, allow_inf_nan=False,
+                              use_attribute_docstrings=True)
 
     corner_sigma_px: float = Field(0.5, ge=1e-3, le=100.0)
     """Corner noise (px, per coordinate) of a tag of 20 px sides; a smaller, farther or more
