@@ -27,8 +27,7 @@ from tagtrail.geometry.joint.ground import GroundPrior, Plane, fit_plane
 from tagtrail.geometry.joint.problem import centres, left_update
 from tagtrail.geometry.registration import umeyama
 from tagtrail.geometry.se3 import R_from_rotvec, inv, make_T
-from tests.geometry.test_bundle import FOCAL_PX, corner_problem, perturbed
-from tests.geometry.test_ground import planar_cameras
+from tests.geometry.problems import FOCAL_PX, corner_problem, perturbed, planar_cameras
 
 GROUND = GroundPrior(0.01, np.radians(1.0))
 DRIVE = DrivePrior(0.01)

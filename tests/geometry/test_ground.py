@@ -16,27 +16,10 @@ from tagtrail.geometry.joint.ground import (
 )
 from tagtrail.geometry.joint.problem import centres, left_update
 from tagtrail.geometry.registration import umeyama
-from tagtrail.geometry.se3 import R_from_rotvec, inv, make_T
-from tests.geometry.test_bundle import FOCAL_PX, corner_problem, perturbed
+from tagtrail.geometry.se3 import R_from_rotvec, make_T
+from tests.geometry.problems import FOCAL_PX, corner_problem, perturbed, planar_cameras
 
 PRIOR = GroundPrior(0.01, np.radians(1.0))
-
-
-def planar_cameras(n: int = 40, seed: int = 0, tilt_deg: float = 12.0) -> np.ndarray:
-    """``cam_T_world (n, 4, 4)`` of a camera pitched down ``tilt_deg`` driving a random path on
-    a plane whose normal is tilted from the world's y axis (the anchor need not be level)."""
-    rng = np.random.default_rng(seed)
-    level = R_from_rotvec(np.array([[0.3, 0.0, -0.2]]))[0]  # world_R_floor
-    yaw = np.cumsum(rng.normal(scale=0.2, size=n))
-    xy = np.cumsum(rng.normal(scale=0.2, size=(n, 2)), axis=0)
-    # floor frame: y up; camera: z forward, y down, pitched down by tilt about its x axis
-    base = np.stack([R_from_rotvec(np.array([[0.0, a, 0.0]]))[0] for a in yaw])
-    flip = np.diag([1.0, -1.0, -1.0])  # camera y down, z forward
-    pitch = R_from_rotvec(np.array([[np.radians(tilt_deg), 0.0, 0.0]]))[0]
-    floor_R_cam = base @ flip @ pitch
-    pos = np.stack([xy[:, 0], np.full(n, 0.17), xy[:, 1]], axis=1)
-    world_T_cam = make_T(level @ floor_R_cam, pos @ level.T + np.array([0.5, -0.2, 1.0]))
-    return inv(world_T_cam)
 
 
 def test_plane_terms_jacobians_match_finite_differences() -> None:

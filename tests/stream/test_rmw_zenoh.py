@@ -181,7 +181,7 @@ def test_defaults_from_the_environment(monkeypatch: pytest.MonkeyPatch) -> None:
 
 @pytest.mark.parametrize("cmd", [
     ["relocalize", "--reference", "ref"], ["localize", "--map", "m.yaml"], ["replay", "t.csv"],
-    ["record", "out"], ["echo", "relocalization/state"],
+    ["record", "out"], ["echo", "relocalization/state"], ["follow", "--path-length", "1"],
 ])  # fmt: skip
 def test_every_stream_command_takes_the_wire_flags(cmd: list[str]) -> None:
     from tagtrail.stream.cli import build_parser
