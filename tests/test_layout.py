@@ -21,7 +21,7 @@ ALLOWED: dict[str, set[str]] = {
     "pool": {"errors", ""},  # "": the top-level package (for its path)
     "io": {"errors", "faults", "geometry", "schemas", "vision"},
     "stages": {"errors", "geometry", "schemas", "vision", "pool", "stages.base"},
-    "runner": {"errors", "faults", "geometry", "schemas", "vision", "pool", "io", "stages"},
+    "runner": {"errors", "faults", "geometry", "schemas", "vision", "pool", "io"},
 }
 
 
@@ -91,3 +91,30 @@ def test_detector_settings_do_not_load_the_c_library() -> None:
             "print('pupil_apriltags' in sys.modules)")
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
     assert out.stdout.strip() == "False"
+
+
+RUNNER_GEOMETRY = {"geometry.camera"}  # what a source hands a stage; nothing stage-specific
+
+
+def test_the_runner_knows_no_stage() -> None:
+    """``runner/`` imports no module of ``tagtrail.stages`` (not even the contract, which lives
+    in ``schemas.stage``) and no stage-specific geometry: metrics and exports are declared by
+    the stages, the registry is handed in by the shells."""
+    found: dict[str, set[str]] = {}
+    for path in sorted((PACKAGE / "runner").glob("*.py")):
+        names: set[str] = set()
+        for node in ast.walk(ast.parse(path.read_text())):
+            if isinstance(node, ast.Import):
+                names |= {a.name for a in node.names}
+            elif isinstance(node, ast.ImportFrom) and node.module:
+                base = "." * node.level + node.module
+                names |= {base, *(f"{base}.{a.name}" for a in node.names)}
+            elif isinstance(node, ast.ImportFrom):  # from . import x
+                names |= {"." * node.level + a.name for a in node.names}
+        bad = {n for n in names if n.split(".")[:2] == ["tagtrail", "stages"]
+               or n.lstrip(".").startswith("stages") and n.startswith("..")}
+        bad |= {n for n in imports(path) if n.startswith("geometry")
+                and n not in RUNNER_GEOMETRY}
+        if bad:
+            found[path.name] = bad
+    assert not found, f"runner/ imports stage code: {found}"

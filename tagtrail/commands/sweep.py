@@ -38,8 +38,8 @@ one YAML value, as for `run -S`: -S pnp.tag_sizes={1: 0.1, 2: 0.2} is one value,
 no override) or a YAML list of mappings (- {optimize.loss: huber, optimize.f_scale: 0.1}),
 crossed with the -S grid.
 
-metrics (lower is better; a column NAME[DATASET] each; default: trajectory.rmse_m, tags.rmse_m,
-D.mean_m, abs_phi.mean_deg, map.rms_t_m where they exist):
+metrics (declared by the stages; all lower is better; a column NAME[DATASET] each; default:
+trajectory.rmse_m, tags.rmse_m, D.mean_m, abs_phi.mean_deg, map.rms_t_m where they exist):
   BLOCK.STAT_m, BLOCK.STAT_deg   errors vs ground truth (eval); BLOCK: trajectory,
                                  trajectory_raw, tags, gauge_free.trajectory, gauge_free.tags;
                                  STAT: mean, median, rmse, p95, max, min
@@ -158,14 +158,15 @@ def best_line(sweep: Sweep) -> str:
 
     first = sweep.columns[0].metric
     over = f" (mean of {len(sweep.first)} datasets)" if len(sweep.first) > 1 else ""
-    best, low = sweep.best(), sweep.lowest()
+    best, leaders = sweep.best(), sweep.leaders()
     if best is not None:
-        return (f"best (lowest {first}{over}): point {best.point.index}: "
+        way = "lowest" if sweep.better == "lower" else "highest"
+        return (f"best ({way} {first}{over}): point {best.point.index}: "
                 f"{best.point.label or '(no overrides)'}")
-    if not low:
+    if not leaders:
         return f"best: none (no point has {first})"
-    value = sweep.score(low[0])
-    return (f"best: none: points {', '.join(str(r.point.index) for r in low)} give the same "
+    value = sweep.score(leaders[0])
+    return (f"best: none: points {', '.join(str(r.point.index) for r in leaders)} give the same "
             f"{first}{over} ({digits([value])[0]}) within its noise (relative {NOISE_REL:g})")
 
 
@@ -281,6 +282,8 @@ def write_plot(sweep: Sweep, path: Path) -> Path | None:
     axes = fig.subplots(len(metrics), len(params), squeeze=False)
     for i, metric in enumerate(metrics):
         cols = [c.name for c in sweep.columns if c.metric == metric]
+        spec = next(c.spec for c in sweep.columns if c.metric == metric)
+        top = max if spec is not None and spec.better == "higher" else min  # its declared way
 
         def mean(r: Any, cols: list[str] = cols) -> float | None:
             vals = [r.metrics.get(c) for c in cols]
@@ -306,10 +309,11 @@ def write_plot(sweep: Sweep, path: Path) -> Path | None:
                            zorder=2, label="every point")  # fmt: skip
                 low: dict[float, float] = {}
                 for x, y in pts:
-                    low[x] = min(y, low.get(x, math.inf))
+                    low[x] = top(y, low.get(x, y))
                 line = sorted(low.items())
                 ax.plot([x for x, _ in line], [y for _, y in line], color="tab:blue",
-                        marker="o", markersize=4, zorder=3, label="lowest")  # fmt: skip
+                        marker="o", markersize=4, zorder=3,
+                        label="lowest" if top is min else "highest")  # fmt: skip
             if best is not None and best in ok and (yb := value(best)) is not None:
                 xb = xs[ok.index(best)]
                 ax.scatter([xb], [yb], marker="*", s=160, color="tab:red", zorder=4,

@@ -25,7 +25,7 @@ from numpy.typing import NDArray
 
 from tagtrail import faults
 from tagtrail.errors import SourceError, one_line
-from tagtrail.schemas.artifacts import EVIDENCE_COLS, POSE_COLS
+from tagtrail.schemas.artifacts import EVIDENCE_COLS, POSE_COLS, STD_COLS
 from tagtrail.schemas.ranges import check_expansion
 
 TRAJ_COLS = ["t_ns", *POSE_COLS]
@@ -342,9 +342,6 @@ def _stamp_text(t_ns: int) -> str:
 
 
 # --- tag maps ---------------------------------------------------------------------------------
-
-
-STD_COLS = ["std_pos_m", "std_rot_deg"]  # a tag's or frame's standard deviation, when known
 
 
 def _opt(x: float) -> str:

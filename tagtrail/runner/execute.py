@@ -30,6 +30,7 @@ from tagtrail.runner.executors import (
     run_remote,
     timed_call,
 )
+from tagtrail.runner.inputs import reader_closure
 from tagtrail.runner.paths import RUN_LOG, check_project, clear_obstacles, inside
 from tagtrail.runner.spec import Pipeline
 from tagtrail.schemas.artifacts import VERSION as ARTIFACT_SCHEMA_VERSION
@@ -109,6 +110,20 @@ def _check_shape(source: Path) -> None:
                 raise
 
 
+def _reader_changes(old: dict[str, Any], new: dict[str, Any]) -> list[str]:
+    """Why a node is stale because the code that reads one of its special inputs changed:
+    ``code changed: tagtrail.io.layouts (reads source)``."""
+    out = []
+    for special in sorted(set(old) | set(new)):
+        a, b = old.get(special) or {}, new.get(special) or {}
+        names = sorted(m for m in set(a) | set(b) if a.get(m) != b.get(m))
+        if names and a and b:
+            out.append(f"code changed: {', '.join(names)} (reads {special})")
+        elif names:  # a record from before readers were part of the key, or no reader now
+            out.append(f"code changed: the reader of {special}")
+    return out
+
+
 class Runner:
     """Executes a validated pipeline against its artifact store.
 
@@ -152,10 +167,13 @@ class Runner:
         """The cache record of ``node`` given its upstream keys, or None if one is unknown."""
         spec = self.pipe.stages[node.stage]
         inputs: dict[str, str] = {}
+        readers: dict[str, dict[str, str]] = {}
         for arg, (ref, up) in self.graph.inputs[node].items():
             if up is None:
                 assert ref.special is not None
                 inputs[arg] = self._special_fp(node.dataset, ref.special)
+                if reader := reader_closure(ref.special):
+                    readers[ref.special] = reader
                 continue
             if up not in keys:
                 return None
@@ -163,7 +181,7 @@ class Runner:
             if manifest is None:
                 return None
             inputs[arg] = manifest["outputs"][ref.output]["sha256"]
-        return {
+        record = {
             "stage": node.stage,
             "code": spec.code_fingerprint,
             "code_modules": spec.code_modules,
@@ -171,6 +189,9 @@ class Runner:
             "params": self.pipe.params_for(node.stage, node.dataset).key_dump(),
             "inputs": inputs,
         }
+        if readers:  # the code that reads a source or ground truth: part of the key
+            record["readers"] = readers
+        return record
 
     def why_stale(self, node: Node, record: dict[str, Any]) -> str:
         last = self.store.last_record(node.dataset, node.stage)
@@ -183,6 +204,7 @@ class Runner:
             stage_module = self.pipe.stages[node.stage].module.__name__
             shown = ", ".join(stage_module if m == "." else m for m in names)
             reasons.append(f"code changed: {shown}" if old and shown else "code changed")
+        reasons += _reader_changes(last.get("readers") or {}, record.get("readers") or {})
         if last.get("params") != record["params"]:
             reasons.append("params changed: " + _param_diff(last["params"], record["params"]))
         old_inputs = last.get("inputs", {})

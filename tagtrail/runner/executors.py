@@ -72,7 +72,7 @@ from tagtrail.runner.cache import Store
 from tagtrail.runner.inputs import resolve
 from tagtrail.runner.stage import StageSpec, stage_spec
 from tagtrail.schemas.pipeline import DatasetConfig
-from tagtrail.stages.base import StageParams
+from tagtrail.schemas.stage import StageParams
 
 T = TypeVar("T")
 KINDS = ("serial", "local", "dask")

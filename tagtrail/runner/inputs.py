@@ -1,9 +1,17 @@
 """The special inputs the runner resolves for a stage: ``source`` (the dataset's recording,
 opened, with a progress bar the runner owns), ``ground_truth`` (read from its folder) and
-``dataset`` (the validated ``DatasetConfig`` itself, for stages that read their own data)."""
+``dataset`` (the validated ``DatasetConfig`` itself, for stages that read their own data).
+
+What a stage sees of ``source`` and ``ground_truth`` depends on the code that reads them as
+much as on the files: :func:`reader_closure` gives that code's fingerprint (the readers' modules
+and everything they import within tagtrail, as for a stage), which enters the cache key of the
+stages that take the input; ``dataset`` has no reader here (its stage reads the files itself).
+"""
 
 from __future__ import annotations
 
+import functools
+import importlib
 from collections.abc import Iterator
 from contextlib import ExitStack
 from typing import Any
@@ -12,6 +20,7 @@ from tqdm import tqdm
 
 from tagtrail.io.layouts import read_tag_map, read_trajectory
 from tagtrail.io.sources import open_source
+from tagtrail.runner.stage import code_closure
 from tagtrail.schemas.inputs import Frame, GroundTruth, Source
 from tagtrail.schemas.pipeline import DatasetConfig
 
@@ -38,6 +47,23 @@ class _Progress:
         for chunk in self._src.chunks(size):
             yield chunk
             self._bar.update(len(chunk))
+
+
+READERS = {"source": "tagtrail.io.sources", "ground_truth": "tagtrail.io.layouts"}
+"""special input → the module whose code reads it (``open_source``; ``read_trajectory`` and
+``read_tag_map``)."""
+
+
+@functools.cache
+def reader_closure(special: str) -> dict[str, str]:
+    """The AST hash of every module that reads ``special`` (:data:`READERS`: the module and its
+    first-party imports, docstrings and comments left out), by module name; empty for an input
+    without a reader. Computed once per process, like a stage's closure."""
+    name = READERS.get(special)
+    if name is None:
+        return {}
+    closure = code_closure(importlib.import_module(name))
+    return {name if m == "." else m: digest for m, digest in closure.items()}
 
 
 def resolve(special: str, ds: DatasetConfig, label: str, stack: ExitStack) -> Any:

@@ -21,7 +21,7 @@ from tagtrail.io.camera_files import split_camera_path
 from tagtrail.runner.stage import InputRef, StageSpec, stage_spec
 from tagtrail.schemas.pipeline import DatasetConfig, PipelineConfig
 from tagtrail.schemas.ranges import check_expansion
-from tagtrail.stages.base import StageParams
+from tagtrail.schemas.stage import PARAMS, StageParams
 
 
 def did_you_mean(word: str, choices: Iterable[str]) -> str:
@@ -191,6 +191,35 @@ def _check_kind(path: Path, dataset: str, key: str, ref: InputRef,
                         f"(e.g. {default}); {ref.stage}.{ref.output} is not one")
 
 
+def check_declarations(stages: Mapping[str, StageSpec]) -> None:
+    """What the stages declare for sweeps and exports, checked across the registry: each
+    metric and export name once, each export input an output of a registered stage."""
+    owner: dict[str, str] = {}
+    exports: dict[str, str] = {}
+    for name, spec in stages.items():
+        for m in spec.metrics:
+            if m.name in owner:
+                raise SpecError(f"metric {m.name!r} is declared by both stage {owner[m.name]} "
+                                f"and stage {name}")  # fmt: skip
+            owner[m.name] = name
+        for e in spec.exports:
+            if e.name in exports:
+                raise SpecError(f"export {e.name!r} is declared by both stage {exports[e.name]} "
+                                f"and stage {name}")  # fmt: skip
+            exports[e.name] = name
+            for arg, text in e.inputs.items():
+                if text.startswith(PARAMS):
+                    if text.removeprefix(PARAMS) not in stages:
+                        raise SpecError(f"stage {name}: export {e.name!r} input {arg} refers to "
+                                        f"{text!r}, which is no registered stage")  # fmt: skip
+                    continue
+                ref = InputRef.parse(text)
+                spec_of = stages.get(ref.stage or "")
+                if spec_of is None or ref.output not in spec_of.outputs:
+                    raise SpecError(f"stage {name}: export {e.name!r} input {arg} refers to "
+                                    f"{text!r}, which no registered stage outputs")  # fmt: skip
+
+
 def load_pipeline(
     path: Path,
     registry: Mapping[str, Any],
@@ -224,6 +253,7 @@ def load_pipeline(
         )
 
     stages = {name: stage_spec(name, mod) for name, mod in registry.items()}
+    check_declarations(stages)
     raw: dict[str, dict[str, Any]] = {k: dict(v or {}) for k, v in config.stages.items()}
     given: dict[tuple[str, str], str] = {}  # (stage, param) -> the -S that set it
     for text in overrides:

@@ -1,4 +1,4 @@
-"""Stage specs: a stage module checked against the contract of ``tagtrail.stages.base``."""
+"""Stage specs: a stage module checked against the contract of ``tagtrail.schemas.stage``."""
 
 from __future__ import annotations
 
@@ -14,7 +14,7 @@ from types import ModuleType
 from typing import Any
 
 from tagtrail.errors import SpecError
-from tagtrail.stages.base import StageParams
+from tagtrail.schemas.stage import PARAMS, Export, Metric, StageParams
 
 _NAME = r"[a-z_][a-z0-9_]*"
 _REF = re.compile(rf"^(?:(?P<ds>reference):)?(?P<stage>{_NAME})\.(?P<out>{_NAME})$")
@@ -60,6 +60,9 @@ class StageSpec:
     outputs: tuple[str, ...]
     scope: str
     code_modules: dict[str, str]
+    metrics: tuple[Metric, ...] = ()
+    metrics_help: str = ""
+    exports: tuple[Export, ...] = ()
 
     @property
     def code_fingerprint(self) -> str:
@@ -184,6 +187,10 @@ def stage_spec(name: str, module: ModuleType) -> StageSpec:
     if sig != expected:
         raise bad(f"run() takes {sorted(sig)} but INPUTS + params are {sorted(expected)}")
     inputs = {arg: InputRef.parse(ref) for arg, ref in raw_inputs.items()}
+    metrics = _metrics(module, tuple(outputs), bad)
+    help_text = getattr(module, "METRICS_HELP", None) or ", ".join(m.name for m in metrics)
+    if not isinstance(help_text, str):
+        raise bad("METRICS_HELP must be a string")
     return StageSpec(
         name=name,
         module=module,
@@ -192,4 +199,69 @@ def stage_spec(name: str, module: ModuleType) -> StageSpec:
         outputs=tuple(outputs),
         scope=scope,
         code_modules=code_closure(module),
+        metrics=metrics,
+        metrics_help=help_text,
+        exports=_exports(module, bad),
     )
+
+
+_METRIC_NAME = re.compile(r"^[A-Za-z_][A-Za-z0-9_.]*$")
+_FILE_NAME = re.compile(r"^[A-Za-z0-9_][A-Za-z0-9_.-]*$")
+
+
+def _metrics(
+    module: ModuleType, outputs: tuple[str, ...], bad: Any
+) -> tuple[Metric, ...]:
+    """The stage's ``METRICS``, checked: each a :class:`Metric` on one of its outputs."""
+    metrics = getattr(module, "METRICS", ())
+    if not isinstance(metrics, tuple) or not all(isinstance(m, Metric) for m in metrics):
+        raise bad("METRICS must be a tuple of Metric")
+    names: set[str] = set()
+    for m in metrics:
+        where = f"metric {m.name!r}"
+        if not isinstance(m.name, str) or not _METRIC_NAME.match(m.name) or m.name in names:
+            raise bad(f"{where}: a name of letters, digits, '_' and '.', declared once")
+        names.add(m.name)
+        if m.output not in outputs:
+            raise bad(f"{where}: output {m.output!r} is not one of OUTPUTS {list(outputs)}")
+        if not (isinstance(m.path, tuple) and m.path and all(isinstance(k, str) for k in m.path)):
+            raise bad(f"{where}: path must be a non-empty tuple of keys")
+        if m.better not in ("lower", "higher") or m.datasets not in ("reference", "all"):
+            raise bad(f"{where}: better is 'lower' or 'higher', datasets 'reference' or 'all'")
+        if not isinstance(m.unit, str) or not isinstance(m.default, int) or m.default < 0:
+            raise bad(f"{where}: unit must be a string and default an int >= 0")
+    return metrics
+
+
+def _exports(module: ModuleType, bad: Any) -> tuple[Export, ...]:
+    """The stage's ``EXPORTS``, checked: artifact inputs that match ``make``'s arguments."""
+    exports = getattr(module, "EXPORTS", ())
+    if not isinstance(exports, tuple) or not all(isinstance(e, Export) for e in exports):
+        raise bad("EXPORTS must be a tuple of Export")
+    names: set[str] = set()
+    for e in exports:
+        where = f"export {e.name!r}"
+        if not isinstance(e.name, str) or not re.fullmatch(_NAME, e.name) or e.name in names:
+            raise bad(f"{where}: a name of lower-case letters, digits and '_', declared once")
+        names.add(e.name)
+        if not (isinstance(e.files, tuple) and e.files
+                and all(isinstance(f, str) and _FILE_NAME.match(f) for f in e.files)):
+            raise bad(f"{where}: files must be a non-empty tuple of plain file names")
+        if "dataset" in e.inputs:
+            raise bad(f"{where}: 'dataset' names the dataset, not an input")
+        for arg, ref in e.inputs.items():
+            if ref.startswith(PARAMS) and re.fullmatch(_NAME, ref.removeprefix(PARAMS)):
+                continue
+            try:
+                parsed = InputRef.parse(ref)
+            except SpecError as err:
+                raise bad(f"{where}: input {arg}: {err}") from None
+            if parsed.special is not None:
+                raise bad(f"{where}: input {arg} must be an artifact, not {ref!r}")
+        if not callable(e.make):
+            raise bad(f"{where}: make must be a function")
+        args = set(inspect.signature(e.make).parameters) - {"dataset"}
+        if args != set(e.inputs):
+            raise bad(f"{where}: make() takes {sorted(args)} but its inputs are "
+                      f"{sorted(e.inputs)} (and optionally dataset)")  # fmt: skip
+    return exports

@@ -11,12 +11,14 @@ is a grid dimension of length one: it applies to every point. ``--points FILE`` 
 list (a CSV whose header names the parameters, or a YAML/JSON list of mappings); its rows are
 crossed with the ``-S`` grid.
 
-Metrics (all lower-is-better; :data:`METRICS`): errors against ground truth from
-``eval.evaluation`` (``trajectory.rmse_m``, ``tags.max_deg``, ``gauge_free.tags.mean_m``, …), the
-relocalization statistics of ``report.summary`` (``D.mean_m``, ``abs_phi.p95_deg``,
-``alignment.rms_m``) and the map's residuals from ``optimize.report`` (``map.rms_t_m``,
-``map.rms_px``, …). A metric is a column per dataset, ``NAME[DATASET]``: by default the
-reference for the error and map metrics and every query for D/phi, or the ``--dataset`` ones.
+Metrics are what the stages declare (``METRICS`` of a stage module, a
+:class:`~tagtrail.schemas.stage.Metric` each: where the number sits in one of its JSON outputs,
+its unit, which way is better, its default datasets; the runner knows no stage): today errors
+against ground truth from ``eval`` (``trajectory.rmse_m``, ``tags.max_deg``, …), the
+relocalization statistics of ``report`` (``D.mean_m``, ``abs_phi.p95_deg``, ``alignment.rms_m``)
+and the map's residuals from ``optimize`` (``map.rms_t_m``, ``map.rms_px``, …). A metric is a
+column per dataset, ``NAME[DATASET]``: by default its declared datasets (the reference, or every
+dataset its stage runs on), or the ``--dataset`` ones.
 
 Files in ``sweeps/<name>/``, next to the pipeline file:
 ``sweep.json`` (the definition: every point's overrides, the columns; written first),
@@ -54,13 +56,15 @@ from tagtrail.runner.execute import NodeState, Runner
 from tagtrail.runner.executors import KINDS, dask_session
 from tagtrail.runner.paths import check_project, clear_obstacles, inside
 from tagtrail.runner.spec import Pipeline, did_you_mean, load_pipeline, load_yaml, parse_override
+from tagtrail.runner.stage import StageSpec
 from tagtrail.schemas import documents
+from tagtrail.schemas.stage import Metric
 
 SWEEPS = "sweeps"
 DEFINITION, TABLE, RUN_LOG, TIMES = "sweep.json", "sweep.csv", "runs.json", "times.json"
 _NAME = re.compile(r"^[A-Za-z0-9_.-]+$")
 
-# --- metrics ----------------------------------------------------------------------------------
+# --- metrics ---------------------------------------------------------------------------------
 
 # A metric's noise: two points whose values differ by no more than this (relative to the larger)
 # are the same result. Metrics come out of iterative least-squares solves (tolerances ~1e-8) and
@@ -77,98 +81,75 @@ def within_noise(a: float, b: float) -> bool:
     return abs(a - b) <= max(NOISE_REL * max(abs(a), abs(b)), NOISE_ABS)
 
 
-
-@dataclass(frozen=True)
-class Metric:
-    """Where a metric lives: a JSON artifact ``stage.output`` and the keys down to the number;
-    ``scope`` = the datasets it is read from by default (``reference`` or every ``query``)."""
-
-    stage: str
-    output: str
-    path: tuple[str, ...]
-    scope: str
-
-
-ERROR_BLOCKS = ("trajectory", "trajectory_raw", "tags", "gauge_free.trajectory",
-                "gauge_free.tags")  # fmt: skip
-ERROR_STATS = ("mean", "median", "rmse", "p95", "max", "min")
-RELOC_STATS = ("mean", "median", "p90", "p95", "max", "rmse")
-MAP_METRICS = {"rms_t_m": ("rms_t_m",), "rms_r_deg": ("rms_r_deg",),
-               "rms_px": ("bundle", "rms_px"), "cost": ("cost",), "nfev": ("nfev",)}  # fmt: skip
-
-
-def _metrics() -> dict[str, Metric]:
-    out: dict[str, Metric] = {}
-    for block in ERROR_BLOCKS:
-        keys = tuple(block.split("."))
-        for stat in ERROR_STATS:
-            out[f"{block}.{stat}_m"] = Metric("eval", "evaluation",
-                                              (*keys, "position_m", stat), "reference")
-            out[f"{block}.{stat}_deg"] = Metric("eval", "evaluation",
-                                                (*keys, "angle_deg", stat), "reference")
-    for stat in RELOC_STATS:
-        out[f"D.{stat}_m"] = Metric("report", "summary", ("distance_m", stat), "query")
-        out[f"abs_phi.{stat}_deg"] = Metric("report", "summary",
-                                            ("abs_heading_error_deg", stat), "query")
-    out["alignment.rms_m"] = Metric("report", "summary", ("alignment", "rms_m"), "query")
-    for name, path in MAP_METRICS.items():
-        out[f"map.{name}"] = Metric("optimize", "report", path, "reference")
-    return out
-
-
-METRICS = _metrics()
-DEFAULT_METRICS = ("trajectory.rmse_m", "tags.rmse_m", "D.mean_m", "abs_phi.mean_deg",
-                   "map.rms_t_m")  # fmt: skip
-METRIC_HELP = (
-    f"BLOCK.STAT_m and BLOCK.STAT_deg (errors vs ground truth; BLOCK: {', '.join(ERROR_BLOCKS)}; "
-    f"STAT: {', '.join(ERROR_STATS)}), D.STAT_m and abs_phi.STAT_deg (relocalization; STAT: "
-    f"{', '.join(RELOC_STATS)}), alignment.rms_m, "
-    + ", ".join(f"map.{n}" for n in MAP_METRICS)
-)
-
-
 @dataclass(frozen=True)
 class Column:
-    """One metric column of the table: a metric read from one dataset."""
+    """One metric column of the table: a metric (declared by ``stage``) read from one dataset."""
 
     metric: str
     dataset: str
+    stage: str = field(default="", compare=False)
+    spec: Metric | None = field(default=None, compare=False, repr=False)
 
     @property
     def name(self) -> str:
         return f"{self.metric}[{self.dataset}]"
 
 
+def declared_metrics(pipe: Pipeline) -> dict[str, tuple[str, Metric]]:
+    """Every metric the pipeline's stages declare (``METRICS``): name → (stage, declaration),
+    in the order of :func:`metric_help` (names are unique: checked when the pipeline loads)."""
+    return {m.name: (name, m) for name, spec in _by_default(pipe) for m in spec.metrics}
+
+
+def _by_default(pipe: Pipeline) -> list[tuple[str, StageSpec]]:
+    """The stages that declare metrics, those with the first default columns first."""
+    have = [(name, spec) for name, spec in pipe.stages.items() if spec.metrics]
+    return sorted(have, key=lambda t: min((m.default for m in t[1].metrics if m.default),
+                                          default=math.inf))  # fmt: skip
+
+
+def metric_help(pipe: Pipeline) -> str:
+    """The metrics in one line, from each stage's ``METRICS_HELP``."""
+    return ", ".join(spec.metrics_help for _, spec in _by_default(pipe))
+
+
+def default_metrics(pipe: Pipeline) -> list[str]:
+    """The columns of a sweep without ``--metric``: the declared defaults, in their order."""
+    found = [m for _, m in declared_metrics(pipe).values() if m.default]
+    return [m.name for m in sorted(found, key=lambda m: m.default)]
+
+
 def resolve_columns(
     pipe: Pipeline, graph: Graph, metrics: Sequence[str], datasets: Sequence[str]
 ) -> list[Column]:
     """The metric columns of a sweep. ``metrics`` empty: the defaults that exist here;
-    ``datasets`` empty: each metric's default scope. A bad name or a metric no chosen dataset
+    ``datasets`` empty: each metric's default datasets. A bad name or a metric no chosen dataset
     has is one :class:`SpecError`."""
+    known = declared_metrics(pipe)
     for name in metrics:
-        if name not in METRICS:
-            raise SpecError(f"unknown metric {name!r}{did_you_mean(name, METRICS)} "
-                            f"(metrics: {METRIC_HELP})")  # fmt: skip
+        if name not in known:
+            raise SpecError(f"unknown metric {name!r}{did_you_mean(name, known)} "
+                            f"(metrics: {metric_help(pipe)})")  # fmt: skip
     if len(set(metrics)) != len(metrics):
         twice = next(m for m in metrics if list(metrics).count(m) > 1)
         raise SpecError(f"--metric {twice} given twice")
     columns: list[Column] = []
-    for name in metrics or DEFAULT_METRICS:
-        m = METRICS[name]
-        live = [d for d in pipe.datasets if Node(m.stage, d) in graph.inputs]
+    for name in metrics or default_metrics(pipe):
+        stage, m = known[name]
+        live = [d for d in pipe.datasets if Node(stage, d) in graph.inputs]
         if datasets:
             wanted = list(datasets)
-        elif m.scope == "reference":
+        elif m.datasets == "reference":
             wanted = [pipe.reference]
         else:
             wanted = list(pipe.datasets)
         chosen = [d for d in wanted if d in live]
         if not chosen and metrics:
-            node = Node(m.stage, wanted[0])
+            node = Node(stage, wanted[0])
             why = graph.skipped.get(node, "not in the pipeline")
             raise SpecError(f"metric {name}: no dataset of the sweep has it ({node} does not "
                             f"run: {why})")  # fmt: skip
-        columns += [Column(name, d) for d in chosen]
+        columns += [Column(name, d, stage, m) for d in chosen]
     return columns
 
 
@@ -425,6 +406,12 @@ class Sweep:
         """The columns of the first metric (the one the best point is chosen by)."""
         return [c for c in self.columns if c.metric == self.columns[0].metric]
 
+    @property
+    def better(self) -> str:
+        """``lower`` or ``higher``: which way the first metric is better (its declaration)."""
+        spec = self.columns[0].spec
+        return spec.better if spec is not None else "lower"
+
     def score(self, r: PointResult) -> float | None:
         """The first metric of a point, averaged over its datasets (None if one is missing)."""
         values = [r.metrics.get(c.name) for c in self.first]
@@ -432,20 +419,21 @@ class Sweep:
             return None
         return sum(v for v in values if v is not None) / len(values)
 
-    def lowest(self) -> list[PointResult]:
-        """The points whose first metric is the lowest, within the metric's noise
-        (:func:`within_noise`), in point order; empty when no point has it."""
+    def leaders(self) -> list[PointResult]:
+        """The points whose first metric is the best (the lowest, or the highest where its
+        declaration says higher is better), within the metric's noise (:func:`within_noise`),
+        in point order; empty when no point has it."""
         scored = [(s, r) for r in self.results if (s := self.score(r)) is not None]
         if not scored:
             return []
-        low = min(s for s, _ in scored)
-        return sorted((r for s, r in scored if within_noise(s, low)), key=lambda r: r.point.index)
+        top = (max if self.better == "higher" else min)(s for s, _ in scored)
+        return sorted((r for s, r in scored if within_noise(s, top)), key=lambda r: r.point.index)
 
     def best(self) -> PointResult | None:
-        """The point with the lowest first metric, when it is lower than every other point's
+        """The point with the best first metric, when it is better than every other point's
         beyond the metric's noise; None when points tie (or none has the metric)."""
-        low = self.lowest()
-        return low[0] if len(low) == 1 else None
+        leaders = self.leaders()
+        return leaders[0] if len(leaders) == 1 else None
 
     # --- the table ---
 
@@ -559,12 +547,13 @@ class Sweep:
         docs: dict[tuple[str, str, str], dict[str, Any] | None] = {}
         metrics: dict[str, float | None] = {}
         for col in self.columns:
-            m = METRICS[col.metric]
-            memo = (m.stage, col.dataset, m.output)
+            m = col.spec
+            assert m is not None
+            memo = (col.stage, col.dataset, m.output)
             if memo not in docs:
-                key = done.get(Node(m.stage, col.dataset))
+                key = done.get(Node(col.stage, col.dataset))
                 docs[memo] = None if key is None else documents.dump(
-                    f"{m.stage}.{m.output}", runner.store.load(m.stage, key, m.output))
+                    f"{col.stage}.{m.output}", runner.store.load(col.stage, key, m.output))
             doc = docs[memo]
             metrics[col.name] = None if doc is None else metric_value(doc, m.path)
         stage_s: dict[str, float | None] = {}
@@ -656,7 +645,7 @@ def prepare(
         pipes = [_restrict(p, datasets) for p in pipes]
     graph = build_graph(pipes[0])  # the wiring does not depend on parameters
     columns = resolve_columns(pipes[0], graph, list(metrics), list(datasets))
-    stages = list(dict.fromkeys(METRICS[c.metric].stage for c in columns))
+    stages = list(dict.fromkeys(c.stage for c in columns))
     chosen = select(pipes[0], graph, stages)
     nodes = [n for n in graph.order if n in chosen]
     run_stages = list(dict.fromkeys(n.stage for n in nodes))

@@ -63,6 +63,7 @@ SCHEMAS: dict[str, pa.Schema] = {
 POSE_COLS = [n for n, _ in POSE]  # a pose: position (m) and quaternion (qx, qy, qz, qw)
 ALT_POSE_COLS = [n for n, _ in ALT_POSE]  # pnp's second IPPE solution
 CORNER_COLS = [n for n, _ in CORNERS]  # c0x, c0y, ..., c3x, c3y (px)
+STD_COLS = ["std_pos_m", "std_rot_deg"]  # a tag's or frame's standard deviation, when known
 # a trajectory frame's evidence (geometry.joint.FrameEvidence), when the trajectory carries it
 EVIDENCE_COLS = ["reproj_px", "alone_reproj_px", "shift_m", "shift_deg", "shift_sigma"]
 ALONE_POSE_COLS = [f"alone_{n}" for n in POSE_COLS]  # the frame on its own corners (world_T_cam)

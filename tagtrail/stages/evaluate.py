@@ -33,7 +33,7 @@ from tagtrail.geometry.se3 import T_from_xyz_quat, inv, make_T, pose_error
 from tagtrail.schemas.artifacts import POSE_COLS, per_frame
 from tagtrail.schemas.documents import Evaluation
 from tagtrail.schemas.inputs import GroundTruth
-from tagtrail.stages.base import StageParams
+from tagtrail.stages.base import Export, ExportFiles, Metric, StageParams
 
 log = logging.getLogger(__name__)
 
@@ -50,6 +50,30 @@ INPUTS = {
 }
 OUTPUTS = ("evaluation",)
 SCOPE = "all"
+
+ERROR_BLOCKS = ("trajectory", "trajectory_raw", "tags", "gauge_free.trajectory",
+                "gauge_free.tags")  # fmt: skip
+ERROR_STATS = ("mean", "median", "rmse", "p95", "max", "min")
+_DEFAULTS = {"trajectory.rmse_m": 1, "tags.rmse_m": 2}  # the sweep's first columns
+METRICS = tuple(
+    Metric(name, "evaluation", (*block.split("."), key, stat), unit,
+           default=_DEFAULTS.get(name, 0))
+    for block in ERROR_BLOCKS for stat in ERROR_STATS
+    for unit, key in (("m", "position_m"), ("deg", "angle_deg"))
+    for name in [f"{block}.{stat}_{unit}"]
+)  # fmt: skip
+METRICS_HELP = (f"BLOCK.STAT_m and BLOCK.STAT_deg (errors vs ground truth; BLOCK: "
+                f"{', '.join(ERROR_BLOCKS)}; STAT: {', '.join(ERROR_STATS)})")  # fmt: skip
+
+
+def _evaluation_file(evaluation: Evaluation | None) -> ExportFiles | None:
+    """``evaluation.json``: errors vs ground truth (datasets that have it)."""
+    return None if evaluation is None else {
+        "evaluation.json": ("json", evaluation.model_dump(mode="json"))}
+
+
+EXPORTS = (Export("evaluation", ("evaluation.json",), {"evaluation": "eval.evaluation"},
+                  _evaluation_file),)
 
 
 def error_stats(x: np.ndarray) -> dict[str, float | None]:

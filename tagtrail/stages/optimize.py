@@ -48,6 +48,7 @@ from tagtrail.errors import DataError
 from tagtrail.geometry.camera import CameraModel
 from tagtrail.geometry.ippe import map_branches
 from tagtrail.geometry.joint import (
+    SHIFT_SIGMA_BOUND,
     CornerProblem,
     JointSettings,
     corner_problem,
@@ -56,6 +57,7 @@ from tagtrail.geometry.joint import (
 )
 from tagtrail.geometry.joint.settings import JOINT_OLD_KEYS
 from tagtrail.geometry.posegraph import PoseGraph, PoseGraphResult, relative_residuals, solve
+from tagtrail.geometry.reference_path import reference_plane
 from tagtrail.geometry.robust import LossName
 from tagtrail.geometry.rotations import geodesic_angle
 from tagtrail.geometry.se3 import (
@@ -73,11 +75,18 @@ from tagtrail.schemas.artifacts import (
     both_solutions,
     columns,
     corner_rows,
+    poses,
     timed,
 )
-from tagtrail.schemas.documents import OptimizeReport, PlacedComponent, RivalPair, TagGraph
+from tagtrail.schemas.documents import (
+    OptimizeReport,
+    PlacedComponent,
+    RivalPair,
+    Summary,
+    TagGraph,
+)
 from tagtrail.schemas.pipeline import SurveyConfig
-from tagtrail.stages.base import StageParams, refuse_old_keys
+from tagtrail.stages.base import Export, ExportFiles, Metric, StageParams, refuse_old_keys
 
 log = logging.getLogger(__name__)
 
@@ -582,3 +591,137 @@ def _solve(
     }
     return {"tag_map": tag_map, "edge_residuals": residuals,
             "report": OptimizeReport.model_validate(report)}
+
+
+# --- what a sweep ranks by and what a run exports (declared for the runner) ----------------
+
+METRICS = tuple(
+    Metric(f"map.{name}", "report", path, unit, default=5 if name == "rms_t_m" else 0)
+    for name, path, unit in (("rms_t_m", ("rms_t_m",), "m"), ("rms_r_deg", ("rms_r_deg",), "deg"),
+                             ("rms_px", ("bundle", "rms_px"), "px"), ("cost", ("cost",), "1"),
+                             ("nfev", ("nfev",), "1"))
+)  # fmt: skip
+
+
+def _tag_map_files(tag_map: pd.DataFrame | None, report: OptimizeReport | None
+                   ) -> ExportFiles | None:  # fmt: skip
+    """``tag_map.yaml`` and ``tag_map.csv``."""
+    if tag_map is None or report is None:
+        return None
+    return {"tag_map.yaml": ("tag_map_yaml", (tag_map, report.anchor_id)),
+            "tag_map.csv": ("tag_map_csv", tag_map)}
+
+
+def _evidence_rows(traj: pd.DataFrame) -> list[tuple[str, Any]]:
+    """The reference trajectory against its evidence: corner RMS of the output and of the
+    frames on their own corners (medians, and their ratio), the temporal step's change, and the
+    frames it moved beyond their own uncertainty."""
+    def med(c: str) -> Any:
+        v = traj[c].to_numpy(np.float64)
+        return float(np.nanmedian(v)) if np.isfinite(v).any() else ""
+
+    def top(c: str) -> Any:
+        v = traj[c].to_numpy(np.float64)
+        return float(np.nanmax(v)) if np.isfinite(v).any() else ""
+
+    rp, ar = med("reproj_px"), med("alone_reproj_px")
+    sig = traj["shift_sigma"].to_numpy(np.float64)
+    beyond = int(np.sum(sig > SHIFT_SIGMA_BOUND)) if np.isfinite(sig).any() else ""
+    return [("frame_reproj_px_median", rp), ("frame_alone_reproj_px_median", ar),
+            ("frame_reproj_ratio", rp / ar if rp != "" and ar != "" and ar > 0 else ""),
+            ("frame_shift_m_median", med("shift_m")), ("frame_shift_m_max", top("shift_m")),
+            ("frame_shift_deg_max", top("shift_deg")),
+            ("frame_shift_sigma_max", top("shift_sigma")),
+            ("frames_moved_beyond_evidence", beyond)]
+
+
+def _diagnostics_file(
+    frames: pd.DataFrame | None, dets: pd.DataFrame | None, obs: pd.DataFrame | None,
+    graph: TagGraph | None, edges: pd.DataFrame | None, tags: pd.DataFrame | None,
+    report: OptimizeReport | None, traj: pd.DataFrame | None,
+) -> ExportFiles | None:
+    """``diagnostics.csv`` (metric,value), a superset of the original ``diagnostico_erros.csv``."""
+    if frames is None or obs is None:
+        return None
+    rows: list[tuple[str, Any]] = [
+        ("frames_total", len(frames) if len(frames) else obs["frame_idx"].nunique()),
+        ("frames_with_detections", int(obs["frame_idx"].nunique())),
+        ("frames_with_pose", len(traj) if traj is not None else ""),
+        ("detections", len(dets) if dets is not None and len(dets) else len(obs)),
+        ("tags_detected", int(obs["tag_id"].nunique())),
+        ("tags_mapped", len(tags) if tags is not None else ""),
+        ("tags_dropped", len(graph.dropped) if graph is not None else ""),
+        ("anchor_tag", f"tag36h11:{report.anchor_id}" if report is not None else ""),
+        ("pairwise_edges", len(edges) if edges is not None else ""),
+        ("map_residual_rms_t_m", report.rms_t_m if report is not None else ""),
+        ("map_residual_rms_r_deg", report.rms_r_deg if report is not None else ""),
+    ]
+    bundle = report.bundle if report is not None else None
+    if bundle is not None:  # the joint solve
+        rows += [("map_method", "joint"), ("joint_frames", bundle.frames),
+                 ("joint_single_tag_frames", bundle.single_tag_frames),
+                 ("joint_motion_prior_frames", bundle.motion_prior_frames),
+                 ("joint_ippe_second_solution", bundle.ippe_second_solution),
+                 ("joint_corner_rms_px", bundle.rms_px),
+                 ("joint_variance_factor", bundle.variance_factor),
+                 ("joint_corner_sigma_px", bundle.corner_sigma_px),
+                 ("joint_rival_pairs_flipped", " ".join(
+                     f"tag36h11:{i}-tag36h11:{j}" for i, j in bundle.rival_pairs_flipped))]
+    elif report is not None:
+        rows.append(("map_method", report.method))
+    if tags is not None and "std_pos_m" in tags.columns:
+        weak = tags.loc[poorly_constrained(tags), "tag_id"].astype(int)
+        rows += [("tag_std_pos_m_median", float(tags["std_pos_m"].median())),
+                 ("tag_std_pos_m_max", float(tags["std_pos_m"].max())),
+                 ("poorly_constrained_tags", " ".join(f"tag36h11:{t}" for t in weak))]
+    survey = report.survey if report is not None else None
+    if survey is not None:  # the surveyed world and its residuals at the known tags
+        rows += [("survey_source", survey.source), ("survey_model", survey.model),
+                 ("survey_tags", " ".join(f"tag36h11:{t}" for t in survey.tags)),
+                 ("survey_res_pos_rms_m", survey.res_pos_rms_m),
+                 ("survey_res_pos_max_m", survey.res_pos_max_m),
+                 ("survey_res_rot_rms_deg", "" if survey.res_rot_rms_deg is None
+                  else survey.res_rot_rms_deg)]
+    if graph is not None:
+        rows.append(("weak_links", " ".join(f"tag36h11:{w.tag_i}-tag36h11:{w.tag_j}"
+                                            f"({w.n_frames})" for w in graph.weak_links)))
+    if traj is not None and "std_pos_m" in traj.columns and traj["std_pos_m"].notna().any():
+        rows += [("frame_std_pos_m_median", float(traj["std_pos_m"].median())),
+                 ("frame_std_pos_m_max", float(traj["std_pos_m"].max()))]
+    if traj is not None and "shift_m" in traj.columns:
+        rows += _evidence_rows(traj)
+    return {"diagnostics.csv": ("metric_value_csv", rows)}
+
+
+def _recording_map_file(traj: pd.DataFrame | None, tags: pd.DataFrame | None,
+                        summary: Summary | None, report: Any, dataset: str
+                        ) -> ExportFiles | None:  # fmt: skip
+    """``map.png`` of a recording (not a query, whose ``report`` draws its own): its tags and
+    trajectory (or photos: camera views) seen from above, in the plane of ``report.plane``."""
+    if traj is None or tags is None or len(traj) < 2 or summary is not None:
+        return None
+    plane_name = str(getattr(report, "plane", "auto"))
+    P, R = poses(traj)
+    plane = reference_plane(plane_name, P, R)
+    return {"map.png": ("recording_map_png", dict(
+        dataset=dataset, plane_name=plane_name, uv=plane.to_uv(P),
+        flip_v=bool(plane.n @ R[:, :, 1].mean(axis=0) > 0),
+        tags_uv=plane.to_uv(tags[["x_m", "y_m", "z_m"]].to_numpy()),
+        tag_ids=tags["tag_id"].astype(int).tolist(), weak_tags=poorly_constrained(tags),
+        tag_std_m=tags["std_pos_m"].to_numpy(np.float64) if "std_pos_m" in tags else None,
+        ref_heading_rad=plane.heading(R),
+    ))}
+
+
+EXPORTS = (
+    Export("tag_map", ("tag_map.yaml", "tag_map.csv"),
+           {"tag_map": "optimize.tag_map", "report": "optimize.report"}, _tag_map_files),
+    Export("diagnostics", ("diagnostics.csv",),
+           {"frames": "extract.frames", "dets": "extract.detections",
+            "obs": "pnp.observations", "graph": "edges.graph", "edges": "edges.edges",
+            "tags": "optimize.tag_map", "report": "optimize.report",
+            "traj": "smooth.trajectory"}, _diagnostics_file),
+    Export("recording_map", ("map.png",),
+           {"traj": "smooth.trajectory", "tags": "optimize.tag_map",
+            "summary": "report.summary", "report": "params:report"}, _recording_map_file),
+)  # fmt: skip

@@ -22,6 +22,7 @@ and 0.01° from the smoothed trajectories (tests/test_relocalize.py).
 
 from __future__ import annotations
 
+import json
 from typing import Any, Literal
 
 import numpy as np
@@ -40,7 +41,7 @@ from tagtrail.geometry.reference_path import (
 )
 from tagtrail.schemas.artifacts import columns, poses
 from tagtrail.schemas.documents import AlignmentBlock, Summary
-from tagtrail.stages.base import StageParams
+from tagtrail.stages.base import Export, ExportFiles, Metric, StageParams
 
 INPUTS = {
     "trajectory": "align.trajectory",
@@ -50,6 +51,16 @@ INPUTS = {
 OUTPUTS = ("relocalization", "summary")
 SCOPE = "query"
 RELOC_COLS = columns("report.relocalization")
+RELOC_STATS = ("mean", "median", "p90", "p95", "max", "rmse")
+METRICS = (*(m for stat in RELOC_STATS for m in (
+    Metric(f"D.{stat}_m", "summary", ("distance_m", stat), "m", datasets="all",
+           default=3 if stat == "mean" else 0),
+    Metric(f"abs_phi.{stat}_deg", "summary", ("abs_heading_error_deg", stat), "deg",
+           datasets="all", default=4 if stat == "mean" else 0))),
+    Metric("alignment.rms_m", "summary", ("alignment", "rms_m"), "m", datasets="all"),
+)  # fmt: skip
+METRICS_HELP = (f"D.STAT_m and abs_phi.STAT_deg (relocalization; STAT: {', '.join(RELOC_STATS)}),"
+                " alignment.rms_m")  # fmt: skip
 
 
 class Params(StageParams):
@@ -220,3 +231,24 @@ def run(
         "lost": int(reloc["lost"].sum()),
     }
     return {"relocalization": reloc, "summary": Summary.model_validate(summary)}
+
+
+def _relocalization_files(
+    reloc: pd.DataFrame | None, summary: Summary | None, q_traj: pd.DataFrame | None,
+    ref_traj: pd.DataFrame | None, ref_tags: pd.DataFrame | None,
+) -> ExportFiles | None:
+    """SPEC's ``relocalization.csv``, ``summary.json``, ``relocalization.png`` and ``map.png``
+    of a query, against the reference's trajectory and tags."""
+    if reloc is None or summary is None or q_traj is None or ref_traj is None:
+        return None
+    doc = json.loads(json.dumps(summary.model_dump(mode="json"), sort_keys=True))  # as stored
+    return {"relocalization.csv": ("relocalization", dict(
+        reloc=reloc, summary=doc, q_traj=q_traj, ref_traj=ref_traj, ref_tags=ref_tags,
+        plane_name=summary.plane))}
+
+
+EXPORTS = (Export(
+    "relocalization", ("relocalization.csv", "summary.json", "relocalization.png", "map.png"),
+    {"reloc": "report.relocalization", "summary": "report.summary", "q_traj": "align.trajectory",
+     "ref_traj": "reference:smooth.trajectory", "ref_tags": "reference:optimize.tag_map"},
+    _relocalization_files),)

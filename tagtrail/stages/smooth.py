@@ -29,8 +29,8 @@ from tagtrail.geometry.robust import LossName
 from tagtrail.geometry.rotations import geodesic_angle
 from tagtrail.geometry.se3 import R_from_quat_xyzw, quat_xyzw_from_R
 from tagtrail.geometry.smoothing import smooth_poses
-from tagtrail.schemas.artifacts import POSE_COLS, timed
-from tagtrail.stages.base import StageParams
+from tagtrail.schemas.artifacts import EVIDENCE_COLS, POSE_COLS, STD_COLS, timed
+from tagtrail.stages.base import Export, ExportFiles, StageParams
 
 
 class Params(StageParams):
@@ -92,3 +92,24 @@ def run(trajectory: pd.DataFrame, params: Params, frames: pd.DataFrame | None = 
         out["shift_deg"] += np.degrees(geodesic_angle(R, R0))
         out["reproj_px"] = out["shift_sigma"] = np.nan
     return {"trajectory": out}
+
+
+def _trajectory_files(trajectory: pd.DataFrame | None) -> ExportFiles | None:
+    """``trajectory.csv``, ``trajectory.tum``; with them ``trajectory_std.csv`` (each frame's
+    standard deviation) and ``trajectory_evidence.csv`` (each frame's fit to its own corners)
+    when the trajectory has them (else a stale one from another run is removed)."""
+    if trajectory is None:
+        return None
+    files: dict[str, tuple[str, Any] | None] = {
+        "trajectory.csv": ("trajectory_csv", trajectory),
+        "trajectory.tum": ("trajectory_tum", trajectory)}
+    for name, cols, fmt in (("trajectory_std.csv", STD_COLS, "trajectory_std_csv"),
+                            ("trajectory_evidence.csv", EVIDENCE_COLS, "trajectory_evidence_csv")):
+        has = all(c in trajectory.columns for c in cols) and trajectory[cols[0]].notna().any()
+        files[name] = (fmt, trajectory) if has else None
+    return files
+
+
+EXPORTS = (Export("trajectories", ("trajectory.csv", "trajectory.tum", "trajectory_std.csv",
+                                   "trajectory_evidence.csv"),
+                  {"trajectory": "smooth.trajectory"}, _trajectory_files),)  # fmt: skip

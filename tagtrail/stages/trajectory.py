@@ -67,10 +67,11 @@ from tagtrail.schemas.artifacts import (
     both_solutions,
     columns,
     corner_rows,
+    per_frame,
     timed,
 )
 from tagtrail.schemas.documents import OptimizeReport
-from tagtrail.stages.base import StageParams, refuse_old_keys
+from tagtrail.stages.base import Export, ExportFiles, StageParams, refuse_old_keys
 
 log = logging.getLogger(__name__)
 
@@ -321,3 +322,14 @@ def run(
     out = pd.concat([*parts, _own_evidence(out, uframe, rows, ids, W_map, camera)],
                     ignore_index=True)
     return {"trajectory": out.sort_values("t_ns", kind="stable").reset_index(drop=True)}
+
+
+def _raw_trajectory_file(trajectory: pd.DataFrame | None) -> ExportFiles | None:
+    """``trajectory_raw.csv``: each frame on its own corners, before any temporal step (the
+    motion prior or the smoother)."""
+    return None if trajectory is None else {
+        "trajectory_raw.csv": ("trajectory_csv", per_frame(trajectory))}
+
+
+EXPORTS = (Export("trajectory_raw", ("trajectory_raw.csv",),
+                  {"trajectory": "trajectory.trajectory"}, _raw_trajectory_file),)
