@@ -100,9 +100,11 @@ def test_localize_from_compressed_images_over_zenoh(tmp_path: Path) -> None:
         try:
             with running(["replay", rec, "--topics", "/camera/color/camera_info",
                           "/camera/color/image_raw/compressed", "--connect", loopback(port),
-                          "--rate", "0.5"]) as (rep,):  # fmt: skip
+                          "--rate", "0.1"]) as (rep,):  # fmt: skip
                 assert rep.p.wait(30) == 0, rep.output
-            # frames arriving while the detector is busy are skipped (latest only)
+            # 3 frames/s: the detector keeps up on a loaded 2-core machine (at 15 frames/s
+            # under CI's load it posed fewer than 8 of 16); frames arriving while it is busy
+            # are skipped (latest only)
             poses = sub.wait_until("tag_only_pose", lambda v: len(v) >= 8)
         finally:
             sub.close()
