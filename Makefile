@@ -36,6 +36,7 @@ bench: $(BENCH_STAMP)
 
 lint: $(STAMP)
 	$(BIN)/ruff check tagtrail tests bench
+	$(BIN)/ruff format --check tagtrail tests bench
 	$(BIN)/mypy tagtrail
 
 check: lint test-all

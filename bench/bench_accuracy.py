@@ -74,8 +74,10 @@ LEVELS = {  # simulate flags per source and noise level
     ("detections", "high"): ["--detections", "--corner-noise", "0.6"],
 }
 # the paper's method: pairwise pose graph, per-frame fusion (the original tool's lsq), smoothing
-METHODS = {"joint": [], "pairwise": ["-S", "optimize.method=pairwise", "-S",
-                                     "trajectory.method=lsq"]}
+METHODS = {
+    "joint": [],
+    "pairwise": ["-S", "optimize.method=pairwise", "-S", "trajectory.method=lsq"],
+}
 REALDATA_MARKER = "<!-- realdata -->"  # bench_realdata_tables.py's part of ACCURACY.md follows
 
 
@@ -144,9 +146,20 @@ def floor(runner: Runner, gt_dir: Path) -> tuple[np.ndarray, np.ndarray, np.ndar
     key = pd.MultiIndex.from_arrays([obs["frame_idx"].to_numpy(), obs["tag_id"].to_numpy()])
     px = d[CORNER_COLS].reindex(key).to_numpy(np.float64).reshape(-1, 4, 2)
     W = np.stack([true[t] for t in obs["tag_id"].to_numpy(np.int64)])
-    res = frame_poses(W, best_pose(*ippe_solutions(obs)), group, len(uframe), corners_px=px,
-                      size_m=obs["size_m"].to_numpy(np.float64), camera=camera, method="pnp",
-                      loss="soft_l1", f_scale=0.1, rot_weight_m=1.0, ransac_px=3.0)
+    res = frame_poses(
+        W,
+        best_pose(*ippe_solutions(obs)),
+        group,
+        len(uframe),
+        corners_px=px,
+        size_m=obs["size_m"].to_numpy(np.float64),
+        camera=camera,
+        method="pnp",
+        loss="soft_l1",
+        f_scale=0.1,
+        rot_weight_m=1.0,
+        ransac_px=3.0,
+    )
     gt = dict(zip(gt_traj["t_ns"].to_numpy(np.int64), poses(gt_traj), strict=True))
     ok = np.isfinite(res.world_T_cam).all(axis=(1, 2)) & np.isin(t_ns, list(gt))
     dt, dr = pose_error(res.world_T_cam[ok], np.stack([gt[t] for t in t_ns[ok]]))
@@ -161,8 +174,11 @@ def method_row(project: Path, scenario: str, source: str, level: str, method: st
     doc = json.loads(tagtrail("eval", "--json", *METHODS[method], cwd=project))["evaluation"]
     free = doc["gauge_free"] or {}
     traj, tags = free.get("trajectory") or doc["trajectory"], free.get("tags") or doc["tags"]
-    runner = Runner(load_pipeline(project / "pipeline.yaml", REGISTRY,
-                                  [a for a in METHODS[method] if a != "-S"]))
+    runner = Runner(
+        load_pipeline(
+            project / "pipeline.yaml", REGISTRY, [a for a in METHODS[method] if a != "-S"]
+        )
+    )
     frames = artifact(runner, "extract", "detections")["t_ns"].unique()
     est = artifact(runner, "smooth", "trajectory")
     tag_map = artifact(runner, "optimize", "tag_map")
@@ -171,10 +187,25 @@ def method_row(project: Path, scenario: str, source: str, level: str, method: st
     n_gt = gt_tags["tag_id"].nunique()
     mapped = int(tag_map["tag_id"].isin(gt_tags["tag_id"]).sum())
     pos, ang = traj["position_m"], traj["angle_deg"]
-    return Row(scenario, source, level, method, pos["mean"], pos["p95"], pos["max"],
-               ang["mean"], doc["trajectory"]["position_m"]["mean"], tags["position_m"]["mean"],
-               tags["position_m"]["max"], f"{mapped}/{n_gt}", int(graph["n_components"]),
-               mapped == n_gt, int(np.isin(est["t_ns"], frames).sum()), len(frames), run_s)
+    return Row(
+        scenario,
+        source,
+        level,
+        method,
+        pos["mean"],
+        pos["p95"],
+        pos["max"],
+        ang["mean"],
+        doc["trajectory"]["position_m"]["mean"],
+        tags["position_m"]["mean"],
+        tags["position_m"]["max"],
+        f"{mapped}/{n_gt}",
+        int(graph["n_components"]),
+        mapped == n_gt,
+        int(np.isin(est["t_ns"], frames).sum()),
+        len(frames),
+        run_s,
+    )
 
 
 def target(row: Row, floor_mean: float) -> str:
@@ -201,22 +232,49 @@ def target(row: Row, floor_mean: float) -> str:
     return "yes" if not miss else "no: " + ", ".join(miss)
 
 
-def combo(work: Path, scenario: str, source: str, level: str, frames: int,
-          keep: bool = False) -> list[Row]:
+def combo(
+    work: Path, scenario: str, source: str, level: str, frames: int, keep: bool = False
+) -> list[Row]:
     """Simulate one recording, init, run both methods; rows floor, joint, pairwise."""
     project = work / f"{scenario}-{source}-{level}"
     project.mkdir(parents=True)
-    tagtrail("simulate", scenario, "--out", "sim", "--frames", str(frames), "--query-frames", "2",
-             "--no-progress", *LEVELS[(source, level)], cwd=project)
+    tagtrail(
+        "simulate",
+        scenario,
+        "--out",
+        "sim",
+        "--frames",
+        str(frames),
+        "--query-frames",
+        "2",
+        "--no-progress",
+        *LEVELS[(source, level)],
+        cwd=project,
+    )
     rec = RECORDING.get(scenario, scenario)
     tagtrail("init", "--reference", f"sim/{rec}", "--tag-size", "0.16", cwd=project)
     rows = [method_row(project, scenario, source, level, m) for m in METHODS]
-    dt, dr, n = floor(Runner(load_pipeline(project / "pipeline.yaml", REGISTRY)),
-                      project / "sim" / rec / "ground_truth")
-    note = (f"median {100 * np.median(dt):.2f} cm; {100 * np.mean(n == 1):.0f}% one-tag frames, "
-            f"{int((dt > 0.5).sum())} off > 50 cm")
-    fl = Row(scenario, source, level, "floor", float(dt.mean()), float(np.percentile(dt, 95)),
-             float(dt.max()), float(dr.mean()), posed=len(dt), seen=rows[0].seen, target=note)
+    dt, dr, n = floor(
+        Runner(load_pipeline(project / "pipeline.yaml", REGISTRY)),
+        project / "sim" / rec / "ground_truth",
+    )
+    note = (
+        f"median {100 * np.median(dt):.2f} cm; {100 * np.mean(n == 1):.0f}% one-tag frames, "
+        f"{int((dt > 0.5).sum())} off > 50 cm"
+    )
+    fl = Row(
+        scenario,
+        source,
+        level,
+        "floor",
+        float(dt.mean()),
+        float(np.percentile(dt, 95)),
+        float(dt.max()),
+        float(dr.mean()),
+        posed=len(dt),
+        seen=rows[0].seen,
+        target=note,
+    )
     for r in rows:
         r.target = target(r, fl.traj_mean)
     if not keep:
@@ -229,8 +287,10 @@ def cm(x: float | None) -> str:
 
 
 def table(rows: list[Row]) -> str:
-    head = ("| scenario | source | noise | method | traj mean / p95 / max (cm) | rot (°) | "
-            "anch (cm) | tags mean / max (cm) | tags | comp | posed / seen | run (s) | target |")
+    head = (
+        "| scenario | source | noise | method | traj mean / p95 / max (cm) | rot (°) | "
+        "anch (cm) | tags mean / max (cm) | tags | comp | posed / seen | run (s) | target |"
+    )
     lines = [head, "|" + "---|" * 13]
     for r in rows:
         posed = f"{r.posed}/{r.seen} ({100 * r.posed / max(r.seen, 1):.0f}%)"
@@ -239,23 +299,43 @@ def table(rows: list[Row]) -> str:
             f"{cm(r.traj_p95)} / {cm(r.traj_max)} | {r.rot_mean:.3f} | {cm(r.traj_anchored)} | "
             f"{cm(r.tags_mean)} / {cm(r.tags_max)} | {r.tags or '–'} | "
             f"{'–' if r.comps is None else r.comps} | {posed} | "
-            f"{'–' if r.run_s is None else f'{r.run_s:.1f}'} | {r.target or '–'} |")
+            f"{'–' if r.run_s is None else f'{r.run_s:.1f}'} | {r.target or '–'} |"
+        )
     return "\n".join(lines)
 
 
 def machine() -> str:
-    cpu = next((ln.split(":", 1)[1].strip() for ln in Path("/proc/cpuinfo").read_text()
-                .splitlines() if ln.startswith("model name")), platform.processor())
-    mem = next((int(ln.split()[1]) / 2**20 for ln in Path("/proc/meminfo").read_text()
-                .splitlines() if ln.startswith("MemTotal")), 0.0)
-    commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=REPO,
-                            capture_output=True, text=True).stdout.strip()
-    dirty = subprocess.run(["git", "status", "--porcelain", "--untracked-files=no"], cwd=REPO,
-                           capture_output=True, text=True).stdout.strip()
-    return (f"{cpu}, {os.cpu_count()} cores, {mem:.0f} GB RAM; {platform.system()} "
-            f"{platform.release()}; Python {platform.python_version()}; commit {commit}"
-            f"{' (+ uncommitted changes)' if dirty else ''}; {time.strftime('%Y-%m-%d %H:%M')}; "
-            f"load average {os.getloadavg()[0]:.1f} at the end (run times grow with it)")
+    cpu = next(
+        (
+            ln.split(":", 1)[1].strip()
+            for ln in Path("/proc/cpuinfo").read_text().splitlines()
+            if ln.startswith("model name")
+        ),
+        platform.processor(),
+    )
+    mem = next(
+        (
+            int(ln.split()[1]) / 2**20
+            for ln in Path("/proc/meminfo").read_text().splitlines()
+            if ln.startswith("MemTotal")
+        ),
+        0.0,
+    )
+    commit = subprocess.run(
+        ["git", "rev-parse", "--short", "HEAD"], cwd=REPO, capture_output=True, text=True
+    ).stdout.strip()
+    dirty = subprocess.run(
+        ["git", "status", "--porcelain", "--untracked-files=no"],
+        cwd=REPO,
+        capture_output=True,
+        text=True,
+    ).stdout.strip()
+    return (
+        f"{cpu}, {os.cpu_count()} cores, {mem:.0f} GB RAM; {platform.system()} "
+        f"{platform.release()}; Python {platform.python_version()}; commit {commit}"
+        f"{' (+ uncommitted changes)' if dirty else ''}; {time.strftime('%Y-%m-%d %H:%M')}; "
+        f"load average {os.getloadavg()[0]:.1f} at the end (run times grow with it)"
+    )
 
 
 PAPER_4_2 = {  # Table 4.2: mean, min, max (m / deg)
@@ -271,12 +351,16 @@ def table_4_2(work: Path) -> str:
     as the paper reports them."""
     project = work / "table-4-2"
     project.mkdir(parents=True, exist_ok=True)
-    tagtrail("simulate", "observations", "--out", "sim", "--noise-t", "0.10", "--force",
-             cwd=project)
+    tagtrail(
+        "simulate", "observations", "--out", "sim", "--noise-t", "0.10", "--force", cwd=project
+    )
     (project / "pipeline.yaml").write_text(
-        "datasets:\n  reference:\n    source: sim/observations\n")
-    lines = ["| method | metric | mean (m / °) | min | max | paper mean | paper min | paper max |",
-             "|---|---|---|---|---|---|---|---|"]
+        "datasets:\n  reference:\n    source: sim/observations\n"
+    )
+    lines = [
+        "| method | metric | mean (m / °) | min | max | paper mean | paper min | paper max |",
+        "|---|---|---|---|---|---|---|---|",
+    ]
     for method, flags in METHODS.items():
         tagtrail("run", "--force", *flags, cwd=project)
         doc = json.loads(tagtrail("eval", "--json", *flags, cwd=project))["evaluation"]
@@ -295,10 +379,14 @@ def main() -> None:
     ap.add_argument("--sources", default="images,detections")
     ap.add_argument("--levels", default="low,high")
     ap.add_argument("--keep", type=Path, help="work in DIR and keep the projects")
-    ap.add_argument("--no-paper", dest="paper", action="store_false",
-                    help="leave out the paper's Table 4.2 run")
-    ap.add_argument("--out", type=Path, help="markdown file (default: bench/ACCURACY.md on a "
-                    "full run of everything, else none)")
+    ap.add_argument(
+        "--no-paper", dest="paper", action="store_false", help="leave out the paper's Table 4.2 run"
+    )
+    ap.add_argument(
+        "--out",
+        type=Path,
+        help="markdown file (default: bench/ACCURACY.md on a full run of everything, else none)",
+    )
     args = ap.parse_args()
     scenarios = args.scenarios.split(",")
     sources, levels = args.sources.split(","), args.levels.split(",")
@@ -313,26 +401,36 @@ def main() -> None:
                 for level in levels:
                     t1 = time.perf_counter()
                     rows += combo(work, scenario, source, level, frames, args.keep is not None)
-                    print(f"{scenario} {source} {level}: {frames} frames, "
-                          f"{time.perf_counter() - t1:.0f} s", file=sys.stderr, flush=True)
+                    print(
+                        f"{scenario} {source} {level}: {frames} frames, "
+                        f"{time.perf_counter() - t1:.0f} s",
+                        file=sys.stderr,
+                        flush=True,
+                    )
         paper = table_4_2(work) if args.paper else ""
     finally:
         if args.keep is None:
             shutil.rmtree(work, ignore_errors=True)
     md = table(rows)
     if paper:
-        md += ("\n### The paper's Table 4.2 (10 cm noise on the observations, §4.1)\n\n"
-               "`tagtrail simulate observations --noise-t 0.10` (observations only: the joint "
-               "method falls back to the pose graph; its trajectory is the per-frame fusion, "
-               "smoothed), anchored errors as the paper gives them, beside the paper's figures "
-               "(a different scene: magnitudes compare).\n\n" + paper)
+        md += (
+            "\n### The paper's Table 4.2 (10 cm noise on the observations, §4.1)\n\n"
+            "`tagtrail simulate observations --noise-t 0.10` (observations only: the joint "
+            "method falls back to the pose graph; its trajectory is the per-frame fusion, "
+            "smoothed), anchored errors as the paper gives them, beside the paper's figures "
+            "(a different scene: magnitudes compare).\n\n" + paper
+        )
     print(md)
-    full = (not args.quick and set(scenarios) == set(SCENARIOS) and len(sources) == 2
-            and len(levels) == 2)
+    full = (
+        not args.quick
+        and set(scenarios) == set(SCENARIOS)
+        and len(sources) == 2
+        and len(levels) == 2
+    )
     out = args.out or (REPO / "bench" / "ACCURACY.md" if full else None)
     if out is not None:
         old = out.read_text() if out.exists() else ""
-        tail = old[old.index(REALDATA_MARKER):] if REALDATA_MARKER in old else ""
+        tail = old[old.index(REALDATA_MARKER) :] if REALDATA_MARKER in old else ""
         out.write_text(
             "# Accuracy benchmark (issue 12)\n\n"
             f"Machine: {machine()}.\n"
@@ -342,7 +440,8 @@ def main() -> None:
             "Errors: gauge-free (after the best rigid fit of the map to ground truth, "
             "`tagtrail eval --json`), smoothed trajectory; `anch`: the anchored trajectory "
             "mean; `floor`: multi-tag PnP of every frame against the true tag map from the same "
-            "detections.\n\n" + md + "\n" + (f"\n{tail}" if tail else ""))
+            "detections.\n\n" + md + "\n" + (f"\n{tail}" if tail else "")
+        )
         print(f"wrote {out}", file=sys.stderr)
 
 

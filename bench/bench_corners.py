@@ -69,10 +69,17 @@ def measure(scenario: str, level: str, step: int, seed: int) -> dict[str, np.nda
     rng = np.random.default_rng(seed)
     frames = np.arange(0, len(scene.t_ns), step)
     cam_T_tags = scene.cam_T_tags()[frames]
-    vis = tag_visibility(scene.camera, cam_T_tags, scene.tag_sizes, max_range_m=20.0,
-                         max_incidence_deg=89.0, min_edge_px=0.0)
-    out: dict[str, list[Any]] = {k: [] for k in ("cell", "cos", "truth", "det", "fit", "rng",
-                                                 "tag")}
+    vis = tag_visibility(
+        scene.camera,
+        cam_T_tags,
+        scene.tag_sizes,
+        max_range_m=20.0,
+        max_incidence_deg=89.0,
+        min_edge_px=0.0,
+    )
+    out: dict[str, list[Any]] = {
+        k: [] for k in ("cell", "cos", "truth", "det", "fit", "rng", "tag")
+    }
     for k, i in enumerate(frames):
         gray = renderer.render(scene.scene_T_cam[i], rng)[..., 0].copy()
         ints, floats = detect(gray, cfg)  # the detector's corners (re-fit off), filtered
@@ -105,10 +112,13 @@ def systematic(off: np.ndarray, tags: np.ndarray) -> float:
 
 
 def table(res: dict[str, np.ndarray], title: str) -> str:
-    lines = [f"### {title}", "",
-             "| cell px | tags | det rms | fit rms | fit mean|e| | det out | fit out "
-             "| fit out/cell | fit sd(out) | fit sys(out) |",
-             "|---|---|---|---|---|---|---|---|---|---|"]
+    lines = [
+        f"### {title}",
+        "",
+        "| cell px | tags | det rms | fit rms | fit mean|e| | det out | fit out "
+        "| fit out/cell | fit sd(out) | fit sys(out) |",
+        "|---|---|---|---|---|---|---|---|---|---|",
+    ]
     cell = res["cell"]
     bins = [*zip(CELL_BINS[:-1], CELL_BINS[1:], strict=True), (0.0, np.inf)]
     for lo, hi in bins:
@@ -123,7 +133,8 @@ def table(res: dict[str, np.ndarray], title: str) -> str:
         lines.append(
             f"| {name} | {sel.sum()} | {rms[0]:.3f} | {rms[1]:.3f} | {bias:.3f} | "
             f"{od.mean():+.3f} | {of.mean():+.3f} | {(of / cell[sel, None]).mean():+.4f} | "
-            f"{of.std():.3f} | {systematic(of / cell[sel, None], res['tag'][sel]):.4f} |")
+            f"{of.std():.3f} | {systematic(of / cell[sel, None], res['tag'][sel]):.4f} |"
+        )
     return "\n".join(lines)
 
 
@@ -139,8 +150,13 @@ def main() -> None:
             t0 = time.perf_counter()
             res = measure(scenario, level, args.step, args.seed)
             r = LEVELS[level]
-            print(table(res, f"{scenario}, {level} (noise {r.noise_sigma:g} DN, blur "
-                             f"{r.blur_sigma:g} px), {time.perf_counter() - t0:.0f} s"))
+            print(
+                table(
+                    res,
+                    f"{scenario}, {level} (noise {r.noise_sigma:g} DN, blur "
+                    f"{r.blur_sigma:g} px), {time.perf_counter() - t0:.0f} s",
+                )
+            )
             print()
 
 

@@ -58,11 +58,19 @@ def write_bag(path: Path, files: list[Path], cam: CameraModel, compressed: bool)
         return Header(stamp=Time(sec=t // 10**9, nanosec=t % 10**9), frame_id="camera")
 
     info = ts.types[msgs.CAMERA_INFO](
-        header=hdr(T0), height=cam.height, width=cam.width, distortion_model=cam.distortion_model,
-        d=np.asarray(cam.D, float), k=cam.K.reshape(-1).copy(), r=np.eye(3).reshape(-1),
-        p=P.reshape(-1), binning_x=0, binning_y=0,
+        header=hdr(T0),
+        height=cam.height,
+        width=cam.width,
+        distortion_model=cam.distortion_model,
+        d=np.asarray(cam.D, float),
+        k=cam.K.reshape(-1).copy(),
+        r=np.eye(3).reshape(-1),
+        p=P.reshape(-1),
+        binning_x=0,
+        binning_y=0,
         roi=ts.types["sensor_msgs/msg/RegionOfInterest"](
-            x_offset=0, y_offset=0, height=0, width=0, do_rectify=False),
+            x_offset=0, y_offset=0, height=0, width=0, do_rectify=False
+        ),
     )
     with Writer(path, version=9, storage_plugin=StoragePlugin.MCAP) as w:
         ci = w.add_connection("/camera/camera_info", msgs.CAMERA_INFO, typestore=ts)
@@ -72,21 +80,30 @@ def write_bag(path: Path, files: list[Path], cam: CameraModel, compressed: bool)
         for k, f in enumerate(files):
             t = T0 + k * 33_333_333
             if compressed:
-                msg = ts.types[mtype](header=hdr(t), format="jpeg",
-                                      data=np.frombuffer(f.read_bytes(), np.uint8))
+                msg = ts.types[mtype](
+                    header=hdr(t), format="jpeg", data=np.frombuffer(f.read_bytes(), np.uint8)
+                )
             else:
                 rgb = np.ascontiguousarray(cv2.imread(str(f))[..., ::-1])
-                msg = ts.types[mtype](header=hdr(t), height=rgb.shape[0], width=rgb.shape[1],
-                                      encoding="rgb8", is_bigendian=0, step=rgb.shape[1] * 3,
-                                      data=rgb.reshape(-1))
+                msg = ts.types[mtype](
+                    header=hdr(t),
+                    height=rgb.shape[0],
+                    width=rgb.shape[1],
+                    encoding="rgb8",
+                    is_bigendian=0,
+                    step=rgb.shape[1] * 3,
+                    data=rgb.reshape(-1),
+                )
             w.write(im, t, ts.serialize_cdr(msg, mtype))
 
 
 def cpu_s() -> float:
     """CPU seconds (user + sys) of this process, its reaped children and its live children
     (extract keeps its worker processes for reuse; Linux /proc)."""
-    me, kids = resource.getrusage(resource.RUSAGE_SELF), resource.getrusage(
-        resource.RUSAGE_CHILDREN)
+    me, kids = (
+        resource.getrusage(resource.RUSAGE_SELF),
+        resource.getrusage(resource.RUSAGE_CHILDREN),
+    )
     total = me.ru_utime + me.ru_stime + kids.ru_utime + kids.ru_stime
     tick = os.sysconf("SC_CLK_TCK")
     for stat in Path("/proc").glob("[0-9]*/stat"):
@@ -100,7 +117,10 @@ def cpu_s() -> float:
 
 
 def bare_fps(
-    frames: list[Any], cfg: DetectorConfig, repeats: int, decode: Any = None,
+    frames: list[Any],
+    cfg: DetectorConfig,
+    repeats: int,
+    decode: Any = None,
     refit: CameraModel | None = None,
 ) -> tuple[float, float]:
     """(frames/s, CPU ms/frame) of a plain loop over the frames (``decode``d first if given);
@@ -149,42 +169,52 @@ def main() -> None:
     cam = read_camera_file(folder / "camera.yaml")
     cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count()
     cfg = extract.Params().detector()
-    print(f"{len(files)} frames 640x480 (real photos), {cores} cores, "
-          f"load average {os.getloadavg()[0]:.1f}, median of {args.repeats}"
-          f"{', cold workers' if args.cold else ''}")
+    print(
+        f"{len(files)} frames 640x480 (real photos), {cores} cores, "
+        f"load average {os.getloadavg()[0]:.1f}, median of {args.repeats}"
+        f"{', cold workers' if args.cold else ''}"
+    )
     with tempfile.TemporaryDirectory() as tmp:
         for compressed in (True, False):
             kind = "CompressedImage jpeg" if compressed else "Image rgb8"
             bag = Path(tmp) / ("jpeg" if compressed else "rgb8")
             write_bag(bag, files, cam, compressed)
-            frames = [cv2.imread(str(f), cv2.IMREAD_GRAYSCALE) if compressed
-                      else cv2.cvtColor(cv2.imread(str(f)), cv2.COLOR_BGR2GRAY) for f in files]
+            frames = [
+                cv2.imread(str(f), cv2.IMREAD_GRAYSCALE)
+                if compressed
+                else cv2.cvtColor(cv2.imread(str(f)), cv2.COLOR_BGR2GRAY)
+                for f in files
+            ]
             (bare, bare_cpu) = bare_fps(frames, cfg, args.repeats)
             (bare_fit, bare_fit_cpu) = bare_fps(frames, cfg, args.repeats, refit=cam)
             if compressed:
                 encoded = [np.frombuffer(f.read_bytes(), np.uint8) for f in files]
-                (dec, dec_cpu) = bare_fps(encoded, cfg, args.repeats,
-                                          lambda b: cv2.imdecode(b, cv2.IMREAD_GRAYSCALE))
+                (dec, dec_cpu) = bare_fps(
+                    encoded, cfg, args.repeats, lambda b: cv2.imdecode(b, cv2.IMREAD_GRAYSCALE)
+                )
             else:
                 encoded = [np.ascontiguousarray(cv2.imread(str(f))[..., ::-1]) for f in files]
-                (dec, dec_cpu) = bare_fps(encoded, cfg, args.repeats,
-                                          lambda b: cv2.cvtColor(b, cv2.COLOR_RGB2GRAY))
+                (dec, dec_cpu) = bare_fps(
+                    encoded, cfg, args.repeats, lambda b: cv2.cvtColor(b, cv2.COLOR_RGB2GRAY)
+                )
             (one, one_cpu) = extract_fps(bag, 1, args.repeats, args.cold)
             (many, many_cpu) = extract_fps(bag, 0, args.repeats, args.cold)
             (plain, plain_cpu) = extract_fps(bag, 0, args.repeats, args.cold, refit=False)
-            print(f"{kind}:\n"
-                  f"  bare loop (1 process, pre-decoded) {bare:6.1f} frames/s  "
-                  f"CPU {bare_cpu:.2f} ms/frame\n"
-                  f"  bare loop incl. decoding          {dec:6.1f} frames/s  "
-                  f"CPU {dec_cpu:.2f} ms/frame\n"
-                  f"  bare loop + corner re-fit          {bare_fit:6.1f} frames/s  "
-                  f"CPU {bare_fit_cpu:.2f} ms/frame\n"
-                  f"  extract workers=1 {one:6.1f} frames/s ({one / bare_fit:.2f}x the loop with "
-                  f"re-fit)  CPU {one_cpu:.2f} ms/frame\n"
-                  f"  extract workers={cores} {many:6.1f} frames/s ({many / bare_fit:.2f}x the "
-                  f"loop with re-fit, {many / bare:.2f}x without)  CPU {many_cpu:.2f} ms/frame\n"
-                  f"  extract workers={cores}, no re-fit {plain:6.1f} frames/s "
-                  f"({plain / bare:.2f}x)  CPU {plain_cpu:.2f} ms/frame")
+            print(
+                f"{kind}:\n"
+                f"  bare loop (1 process, pre-decoded) {bare:6.1f} frames/s  "
+                f"CPU {bare_cpu:.2f} ms/frame\n"
+                f"  bare loop incl. decoding          {dec:6.1f} frames/s  "
+                f"CPU {dec_cpu:.2f} ms/frame\n"
+                f"  bare loop + corner re-fit          {bare_fit:6.1f} frames/s  "
+                f"CPU {bare_fit_cpu:.2f} ms/frame\n"
+                f"  extract workers=1 {one:6.1f} frames/s ({one / bare_fit:.2f}x the loop with "
+                f"re-fit)  CPU {one_cpu:.2f} ms/frame\n"
+                f"  extract workers={cores} {many:6.1f} frames/s ({many / bare_fit:.2f}x the "
+                f"loop with re-fit, {many / bare:.2f}x without)  CPU {many_cpu:.2f} ms/frame\n"
+                f"  extract workers={cores}, no re-fit {plain:6.1f} frames/s "
+                f"({plain / bare:.2f}x)  CPU {plain_cpu:.2f} ms/frame"
+            )
 
 
 if __name__ == "__main__":

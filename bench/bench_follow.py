@@ -45,34 +45,47 @@ def main() -> None:
             inputs = "images" if images else "detections"
             lat = s[f"latency_{inputs}_to_twist_ms"]
             skipped = s["nodes"]["localize"]["stats"]["dropped"].get("skipped", 0)
-            row = {"input": inputs, "skipped": skipped,
-                   "blackout_s": blackout, "seed": seed, "converged_s": s["converged_s"],
-                   "rms_cm": s["cross_track_rms_m"] * 100, "max_cm": s["cross_track_max_m"] * 100,
-                   "crossing_max_cm": s["crossing"]["max_m"] * 100,
-                   "completed": s["completed"], "duration_s": s["duration_s"],
-                   "lat_p50_ms": lat["p50"], "lat_p99_ms": lat["p99"], "lat_n": lat["n"]}
+            row = {
+                "input": inputs,
+                "skipped": skipped,
+                "blackout_s": blackout,
+                "seed": seed,
+                "converged_s": s["converged_s"],
+                "rms_cm": s["cross_track_rms_m"] * 100,
+                "max_cm": s["cross_track_max_m"] * 100,
+                "crossing_max_cm": s["crossing"]["max_m"] * 100,
+                "completed": s["completed"],
+                "duration_s": s["duration_s"],
+                "lat_p50_ms": lat["p50"],
+                "lat_p99_ms": lat["p99"],
+                "lat_n": lat["n"],
+            }
             print(json.dumps(row), flush=True)
             rows.append(row)
     if a.write:
         load = os.getloadavg()[0]
         lines = [
-            "# Closed-loop following (bench/bench_follow.py)", "",
+            "# Closed-loop following (bench/bench_follow.py)",
+            "",
             f"{dt.date.today()}, load {load:.1f} on {os.cpu_count()} cores. Figure eight "
             "(9.08 m, self-crossing), start 0.3 m / 30 deg off, 0.3 m/s, Stanley, LIMO "
             "profile; detections with 0.3 px corner noise. Cross-track = true (ground truth) "
             "after 5 s; latency = detections (or a rendered 640x480 rgb8 image) published -> "
             "Twist received (3 node hops: localize, relocalize, follow). Images: localize "
-            "detects the tags and skips frames that arrive while it is busy.", "",
+            "detects the tags and skips frames that arrive while it is busy.",
+            "",
             "| input | blackout s | seed | converged s | RMS cm | max cm | crossing max cm | "
             "completed | duration s | latency p50 ms | p99 ms | frames skipped by localize |",
             "|---|---|---|---|---|---|---|---|---|---|---|---|",
         ]
         for r in rows:
-            lines.append(f"| {r['input']} | {r['blackout_s']:g} | {r['seed']} | "
-                         f"{r['converged_s']:.2f} | "
-                         f"{r['rms_cm']:.2f} | {r['max_cm']:.2f} | {r['crossing_max_cm']:.2f} | "
-                         f"{r['completed']} | {r['duration_s']:.1f} | {r['lat_p50_ms']:.1f} | "
-                         f"{r['lat_p99_ms']:.1f} | {r['skipped']} |")
+            lines.append(
+                f"| {r['input']} | {r['blackout_s']:g} | {r['seed']} | "
+                f"{r['converged_s']:.2f} | "
+                f"{r['rms_cm']:.2f} | {r['max_cm']:.2f} | {r['crossing_max_cm']:.2f} | "
+                f"{r['completed']} | {r['duration_s']:.1f} | {r['lat_p50_ms']:.1f} | "
+                f"{r['lat_p99_ms']:.1f} | {r['skipped']} |"
+            )
         (ROOT / "bench" / "FOLLOW.md").write_text("\n".join(lines) + "\n", encoding="utf-8")
 
 

@@ -40,8 +40,9 @@ SIZES = ((50, 20_000), (200, 80_000), (500, 200_000))
 F_SCALE = 0.1
 
 
-def make_graph(n_tags: int, n_edges: int, seed: int = 0) -> tuple[PoseGraph, np.ndarray,
-                                                                  np.ndarray]:
+def make_graph(
+    n_tags: int, n_edges: int, seed: int = 0
+) -> tuple[PoseGraph, np.ndarray, np.ndarray]:
     """The graph and its ground truth ``anchor_T_tag`` as ``R (n, 3, 3)``, ``t (n, 3)``
     (anchor = tag 0; the same scene as bench_optimize.graph)."""
     rng = np.random.default_rng(seed)
@@ -61,20 +62,21 @@ def make_graph(n_tags: int, n_edges: int, seed: int = 0) -> tuple[PoseGraph, np.
     axis *= np.deg2rad(30) / np.linalg.norm(axis, axis=1, keepdims=True)
     R_obs[bad] = R_obs[bad] @ R_from_rotvec(axis)
     t_obs[bad] += rng.normal(scale=0.3, size=(bad.sum(), 3))
-    g = PoseGraph(n_tags, 0, i.astype(np.int64), j.astype(np.int64), R_obs, t_obs,
-                  np.ones(n_edges))  # fmt: skip
+    g = PoseGraph(n_tags, 0, i.astype(np.int64), j.astype(np.int64), R_obs, t_obs, np.ones(n_edges))
     return g, R, t
 
 
-def map_error(R: np.ndarray, t: np.ndarray, R_gt: np.ndarray, t_gt: np.ndarray) -> tuple[float,
-                                                                                          float]:
+def map_error(
+    R: np.ndarray, t: np.ndarray, R_gt: np.ndarray, t_gt: np.ndarray
+) -> tuple[float, float]:
     """Mean position error (m) and mean rotation error (deg) over the non-anchor tags."""
-    return (float(np.linalg.norm(t - t_gt, axis=1)[1:].mean()),
-            float(np.rad2deg(geodesic_angle(R, R_gt))[1:].mean()))  # fmt: skip
+    return (
+        float(np.linalg.norm(t - t_gt, axis=1)[1:].mean()),
+        float(np.rad2deg(geodesic_angle(R, R_gt))[1:].mean()),
+    )
 
 
-def run_gtsam(g: PoseGraph, k: float = F_SCALE) -> tuple[np.ndarray, np.ndarray, float, float,
-                                                         int]:
+def run_gtsam(g: PoseGraph, k: float = F_SCALE) -> tuple[np.ndarray, np.ndarray, float, float, int]:
     """GTSAM's LM from the spanning-tree guess: ``R, t``, total s, LM-only s, iterations."""
     try:
         import gtsam
@@ -84,10 +86,10 @@ def run_gtsam(g: PoseGraph, k: float = F_SCALE) -> tuple[np.ndarray, np.ndarray,
     t0 = time.perf_counter()
     R0, t0_ = initial_guess(g)
     graph = gtsam.NonlinearFactorGraph()
-    noise = gtsam.noiseModel.Robust.Create(gtsam.noiseModel.mEstimator.Huber.Create(k),
-                                           gtsam.noiseModel.Isotropic.Sigma(6, 1.0))
-    for a, b, R_ab, t_ab in zip(g.idx_i.tolist(), g.idx_j.tolist(), g.R_obs, g.t_obs,
-                                strict=True):  # fmt: skip
+    noise = gtsam.noiseModel.Robust.Create(
+        gtsam.noiseModel.mEstimator.Huber.Create(k), gtsam.noiseModel.Isotropic.Sigma(6, 1.0)
+    )
+    for a, b, R_ab, t_ab in zip(g.idx_i.tolist(), g.idx_j.tolist(), g.R_obs, g.t_obs, strict=True):
         graph.add(gtsam.BetweenFactorPose3(a, b, gtsam.Pose3(gtsam.Rot3(R_ab), t_ab), noise))
     graph.add(gtsam.PriorFactorPose3(g.anchor, gtsam.Pose3(), gtsam.noiseModel.Constrained.All(6)))
     values = gtsam.Values()
@@ -151,10 +153,21 @@ def compare(n_tags: int, n_edges: int, repeats: int = 3) -> Comparison:
     assert ours is not None and gt is not None
     huber = solve(g, loss="huber", f_scale=F_SCALE)
     e_ours, e_gt = map_error(ours.R, ours.t, R_gt, t_gt), map_error(*gt, R_gt, t_gt)
-    return Comparison(n_tags, n_edges, repeats, statistics.median(ours_s),
-                      statistics.median(gt_s), statistics.median(gt_lm), e_ours[0], e_gt[0],
-                      e_ours[1], e_gt[1], map_error(huber.R, huber.t, R_gt, t_gt)[0], ours.nfev,
-                      iters)  # fmt: skip
+    return Comparison(
+        n_tags,
+        n_edges,
+        repeats,
+        statistics.median(ours_s),
+        statistics.median(gt_s),
+        statistics.median(gt_lm),
+        e_ours[0],
+        e_gt[0],
+        e_ours[1],
+        e_gt[1],
+        map_error(huber.R, huber.t, R_gt, t_gt)[0],
+        ours.nfev,
+        iters,
+    )
 
 
 def main() -> None:
@@ -163,12 +176,15 @@ def main() -> None:
     args = ap.parse_args()
     for n, e in SIZES:
         c = compare(n, e, args.repeats)
-        print(f"{n} tags / {e:,} edges (median of {c.repeats}): tagtrail {c.ours_s:.3f} s "
-              f"({c.nfev} evaluations), GTSAM {c.gtsam_s:.3f} s (LM alone {c.gtsam_lm_s:.3f} s, "
-              f"{c.gtsam_iters} iterations) -> time {c.time_ratio:.2f}x; mean position error "
-              f"{c.ours_err_m * 1e3:.3f} vs {c.gtsam_err_m * 1e3:.3f} mm -> {c.error_ratio:.3f}x "
-              f"(same Huber kernel: {c.same_kernel_error_ratio:.3f}x); rotation "
-              f"{c.ours_err_deg:.4f} vs {c.gtsam_err_deg:.4f} deg", flush=True)
+        print(
+            f"{n} tags / {e:,} edges (median of {c.repeats}): tagtrail {c.ours_s:.3f} s "
+            f"({c.nfev} evaluations), GTSAM {c.gtsam_s:.3f} s (LM alone {c.gtsam_lm_s:.3f} s, "
+            f"{c.gtsam_iters} iterations) -> time {c.time_ratio:.2f}x; mean position error "
+            f"{c.ours_err_m * 1e3:.3f} vs {c.gtsam_err_m * 1e3:.3f} mm -> {c.error_ratio:.3f}x "
+            f"(same Huber kernel: {c.same_kernel_error_ratio:.3f}x); rotation "
+            f"{c.ours_err_deg:.4f} vs {c.gtsam_err_deg:.4f} deg",
+            flush=True,
+        )
 
 
 if __name__ == "__main__":

@@ -49,20 +49,22 @@ MARGINS = (20.0, 0.0)
 
 def checkerboards() -> bench_recall.Set:
     files = sorted((REALDATA / "swatbotics_mapping_feb_2014" / "calibration").glob("*.JPG"))
-    return bench_recall.Set([bench_recall._gray(f) for f in files], None,
-                            lambda _k, tag, _c: tag not in range(20))
+    return bench_recall.Set(
+        [bench_recall._gray(f) for f in files], None, lambda _k, tag, _c: tag not in range(20)
+    )
 
 
 def noise(n: int = 30, seed: int = 1) -> bench_recall.Set:
     rng = np.random.default_rng(seed)
     ramp = np.linspace(60, 190, 640)[None, :].repeat(480, axis=0)
-    frames = [np.clip(ramp + rng.normal(0, 12 + 4 * (k % 5), ramp.shape), 0, 255)
-              .astype(np.uint8) for k in range(n)]
+    frames = [
+        np.clip(ramp + rng.normal(0, 12 + 4 * (k % 5), ramp.shape), 0, 255).astype(np.uint8)
+        for k in range(n)
+    ]
     return bench_recall.Set(frames, [set() for _ in frames], lambda _k, _t, _c: True)
 
 
-def fake_tags(n: int = 100, per_frame: int = 40, real: int = 4, seed: int = 2
-              ) -> bench_recall.Set:
+def fake_tags(n: int = 100, per_frame: int = 40, real: int = 4, seed: int = 2) -> bench_recall.Set:
     """Tag-like squares with random 6x6 payloads (module docstring), and ``real`` true tags per
     frame drawn the same way (the control: the quads are found and decoded)."""
     from tagtrail.sim.render import tag_bits
@@ -88,8 +90,9 @@ def fake_tags(n: int = 100, per_frame: int = 40, real: int = 4, seed: int = 2
             rot = np.array([[np.cos(a), -np.sin(a)], [np.sin(a), np.cos(a)]])
             dst = np.float32(sq @ rot.T + c + rng.normal(0, side * 0.04, (4, 2)))
             H = cv2.getPerspectiveTransform(src, dst)
-            warped = cv2.warpPerspective(patch, H, (1280, 720), flags=cv2.INTER_LINEAR,
-                                         borderValue=-1)
+            warped = cv2.warpPerspective(
+                patch, H, (1280, 720), flags=cv2.INTER_LINEAR, borderValue=-1
+            )
             img = np.where(warped >= 0, warped, img)
         img = cv2.GaussianBlur(img, (0, 0), 0.8) + rng.normal(0, 3, img.shape)
         frames.append(np.clip(img, 0, 255).astype(np.uint8))
@@ -97,8 +100,12 @@ def fake_tags(n: int = 100, per_frame: int = 40, real: int = 4, seed: int = 2
     return bench_recall.Set(frames, present, lambda k, tag, _c: tag not in present[k])
 
 
-IMAGE_SETS = {**bench_recall.SETS, "checkerboards": checkerboards, "noise": noise,
-              "fake_tags": fake_tags}
+IMAGE_SETS = {
+    **bench_recall.SETS,
+    "checkerboards": checkerboards,
+    "noise": noise,
+    "fake_tags": fake_tags,
+}
 
 
 def _detect_all(frames: list[np.ndarray]) -> dict[tuple[int, float], list[tuple[Any, Any]]]:
@@ -118,8 +125,11 @@ def images(names: list[str]) -> None:
     ctx = mp.get_context("forkserver")
     pool = ctx.Pool(1)
     try:
-        print(f"{'set':13} {'margin':>6} " + " ".join(f"{'h' + str(h) + ' hit/false':>14}"
-                                                      for h in HAMMING) + f" {'present':>7}")
+        print(
+            f"{'set':13} {'margin':>6} "
+            + " ".join(f"{'h' + str(h) + ' hit/false':>14}" for h in HAMMING)
+            + f" {'present':>7}"
+        )
         for name in names:
             data = IMAGE_SETS[name]()
             res = pool.apply(_detect_all, (data.frames,))
@@ -129,11 +139,15 @@ def images(names: list[str]) -> None:
                 cells = []
                 for h in HAMMING:
                     dets = res[(h, m)]
-                    false = sum(data.is_false(k, int(t), f[1:].reshape(4, 2))
-                                for k, (ints, floats) in enumerate(dets)
-                                for t, f in zip(ints[:, 0], floats, strict=True))
-                    hits = sum(len(set(ints[:, 0].tolist()) & r)
-                               for (ints, _), r in zip(dets, ref, strict=True))
+                    false = sum(
+                        data.is_false(k, int(t), f[1:].reshape(4, 2))
+                        for k, (ints, floats) in enumerate(dets)
+                        for t, f in zip(ints[:, 0], floats, strict=True)
+                    )
+                    hits = sum(
+                        len(set(ints[:, 0].tolist()) & r)
+                        for (ints, _), r in zip(dets, ref, strict=True)
+                    )
                     cells.append(f"{hits:>8d}/{false:<5d}")
                 print(f"{name:13} {m:6g} " + " ".join(cells) + f" {present:7d}")
     finally:
@@ -147,17 +161,22 @@ def _tagslam_cams(bag: Path, root: Path) -> dict[int, np.ndarray]:
     from tagtrail.geometry.se3 import R_from_rotvec, T_from_xyz_quat, make_T
 
     cam = yaml.safe_load((root / "camera_poses.yaml").read_text())["cam0"]["pose"]
-    rig_T_cam = make_T(R_from_rotvec([cam["rotation"][k] for k in "xyz"]),
-                       [cam["position"][k] for k in "xyz"])
+    rig_T_cam = make_T(
+        R_from_rotvec([cam["rotation"][k] for k in "xyz"]), [cam["position"][k] for k in "xyz"]
+    )
     out = {}
     with AnyReader([bag]) as reader:
         conns = [c for c in reader.connections if c.msgtype == "nav_msgs/msg/Odometry"]
         for conn, _, raw in reader.messages(connections=conns):
             msg = reader.deserialize(raw, conn.msgtype)
             p = msg.pose.pose
-            T = T_from_xyz_quat([p.position.x, p.position.y, p.position.z],
-                                [p.orientation.x, p.orientation.y, p.orientation.z,
-                                 p.orientation.w]) @ rig_T_cam
+            T = (
+                T_from_xyz_quat(
+                    [p.position.x, p.position.y, p.position.z],
+                    [p.orientation.x, p.orientation.y, p.orientation.z, p.orientation.w],
+                )
+                @ rig_T_cam
+            )
             out[msg.header.stamp.sec * 10**9 + msg.header.stamp.nanosec] = T[:3, 3]
     return out
 
@@ -168,8 +187,10 @@ def tagslam() -> None:
     from tagtrail.runner.spec import load_pipeline
     from tagtrail.stages import REGISTRY
 
-    print(f"\n{'recording':12} {'hamming 0/1/2':>15} {'max_hamming':>11} {'frames':>9} "
-          f"{'vs TagSLAM mean mm':>18} {'p95 mm':>7}")
+    print(
+        f"\n{'recording':12} {'hamming 0/1/2':>15} {'max_hamming':>11} {'frames':>9} "
+        f"{'vs TagSLAM mean mm':>18} {'p95 mm':>7}"
+    )
     for test, size in (("1", 0.225), ("16", 0.16)):
         root = REALDATA / f"tagslam_test_{test}"
         with tempfile.TemporaryDirectory() as tmp:
@@ -178,10 +199,19 @@ def tagslam() -> None:
             ref.write_bytes(bz2.decompress((root / "reference.bag.bz2").read_bytes()))
             ref_cams = _tagslam_cams(ref, root)
             for h in (0, 2):
-                (Path(tmp) / "pipeline.yaml").write_text(yaml.safe_dump({
-                    "datasets": {"reference": {"source": str(bag),
-                                               "camera": str(root / "cameras.yaml")}},
-                    "stages": {"pnp": {"tag_size": size}, "extract": {"max_hamming": h}}}))
+                (Path(tmp) / "pipeline.yaml").write_text(
+                    yaml.safe_dump(
+                        {
+                            "datasets": {
+                                "reference": {
+                                    "source": str(bag),
+                                    "camera": str(root / "cameras.yaml"),
+                                }
+                            },
+                            "stages": {"pnp": {"tag_size": size}, "extract": {"max_hamming": h}},
+                        }
+                    )
+                )
                 runner = Runner(load_pipeline(Path(tmp) / "pipeline.yaml", REGISTRY))
                 runner.run(["smooth"])
                 keys = {s.stage: s.key for s in runner.plan(["smooth"])}
@@ -193,8 +223,10 @@ def tagslam() -> None:
                 q = np.array([ref_cams[int(traj["t_ns"].iloc[k])] for k in common])
                 s, R, t = umeyama(p, q, with_scale=False)
                 err = np.linalg.norm(p @ R.T + t - q, axis=1) * 1e3
-                print(f"test {test:7} {hist:>15} {h:11d} {len(common):4d}/{len(ref_cams):<4d} "
-                      f"{err.mean():18.1f} {np.percentile(err, 95):7.1f}")
+                print(
+                    f"test {test:7} {hist:>15} {h:11d} {len(common):4d}/{len(ref_cams):<4d} "
+                    f"{err.mean():18.1f} {np.percentile(err, 95):7.1f}"
+                )
 
 
 def main() -> None:
@@ -203,8 +235,10 @@ def main() -> None:
     names = ap.parse_args().sets.split(",")
     image_names = [n for n in names if n in IMAGE_SETS]
     if image_names:
-        print("image sets: tags found / false detections per max_hamming (h0..h3), at "
-              "min_decision_margin 20 (default) and 0")
+        print(
+            "image sets: tags found / false detections per max_hamming (h0..h3), at "
+            "min_decision_margin 20 (default) and 0"
+        )
         images(image_names)
     if "tagslam" in names:
         tagslam()

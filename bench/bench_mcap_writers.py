@@ -62,13 +62,19 @@ def read(path: Path) -> Content:
         head = r.get_header()
         summary = r.get_summary()
         assert summary is not None
-        schemas = {c.topic: (summary.schemas[c.schema_id].name,
-                             summary.schemas[c.schema_id].encoding,
-                             bytes(summary.schemas[c.schema_id].data))
-                   for c in summary.channels.values()}  # fmt: skip
+        schemas = {
+            c.topic: (
+                summary.schemas[c.schema_id].name,
+                summary.schemas[c.schema_id].encoding,
+                bytes(summary.schemas[c.schema_id].data),
+            )
+            for c in summary.channels.values()
+        }
         meta = {c.topic: dict(c.metadata) for c in summary.channels.values()}
-        msgs = [Msg(ch.topic, m.log_time, m.publish_time, m.sequence, bytes(m.data))
-                for _, ch, m, _ in r.iter_decoded_messages(log_time_order=True)]  # fmt: skip
+        msgs = [
+            Msg(ch.topic, m.log_time, m.publish_time, m.sequence, bytes(m.data))
+            for _, ch, m, _ in r.iter_decoded_messages(log_time_order=True)
+        ]
     return Content(head.profile, head.library, schemas, meta, msgs)
 
 
@@ -97,11 +103,17 @@ def write_mcap_lib(c: Content, out: Path) -> None:
         for topic, (name, enc, data) in c.schemas.items():
             if name not in sid:
                 sid[name] = w.register_schema(name=name, encoding=enc, data=data)
-            cid[topic] = w.register_channel(topic=topic, message_encoding="cdr",
-                                            schema_id=sid[name], metadata=c.metadata[topic])
+            cid[topic] = w.register_channel(
+                topic=topic, message_encoding="cdr", schema_id=sid[name], metadata=c.metadata[topic]
+            )
         for m in c.messages:
-            w.add_message(channel_id=cid[m.topic], log_time=m.log_time,
-                          publish_time=m.publish_time, sequence=m.sequence, data=m.data)
+            w.add_message(
+                channel_id=cid[m.topic],
+                log_time=m.log_time,
+                publish_time=m.publish_time,
+                sequence=m.sequence,
+                data=m.data,
+            )
         w.finish()
 
 
@@ -111,13 +123,18 @@ def write_sdk(c: Content, out: Path) -> None:
     from foxglove.mcap import MCAPWriteOptions
 
     ctx = foxglove.Context()
-    with foxglove.open_mcap(out, context=ctx, allow_overwrite=True,
-                            writer_options=MCAPWriteOptions(profile="ros2")):  # fmt: skip
+    with foxglove.open_mcap(
+        out, context=ctx, allow_overwrite=True, writer_options=MCAPWriteOptions(profile="ros2")
+    ):
         ch: dict[str, Any] = {}
         for topic, (name, enc, data) in c.schemas.items():
             ch[topic] = foxglove.Channel(
-                topic, schema=foxglove.Schema(name=name, encoding=enc, data=data),
-                message_encoding="cdr", metadata=c.metadata[topic], context=ctx)
+                topic,
+                schema=foxglove.Schema(name=name, encoding=enc, data=data),
+                message_encoding="cdr",
+                metadata=c.metadata[topic],
+                context=ctx,
+            )
         for m in c.messages:
             ch[m.topic].log(m.data, log_time=m.log_time)
         for x in ch.values():
@@ -157,22 +174,35 @@ def main() -> None:
     a = p.parse_args()
     with tempfile.TemporaryDirectory(prefix="bench_mcap_") as d:
         root = Path(d)
-        simulate("room", root / "bags", frames=a.frames, query_frames=max(5, a.frames // 4),
-                 detections=a.detections)  # fmt: skip
+        simulate(
+            "room",
+            root / "bags",
+            frames=a.frames,
+            query_frames=max(5, a.frames // 4),
+            detections=a.detections,
+        )
         (root / "pipeline.yaml").write_text(PIPELINE)
         pipe = str(root / "pipeline.yaml")
         assert tagtrail.cli.main(["run", "-p", pipe]) == 0
         exported = root / "query_1.mcap"
         t0 = time.perf_counter()
-        assert tagtrail.cli.main(["export-mcap", "-p", pipe, "--dataset", "query_1", "-o",
-                                  str(exported)]) == 0  # fmt: skip
+        assert (
+            tagtrail.cli.main(
+                ["export-mcap", "-p", pipe, "--dataset", "query_1", "-o", str(exported)]
+            )
+            == 0
+        )
         t_export = time.perf_counter() - t0
         content = read(exported)
         n, payload = len(content.messages), sum(len(m.data) for m in content.messages)
-        print(f"\n{n} messages on {len(content.schemas)} topics, {payload / 1e6:.2f} MB of CDR; "
-              f"the whole export-mcap command: {t_export:.2f} s")
-        writers = {"mcap library (export-mcap)": write_mcap_lib,
-                   "foxglove-sdk open_mcap": write_sdk}  # fmt: skip
+        print(
+            f"\n{n} messages on {len(content.schemas)} topics, {payload / 1e6:.2f} MB of CDR; "
+            f"the whole export-mcap command: {t_export:.2f} s"
+        )
+        writers = {
+            "mcap library (export-mcap)": write_mcap_lib,
+            "foxglove-sdk open_mcap": write_sdk,
+        }
         times: dict[str, list[float]] = {name: [] for name in writers}
         for _ in range(a.repeats):  # interleaved: both writers see the same machine load
             for name, fn in writers.items():
@@ -186,12 +216,15 @@ def main() -> None:
             out = root / f"{fn.__name__}.mcap"
             got = read(out)
             bags = rosbags_read(out)
-            ok_bags = sorted(bags) == sorted((m.topic, m.log_time, m.data)
-                                             for m in content.messages)  # fmt: skip
+            ok_bags = sorted(bags) == sorted(
+                (m.topic, m.log_time, m.data) for m in content.messages
+            )
             diffs = compare(content, got) + ([] if ok_bags else ["rosbags reads other messages"])
-            print(f"{name:<26}{statistics.median(times[name]) * 1e3:>10.1f}"
-                  f"{out.stat().st_size / 1e6:>10.3f}  mcap+mcap_ros2 and rosbags decode all; "
-                  f"{'; '.join(diffs) or 'identical content'} (library {got.library!r})")
+            print(
+                f"{name:<26}{statistics.median(times[name]) * 1e3:>10.1f}"
+                f"{out.stat().st_size / 1e6:>10.3f}  mcap+mcap_ros2 and rosbags decode all; "
+                f"{'; '.join(diffs) or 'identical content'} (library {got.library!r})"
+            )
 
 
 if __name__ == "__main__":

@@ -40,8 +40,11 @@ def graph(n_tags: int, n_edges: int, seed: int = 0) -> tuple[pd.DataFrame, TagGr
     g, R, t = make_graph(n_tags, n_edges, seed)  # the scene bench_gtsam compares on
     i, j, R_obs, t_obs = g.idx_i, g.idx_j, g.R_obs, g.t_obs
     edges = pd.DataFrame(
-        {"t_ns": np.arange(n_edges, dtype=np.int64), "tag_i": i.astype(np.int32),
-         "tag_j": j.astype(np.int32)}
+        {
+            "t_ns": np.arange(n_edges, dtype=np.int64),
+            "tag_i": i.astype(np.int32),
+            "tag_j": j.astype(np.int32),
+        }
     )
     edges[POSE] = np.concatenate([t_obs, quat_xyzw_from_R(R_obs)], axis=1)
     edges["weight"] = 1.0
@@ -69,12 +72,16 @@ def main() -> None:
     dt, _ = pose_error(T, truth[tm["tag_id"].to_numpy()])
     med = statistics.median(times)
     rep = out["report"]
-    print(f"optimize {len(g['tags'])} tags / {len(edges)} edges: median {med:.3f} s over "
-          f"{args.repeats} runs (min {min(times):.3f}, max {max(times):.3f}); "
-          f"target {TARGET_S:.1f} s -> ratio {med / TARGET_S:.2f}")
-    print(f"  nfev {rep['nfev']}, status {rep['status']}, mean tag position error "
-          f"{dt.mean() * 1000:.2f} mm (max {dt.max() * 1000:.2f} mm); "
-          f"OPENBLAS_NUM_THREADS={os.environ.get('OPENBLAS_NUM_THREADS', 'unset')}")
+    print(
+        f"optimize {len(g['tags'])} tags / {len(edges)} edges: median {med:.3f} s over "
+        f"{args.repeats} runs (min {min(times):.3f}, max {max(times):.3f}); "
+        f"target {TARGET_S:.1f} s -> ratio {med / TARGET_S:.2f}"
+    )
+    print(
+        f"  nfev {rep['nfev']}, status {rep['status']}, mean tag position error "
+        f"{dt.mean() * 1000:.2f} mm (max {dt.max() * 1000:.2f} mm); "
+        f"OPENBLAS_NUM_THREADS={os.environ.get('OPENBLAS_NUM_THREADS', 'unset')}"
+    )
 
 
 if __name__ == "__main__":

@@ -88,18 +88,21 @@ def run_map(project: Path, method: str, anchor: int | None = None) -> tuple[Any,
     return out[0], out[1], str(out[2]["method"])
 
 
-def eval_distances(project: Path, csv: Path, method: str, anchor: int | None = None
-                   ) -> dict[str, Any]:
+def eval_distances(
+    project: Path, csv: Path, method: str, anchor: int | None = None
+) -> dict[str, Any]:
     """``tagtrail eval --json --distances csv``'s distances block for the run with ``method``."""
-    doc = json.loads(tagtrail("eval", "--json", "--distances", str(csv), *sets(method, anchor),
-                              cwd=project))
+    doc = json.loads(
+        tagtrail("eval", "--json", "--distances", str(csv), *sets(method, anchor), cwd=project)
+    )
     dist: dict[str, Any] = doc["distances"]
     return dist
 
 
 def write_csv(path: Path, rows: list[tuple[int, int, float]]) -> Path:
-    path.write_text("source_tag,target_tag,measured_m\n"
-                    + "".join(f"{a},{b},{m!r}\n" for a, b, m in rows))
+    path.write_text(
+        "source_tag,target_tag,measured_m\n" + "".join(f"{a},{b},{m!r}\n" for a, b, m in rows)
+    )
     return path
 
 
@@ -107,15 +110,25 @@ def num(v: float | None, digits: int = 3) -> str:
     return "–" if v is None else f"{v:.{digits}f}"
 
 
-def table_a1(pairs: dict[str, dict[tuple[int, int], dict[str, Any]]], label: str,
-             shared: bool = True) -> list[str]:
+def table_a1(
+    pairs: dict[str, dict[tuple[int, int], dict[str, Any]]], label: str, shared: bool = True
+) -> list[str]:
     """Table A.1 side by side for both methods: one row per pair, then mean/max/min. ``shared``:
     one "measured" column (else each method has its own, from its own reference map)."""
+
     def group(m: str) -> list[str]:
-        return ([] if shared else [f"{m} {label} (m)"]) + [f"{m} est (m)", f"{m} abs err (m)",
-                                                          f"{m} rel err (%)"]
-    cols = ["source", "target", *([f"{label} (m)"] if shared else []),
-            *(c for m in METHODS for c in group(m))]
+        return ([] if shared else [f"{m} {label} (m)"]) + [
+            f"{m} est (m)",
+            f"{m} abs err (m)",
+            f"{m} rel err (%)",
+        ]
+
+    cols = [
+        "source",
+        "target",
+        *([f"{label} (m)"] if shared else []),
+        *(c for m in METHODS for c in group(m)),
+    ]
     lines = ["| " + " | ".join(cols) + " |", "|" + "---|" * len(cols)]
     keys = sorted(set().union(*(pairs[m] for m in METHODS)))
     for key in keys:
@@ -138,8 +151,12 @@ def table_a1(pairs: dict[str, dict[tuple[int, int], dict[str, Any]]], label: str
             ok = [p for p in pairs[m].values() if p["estimated_m"] is not None]
             a = np.array([p["abs_error_m"] for p in ok])
             r = np.array([p["rel_error_pct"] for p in ok])
-            cells += [*([] if shared else ["–"]), "–", num(float(f(a))) if len(a) else "–",
-                      num(float(f(r)), 1) if len(r) else "–"]
+            cells += [
+                *([] if shared else ["–"]),
+                "–",
+                num(float(f(a))) if len(a) else "–",
+                num(float(f(r)), 1) if len(r) else "–",
+            ]
         lines.append("| " + " | ".join(cells) + " |")
     return lines
 
@@ -147,8 +164,9 @@ def table_a1(pairs: dict[str, dict[tuple[int, int], dict[str, Any]]], label: str
 def photonvision(work: Path) -> list[str]:
     root = REALDATA / "photonvision_frc2024_field"
     doc = json.loads((root / "2024-crescendo.json").read_text())
-    layout = {int(t["ID"]): np.array([t["pose"]["translation"][k] for k in "xyz"])
-              for t in doc["tags"]}
+    layout = {
+        int(t["ID"]): np.array([t["pose"]["translation"][k] for k in "xyz"]) for t in doc["tags"]
+    }
     project = init(work / "photonvision", root / "images", 0.1651)
     pairs: dict[str, dict[tuple[int, int], dict[str, Any]]] = {m: {} for m in METHODS}
     comps: dict[str, list[list[int]]] = {m: [] for m in METHODS}
@@ -161,8 +179,10 @@ def photonvision(work: Path) -> list[str]:
         while True:
             ids = sorted(int(t) for t in tags["tag_id"] if int(t) in layout)
             comps[method].append(ids)
-            rows = [(a, b, float(np.linalg.norm(layout[a] - layout[b])))
-                    for a, b in itertools.combinations(ids, 2)]
+            rows = [
+                (a, b, float(np.linalg.norm(layout[a] - layout[b])))
+                for a, b in itertools.combinations(ids, 2)
+            ]
             if rows:
                 csv = write_csv(work / f"pv-{method}-{ids[0]}.csv", rows)
                 for p in eval_distances(project, csv, method, anchor)["pairs"]:
@@ -174,12 +194,19 @@ def photonvision(work: Path) -> list[str]:
             tags, _, applied = run_map(project, method, anchor)
             ran.add(applied)
         applied_by[method] = "/".join(sorted(ran))
-    out = ["### PhotonVision FRC 2024 field (Table A.1 layout; measured = official layout)", "",
-           "Maps made (one per run, each a set of tags): " + "; ".join(
-               f"{m}: " + ", ".join("{" + ",".join(map(str, c)) + "}" for c in comps[m])
-               for m in METHODS)
-           + ". Solve applied: " + "; ".join(f"{m}: {a}" for m, a in applied_by.items())
-           + " (joint*: `-S optimize.joint_min_frames=1`).", ""]
+    out = [
+        "### PhotonVision FRC 2024 field (Table A.1 layout; measured = official layout)",
+        "",
+        "Maps made (one per run, each a set of tags): "
+        + "; ".join(
+            f"{m}: " + ", ".join("{" + ",".join(map(str, c)) + "}" for c in comps[m])
+            for m in METHODS
+        )
+        + ". Solve applied: "
+        + "; ".join(f"{m}: {a}" for m, a in applied_by.items())
+        + " (joint*: `-S optimize.joint_min_frames=1`).",
+        "",
+    ]
     return out + table_a1(pairs, "layout")
 
 
@@ -206,38 +233,58 @@ def swatbotics(work: Path) -> list[str]:
         tags, graph, a0 = run_map(whole, method)
         t1, _, a1 = run_map(lap1, method)
         t2, _, a2 = run_map(lap2, method)
-        notes.append(f"{method}: whole set {len(tags)}/20 tags, {graph['n_components']} "
-                     f"component(s) ({a0}); lap 1 {len(t1)} tags ({a1}), lap 2 {len(t2)} "
-                     f"tags ({a2})")
-        pos2 = {int(t): p for t, p in zip(t2["tag_id"], t2[["x_m", "y_m", "z_m"]].to_numpy(),
-                                          strict=True)}
+        notes.append(
+            f"{method}: whole set {len(tags)}/20 tags, {graph['n_components']} "
+            f"component(s) ({a0}); lap 1 {len(t1)} tags ({a1}), lap 2 {len(t2)} "
+            f"tags ({a2})"
+        )
+        pos2 = {
+            int(t): p
+            for t, p in zip(t2["tag_id"], t2[["x_m", "y_m", "z_m"]].to_numpy(), strict=True)
+        }
         ids = sorted(pos2)
-        every = [(a, b, float(np.linalg.norm(pos2[a] - pos2[b])))
-                 for a, b in itertools.combinations(ids, 2)]
+        every = [
+            (a, b, float(np.linalg.norm(pos2[a] - pos2[b])))
+            for a, b in itertools.combinations(ids, 2)
+        ]
         from0 = [r for r in every if r[0] == 0]
         d = eval_distances(lap1, write_csv(work / f"sw-{method}-0.csv", from0), method)
         pairs[method] = {(p["source_tag"], p["target_tag"]): p for p in d["pairs"]}
-        summary[method] = eval_distances(lap1, write_csv(work / f"sw-{method}-all.csv", every),
-                                         method)
-    out = ["### swatbotics mapping (Table A.1 layout; \"measured\" = each method's lap-2 map, "
-           "estimated = its lap-1 map)", "",
-           "No tape-measured distances and no layout in this set (per-image visible ids, a "
-           "checkerboard calibration, a loop walked twice): the two laps are mapped "
-           "independently and compared. Tags mapped and the solve applied: "
-           + "; ".join(notes) + ".", ""]
+        summary[method] = eval_distances(
+            lap1, write_csv(work / f"sw-{method}-all.csv", every), method
+        )
+    out = [
+        '### swatbotics mapping (Table A.1 layout; "measured" = each method\'s lap-2 map, '
+        "estimated = its lap-1 map)",
+        "",
+        "No tape-measured distances and no layout in this set (per-image visible ids, a "
+        "checkerboard calibration, a loop walked twice): the two laps are mapped "
+        "independently and compared. Tags mapped and the solve applied: " + "; ".join(notes) + ".",
+        "",
+    ]
     out += table_a1(pairs, "lap 2", shared=False)
-    out += ["", "All pairs (lap 1 vs lap 2): " + "; ".join(
-        f"{m}: {s['n']} pairs, abs mean {num(s['abs_error_m']['mean'])} m / max "
-        f"{num(s['abs_error_m']['max'])} m, rel mean {num(s['rel_error_pct']['mean'], 1)} % / "
-        f"max {num(s['rel_error_pct']['max'], 1)} %" for m, s in summary.items())]
+    out += [
+        "",
+        "All pairs (lap 1 vs lap 2): "
+        + "; ".join(
+            f"{m}: {s['n']} pairs, abs mean {num(s['abs_error_m']['mean'])} m / max "
+            f"{num(s['abs_error_m']['max'])} m, rel mean {num(s['rel_error_pct']['mean'], 1)} % / "
+            f"max {num(s['rel_error_pct']['max'], 1)} %"
+            for m, s in summary.items()
+        ),
+    ]
     return out
 
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--keep", type=Path, help="work in DIR and keep the projects")
-    ap.add_argument("--out", type=Path, default=REPO / "bench" / "ACCURACY.md",
-                    help="markdown file whose part after '<!-- realdata -->' is replaced")
+    ap.add_argument(
+        "--out",
+        type=Path,
+        default=REPO / "bench" / "ACCURACY.md",
+        help="markdown file whose part after '<!-- realdata -->' is replaced",
+    )
     args = ap.parse_args()
     if not REALDATA.is_dir():
         print(f"{REALDATA} not found: nothing to do")
@@ -245,8 +292,13 @@ def main() -> None:
     work = args.keep or Path(tempfile.mkdtemp(prefix="tagtrail-bench-realdata-"))
     work.mkdir(parents=True, exist_ok=True)
     try:
-        lines = ["## Real photos (bench/bench_realdata_tables.py)", "", *photonvision(work), "",
-                 *swatbotics(work)]
+        lines = [
+            "## Real photos (bench/bench_realdata_tables.py)",
+            "",
+            *photonvision(work),
+            "",
+            *swatbotics(work),
+        ]
     finally:
         if args.keep is None:
             shutil.rmtree(work, ignore_errors=True)

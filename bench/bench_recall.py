@@ -49,9 +49,11 @@ from tagtrail.stages import extract
 REPO = Path(__file__).resolve().parents[1]
 REALDATA = REPO.parent / "shared" / "realdata"
 DEFAULT = f"default ({extract.Params().small_tags})"
-MODES = {"decimate 1": {"quad_decimate": 1.0, "small_tags": "off"},
-         "decimate 2": {"quad_decimate": 2.0, "small_tags": "off"},
-         DEFAULT: {}}
+MODES = {
+    "decimate 1": {"quad_decimate": 1.0, "small_tags": "off"},
+    "decimate 2": {"quad_decimate": 2.0, "small_tags": "off"},
+    DEFAULT: {},
+}
 RECALL_TARGET, TIME_TARGET = 0.95, 1.5
 
 
@@ -82,8 +84,11 @@ def swatbotics() -> Set:
     return Set(frames, truth, lambda k, tag, _c: tag not in truth[k])
 
 
-DUCKIETOWN_IDS = {"test_image.png": {60, 82, 318, 328, 387}, "rotation": {76},
-                  "multiple": {22, 24, 58, 85, 144, 198}}  # the set's README
+DUCKIETOWN_IDS = {
+    "test_image.png": {60, 82, 318, 328, 387},
+    "rotation": {76},
+    "multiple": {22, 24, 58, 85, 144, 198},
+}  # the set's README
 
 
 def duckietown() -> Set:
@@ -107,16 +112,29 @@ def sim(tag_size_m: float = 0.06, step: int = 15) -> Set:
 
     opts = SimOptions(tag_size_m=tag_size_m)
     scene = room(opts)[0]
-    vis = tag_visibility(scene.camera, scene.cam_T_tags(), scene.tag_sizes, max_range_m=20.0,
-                         max_incidence_deg=65.0, min_edge_px=12.0)
+    vis = tag_visibility(
+        scene.camera,
+        scene.cam_T_tags(),
+        scene.tag_sizes,
+        max_range_m=20.0,
+        max_incidence_deg=65.0,
+        min_edge_px=12.0,
+    )
     renderer, rng = Renderer(scene, opts.realism, seed=0), np.random.default_rng(0)
     in_front = scene.cam_T_tags()[..., 2, 3] > 0
     frames, truth, centres = [], [], []
     for i in range(0, len(scene.t_ns), step):
         frames.append(cv2.cvtColor(renderer.render(scene.scene_T_cam[i], rng), cv2.COLOR_RGB2GRAY))
         truth.append({int(t) for t in scene.tag_ids[vis.visible[i]]})
-        centres.append({int(t): c for t, c, ok in zip(scene.tag_ids, vis.corners_px[i].mean(axis=1),
-                                                       in_front[i], strict=True) if ok})
+        centres.append(
+            {
+                int(t): c
+                for t, c, ok in zip(
+                    scene.tag_ids, vis.corners_px[i].mean(axis=1), in_front[i], strict=True
+                )
+                if ok
+            }
+        )
 
     def is_false(k: int, tag: int, corners: np.ndarray) -> bool:
         c = centres[k].get(tag)
@@ -125,12 +143,17 @@ def sim(tag_size_m: float = 0.06, step: int = 15) -> Set:
     return Set(frames, truth, is_false)
 
 
-SETS = {"swatbotics": swatbotics, "duckietown": duckietown, "photonvision": photonvision,
-        "sim": sim}
+SETS = {
+    "swatbotics": swatbotics,
+    "duckietown": duckietown,
+    "photonvision": photonvision,
+    "sim": sim,
+}
 
 
-def _run_modes(frames: list[np.ndarray], repeats: int
-               ) -> dict[str, tuple[list[tuple[Any, Any]], float]]:
+def _run_modes(
+    frames: list[np.ndarray], repeats: int
+) -> dict[str, tuple[list[tuple[Any, Any]], float]]:
     """Per mode: (detections per frame, median CPU ms per frame) — runs in the worker."""
     from tagtrail.vision.apriltag import detect
 
@@ -151,8 +174,9 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--repeats", type=int, default=7)
     ap.add_argument("--sets", default=",".join(SETS))
-    ap.add_argument("--out", type=Path, help="markdown file (default: bench/RECALL.md when every "
-                    "set runs)")
+    ap.add_argument(
+        "--out", type=Path, help="markdown file (default: bench/RECALL.md when every set runs)"
+    )
     args = ap.parse_args()
     out = args.out or (REPO / "bench" / "RECALL.md" if args.sets == ",".join(SETS) else None)
     lines: list[str] = []
@@ -165,8 +189,10 @@ def main() -> None:
     pool = ctx.Pool(1)
     summary = []
     try:
-        say(f"{'set':13} {'mode':17} {'found':>6} {'present':>7} {'recall':>7} {'false':>5} "
-              f"{'dup':>4} {'ms/frame':>9} {'time/dec2':>9} {'recall/full':>11}")
+        say(
+            f"{'set':13} {'mode':17} {'found':>6} {'present':>7} {'recall':>7} {'false':>5} "
+            f"{'dup':>4} {'ms/frame':>9} {'time/dec2':>9} {'recall/full':>11}"
+        )
         for name in args.sets.split(","):
             data = SETS[name]()
             res = pool.apply(_run_modes, (data.frames, args.repeats))
@@ -177,34 +203,46 @@ def main() -> None:
                 ids = [ints[:, 0].tolist() for ints, _ in dets]
                 hits = sum(len(set(i) & r) for i, r in zip(ids, ref, strict=True))
                 dup = sum(len(i) - len(set(i)) for i in ids)
-                false[m] = sum(data.is_false(k, int(t), f[1:].reshape(4, 2))
-                               for k, (ints, floats) in enumerate(dets)
-                               for t, f in zip(ints[:, 0], floats, strict=True))
+                false[m] = sum(
+                    data.is_false(k, int(t), f[1:].reshape(4, 2))
+                    for k, (ints, floats) in enumerate(dets)
+                    for t, f in zip(ints[:, 0], floats, strict=True)
+                )
                 recall[m] = hits / max(present, 1)
-                say(f"{name:13} {m:17} {hits:6d} {present:7d} {recall[m]:7.3f} {false[m]:5d} "
-                      f"{dup:4d} {ms:9.2f} {ms / res['decimate 2'][1]:9.2f} "
-                      f"{recall[m] / max(recall['decimate 1'], 1e-9):11.3f}")
+                say(
+                    f"{name:13} {m:17} {hits:6d} {present:7d} {recall[m]:7.3f} {false[m]:5d} "
+                    f"{dup:4d} {ms:9.2f} {ms / res['decimate 2'][1]:9.2f} "
+                    f"{recall[m] / max(recall['decimate 1'], 1e-9):11.3f}"
+                )
             rel = recall[DEFAULT] / max(recall["decimate 1"], 1e-9)
             ratio = res[DEFAULT][1] / res["decimate 2"][1]
             ok = rel >= RECALL_TARGET and ratio <= TIME_TARGET and false[DEFAULT] == 0
-            summary.append(f"{name:13} {recall['decimate 2']:7.3f} {recall[DEFAULT]:7.3f} "
-                           f"{recall['decimate 1']:7.3f} {rel:9.3f} {false[DEFAULT]:5d} "
-                           f"{ratio:9.2f}  {'yes' if ok else 'NO'}")
-        say(f"\n{DEFAULT} against issue 12's targets (recall >= {RECALL_TARGET} x full "
-              f"resolution's, time <= {TIME_TARGET} x decimation 2's, no false detections):")
-        say(f"{'set':13} {'dec2':>7} {'default':>7} {'full':>7} {'vs full':>9} {'false':>5} "
-              f"{'time/dec2':>9}  met")
+            summary.append(
+                f"{name:13} {recall['decimate 2']:7.3f} {recall[DEFAULT]:7.3f} "
+                f"{recall['decimate 1']:7.3f} {rel:9.3f} {false[DEFAULT]:5d} "
+                f"{ratio:9.2f}  {'yes' if ok else 'NO'}"
+            )
+        say(
+            f"\n{DEFAULT} against issue 12's targets (recall >= {RECALL_TARGET} x full "
+            f"resolution's, time <= {TIME_TARGET} x decimation 2's, no false detections):"
+        )
+        say(
+            f"{'set':13} {'dec2':>7} {'default':>7} {'full':>7} {'vs full':>9} {'false':>5} "
+            f"{'time/dec2':>9}  met"
+        )
         for line in summary:
             say(line)
         if out is not None:
-            commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=REPO,
-                                    capture_output=True, text=True).stdout.strip()
+            commit = subprocess.run(
+                ["git", "rev-parse", "--short", "HEAD"], cwd=REPO, capture_output=True, text=True
+            ).stdout.strip()
             out.write_text(
                 "# Small-tag recall benchmark (issue 12)\n\n"
                 f"Produced by `bench/bench_recall.py` (definitions in its docstring) at commit "
                 f"{commit}, {time.strftime('%Y-%m-%d %H:%M')}, {os.cpu_count()} cores, load "
                 f"average {os.getloadavg()[0]:.1f}; {args.repeats} passes per set, times are "
-                "medians.\n\n```\n" + "\n".join(lines).strip("\n") + "\n```\n")
+                "medians.\n\n```\n" + "\n".join(lines).strip("\n") + "\n```\n"
+            )
             print(f"wrote {out}")
     finally:
         pool.terminate()  # the worker's exit status is not trusted (pupil-apriltags #46)

@@ -51,9 +51,11 @@ SCENES = {  # case -> simulate arguments
     "corridor_img": ["corridor", "--compressed", "--frames", "150"],
 }
 STAMPS = ("stamp_", "t_ns", "t_rel_s", "_idx")  # columns naming a frame, compared apart
-QUERY_INPUTS = {"trajectory.tag_map": "reference:optimize.tag_map",
-                "trajectory.map_report": "reference:optimize.report",
-                "align.tag_map": "reference:optimize.tag_map"}
+QUERY_INPUTS = {
+    "trajectory.tag_map": "reference:optimize.tag_map",
+    "trajectory.map_report": "reference:optimize.report",
+    "align.tag_map": "reference:optimize.tag_map",
+}
 
 
 def sh(cmd: list[str], cwd: Path) -> None:
@@ -152,12 +154,10 @@ def run_case(case: str, work: Path) -> dict[str, dict[str, list[float]]]:
     else:
         data = project / "data"
         if not data.is_dir():
-            sh([TAGTRAIL, "simulate", *SCENES[case], "--out", str(data), "--no-progress"],
-               cwd=work)
+            sh([TAGTRAIL, "simulate", *SCENES[case], "--out", str(data), "--no-progress"], cwd=work)
         (project / "pipeline.yaml").write_text(pipeline_for(data))
         sh([TAGTRAIL, "run", "-j", "1"], cwd=project)  # exports the outputs too
     return collect(project)
-
 
 
 def record(out: Path, work: Path, cases: list[str]) -> None:
@@ -207,10 +207,12 @@ def compare(a_path: Path, b_path: Path, show: int) -> int:
             only = sorted(set(fa) ^ set(fb))
             worst.sort(reverse=True)
             detail = ", ".join(f"{c} {d:.2g}" for d, c in worst[:show] if d > 0)
-            print(f"   {f}: max |d| {dm:.3g} (m, other), {dd:.3g} deg"
-                  + (f", stamps/indices {ds:.3g}" if ds else "")
-                  + (f"  [{detail}]" if detail else "")
-                  + (f"  one side only: {only[:6]}" if only else ""))
+            print(
+                f"   {f}: max |d| {dm:.3g} (m, other), {dd:.3g} deg"
+                + (f", stamps/indices {ds:.3g}" if ds else "")
+                + (f"  [{detail}]" if detail else "")
+                + (f"  one side only: {only[:6]}" if only else "")
+            )
             worst_m, worst_deg = max(worst_m, dm), max(worst_deg, dd)
     print(f"overall: {worst_m:.3g} (m, other), {worst_deg:.3g} deg")
     return 0

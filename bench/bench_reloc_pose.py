@@ -66,8 +66,10 @@ def load_checkout(root: Path) -> tuple[ModuleType, ModuleType]:
     saved = {k: sys.modules.pop(k) for k in ours()}
     sys.path.insert(0, str(root))
     try:
-        mods = (importlib.import_module("tagtrail.stream.codec"),
-                importlib.import_module("tagtrail.stream.reloc_node"))  # fmt: skip
+        mods = (
+            importlib.import_module("tagtrail.stream.codec"),
+            importlib.import_module("tagtrail.stream.reloc_node"),
+        )
         if not Path(mods[0].__file__ or "").is_relative_to(root):
             raise SystemExit(f"--baseline {root}: no tagtrail package there")
     finally:
@@ -78,8 +80,9 @@ def load_checkout(root: Path) -> tuple[ModuleType, ModuleType]:
     return mods
 
 
-def steps(cdc: ModuleType, rel: ModuleType, n_ref: int,
-          payloads: list[bytes]) -> dict[str, tuple[Callable[[Any], Any], list]]:  # fmt: skip
+def steps(
+    cdc: ModuleType, rel: ModuleType, n_ref: int, payloads: list[bytes]
+) -> dict[str, tuple[Callable[[Any], Any], list]]:
     """The timed steps of one version: name → (function, its inputs in stream order)."""
     reloc = rel.Relocalizer(reference_frame(n_ref), "xz")
     for p in payloads[:500]:  # warm-up (builds the long-path index)
@@ -141,9 +144,11 @@ def main() -> None:
     versions = [(codec, relocalize)]
     if args.baseline:
         versions.insert(0, load_checkout(args.baseline.resolve()))
-    print(f"bench_reloc_pose: {args.poses:,} poses (hot: fastest of {args.repeats} passes), "
-          f"{args.paced:,} paced at 2,000/s, {os.cpu_count()} cores, load "
-          f"{os.getloadavg()[0]:.2f}" + (f", baseline {args.baseline}" if args.baseline else ""))
+    print(
+        f"bench_reloc_pose: {args.poses:,} poses (hot: fastest of {args.repeats} passes), "
+        f"{args.paced:,} paced at 2,000/s, {os.cpu_count()} cores, load "
+        f"{os.getloadavg()[0]:.2f}" + (f", baseline {args.baseline}" if args.baseline else "")
+    )
     cols = ["base p50", "base p99"] if args.baseline else []
     cols += ["p50 us", "p99 us"] + (["base/this"] if args.baseline else [])
     print(f"{'reference':>10} {'poses':>6} {'step':>8}" + "".join(f"{c:>10}" for c in cols))

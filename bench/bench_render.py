@@ -60,13 +60,17 @@ def main() -> None:
     a = p.parse_args()
     rates = bench_render(a.scenario, a.frames, a.repeats)
     fps = statistics.median(rates)
-    print(f"render {a.scenario} 640x480: {fps:.1f} frames/s (median of {a.repeats} x "
-          f"{a.frames} frames; min {min(rates):.1f}, max {max(rates):.1f})")
+    print(
+        f"render {a.scenario} 640x480: {fps:.1f} frames/s (median of {a.repeats} x "
+        f"{a.frames} frames; min {min(rates):.1f}, max {max(rates):.1f})"
+    )
     print(f"ratio vs goal {GOAL_FPS:.0f} frames/s: {fps / GOAL_FPS:.2f}")
     for label, opts in (("raw rgb8 mcap", {}), ("jpeg mcap", {"compressed": True})):
         r = statistics.median(bench_simulate(a.scenario, a.frames, max(1, a.repeats // 2), **opts))
-        print(f"simulate {a.scenario} end to end ({label}): {r:.1f} frames/s "
-              f"(ratio vs goal {r / GOAL_FPS:.2f})")
+        print(
+            f"simulate {a.scenario} end to end ({label}): {r:.1f} frames/s "
+            f"(ratio vs goal {r / GOAL_FPS:.2f})"
+        )
 
 
 if __name__ == "__main__":

@@ -44,8 +44,7 @@ def main() -> None:
                 f.write(block)
         (root / "ref.csv").write_text("value\n1\n2\n")
         (root / "pipeline.yaml").write_text(
-            "datasets:\n  reference: {source: ref.csv}\n  query: {source: big.bin}\n"
-            "stages: {}\n"
+            "datasets:\n  reference: {source: ref.csv}\n  query: {source: big.bin}\nstages: {}\n"
         )
         reg = load_registry(stages)
 
@@ -68,27 +67,41 @@ def main() -> None:
         driver = ROOT / "tests" / "runner" / "toy" / "driver.py"
 
         def cli(*args: str) -> None:
-            subprocess.run([sys.executable, str(driver), str(stages), *args], cwd=root, env=env,
-                           check=True, capture_output=True)
+            subprocess.run(
+                [sys.executable, str(driver), str(stages), *args],
+                cwd=root,
+                env=env,
+                check=True,
+                capture_output=True,
+            )
 
         (root / "pipeline.yaml").write_text(
-            "datasets:\n  reference: {source: ref.csv}\n  query: {source: big.bin}\n"
-            "stages: {}\n"
+            "datasets:\n  reference: {source: ref.csv}\n  query: {source: big.bin}\nstages: {}\n"
         )
         cli_status = timed(lambda: cli("status"), n=5)
 
     real_noop, real_cli = real_pipeline()
     print(f"status, first (hashes the 1 GB source): {first:8.3f} s")
-    print(f"status, median after hashing:           {status * 1e3:8.2f} ms  "
-          f"(ratio to 1 s budget: {status:.4f})")
-    print(f"no-op run (9 nodes, all cached), median: {noop * 1e3:8.2f} ms  "
-          f"(ratio to 1 s budget: {noop:.4f})")
-    print(f"`tagtrail status` CLI process, median:   {cli_status * 1e3:8.2f} ms  "
-          f"(incl. interpreter start-up)")
-    print(f"real demo pipeline (9 stages x 4 datasets), no-op run, median: {real_noop * 1e3:8.2f}"
-          f" ms  (ratio to 1 s budget: {real_noop:.4f})")
-    print(f"`tagtrail run` no-op CLI process on it, median:             {real_cli * 1e3:8.2f} ms"
-          "  (incl. interpreter start-up and imports)")
+    print(
+        f"status, median after hashing:           {status * 1e3:8.2f} ms  "
+        f"(ratio to 1 s budget: {status:.4f})"
+    )
+    print(
+        f"no-op run (9 nodes, all cached), median: {noop * 1e3:8.2f} ms  "
+        f"(ratio to 1 s budget: {noop:.4f})"
+    )
+    print(
+        f"`tagtrail status` CLI process, median:   {cli_status * 1e3:8.2f} ms  "
+        f"(incl. interpreter start-up)"
+    )
+    print(
+        f"real demo pipeline (9 stages x 4 datasets), no-op run, median: {real_noop * 1e3:8.2f}"
+        f" ms  (ratio to 1 s budget: {real_noop:.4f})"
+    )
+    print(
+        f"`tagtrail run` no-op CLI process on it, median:             {real_cli * 1e3:8.2f} ms"
+        "  (incl. interpreter start-up and imports)"
+    )
 
 
 def real_pipeline() -> tuple[float, float]:
@@ -105,8 +118,13 @@ def real_pipeline() -> tuple[float, float]:
         noop = timed(lambda: Runner(load_pipeline(root / "pipeline.yaml", REGISTRY)).run())
 
         def cli() -> None:
-            subprocess.run([sys.executable, "-m", "tagtrail.cli", "run"], cwd=root, check=True,
-                           capture_output=True, env={**os.environ, "PYTHONPATH": str(ROOT)})
+            subprocess.run(
+                [sys.executable, "-m", "tagtrail.cli", "run"],
+                cwd=root,
+                check=True,
+                capture_output=True,
+                env={**os.environ, "PYTHONPATH": str(ROOT)},
+            )
 
         return noop, timed(cli, n=5)
 

@@ -52,8 +52,9 @@ def timed_run(project: Path, *args: str) -> tuple[float, float, str]:
         shutil.rmtree(project / d, ignore_errors=True)
     with tempfile.TemporaryFile() as out, tempfile.TemporaryFile() as err:
         t0 = time.perf_counter()
-        proc = subprocess.Popen([sys.executable, "-c", PEAK, "run", *args], cwd=project,
-                                stdout=out, stderr=err)
+        proc = subprocess.Popen(
+            [sys.executable, "-c", PEAK, "run", *args], cwd=project, stdout=out, stderr=err
+        )
         proc.wait()
         wall = time.perf_counter() - t0
         out.seek(0)
@@ -75,14 +76,43 @@ def main() -> None:
     work.mkdir(parents=True, exist_ok=True)
     try:
         t0 = time.perf_counter()
-        subprocess.run([str(BIN / "tagtrail"), "simulate", "room", "--out", "sim", "--detections",
-                        "--frames", str(args.frames), "--query-frames", "2", "--no-progress",
-                        "--force"], cwd=work, check=True, capture_output=True)
-        subprocess.run([str(BIN / "tagtrail"), "init", "--reference", "sim/reference", "--tag-size",
-                        "0.16", "--force"],
-                       cwd=work, check=True, capture_output=True)
-        print(f"recording: room --detections --frames {args.frames} "
-              f"(simulated in {time.perf_counter() - t0:.1f} s)")
+        subprocess.run(
+            [
+                str(BIN / "tagtrail"),
+                "simulate",
+                "room",
+                "--out",
+                "sim",
+                "--detections",
+                "--frames",
+                str(args.frames),
+                "--query-frames",
+                "2",
+                "--no-progress",
+                "--force",
+            ],
+            cwd=work,
+            check=True,
+            capture_output=True,
+        )
+        subprocess.run(
+            [
+                str(BIN / "tagtrail"),
+                "init",
+                "--reference",
+                "sim/reference",
+                "--tag-size",
+                "0.16",
+                "--force",
+            ],
+            cwd=work,
+            check=True,
+            capture_output=True,
+        )
+        print(
+            f"recording: room --detections --frames {args.frames} "
+            f"(simulated in {time.perf_counter() - t0:.1f} s)"
+        )
         walls, rss = [], []
         for i in range(args.repeats):
             wall, gb, _ = timed_run(work)
@@ -91,12 +121,16 @@ def main() -> None:
             print(f"  run {i + 1}: {wall:6.2f} s, peak RSS {gb:.3f} GB", flush=True)
         stages = json.loads((work / "artifacts" / "runs" / "last_run.json").read_text())
         wall, gb = statistics.median(walls), statistics.median(rss)
-        print("per stage (last run): " + ", ".join(
-            f"{s['stage']} {s['seconds']:.2f} s" for s in stages))
-        print(f"recording phase, median of {args.repeats}: {wall:.2f} s "
-              f"(target < {TARGET_S:.0f} s: {'yes' if wall < TARGET_S else 'no'}), "
-              f"peak RSS {gb:.3f} GB (target < {TARGET_GB} GB: "
-              f"{'yes' if gb < TARGET_GB else 'no'})")
+        print(
+            "per stage (last run): "
+            + ", ".join(f"{s['stage']} {s['seconds']:.2f} s" for s in stages)
+        )
+        print(
+            f"recording phase, median of {args.repeats}: {wall:.2f} s "
+            f"(target < {TARGET_S:.0f} s: {'yes' if wall < TARGET_S else 'no'}), "
+            f"peak RSS {gb:.3f} GB (target < {TARGET_GB} GB: "
+            f"{'yes' if gb < TARGET_GB else 'no'})"
+        )
     finally:
         if args.keep is None:
             shutil.rmtree(work, ignore_errors=True)

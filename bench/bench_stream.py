@@ -50,8 +50,9 @@ GOAL_P99_MS, GOAL_RATE = 2.0, 2000.0
 def write_reference(path: Path, n: int) -> None:
     """An ellipse (3 × 2 m) in x–z with n samples, as a TUM file (fast to write and read)."""
     s = np.linspace(0.0, 2 * np.pi, n, endpoint=False)
-    T = planar_poses(1.5 * np.cos(s), np.sin(s), np.arctan2(np.cos(s), -1.5 * np.sin(s)),
-                     np.full(n, -0.13))  # fmt: skip
+    T = planar_poses(
+        1.5 * np.cos(s), np.sin(s), np.arctan2(np.cos(s), -1.5 * np.sin(s)), np.full(n, -0.13)
+    )
     df = frame(T, np.arange(n, dtype=np.int64) * 10_000_000)
     arr = np.column_stack([df["t_ns"].to_numpy() * 1e-9, df[POSE_COLS].to_numpy()])
     np.savetxt(path, arr, fmt="%.17g")
@@ -94,7 +95,8 @@ class Bench:
     def __init__(self, port: int, express: bool) -> None:
         self.session = zenoh.open(make_config("peer", connect=[f"tcp/127.0.0.1:{port}"]))
         self.pub = self.session.declare_publisher(
-            "tag_only_pose", congestion_control=zenoh.CongestionControl.BLOCK, express=express)
+            "tag_only_pose", congestion_control=zenoh.CongestionControl.BLOCK, express=express
+        )
         self.recv_ns: list[int] = []
         self.stamps: list[int] = []
         self.got = threading.Event()
@@ -102,9 +104,10 @@ class Bench:
         self.subs = [
             self.session.declare_subscriber("relocalization/distance_m", self._on_distance),
             self.session.declare_subscriber("relocalization/state", self._on_state),
-            self.session.declare_subscriber("relocalization/reference_path",
-                                            lambda _s: self.path.set()),
-        ]  # fmt: skip
+            self.session.declare_subscriber(
+                "relocalization/reference_path", lambda _s: self.path.set()
+            ),
+        ]
 
     def _on_distance(self, _sample: zenoh.Sample) -> None:
         self.recv_ns.append(time.perf_counter_ns())
@@ -148,9 +151,14 @@ class Bench:
         in_order = self.stamps == list(range(n))
         span_s = (recv[-1] - send[0]) / 1e9 if len(recv) else float("nan")
         pct = np.percentile(lat_ms, [50, 99])
-        return {"received": len(recv), "in_order": float(in_order), "p50_ms": float(pct[0]),
-                "p99_ms": float(pct[1]), "max_ms": float(lat_ms.max()),
-                "rate": len(recv) / span_s}  # fmt: skip
+        return {
+            "received": len(recv),
+            "in_order": float(in_order),
+            "p50_ms": float(pct[0]),
+            "p99_ms": float(pct[1]),
+            "max_ms": float(lat_ms.max()),
+            "rate": len(recv) / span_s,
+        }
 
     def close(self) -> None:
         for s in self.subs:
@@ -165,11 +173,30 @@ def bench_size(n_ref: int, args: argparse.Namespace, tmp: Path) -> dict[str, lis
     write_reference(ref, n_ref)
     print(f"\nreference {n_ref:,} samples (written in {time.perf_counter() - t:.1f} s)")
     port = free_port()
-    cmd = [sys.executable, "-m", "tagtrail.stream.cli", "relocalize", "--reference", str(ref),
-           "--plane", "xz", "--listen", f"tcp/127.0.0.1:{port}", "--stats-period", "0",
-           "--path-period", "1"] + (["--no-express"] if args.node_batching else [])  # fmt: skip
-    node = subprocess.Popen(cmd, cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
-                            text=True, env={**os.environ, "PYTHONUNBUFFERED": "1"})  # fmt: skip
+    cmd = [
+        sys.executable,
+        "-m",
+        "tagtrail.stream.cli",
+        "relocalize",
+        "--reference",
+        str(ref),
+        "--plane",
+        "xz",
+        "--listen",
+        f"tcp/127.0.0.1:{port}",
+        "--stats-period",
+        "0",
+        "--path-period",
+        "1",
+    ] + (["--no-express"] if args.node_batching else [])
+    node = subprocess.Popen(
+        cmd,
+        cwd=ROOT,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.STDOUT,
+        text=True,
+        env={**os.environ, "PYTHONUNBUFFERED": "1"},
+    )
     results: dict[str, list[dict]] = {"ping-pong": [], "paced": [], "flood": []}
     bench = None
     try:
@@ -183,10 +210,12 @@ def bench_size(n_ref: int, args: argparse.Namespace, tmp: Path) -> dict[str, lis
             for mode in results:
                 res = bench.run(payloads, mode, args.rate)
                 results[mode].append(res)
-                print(f"  [{r + 1}/{args.repeats}] {mode:9s} received {res['received']:6d}/"
-                      f"{args.poses} in order {bool(res['in_order'])!s:5s} p50 {res['p50_ms']:.3f} "
-                      f"ms p99 {res['p99_ms']:.3f} ms max {res['max_ms']:.1f} ms "
-                      f"{res['rate']:8.0f} poses/s")  # fmt: skip
+                print(
+                    f"  [{r + 1}/{args.repeats}] {mode:9s} received {res['received']:6d}/"
+                    f"{args.poses} in order {bool(res['in_order'])!s:5s} p50 {res['p50_ms']:.3f} "
+                    f"ms p99 {res['p99_ms']:.3f} ms max {res['max_ms']:.1f} ms "
+                    f"{res['rate']:8.0f} poses/s"
+                )
     finally:
         if bench is not None:
             bench.close()
@@ -195,9 +224,11 @@ def bench_size(n_ref: int, args: argparse.Namespace, tmp: Path) -> dict[str, lis
     stats = [json.loads(s[6:]) for s in out.splitlines() if s.startswith("stats ")]
     if stats:
         st = stats[-1]
-        print(f"  node: processed {st['processed']}, dropped {st['dropped'] or 0}, processing "
-              f"(receive → last publish) p50 {st['proc_p50_us']:.0f} us p99 "
-              f"{st['proc_p99_us']:.0f} us over the last 10,000")  # fmt: skip
+        print(
+            f"  node: processed {st['processed']}, dropped {st['dropped'] or 0}, processing "
+            f"(receive → last publish) p50 {st['proc_p50_us']:.0f} us p99 "
+            f"{st['proc_p99_us']:.0f} us over the last 10,000"
+        )
     return results
 
 
@@ -207,30 +238,45 @@ def main() -> None:
     ap.add_argument("--poses", type=int, default=10_000)
     ap.add_argument("--repeats", type=int, default=3)
     ap.add_argument("--rate", type=float, default=GOAL_RATE, help="paced mode rate (poses/s)")
-    ap.add_argument("--express", action="store_true",
-                    help="zenoh express on this (the robot's) side too (the node's default: on)")
-    ap.add_argument("--node-batching", action="store_true",
-                    help="run the node with --no-express (zenoh batches its outputs)")
-    ap.add_argument("--random-poses", action="store_true",
-                    help="query poses anywhere near the loop (default: a drive along it)")
+    ap.add_argument(
+        "--express",
+        action="store_true",
+        help="zenoh express on this (the robot's) side too (the node's default: on)",
+    )
+    ap.add_argument(
+        "--node-batching",
+        action="store_true",
+        help="run the node with --no-express (zenoh batches its outputs)",
+    )
+    ap.add_argument(
+        "--random-poses",
+        action="store_true",
+        help="query poses anywhere near the loop (default: a drive along it)",
+    )
     args = ap.parse_args()
-    print(f"bench_stream: {args.poses:,} poses x {args.repeats} repeats, paced at "
-          f"{args.rate:.0f}/s, {os.cpu_count()} cores, load {os.getloadavg()[0]:.2f}")  # fmt: skip
+    print(
+        f"bench_stream: {args.poses:,} poses x {args.repeats} repeats, paced at "
+        f"{args.rate:.0f}/s, {os.cpu_count()} cores, load {os.getloadavg()[0]:.2f}"
+    )
     summary = {}
     with tempfile.TemporaryDirectory() as d:
         for n in args.sizes:
             summary[n] = bench_size(n, args, Path(d))
     print("\nsummary (medians over repeats)")
-    print(f"{'reference':>10} {'mode':>9} {'p50 ms':>8} {'p99 ms':>8} {'poses/s':>9} "
-          f"{'lost':>5} {'p99 vs 2 ms':>11} {'rate vs 2000/s':>14}")  # fmt: skip
+    print(
+        f"{'reference':>10} {'mode':>9} {'p50 ms':>8} {'p99 ms':>8} {'poses/s':>9} "
+        f"{'lost':>5} {'p99 vs 2 ms':>11} {'rate vs 2000/s':>14}"
+    )
     for n, res in summary.items():
         for mode, runs in res.items():
             med = {k: statistics.median(r[k] for r in runs) for k in runs[0]}
             lost = max(args.poses - r["received"] for r in runs)
             ok_order = all(r["in_order"] for r in runs)
-            print(f"{n:>10,} {mode:>9} {med['p50_ms']:8.3f} {med['p99_ms']:8.3f} "
-                  f"{med['rate']:9.0f} {lost:5d} {GOAL_P99_MS / med['p99_ms']:10.2f}x "
-                  f"{med['rate'] / GOAL_RATE:13.2f}x" + ("" if ok_order else "  OUT OF ORDER"))
+            print(
+                f"{n:>10,} {mode:>9} {med['p50_ms']:8.3f} {med['p99_ms']:8.3f} "
+                f"{med['rate']:9.0f} {lost:5d} {GOAL_P99_MS / med['p99_ms']:10.2f}x "
+                f"{med['rate'] / GOAL_RATE:13.2f}x" + ("" if ok_order else "  OUT OF ORDER")
+            )
     print("(p99 vs goal: > 1x meets p99 < 2 ms; rate vs goal: flood > 1x meets >= 2000 poses/s)")
 
 

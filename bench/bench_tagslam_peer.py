@@ -59,8 +59,11 @@ def run_tagtrail(folder: Path, args: list[str]) -> tuple[Path, Path]:
     cwd = Path.cwd()
     os.chdir(folder)
     try:
-        with open(os.devnull, "w") as null, contextlib.redirect_stdout(null), \
-                contextlib.redirect_stderr(null):
+        with (
+            open(os.devnull, "w") as null,
+            contextlib.redirect_stdout(null),
+            contextlib.redirect_stderr(null),
+        ):
             assert tagtrail(["init", *args]) == 0
             assert tagtrail(["run"]) == 0
     finally:
@@ -71,11 +74,13 @@ def run_tagtrail(folder: Path, args: list[str]) -> tuple[Path, Path]:
 
 def row(name: str, T: np.ndarray, ref: np.ndarray) -> str:
     mean, mx, ang = agreement(T, ref)
-    return (f"| {name} | {1e3 * mean:.2f} / {1e3 * mx:.1f} | {ang:.3f} | {rough(T)} |")
+    return f"| {name} | {1e3 * mean:.2f} / {1e3 * mx:.1f} | {ang:.3f} | {rough(T)} |"
 
 
-HEAD = ("| trajectory | vs {ref}: mean / max (mm) | rot (deg) | 2nd differences x / y / z, "
-        "RMS mm (lag-1 autocorr.) |\n|---|---|---|---|")
+HEAD = (
+    "| trajectory | vs {ref}: mean / max (mm) | rot (deg) | 2nd differences x / y / z, "
+    "RMS mm (lag-1 autocorr.) |\n|---|---|---|---|"
+)
 
 
 def real_part(tmp: Path) -> None:
@@ -84,8 +89,17 @@ def real_part(tmp: Path) -> None:
         work.mkdir()
         bag = unpack(root, "tag_detections.bag", work)
         _, cams = tagslam_reference(unpack(root, "reference.bag", work), root)
-        default, raw = run_tagtrail(work, ["--reference", str(bag), "--camera",
-                                           str(root / "cameras.yaml"), "--tag-size", str(size)])
+        default, raw = run_tagtrail(
+            work,
+            [
+                "--reference",
+                str(bag),
+                "--camera",
+                str(root / "cameras.yaml"),
+                "--tag-size",
+                str(size),
+            ],
+        )
         print(f"\n### {name} (real; TagSLAM is a peer, not ground truth)\n")
         print(HEAD.format(ref="TagSLAM"))
         T, ref = matched(default, cams)
@@ -96,25 +110,32 @@ def real_part(tmp: Path) -> None:
 
 
 def sim_part(tmp: Path, noises: list[float], shakes: list[float], seed: int) -> None:
-    print("\n### tagslam_test_16 simulated (ground truth: TagSLAM's path low-passed, its stamps, "
-          "its tags and camera)\n")
-    print("| corner noise (px) | shake (m/s^2/sqrt(Hz)) | trajectory | vs truth: mean / max (mm) "
-          "| rot (deg) | 2nd differences x / y / z, RMS mm (lag-1 autocorr.) | "
-          "default vs frames alone: mean (mm) |\n|---|---|---|---|---|---|---|")
+    print(
+        "\n### tagslam_test_16 simulated (ground truth: TagSLAM's path low-passed, its stamps, "
+        "its tags and camera)\n"
+    )
+    print(
+        "| corner noise (px) | shake (m/s^2/sqrt(Hz)) | trajectory | vs truth: mean / max (mm) "
+        "| rot (deg) | 2nd differences x / y / z, RMS mm (lag-1 autocorr.) | "
+        "default vs frames alone: mean (mm) |\n|---|---|---|---|---|---|---|"
+    )
     for noise in noises:
         for density in shakes:
             work = tmp / f"sim_{noise}_{density}"
             bag, truth = simulate_test_16(REALDATA, work, noise, density, seed)
-            default, raw = run_tagtrail(work, ["--reference", str(bag), "--tag-size",
-                                               str(TAG_SIZES["tagslam_test_16"])])
+            default, raw = run_tagtrail(
+                work, ["--reference", str(bag), "--tag-size", str(TAG_SIZES["tagslam_test_16"])]
+            )
             Td, ref = matched(default, truth)
             Tr, _ = matched(raw, truth)
             between = agreement(Td, Tr)[0]
             for label, T in (("default", Td), ("frames alone", Tr), ("truth", ref)):
                 mean, mx, ang = agreement(T, ref)
                 extra = f"{1e3 * between:.2f}" if label == "default" else ""
-                print(f"| {noise} | {density} | {label} | {1e3 * mean:.2f} / {1e3 * mx:.1f} | "
-                      f"{ang:.3f} | {rough(T)} | {extra} |")
+                print(
+                    f"| {noise} | {density} | {label} | {1e3 * mean:.2f} / {1e3 * mx:.1f} | "
+                    f"{ang:.3f} | {rough(T)} | {extra} |"
+                )
 
 
 def main() -> None:
@@ -128,8 +149,12 @@ def main() -> None:
         tmp = Path(d)
         if not a.skip_real:
             real_part(tmp)
-        sim_part(tmp, [float(x) for x in a.noise.split(",")],
-                 [float(x) for x in a.shake.split(",")], a.seed)
+        sim_part(
+            tmp,
+            [float(x) for x in a.noise.split(",")],
+            [float(x) for x in a.shake.split(",")],
+            a.seed,
+        )
 
 
 if __name__ == "__main__":

@@ -52,14 +52,18 @@ class Peer:
         self.session = zenoh.open(make_config("peer", connect=[f"tcp/127.0.0.1:{port}"]))
         self.wire = make_wire(wire, self.session, "humble", 0)
         self.wire.declare_node("bench_robot")
-        self.pub = self.wire.declare_publisher("tag_only_pose", POSE, express=True,
-                                               congestion_control=zenoh.CongestionControl.BLOCK)
+        self.pub = self.wire.declare_publisher(
+            "tag_only_pose", POSE, express=True, congestion_control=zenoh.CongestionControl.BLOCK
+        )
         self.got = threading.Event()
         self.recv_ns = 0
         self.path = threading.Event()
-        self.subs = [self.wire.declare_subscriber("relocalization/distance_m", F64, self._on_d),
-                     self.wire.declare_subscriber("relocalization/reference_path", PATH,
-                                                  lambda _s: self.path.set())]  # fmt: skip
+        self.subs = [
+            self.wire.declare_subscriber("relocalization/distance_m", F64, self._on_d),
+            self.wire.declare_subscriber(
+                "relocalization/reference_path", PATH, lambda _s: self.path.set()
+            ),
+        ]
 
     def _on_d(self, _sample: zenoh.Sample) -> None:
         self.recv_ns = time.perf_counter_ns()
@@ -91,11 +95,32 @@ class Peer:
 
 
 def start_node(wire: str, ref: Path, port: int) -> subprocess.Popen[str]:
-    cmd = [sys.executable, "-m", "tagtrail.stream.cli", "relocalize", "--reference", str(ref),
-           "--plane", "xz", "--listen", f"tcp/127.0.0.1:{port}", "--stats-period", "0",
-           "--wire", wire, "--ros-distro", "humble"]  # fmt: skip
-    return subprocess.Popen(cmd, cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
-                            text=True, env={**os.environ, "PYTHONUNBUFFERED": "1"})  # fmt: skip
+    cmd = [
+        sys.executable,
+        "-m",
+        "tagtrail.stream.cli",
+        "relocalize",
+        "--reference",
+        str(ref),
+        "--plane",
+        "xz",
+        "--listen",
+        f"tcp/127.0.0.1:{port}",
+        "--stats-period",
+        "0",
+        "--wire",
+        wire,
+        "--ros-distro",
+        "humble",
+    ]
+    return subprocess.Popen(
+        cmd,
+        cwd=ROOT,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.STDOUT,
+        text=True,
+        env={**os.environ, "PYTHONUNBUFFERED": "1"},
+    )
 
 
 def main() -> None:
@@ -106,8 +131,10 @@ def main() -> None:
     ap.add_argument("--write", action="store_true", help="write bench/WIRES.md")
     args = ap.parse_args()
     load = os.getloadavg()[0]
-    print(f"bench_wires: {args.poses:,} ping-pong poses x {args.repeats} repeats per wire, "
-          f"{args.reference:,}-sample reference, {os.cpu_count()} cores, load {load:.2f}")
+    print(
+        f"bench_wires: {args.poses:,} ping-pong poses x {args.repeats} repeats per wire, "
+        f"{args.reference:,}-sample reference, {os.cpu_count()} cores, load {load:.2f}"
+    )
     payloads = queries(args.poses)
     runs: dict[str, list[dict[str, float]]] = {w: [] for w in WIRES}
     stats: dict[str, Any] = {}
@@ -123,13 +150,15 @@ def main() -> None:
                 peers[w].ready()
                 peers[w].ping_pong(payloads[:300])  # warm-up
             for r in range(args.repeats):
-                for w in (WIRES if r % 2 == 0 else WIRES[::-1]):
+                for w in WIRES if r % 2 == 0 else WIRES[::-1]:
                     lat = peers[w].ping_pong(payloads)
                     ok = lat[np.isfinite(lat)]
                     p50, p99 = np.percentile(ok, [50, 99])
                     runs[w].append({"p50": p50, "p99": p99, "lost": float(len(lat) - len(ok))})
-                    print(f"  [{r + 1}/{args.repeats}] {w:9s} p50 {p50:.3f} ms p99 {p99:.3f} ms "
-                          f"lost {len(lat) - len(ok)}")  # fmt: skip
+                    print(
+                        f"  [{r + 1}/{args.repeats}] {w:9s} p50 {p50:.3f} ms p99 {p99:.3f} ms "
+                        f"lost {len(lat) - len(ok)}"
+                    )
         finally:
             for p in peers.values():
                 p.close()
@@ -146,19 +175,26 @@ def main() -> None:
     ]
     for w in WIRES:
         st = stats.get(w, {})
-        proc = (f"{st['proc_p50_us']:.0f} / {st['proc_p99_us']:.0f}"
-                if st.get("proc_p50_us") is not None else "-")  # fmt: skip
-        lines.append(f"| {w} | {med[w]['p50']:.3f} | {med[w]['p99']:.3f} | "
-                     f"{int(max(r['lost'] for r in runs[w]))} | {proc} |")  # fmt: skip
-    ratio = (f"rmw_zenoh / bridge: p50 {z['p50'] / b['p50']:.2f}x, "
-             f"p99 {z['p99'] / b['p99']:.2f}x")
+        proc = (
+            f"{st['proc_p50_us']:.0f} / {st['proc_p99_us']:.0f}"
+            if st.get("proc_p50_us") is not None
+            else "-"
+        )
+        lines.append(
+            f"| {w} | {med[w]['p50']:.3f} | {med[w]['p99']:.3f} | "
+            f"{int(max(r['lost'] for r in runs[w]))} | {proc} |"
+        )
+    ratio = f"rmw_zenoh / bridge: p50 {z['p50'] / b['p50']:.2f}x, p99 {z['p99'] / b['p99']:.2f}x"
     print("\n" + "\n".join(lines) + "\n" + ratio)
     wire_stats = stats.get("rmw_zenoh", {})
-    print(f"rmw_zenoh node: without_attachment {wire_stats.get('without_attachment')}, "
-          f"sequence_gaps {wire_stats.get('sequence_gaps')}")
+    print(
+        f"rmw_zenoh node: without_attachment {wire_stats.get('without_attachment')}, "
+        f"sequence_gaps {wire_stats.get('sequence_gaps')}"
+    )
     if args.write:
-        commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=ROOT, text=True,
-                                capture_output=True).stdout.strip()  # fmt: skip
+        commit = subprocess.run(
+            ["git", "rev-parse", "--short", "HEAD"], cwd=ROOT, text=True, capture_output=True
+        ).stdout.strip()
         (ROOT / "bench" / "WIRES.md").write_text(
             "# The relocalization node on both wires\n\n"
             f"Written by `bench/bench_wires.py --write` ({commit}, "
@@ -168,7 +204,8 @@ def main() -> None:
             f"the wires, a {args.reference:,}-sample reference, both nodes and this peer on "
             "tcp/127.0.0.1; medians over the repeats. On rmw_zenoh both sides put the 33-byte "
             "attachment on every sample and hold liveliness tokens, as ROS 2 nodes on "
-            "rmw_zenoh do.\n\n" + "\n".join(lines) + f"\n\n{ratio}.\n")
+            "rmw_zenoh do.\n\n" + "\n".join(lines) + f"\n\n{ratio}.\n"
+        )
         print("wrote bench/WIRES.md")
 
 

@@ -56,8 +56,19 @@ BIN = Path(sys.executable).parent
 TAGTRAIL = str(BIN / "tagtrail")
 RESULTS = BENCH / "RESULTS.md"
 EXTRACT_COPIES = 2  # the 93 photos, twice over (as bench_extract)
-PACKAGES = ("numpy", "scipy", "pandas", "pyarrow", "opencv-python-headless", "pupil-apriltags",
-            "gtsam", "dask", "distributed", "eclipse-zenoh", "rosbags")  # fmt: skip
+PACKAGES = (
+    "numpy",
+    "scipy",
+    "pandas",
+    "pyarrow",
+    "opencv-python-headless",
+    "pupil-apriltags",
+    "gtsam",
+    "dask",
+    "distributed",
+    "eclipse-zenoh",
+    "rosbags",
+)
 
 
 @dataclass
@@ -114,9 +125,14 @@ def demo_pipeline(datasets: dict[str, dict[str, object]]) -> str:
 
 
 def query(source: Path) -> dict[str, object]:
-    return {"source": str(source), "inputs": {"trajectory.tag_map": "reference:optimize.tag_map",
-                                              "trajectory.map_report": "reference:optimize.report",
-                                              "align.tag_map": "reference:optimize.tag_map"}}
+    return {
+        "source": str(source),
+        "inputs": {
+            "trajectory.tag_map": "reference:optimize.tag_map",
+            "trajectory.map_report": "reference:optimize.report",
+            "align.tag_map": "reference:optimize.tag_map",
+        },
+    }
 
 
 # --- extract ----------------------------------------------------------------------------------
@@ -171,15 +187,27 @@ def bench_extract(repeats: int) -> list[Row]:
     no_fit = fps["extract"] / fps["bare"]
     fit = fps["extract_refit"] / fps["bare_refit"]
     return [
-        Row("extract", "extract, no corner re-fit, vs the bare detector loop",
+        Row(
+            "extract",
+            "extract, no corner re-fit, vs the bare detector loop",
             f"{fps['extract']:.0f} vs {fps['bare']:.0f} frames/s ({len(files)} real 640x480 "
             f"JPEG frames; extract decodes them on {cores} workers, the loop gets them decoded; "
             f"loop incl. decoding {fps['bare_decode']:.0f} frames/s); CPU {ms['extract']:.1f} vs "
-            f"{ms['bare']:.1f} ms/frame", no_fit, ">= 0.9x", no_fit >= 0.9),
-        Row("extract", "extract with the corner re-fit, vs the loop with the re-fit",
+            f"{ms['bare']:.1f} ms/frame",
+            no_fit,
+            ">= 0.9x",
+            no_fit >= 0.9,
+        ),
+        Row(
+            "extract",
+            "extract with the corner re-fit, vs the loop with the re-fit",
             f"{fps['extract_refit']:.0f} vs {fps['bare_refit']:.0f} frames/s; CPU "
-            f"{ms['extract_refit']:.1f} vs {ms['bare_refit']:.1f} ms/frame", fit, "", None),
-    ]  # fmt: skip
+            f"{ms['extract_refit']:.1f} vs {ms['bare_refit']:.1f} ms/frame",
+            fit,
+            "",
+            None,
+        ),
+    ]
 
 
 # --- pose graph vs GTSAM ----------------------------------------------------------------------
@@ -192,18 +220,31 @@ def bench_posegraph(repeats: int) -> list[Row]:
     for n, e in bg.SIZES:
         c = bg.compare(n, e, repeats)
         size = f"{n} tags / {e // 1000}k edges"
-        rows.append(Row("posegraph", f"pose graph vs GTSAM, {size}: time",
-                        f"{c.ours_s:.3f} s ({c.nfev} evaluations) vs {c.gtsam_s:.3f} s (its LM "
-                        f"alone {c.gtsam_lm_s:.3f} s, {c.gtsam_iters} iterations)",
-                        c.time_ratio, "<= 1.5x", c.time_ratio <= 1.5))  # fmt: skip
+        rows.append(
+            Row(
+                "posegraph",
+                f"pose graph vs GTSAM, {size}: time",
+                f"{c.ours_s:.3f} s ({c.nfev} evaluations) vs {c.gtsam_s:.3f} s (its LM "
+                f"alone {c.gtsam_lm_s:.3f} s, {c.gtsam_iters} iterations)",
+                c.time_ratio,
+                "<= 1.5x",
+                c.time_ratio <= 1.5,
+            )
+        )
         # the solvers compared on the same cost: both with GTSAM's Huber kernel; the default
         # soft_l1 beside it (a different cost, so a different minimum)
-        rows.append(Row("posegraph", f"pose graph vs GTSAM, {size}: error (same Huber kernel)",
-                        f"{c.huber_err_m * 1e3:.3f} vs {c.gtsam_err_m * 1e3:.3f} mm mean tag "
-                        f"position error; with the default soft_l1 {c.ours_err_m * 1e3:.3f} mm "
-                        f"= {c.error_ratio:.3f}x",
-                        c.same_kernel_error_ratio, "<= 1.0x",
-                        c.same_kernel_error_ratio <= 1.0))  # fmt: skip
+        rows.append(
+            Row(
+                "posegraph",
+                f"pose graph vs GTSAM, {size}: error (same Huber kernel)",
+                f"{c.huber_err_m * 1e3:.3f} vs {c.gtsam_err_m * 1e3:.3f} mm mean tag "
+                f"position error; with the default soft_l1 {c.ours_err_m * 1e3:.3f} mm "
+                f"= {c.error_ratio:.3f}x",
+                c.same_kernel_error_ratio,
+                "<= 1.0x",
+                c.same_kernel_error_ratio <= 1.0,
+            )
+        )
     return rows
 
 
@@ -213,8 +254,21 @@ def bench_posegraph(repeats: int) -> list[Row]:
 def recording(work: Path, scenario: str, frames: int) -> Path:
     project = work / f"{scenario}-{frames}"
     project.mkdir(parents=True)
-    run(TAGTRAIL, "simulate", scenario, "--out", "sim", "--detections", "--frames", str(frames),
-        "--query-frames", "2", "--no-progress", "--force", cwd=project)  # fmt: skip
+    run(
+        TAGTRAIL,
+        "simulate",
+        scenario,
+        "--out",
+        "sim",
+        "--detections",
+        "--frames",
+        str(frames),
+        "--query-frames",
+        "2",
+        "--no-progress",
+        "--force",
+        cwd=project,
+    )
     reference = "sim/reference" if scenario == "room" else f"sim/{scenario}"
     run(TAGTRAIL, "init", "--reference", reference, "--tag-size", "0.16", "--force", cwd=project)
     return project
@@ -237,9 +291,13 @@ def bench_scale_rows(repeats: int) -> list[Row]:
 
     rows = []
     with tempfile.TemporaryDirectory(prefix="tagtrail-bench-") as d:
-        for scenario, frames, reps in (("room", 1000, repeats), ("hall", 1000, repeats),
-                                       ("room", 3000, repeats), ("room", 9000, repeats),
-                                       ("room", 10000, 1)):  # fmt: skip
+        for scenario, frames, reps in (
+            ("room", 1000, repeats),
+            ("hall", 1000, repeats),
+            ("room", 3000, repeats),
+            ("room", 9000, repeats),
+            ("room", 10000, 1),
+        ):
             project = recording(Path(d), scenario, frames)
             ref = project / "sim" / ("reference" if scenario == "room" else scenario)
             gt = pd.read_csv(ref / "ground_truth" / "tag_map.csv")
@@ -251,18 +309,34 @@ def bench_scale_rows(repeats: int) -> list[Row]:
                 opt.append(per.get("optimize", float("nan")))
                 traj.append(per.get("trajectory", float("nan")))
             what = f"{scenario}, {frames:,} frames x {len(gt)} tags"
-            measured = (f"{med(walls):.1f} s, peak RSS {med(rss):.2f} GB; optimize (joint) "
-                        f"{med(opt):.1f} s, trajectory {med(traj):.1f} s"
-                        + (f" (median of {reps})" if reps > 1 else " (1 run)"))  # fmt: skip
+            measured = (
+                f"{med(walls):.1f} s, peak RSS {med(rss):.2f} GB; optimize (joint) "
+                f"{med(opt):.1f} s, trajectory {med(traj):.1f} s"
+                + (f" (median of {reps})" if reps > 1 else " (1 run)")
+            )
             if (scenario, frames) == ("room", 9000):
                 ok = med(walls) < 30.0 and med(rss) < 1.5
-                rows.append(Row("scale", f"recording phase, {what} (issue 12)", measured,
-                                med(walls) / 30.0, "< 30 s and < 1.5 GB (ratio: time / 30 s)",
-                                ok))  # fmt: skip
+                rows.append(
+                    Row(
+                        "scale",
+                        f"recording phase, {what} (issue 12)",
+                        measured,
+                        med(walls) / 30.0,
+                        "< 30 s and < 1.5 GB (ratio: time / 30 s)",
+                        ok,
+                    )
+                )
             elif frames == 10000:
-                rows.append(Row("scale", f"peak memory of a 10,000-frame run ({what})", measured,
-                                med(rss) / 1.5, "< 1.5 GB (ratio: RSS / 1.5 GB)",
-                                med(rss) < 1.5))  # fmt: skip
+                rows.append(
+                    Row(
+                        "scale",
+                        f"peak memory of a 10,000-frame run ({what})",
+                        measured,
+                        med(rss) / 1.5,
+                        "< 1.5 GB (ratio: RSS / 1.5 GB)",
+                        med(rss) < 1.5,
+                    )
+                )
             else:
                 rows.append(Row("scale", f"recording phase, {what}", measured, None, "", None))
             shutil.rmtree(project, ignore_errors=True)
@@ -283,8 +357,14 @@ def bench_runner(repeats: int) -> list[Row]:
         datasets: dict[str, dict[str, object]] = {}
         seed = 0
         while len(datasets) < 50:  # 4 maps (the recording phase) and 46 queries against one
-            out = simulate("room", root / "data" / f"s{seed}", frames=30, query_frames=3,
-                           detections=True, seed=seed)  # fmt: skip
+            out = simulate(
+                "room",
+                root / "data" / f"s{seed}",
+                frames=30,
+                query_frames=3,
+                detections=True,
+                seed=seed,
+            )
             for name, folder in out.items():
                 if len(datasets) == 50:
                     break
@@ -316,14 +396,24 @@ def bench_runner(repeats: int) -> list[Row]:
             cli_status.append(timed(lambda: run(TAGTRAIL, "status", cwd=root)))
     note = f"4 maps + 46 queries, {n_nodes} nodes (first run {first:.0f} s with -j 2)"
     return [
-        Row("runner", "no-op rerun, 50 datasets x every stage",
+        Row(
+            "runner",
+            "no-op rerun, 50 datasets x every stage",
             f"{med(noop):.2f} s in process; `tagtrail run` process {med(cli_run):.2f} s "
-            f"(start-up, imports and the outputs check included); {note}", med(noop) / 1.0,
-            "< 1 s (ratio: time / 1 s)", med(noop) < 1.0),
-        Row("runner", "`status`, 50 datasets x every stage",
+            f"(start-up, imports and the outputs check included); {note}",
+            med(noop) / 1.0,
+            "< 1 s (ratio: time / 1 s)",
+            med(noop) < 1.0,
+        ),
+        Row(
+            "runner",
+            "`status`, 50 datasets x every stage",
             f"{med(status):.2f} s in process; `tagtrail status` process {med(cli_status):.2f} s",
-            med(status) / 1.0, "< 1 s (ratio: time / 1 s)", med(status) < 1.0),
-    ]  # fmt: skip
+            med(status) / 1.0,
+            "< 1 s (ratio: time / 1 s)",
+            med(status) < 1.0,
+        ),
+    ]
 
 
 # --- sweep vs single runs ---------------------------------------------------------------------
@@ -338,12 +428,18 @@ def bench_sweep(repeats: int) -> list[Row]:
 
     with tempfile.TemporaryDirectory(prefix="tagtrail-bench-") as d:
         root = Path(d)
-        out = simulate("room", root / "data", frames=SWEEP_FRAMES, query_frames=5,
-                       detections=True)
-        (root / "pipeline.yaml").write_text(demo_pipeline({
-            n: ({"source": str(f)} if n == "reference" else query(f)) for n, f in out.items()}))
-        grid = ["-S", f"optimize.loss={','.join(LOSSES)}", "-S",
-                f"optimize.f_scale={','.join(SCALES)}"]  # fmt: skip
+        out = simulate("room", root / "data", frames=SWEEP_FRAMES, query_frames=5, detections=True)
+        (root / "pipeline.yaml").write_text(
+            demo_pipeline(
+                {n: ({"source": str(f)} if n == "reference" else query(f)) for n, f in out.items()}
+            )
+        )
+        grid = [
+            "-S",
+            f"optimize.loss={','.join(LOSSES)}",
+            "-S",
+            f"optimize.f_scale={','.join(SCALES)}",
+        ]
 
         def sweep() -> None:
             fresh(root)
@@ -353,19 +449,32 @@ def bench_sweep(repeats: int) -> list[Row]:
             fresh(root)
             for loss in LOSSES:
                 for fs in SCALES:
-                    run(TAGTRAIL, "run", "-S", f"optimize.loss={loss}", "-S",
-                        f"optimize.f_scale={fs}", cwd=root)  # fmt: skip
+                    run(
+                        TAGTRAIL,
+                        "run",
+                        "-S",
+                        f"optimize.loss={loss}",
+                        "-S",
+                        f"optimize.f_scale={fs}",
+                        cwd=root,
+                    )
 
         t_sweep, t_single = [], []
         for _ in range(repeats):
             t_sweep.append(timed(sweep))
             t_single.append(timed(singles))
     ratio = med(t_sweep) / med(t_single)
-    return [Row("sweep", "3x3 optimize sweep vs the 9 single `tagtrail run -S` it replaces",
-                f"{med(t_sweep):.1f} s vs {med(t_single):.1f} s (room, {SWEEP_FRAMES} frames, 4 "
-                "datasets, empty store each time; both run extract once)", ratio,
-                "<= 1x (no overhead)",
-                ratio <= 1.0)]  # fmt: skip
+    return [
+        Row(
+            "sweep",
+            "3x3 optimize sweep vs the 9 single `tagtrail run -S` it replaces",
+            f"{med(t_sweep):.1f} s vs {med(t_single):.1f} s (room, {SWEEP_FRAMES} frames, 4 "
+            "datasets, empty store each time; both run extract once)",
+            ratio,
+            "<= 1x (no overhead)",
+            ratio <= 1.0,
+        )
+    ]
 
 
 # --- dask vs local ----------------------------------------------------------------------------
@@ -378,8 +487,14 @@ def bench_dask(repeats: int) -> list[Row]:
         root = Path(d)
         datasets: dict[str, dict[str, object]] = {}
         for seed in (0, 1):
-            out = simulate("room", root / "data" / f"s{seed}", frames=DASK_FRAMES, query_frames=10,
-                           detections=True, seed=seed)  # fmt: skip
+            out = simulate(
+                "room",
+                root / "data" / f"s{seed}",
+                frames=DASK_FRAMES,
+                query_frames=10,
+                detections=True,
+                seed=seed,
+            )
             for name, folder in out.items():
                 if name == "reference":
                     datasets["reference" if seed == 0 else "map_1"] = {"source": str(folder)}
@@ -398,8 +513,7 @@ def bench_dask(repeats: int) -> list[Row]:
             for _ in range(2):
                 fresh(root)
                 t0 = time.perf_counter()
-                res = run(TAGTRAIL, "run", "--executor", "dask", "-j", "2", cwd=root,
-                          check=False)  # fmt: skip
+                res = run(TAGTRAIL, "run", "--executor", "dask", "-j", "2", cwd=root, check=False)
                 if res.returncode == 0:
                     return time.perf_counter() - t0
                 if "runs other code" not in res.stderr:
@@ -411,10 +525,18 @@ def bench_dask(repeats: int) -> list[Row]:
             t_local.append(timed(local))
             t_dask.append(dask())
     ratio = med(t_dask) / med(t_local)
-    return [Row("dask", "dask executor (2-worker LocalCluster) vs local (-j 2), 8 datasets",
-                f"{med(t_dask):.1f} s vs {med(t_local):.1f} s (room detections, "
-                f"{DASK_FRAMES}-frame "
-                "maps, empty store each time; the cluster's start included)", ratio, "", None)]
+    return [
+        Row(
+            "dask",
+            "dask executor (2-worker LocalCluster) vs local (-j 2), 8 datasets",
+            f"{med(t_dask):.1f} s vs {med(t_local):.1f} s (room detections, "
+            f"{DASK_FRAMES}-frame "
+            "maps, empty store each time; the cluster's start included)",
+            ratio,
+            "",
+            None,
+        )
+    ]
 
 
 # --- streaming --------------------------------------------------------------------------------
@@ -423,11 +545,19 @@ def bench_dask(repeats: int) -> list[Row]:
 def bench_stream(repeats: int) -> list[Row]:
     import bench_stream as bs
 
-    args = argparse.Namespace(poses=2000, repeats=repeats, rate=bs.GOAL_RATE, express=False,
-                              node_batching=False, random_poses=False)  # fmt: skip
+    args = argparse.Namespace(
+        poses=2000,
+        repeats=repeats,
+        rate=bs.GOAL_RATE,
+        express=False,
+        node_batching=False,
+        random_poses=False,
+    )
     n_ref = 1_000_000
-    with tempfile.TemporaryDirectory(prefix="tagtrail-bench-") as d, \
-            contextlib.redirect_stdout(io.StringIO()):  # fmt: skip
+    with (
+        tempfile.TemporaryDirectory(prefix="tagtrail-bench-") as d,
+        contextlib.redirect_stdout(io.StringIO()),
+    ):
         res = bs.bench_size(n_ref, args, Path(d))
 
     def m(mode: str, key: str) -> float:
@@ -436,14 +566,24 @@ def bench_stream(repeats: int) -> list[Row]:
     lost = max(args.poses - r["received"] for r in res["paced"])
     p99 = m("ping-pong", "p99_ms")
     return [
-        Row("stream", "streaming relocalization latency, 1,000,000-sample reference",
+        Row(
+            "stream",
+            "streaming relocalization latency, 1,000,000-sample reference",
             f"ping-pong p50 {m('ping-pong', 'p50_ms'):.2f} ms, p99 {p99:.2f} ms; paced at "
             f"2,000 poses/s p99 {m('paced', 'p99_ms'):.2f} ms, {lost} lost",
-            p99 / bs.GOAL_P99_MS, "p99 < 2 ms (ratio: p99 / 2 ms)", p99 < bs.GOAL_P99_MS),
-        Row("stream", "streaming throughput (flood)", f"{m('flood', 'rate'):.0f} poses/s",
-            m("flood", "rate") / bs.GOAL_RATE, ">= 2,000 poses/s (ratio: rate / 2,000)",
-            m("flood", "rate") >= bs.GOAL_RATE),
-    ]  # fmt: skip
+            p99 / bs.GOAL_P99_MS,
+            "p99 < 2 ms (ratio: p99 / 2 ms)",
+            p99 < bs.GOAL_P99_MS,
+        ),
+        Row(
+            "stream",
+            "streaming throughput (flood)",
+            f"{m('flood', 'rate'):.0f} poses/s",
+            m("flood", "rate") / bs.GOAL_RATE,
+            ">= 2,000 poses/s (ratio: rate / 2,000)",
+            m("flood", "rate") >= bs.GOAL_RATE,
+        ),
+    ]
 
 
 SECTIONS: dict[str, tuple[Callable[[int], list[Row]], int]] = {
@@ -477,16 +617,23 @@ def machine() -> str:
             versions.append(f"{p} {importlib.metadata.version(p)}")
         except importlib.metadata.PackageNotFoundError:
             versions.append(f"{p} (not installed)")
-    return (f"{cpu}, {os.cpu_count()} cores ({len(os.sched_getaffinity(0))} usable), {ram} RAM; "
-            f"{platform.system()} {platform.release()}; Python {platform.python_version()}; "
-            + ", ".join(versions))  # fmt: skip
+    return (
+        f"{cpu}, {os.cpu_count()} cores ({len(os.sched_getaffinity(0))} usable), {ram} RAM; "
+        f"{platform.system()} {platform.release()}; Python {platform.python_version()}; "
+        + ", ".join(versions)
+    )
 
 
 def commit() -> str:
-    res = subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=ROOT, capture_output=True,
-                         text=True)  # fmt: skip
-    dirty = subprocess.run(["git", "status", "--porcelain", "--untracked-files=no"], cwd=ROOT,
-                           capture_output=True, text=True).stdout.strip()  # fmt: skip
+    res = subprocess.run(
+        ["git", "rev-parse", "--short", "HEAD"], cwd=ROOT, capture_output=True, text=True
+    )
+    dirty = subprocess.run(
+        ["git", "status", "--porcelain", "--untracked-files=no"],
+        cwd=ROOT,
+        capture_output=True,
+        text=True,
+    ).stdout.strip()
     return res.stdout.strip() + (" (with uncommitted changes)" if dirty else "")
 
 
@@ -519,53 +666,57 @@ def read_runs(path: Path) -> dict[str, dict[str, Any]]:
 def write(path: Path, rows: dict[str, list[Row]], runs: dict[str, dict[str, Any]]) -> None:
     ordered = [r for s in SECTIONS for r in rows.get(s, [])]
     total = sum(r["s"] for r in runs.values())
-    ran = ", ".join(f"{s} {r['s']:.0f} s (load {r['load']:.1f}, {r['commit']}, {r['date']})"
-                    for s, r in sorted(runs.items(), key=lambda kv: list(SECTIONS).index(kv[0])))
-    text = "\n".join([
-        "# tagtrail benchmarks",
-        "",
-        f"Written by `make bench` (`bench/run_all.py`; `--only SECTION` reruns one section and "
-        f"keeps the others); the sections took {total / 60:.1f} min in all; per section (its "
-        f"1-min load average at its start, the commit and the date it ran at): {ran}.",
-        "",
-        f"Machine: {machine()}.",
-        "",
-        "Each figure is the median of its repeats; each ratio is measured side by side in this "
-        "run (the two sides alternate), so it holds better than the absolute times, which "
-        "move with other work on the machine. Ratios against a goal are stated in the goal "
-        "column.",
-        "",
-        *table(ordered),
-        "",
-        "Reading the table:",
-        "",
-        "- extract runs its workers on every core; its throughput ratio needs the second core "
-        "free (the 1-min load average is given per section). The CPU per frame (this process "
-        "and its workers) does not depend on the load.",
-        "- The pose graph: tagtrail's default kernel is soft_l1, which GTSAM does not have; "
-        "GTSAM runs Huber at the same scale (0.1). Both start from the same spanning-tree "
-        "guess, timed on both sides; GTSAM's time includes building its factor graph from "
-        "Python (its LM alone is given). The error ratio compares the solvers on the same "
-        "cost (Huber on both sides); the default soft_l1's error is in the measured column.",
-        "- The recording phase: `tagtrail run` (extract .. smooth, eval; the joint solve) in a "
-        "child process from an empty store; peak RSS is the largest resident set of that "
-        "process (its `VmHWM`) and of the workers it waited for, reported by the child (not "
-        "its `ru_maxrss` seen from here, which Linux seeds with this process's own peak).",
-        "- The runner rows time the runner itself (a `Runner` in this process); the `tagtrail` "
-        "processes add Python's start-up and the imports.",
-        "- dask: a fresh `LocalCluster` per run (its start included), on the same 2 cores.",
-        "",
-        "How each is measured: `bench/run_all.py` (the sections' docstrings), `bench_extract.py`, "
-        "`bench_gtsam.py`, `bench_scale.py`, `bench_stream.py`.",
-        "",
-        "<!-- rows",
-        json.dumps({s: [r.__dict__ for r in rs] for s, rs in rows.items()}, indent=1),
-        "-->",
-        "<!-- runs",
-        json.dumps(runs, indent=1),
-        "-->",
-        "",
-    ])  # fmt: skip
+    ran = ", ".join(
+        f"{s} {r['s']:.0f} s (load {r['load']:.1f}, {r['commit']}, {r['date']})"
+        for s, r in sorted(runs.items(), key=lambda kv: list(SECTIONS).index(kv[0]))
+    )
+    text = "\n".join(
+        [
+            "# tagtrail benchmarks",
+            "",
+            f"Written by `make bench` (`bench/run_all.py`; `--only SECTION` reruns one section and "
+            f"keeps the others); the sections took {total / 60:.1f} min in all; per section (its "
+            f"1-min load average at its start, the commit and the date it ran at): {ran}.",
+            "",
+            f"Machine: {machine()}.",
+            "",
+            "Each figure is the median of its repeats; each ratio is measured side by side in this "
+            "run (the two sides alternate), so it holds better than the absolute times, which "
+            "move with other work on the machine. Ratios against a goal are stated in the goal "
+            "column.",
+            "",
+            *table(ordered),
+            "",
+            "Reading the table:",
+            "",
+            "- extract runs its workers on every core; its throughput ratio needs the second core "
+            "free (the 1-min load average is given per section). The CPU per frame (this process "
+            "and its workers) does not depend on the load.",
+            "- The pose graph: tagtrail's default kernel is soft_l1, which GTSAM does not have; "
+            "GTSAM runs Huber at the same scale (0.1). Both start from the same spanning-tree "
+            "guess, timed on both sides; GTSAM's time includes building its factor graph from "
+            "Python (its LM alone is given). The error ratio compares the solvers on the same "
+            "cost (Huber on both sides); the default soft_l1's error is in the measured column.",
+            "- The recording phase: `tagtrail run` (extract .. smooth, eval; the joint solve) in a "
+            "child process from an empty store; peak RSS is the largest resident set of that "
+            "process (its `VmHWM`) and of the workers it waited for, reported by the child (not "
+            "its `ru_maxrss` seen from here, which Linux seeds with this process's own peak).",
+            "- The runner rows time the runner itself (a `Runner` in this process); the `tagtrail` "
+            "processes add Python's start-up and the imports.",
+            "- dask: a fresh `LocalCluster` per run (its start included), on the same 2 cores.",
+            "",
+            "How each is measured: `bench/run_all.py` (the sections' docstrings), "
+            "`bench_extract.py`, `bench_gtsam.py`, `bench_scale.py`, `bench_stream.py`.",
+            "",
+            "<!-- rows",
+            json.dumps({s: [r.__dict__ for r in rs] for s, rs in rows.items()}, indent=1),
+            "-->",
+            "<!-- runs",
+            json.dumps(runs, indent=1),
+            "-->",
+            "",
+        ]
+    )
     atomic_write_text(path, text)
 
 
@@ -585,12 +736,19 @@ def main() -> None:
         t0 = time.perf_counter()
         rows[name] = fn(repeats)
         took = time.perf_counter() - t0
-        runs[name] = {"s": took, "load": load, "commit": commit(),
-                      "date": time.strftime("%Y-%m-%d %H:%M")}
+        runs[name] = {
+            "s": took,
+            "load": load,
+            "commit": commit(),
+            "date": time.strftime("%Y-%m-%d %H:%M"),
+        }
         for r in rows[name]:
-            print(f"  {r.figure}: {r.measured}"
-                  + ("" if r.ratio is None else f" -> {r.ratio:.2f}x")
-                  + ("" if r.met is None else f" ({'met' if r.met else 'NOT met'})"), flush=True)
+            print(
+                f"  {r.figure}: {r.measured}"
+                + ("" if r.ratio is None else f" -> {r.ratio:.2f}x")
+                + ("" if r.met is None else f" ({'met' if r.met else 'NOT met'})"),
+                flush=True,
+            )
         print(f"  ({took:.0f} s)", flush=True)
     write(args.out, rows, runs)
     print(f"wrote {args.out}")

@@ -1,2 +1,3 @@
 """tagtrail: AprilTag trajectory recording and relocalization."""
+
 __version__ = "0.1.0"

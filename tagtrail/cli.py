@@ -50,8 +50,9 @@ def _runner(args: argparse.Namespace, echo: Callable[[str], None] = print) -> Ru
     pipe = load_pipeline(Path(args.pipeline), _registry(), getattr(args, "set", None) or ())
     scheduler = getattr(args, "scheduler", None)  # `run --executor/--scheduler`
     executor = getattr(args, "executor", None) or ("dask" if scheduler else "local")
-    return Runner(pipe, jobs=getattr(args, "jobs", 1), echo=echo, executor=executor,
-                  scheduler=scheduler)
+    return Runner(
+        pipe, jobs=getattr(args, "jobs", 1), echo=echo, executor=executor, scheduler=scheduler
+    )
 
 
 def _stderr(line: str) -> None:
@@ -94,8 +95,10 @@ def cmd_status(args: argparse.Namespace) -> int:
     runner = _runner(args)
     for st in runner.plan():
         label = "up to date" if st.status == "cached" else "out of date"
-        print(f"{st.stage + ' [' + st.dataset + ']':<28} {label:<12} " +
-              ("" if st.status == "cached" else f"({st.reason})"))
+        print(
+            f"{st.stage + ' [' + st.dataset + ']':<28} {label:<12} "
+            + ("" if st.status == "cached" else f"({st.reason})")
+        )
     for node, why in sorted(runner.graph.skipped.items()):
         print(f"{str(node):<28} {'n/a':<12} ({why})")
     return 0
@@ -127,7 +130,10 @@ def cmd_show(args: argparse.Namespace) -> int:
 
 def _sub(sp: _SubParsers, name: str, help: str) -> argparse.ArgumentParser:
     p = sp.add_parser(
-        name, help=help, description=help, epilog=EXAMPLES.get(name),
+        name,
+        help=help,
+        description=help,
+        epilog=EXAMPLES.get(name),
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
     return p
@@ -138,8 +144,13 @@ def _pipeline_arg(p: argparse.ArgumentParser) -> None:
 
 
 def _set_arg(p: argparse.ArgumentParser) -> None:
-    p.add_argument("-S", "--set", action="append", metavar="STAGE.PARAM=VALUE",
-                   help="override a stage parameter, as for `run` (repeatable)")
+    p.add_argument(
+        "-S",
+        "--set",
+        action="append",
+        metavar="STAGE.PARAM=VALUE",
+        help="override a stage parameter, as for `run` (repeatable)",
+    )
 
 
 def build_parser(command: str | None = None) -> argparse.ArgumentParser:
@@ -159,14 +170,27 @@ def build_parser(command: str | None = None) -> argparse.ArgumentParser:
     _set_arg(p)
     p.add_argument("--force", action="store_true", help="rerun even if up to date")
     p.add_argument("--dry-run", action="store_true", help="say what would run and why")
-    p.add_argument("-j", "--jobs", type=int, default=1,
-                   help="stages run in parallel (dask: worker processes of the local cluster)")
-    p.add_argument("--executor", choices=("local", "dask"), default=None,
-                   help="where stages run: local threads (default) or a Dask cluster "
-                   "(pip install 'tagtrail[dask]')")
-    p.add_argument("--scheduler", default=None, metavar="ADDRESS",
-                   help="an existing Dask scheduler (tcp://host:8786; implies --executor dask; "
-                   "default: start a local cluster)")
+    p.add_argument(
+        "-j",
+        "--jobs",
+        type=int,
+        default=1,
+        help="stages run in parallel (dask: worker processes of the local cluster)",
+    )
+    p.add_argument(
+        "--executor",
+        choices=("local", "dask"),
+        default=None,
+        help="where stages run: local threads (default) or a Dask cluster "
+        "(pip install 'tagtrail[dask]')",
+    )
+    p.add_argument(
+        "--scheduler",
+        default=None,
+        metavar="ADDRESS",
+        help="an existing Dask scheduler (tcp://host:8786; implies --executor dask; "
+        "default: start a local cluster)",
+    )
     p.add_argument("--json", action="store_true", help="print the run log as JSON")
     p.set_defaults(func=cmd_run)
 
@@ -189,10 +213,19 @@ def build_parser(command: str | None = None) -> argparse.ArgumentParser:
     p.add_argument("--output", default=None, help="which output of the stage")
     p.add_argument("--csv", type=Path, default=None, help="export the table to CSV")
     p.add_argument("--rows", type=int, default=10, help="rows of head to print")
-    p.add_argument("--point", type=int, default=None, metavar="N",
-                   help="the artifact of point N of a `tagtrail sweep` (its -S overrides)")
-    p.add_argument("--sweep", default=None, metavar="NAME",
-                   help="the sweep of --point (default: the newest under sweeps/)")
+    p.add_argument(
+        "--point",
+        type=int,
+        default=None,
+        metavar="N",
+        help="the artifact of point N of a `tagtrail sweep` (its -S overrides)",
+    )
+    p.add_argument(
+        "--sweep",
+        default=None,
+        metavar="NAME",
+        help="the sweep of --point (default: the newest under sweeps/)",
+    )
     p.set_defaults(func=cmd_show)
 
     _optional_commands(sp, command)

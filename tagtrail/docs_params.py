@@ -35,16 +35,30 @@ Set a parameter in `pipeline.yaml` under `stages: {STAGE: {NAME: VALUE}}`, for o
 """
 
 # Unit from the name's suffix (the house style puts units in names: ``ransac_threshold_m``).
-SUFFIX_UNITS = (("_mps2", "m/s²"), ("_mps", "m/s"), ("_dps2", "deg/s²"), ("_deg", "deg"),
-                ("_px", "px"), ("_m", "m"), ("_s", "s"), ("_hz", "Hz"))
+SUFFIX_UNITS = (
+    ("_mps2", "m/s²"),
+    ("_mps", "m/s"),
+    ("_dps2", "deg/s²"),
+    ("_deg", "deg"),
+    ("_px", "px"),
+    ("_m", "m"),
+    ("_s", "s"),
+    ("_hz", "Hz"),
+)
 # Unit stated in the description, as ``(m)`` or ``(m/s^2/sqrt(Hz))`` or ``(pixels)``.
-DESC_UNIT = re.compile(r"\((m|px|pixels|deg|s|m/s\^2/sqrt\(Hz\)|deg/s\^2/sqrt\(Hz\)|deg/s\^2|"
-                       r"deg/s/sqrt\(Hz\)|m/s/sqrt\(Hz\)|m/s\^2)"
-                       r"(?:[),;]| )")
+DESC_UNIT = re.compile(
+    r"\((m|px|pixels|deg|s|m/s\^2/sqrt\(Hz\)|deg/s\^2/sqrt\(Hz\)|deg/s\^2|"
+    r"deg/s/sqrt\(Hz\)|m/s/sqrt\(Hz\)|m/s\^2)"
+    r"(?:[),;]| )"
+)
 # Units of the names that carry none and of the descriptions that state none in brackets.
-NAMED_UNITS = {("pnp", "tag_size"): "m", ("pnp", "tag_sizes"): "m",
-               ("smooth", "f_scale"): "standard deviations",
-               ("optimize", "rot_weight_m"): "m/rad", ("trajectory", "rot_weight_m"): "m/rad"}
+NAMED_UNITS = {
+    ("pnp", "tag_size"): "m",
+    ("pnp", "tag_sizes"): "m",
+    ("smooth", "f_scale"): "standard deviations",
+    ("optimize", "rot_weight_m"): "m/rad",
+    ("trajectory", "rot_weight_m"): "m/rad",
+}
 
 
 def unit(stage: str, name: str, info: FieldInfo) -> str:
@@ -89,31 +103,46 @@ def render() -> str:
         model = module.Params
         defaults = model().model_dump(mode="json")
         doc = _cell((model.__doc__ or "").strip().split("\n\n")[0])
-        out += [f"## {stage}", "", doc, "", "| parameter | type | default | unit | meaning |",
-                "|---|---|---|---|---|"]
+        out += [
+            f"## {stage}",
+            "",
+            doc,
+            "",
+            "| parameter | type | default | unit | meaning |",
+            "|---|---|---|---|---|",
+        ]
         for name, info in model.model_fields.items():
             default = json.dumps(defaults.get(name), ensure_ascii=False)
-            note = " *(how it runs, not what it computes: not part of the cache key)*" \
-                if name in model.EXECUTION_ONLY else ""
-            out.append(f"| `{name}` | {_cell(kind(info.annotation))} | `{default}` | "
-                       f"{unit(stage, name, info)} | {_cell(info.description or '')}{note} |")
+            note = (
+                " *(how it runs, not what it computes: not part of the cache key)*"
+                if name in model.EXECUTION_ONLY
+                else ""
+            )
+            out.append(
+                f"| `{name}` | {_cell(kind(info.annotation))} | `{default}` | "
+                f"{unit(stage, name, info)} | {_cell(info.description or '')}{note} |"
+            )
             sub = info.annotation
             if isinstance(sub, type) and issubclass(sub, BaseModel):  # nested settings: each
                 inner = sub().model_dump(mode="json")
                 for key, field in sub.model_fields.items():
-                    out.append(f"| `{name}.{key}` | {_cell(kind(field.annotation))} | "
-                               f"`{json.dumps(inner[key], ensure_ascii=False)}` | "
-                               f"{unit(stage, key, field)} | {_cell(field.description or '')} |")
+                    out.append(
+                        f"| `{name}.{key}` | {_cell(kind(field.annotation))} | "
+                        f"`{json.dumps(inner[key], ensure_ascii=False)}` | "
+                        f"{unit(stage, key, field)} | {_cell(field.description or '')} |"
+                    )
         out.append("")
     return "\n".join(out)
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(prog="python -m tagtrail.docs_params",
-                                     description="write docs/PARAMETERS.md from the stages' "
-                                     "parameter models")
-    parser.add_argument("--check", action="store_true",
-                        help="exit 1 when the file is stale; write nothing")
+    parser = argparse.ArgumentParser(
+        prog="python -m tagtrail.docs_params",
+        description="write docs/PARAMETERS.md from the stages' parameter models",
+    )
+    parser.add_argument(
+        "--check", action="store_true", help="exit 1 when the file is stale; write nothing"
+    )
     parser.add_argument("-o", "--output", type=Path, default=DOC, help="the page (%(default)s)")
     args = parser.parse_args(argv)
     text = render()

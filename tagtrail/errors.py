@@ -60,8 +60,9 @@ class StageError(TagtrailError):
         self.cause = cause
 
 
-STORAGE_ERRNOS = frozenset({errno.ENOSPC, errno.EDQUOT, errno.EROFS, errno.EACCES, errno.EPERM,
-                            errno.EFBIG})
+STORAGE_ERRNOS = frozenset(
+    {errno.ENOSPC, errno.EDQUOT, errno.EROFS, errno.EACCES, errno.EPERM, errno.EFBIG}
+)
 
 
 def storage_error(err: OSError, what: str = "") -> StorageError | None:
@@ -69,9 +70,11 @@ def storage_error(err: OSError, what: str = "") -> StorageError | None:
     if err.errno not in STORAGE_ERRNOS:
         return None
     where = f"{what}: " if what else ""
-    return StorageError(f"{where}cannot write {err.filename or 'a file'}: {err.strerror} "
-                        "(free space or make the folder writable, then rerun; nothing partial "
-                        "was kept)")
+    return StorageError(
+        f"{where}cannot write {err.filename or 'a file'}: {err.strerror} "
+        "(free space or make the folder writable, then rerun; nothing partial "
+        "was kept)"
+    )
 
 
 MAX_LINE = 1000  # characters of an error line: a message quoting a value never runs on
@@ -79,7 +82,7 @@ MAX_LINE = 1000  # characters of an error line: a message quoting a value never 
 
 def abbreviate(text: str, limit: int = 300) -> str:
     """``text`` cut to ``limit`` characters, an ellipsis marking the cut."""
-    return text if len(text) <= limit else text[:limit - 1] + "…"
+    return text if len(text) <= limit else text[: limit - 1] + "…"
 
 
 def short_repr(value: object, limit: int = 80) -> str:

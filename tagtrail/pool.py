@@ -60,7 +60,9 @@ class WorkerPool:
         self.procs = [
             subprocess.Popen(
                 [sys.executable, "-m", "tagtrail.pool", func],
-                stdin=subprocess.PIPE, stdout=subprocess.PIPE, env=env,
+                stdin=subprocess.PIPE,
+                stdout=subprocess.PIPE,
+                env=env,
                 process_group=0,  # Ctrl-C at a terminal signals its foreground group: the
             )  # parent alone, which stops the workers (a worker has no partial result to keep)
             for _ in range(max(1, workers))
@@ -122,8 +124,9 @@ class WorkerPool:
         for p in self.procs:
             slots = threading.Semaphore(DEPTH)
             threads += [
-                threading.Thread(target=_write, args=(p, todo, slots, fed_all, self._closing),
-                                 daemon=True),
+                threading.Thread(
+                    target=_write, args=(p, todo, slots, fed_all, self._closing), daemon=True
+                ),
                 threading.Thread(target=_read, args=(p, results, slots), daemon=True),
             ]
         self._threads = [t for t in self._threads if t.is_alive()] + threads
@@ -172,7 +175,6 @@ def kill_workers() -> None:
                 pass
 
 
-
 @contextmanager
 def shared_pool(func: str, workers: int) -> Iterator[WorkerPool]:
     """A pool for exclusive use, reused from an earlier call when one is idle; returned for
@@ -201,8 +203,9 @@ def shared_pool(func: str, workers: int) -> Iterator[WorkerPool]:
 
 
 Mapper = Callable[[str, Iterable[tuple[Any, ...]]], Iterator[Any]]
-_MAPPER: contextvars.ContextVar[Mapper | None] = contextvars.ContextVar("tagtrail_mapper",
-                                                                       default=None)
+_MAPPER: contextvars.ContextVar[Mapper | None] = contextvars.ContextVar(
+    "tagtrail_mapper", default=None
+)
 
 
 @contextmanager
@@ -280,7 +283,8 @@ def _write(
 
 
 def _read(
-    proc: subprocess.Popen[bytes], results: queue.Queue[tuple[bool, Any]],
+    proc: subprocess.Popen[bytes],
+    results: queue.Queue[tuple[bool, Any]],
     slots: threading.Semaphore,
 ) -> None:
     """Collect one worker's results until its end marker (runs in a thread)."""
@@ -293,10 +297,15 @@ def _read(
                 code: int | None = proc.wait(timeout=1)
             except subprocess.TimeoutExpired:
                 code = None
-            results.put((False, RuntimeError(
-                f"worker process {proc.pid} died while working on a task "
-                f"(exit status {code}): {type(err).__name__}: {err}"
-            )))
+            results.put(
+                (
+                    False,
+                    RuntimeError(
+                        f"worker process {proc.pid} died while working on a task "
+                        f"(exit status {code}): {type(err).__name__}: {err}"
+                    ),
+                )
+            )
             return
         if ok is None:  # end marker
             return

@@ -120,8 +120,9 @@ def _handler(signum: int, _frame: FrameType | None) -> None:
             _state["signum"] = signum
     if not first:  # a second signal, or one after the command finished
         leave(signum)
-    threading.Thread(target=_watchdog, args=(signum,), name="tagtrail-interrupt",
-                     daemon=True).start()
+    threading.Thread(
+        target=_watchdog, args=(signum,), name="tagtrail-interrupt", daemon=True
+    ).start()
     raise Interrupted(signum)
 
 

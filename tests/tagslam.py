@@ -46,8 +46,9 @@ def tagslam_reference(bag: Path, root: Path) -> tuple[dict[int, np.ndarray], dic
     from rosbags.highlevel import AnyReader
 
     cam = yaml.safe_load((root / "camera_poses.yaml").read_text())["cam0"]["pose"]
-    rig_T_cam = make_T(R_from_rotvec([cam["rotation"][k] for k in "xyz"]),
-                       [cam["position"][k] for k in "xyz"])
+    rig_T_cam = make_T(
+        R_from_rotvec([cam["rotation"][k] for k in "xyz"]), [cam["position"][k] for k in "xyz"]
+    )
     tf: dict[tuple[str, str], np.ndarray] = {}
     cams: dict[int, np.ndarray] = {}
     with AnyReader([bag]) as reader:
@@ -55,19 +56,24 @@ def tagslam_reference(bag: Path, root: Path) -> tuple[dict[int, np.ndarray], dic
             msg = reader.deserialize(raw, conn.msgtype)
             if conn.msgtype == "nav_msgs/msg/Odometry":
                 p = msg.pose.pose
-                T = T_from_xyz_quat([p.position.x, p.position.y, p.position.z],
-                                    [p.orientation.x, p.orientation.y, p.orientation.z,
-                                     p.orientation.w])
+                T = T_from_xyz_quat(
+                    [p.position.x, p.position.y, p.position.z],
+                    [p.orientation.x, p.orientation.y, p.orientation.z, p.orientation.w],
+                )
                 stamp = msg.header.stamp
                 cams[stamp.sec * 10**9 + stamp.nanosec] = T @ rig_T_cam
             else:
                 for t in msg.transforms:
                     tr, q = t.transform.translation, t.transform.rotation
                     tf[(t.header.frame_id, t.child_frame_id)] = T_from_xyz_quat(
-                        [tr.x, tr.y, tr.z], [q.x, q.y, q.z, q.w])
+                        [tr.x, tr.y, tr.z], [q.x, q.y, q.z, q.w]
+                    )
     body = {parent for (parent, child) in tf if child.startswith("tag_")}  # lab, perch, ...
-    tags = {int(child[4:]): tf[("map", parent)] @ T for (parent, child), T in tf.items()
-            if parent in body and child.startswith("tag_")}
+    tags = {
+        int(child[4:]): tf[("map", parent)] @ T
+        for (parent, child), T in tf.items()
+        if parent in body and child.startswith("tag_")
+    }
     return tags, cams
 
 
@@ -104,8 +110,9 @@ def smooth_path(T: np.ndarray, sigma: float) -> np.ndarray:
     out[:, :3, 3] = gaussian_filter1d(T[:, :3, 3], sigma, axis=0, mode="nearest")
     R0 = Rotation.from_matrix(T[len(T) // 2, :3, :3])
     rv = (R0.inv() * Rotation.from_matrix(T[:, :3, :3])).as_rotvec()
-    out[:, :3, :3] = (R0 * Rotation.from_rotvec(
-        gaussian_filter1d(rv, sigma, axis=0, mode="nearest"))).as_matrix()
+    out[:, :3, :3] = (
+        R0 * Rotation.from_rotvec(gaussian_filter1d(rv, sigma, axis=0, mode="nearest"))
+    ).as_matrix()
     return out
 
 
@@ -117,8 +124,9 @@ def shake(n: int, dt: float, density: float, rng: np.random.Generator) -> np.nda
     return p - gaussian_filter1d(p, 1.0 / (2 * np.pi * dt), axis=0, mode="nearest")
 
 
-def simulate_test_16(realdata: Path, out: Path, corner_noise_px: float, shake_density: float,
-                     seed: int = 0) -> tuple[Path, dict[int, np.ndarray]]:
+def simulate_test_16(
+    realdata: Path, out: Path, corner_noise_px: float, shake_density: float, seed: int = 0
+) -> tuple[Path, dict[int, np.ndarray]]:
     """Test 16 rebuilt in the simulator, as a detections rosbag2 in ``out``: TagSLAM's five
     collinear tags, the real camera (cameras.yaml), TagSLAM's stamps, and as the true path
     TagSLAM's camera trajectory low-passed (Gaussian, 0.3 s) plus ``shake_density`` of hand
@@ -135,8 +143,14 @@ def simulate_test_16(realdata: Path, out: Path, corner_noise_px: float, shake_de
     camera = read_camera_file(root / "cameras.yaml")
     size = TAG_SIZES["tagslam_test_16"]
     tags = tuple(Tag(i, size, T) for i, T in sorted(tags_T.items()))
-    opts = make_options(detections=True, corner_noise_px=corner_noise_px, max_range_m=20.0,
-                        max_incidence_deg=85.0, camera=camera, seed=seed)
+    opts = make_options(
+        detections=True,
+        corner_noise_px=corner_noise_px,
+        max_range_m=20.0,
+        max_incidence_deg=85.0,
+        camera=camera,
+        seed=seed,
+    )
     scene = Scene("reference", camera, tags, (), min(tags_T), truth, stamps)
     bag = out / "bag"
     bagwrite.write_bag(bag, scene, opts, rng)

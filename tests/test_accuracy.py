@@ -67,9 +67,12 @@ def artifact(runner: Runner, stage: str, output: str, dataset: str) -> Any:
 
 def circle(folder: Path, **sim: Any) -> dict[str, Any]:
     simulate("circle", folder / "data", **sim)  # the simulator's defaults: 942 frames, seed 0
-    runner = run(folder, "reference: circle\ndatasets:\n  circle:\n    source: data/circle\n"
-                         "stages:\n  pnp:\n    tag_size: 0.16\n"
-                         "  optimize:\n    method: joint\n")
+    runner = run(
+        folder,
+        "reference: circle\ndatasets:\n  circle:\n    source: data/circle\n"
+        "stages:\n  pnp:\n    tag_size: 0.16\n"
+        "  optimize:\n    method: joint\n",
+    )
     return artifact(runner, "eval", "evaluation", "circle")
 
 
@@ -80,10 +83,12 @@ def mm(ev: dict[str, Any], block: str, stat: str = "mean") -> float:
 def check_issue_4(ev: dict[str, Any]) -> None:
     """The issue's targets on the gauge-free errors (module docstring)."""
     free = ev["gauge_free"]
-    print(f"\ncircle: trajectory {mm(ev, 'trajectory'):.1f} mm (p95 "
-          f"{mm(ev, 'trajectory', 'p95'):.1f}), tags {mm(ev, 'tags'):.1f} mm; gauge-free "
-          f"{mm(free, 'trajectory'):.1f} (p95 {mm(free, 'trajectory', 'p95'):.1f}) / "
-          f"{mm(free, 'tags'):.1f} mm; anchor off by {free['rotation_deg']:.2f} deg")
+    print(
+        f"\ncircle: trajectory {mm(ev, 'trajectory'):.1f} mm (p95 "
+        f"{mm(ev, 'trajectory', 'p95'):.1f}), tags {mm(ev, 'tags'):.1f} mm; gauge-free "
+        f"{mm(free, 'trajectory'):.1f} (p95 {mm(free, 'trajectory', 'p95'):.1f}) / "
+        f"{mm(free, 'tags'):.1f} mm; anchor off by {free['rotation_deg']:.2f} deg"
+    )
     assert ev["trajectory"]["coverage"] > 0.95 and ev["tags"]["n"] == 23
     assert mm(free, "trajectory") <= 10.0 and mm(free, "trajectory", "p95") <= 30.0
     assert mm(free, "tags") <= 10.0
@@ -116,8 +121,10 @@ def test_room_demo_parked_queries(tmp_path: Path) -> None:
     runner.run()
     ev = artifact(runner, "eval", "evaluation", "reference")
     free = ev["gauge_free"]
-    print(f"\nroom map: trajectory {mm(ev, 'trajectory'):.1f} mm, tags {mm(ev, 'tags'):.1f} mm; "
-          f"gauge-free {mm(free, 'trajectory'):.1f} / {mm(free, 'tags'):.1f} mm")
+    print(
+        f"\nroom map: trajectory {mm(ev, 'trajectory'):.1f} mm, tags {mm(ev, 'tags'):.1f} mm; "
+        f"gauge-free {mm(free, 'trajectory'):.1f} / {mm(free, 'tags'):.1f} mm"
+    )
     assert mm(ev, "trajectory") <= 10.0 and mm(ev, "tags") <= 10.0  # measured 5.7 / 5.9
     assert mm(free, "trajectory") <= 4.0 and mm(free, "tags") <= 3.0  # measured 2.1 / 1.0
     gt_ref = tmp_path / "data" / "reference" / "ground_truth"
@@ -135,8 +142,9 @@ def test_room_demo_parked_queries(tmp_path: Path) -> None:
         assert d_err <= 5.0 and phi_err <= 0.5, (q, errors)  # issue 5
 
 
-def test_sparse_hall_from_detections_with_the_defaults(tmp_path: Path,
-                                                       monkeypatch: pytest.MonkeyPatch) -> None:
+def test_sparse_hall_from_detections_with_the_defaults(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
     """Issue 12's sparse scene (``tagtrail simulate hall``: 28 tags flat on the walls, seen at
     50-65 deg, 1-3 in view) from a detections bag, with the pipeline ``tagtrail init`` writes:
     every tag in one map, every frame that sees a tag posed, and the issue's sparse-scene
@@ -155,9 +163,11 @@ def test_sparse_hall_from_detections_with_the_defaults(tmp_path: Path,
     report = artifact(runner, "optimize", "report", "reference")
     seen = artifact(runner, "pnp", "observations", "reference")["frame_idx"].nunique()
     traj = artifact(runner, "smooth", "trajectory", "reference")
-    print(f"\nhall: trajectory {mm(ev, 'trajectory'):.1f} mm (max "
-          f"{mm(ev, 'trajectory', 'max'):.1f}), tags {mm(ev, 'tags'):.1f} mm, {len(traj)} of "
-          f"{seen} frames posed")
+    print(
+        f"\nhall: trajectory {mm(ev, 'trajectory'):.1f} mm (max "
+        f"{mm(ev, 'trajectory', 'max'):.1f}), tags {mm(ev, 'tags'):.1f} mm, {len(traj)} of "
+        f"{seen} frames posed"
+    )
     assert report["method"] == "joint" and len(tags) == 28
     assert len(traj) >= 0.95 * seen and traj["motion_prior"].all()
     assert mm(ev, "trajectory") <= 25.0 and mm(ev, "trajectory", "max") <= 100.0
@@ -170,17 +180,25 @@ def test_sparse_hall_from_detections_with_the_defaults(tmp_path: Path,
     assert diag["map_method"] == "joint" and int(diag["joint_frames"]) == len(traj)
     assert "poorly_constrained_tags" in diag and (out / "map.png").stat().st_size > 0
 
-    paper = Runner(load_pipeline(tmp_path / "pipeline.yaml", REGISTRY, [
-        "optimize.method=pairwise", "trajectory.method=lsq"]))
+    paper = Runner(
+        load_pipeline(
+            tmp_path / "pipeline.yaml",
+            REGISTRY,
+            ["optimize.method=pairwise", "trajectory.method=lsq"],
+        )
+    )
     paper.run()
     ev_paper = artifact(paper, "eval", "evaluation", "reference")
-    print(f"hall, pairwise: trajectory {mm(ev_paper, 'trajectory'):.1f} mm, tags "
-          f"{mm(ev_paper, 'tags'):.1f} mm")
+    print(
+        f"hall, pairwise: trajectory {mm(ev_paper, 'trajectory'):.1f} mm, tags "
+        f"{mm(ev_paper, 'tags'):.1f} mm"
+    )
     assert mm(ev_paper, "trajectory") > mm(ev, "trajectory")
 
 
 def test_sparse_corridor_images_mirrored_pairs_decided_by_continuity(
-        tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
     """The corridor (``tagtrail simulate corridor``: 9 tags on alternate walls, a chain: each
     pair the only link) rendered with twice the default image noise and blur, on the detector's
     own corners (``extract.refit_corners: false``; the re-fit's corners are good enough there
@@ -196,8 +214,9 @@ def test_sparse_corridor_images_mirrored_pairs_decided_by_continuity(
     from tagtrail.cli import main
     from tagtrail.sim.render import Realism
 
-    rec = simulate("corridor", tmp_path / "data",
-                   realism=replace(Realism(), noise_sigma=4.0, blur_sigma=1.0))["corridor"]
+    rec = simulate(
+        "corridor", tmp_path / "data", realism=replace(Realism(), noise_sigma=4.0, blur_sigma=1.0)
+    )["corridor"]
     monkeypatch.chdir(tmp_path)
     assert main(["init", "--reference", str(rec), "--tag-size", "0.16"]) == 0
     raw = "extract.refit_corners=false"
@@ -210,23 +229,27 @@ def test_sparse_corridor_images_mirrored_pairs_decided_by_continuity(
 
     graph = artifact(runner, "edges", "graph", "reference")
     report = artifact(runner, "optimize", "report", "reference")
-    print(f"\ncorridor, images x2 noise: trajectory {mm(free(ev), 'trajectory'):.1f} mm (max "
-          f"{mm(free(ev), 'trajectory', 'max'):.1f}), tags {mm(free(ev), 'tags'):.1f} mm; "
-          f"rival pairs {[(p.tag_i, p.tag_j) for p in graph.rival_pairs]}, flipped "
-          f"{report['bundle']['rival_pairs_flipped']}")
+    print(
+        f"\ncorridor, images x2 noise: trajectory {mm(free(ev), 'trajectory'):.1f} mm (max "
+        f"{mm(free(ev), 'trajectory', 'max'):.1f}), tags {mm(free(ev), 'tags'):.1f} mm; "
+        f"rival pairs {[(p.tag_i, p.tag_j) for p in graph.rival_pairs]}, flipped "
+        f"{report['bundle']['rival_pairs_flipped']}"
+    )
     assert graph.n_components == 1 and len(graph.tags) == 9
     assert report["bundle"]["rival_pairs_flipped"]
     assert mm(free(ev), "trajectory", "max") <= 100.0 and mm(free(ev), "tags") <= 40.0
 
-    blind = Runner(load_pipeline(tmp_path / "pipeline.yaml", REGISTRY,
-                                 [raw, "optimize.rival_search=false"]))
+    blind = Runner(
+        load_pipeline(tmp_path / "pipeline.yaml", REGISTRY, [raw, "optimize.rival_search=false"])
+    )
     blind.run()
     ev_blind = artifact(blind, "eval", "evaluation", "reference")
     assert mm(free(ev_blind), "tags") > 10 * mm(free(ev), "tags")  # the bent map
 
 
 def test_ground_plane_and_wheels_keep_a_corridor_of_tags_level_and_straight(
-        tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
     """The corridor from detections at twice the default corner noise (0.6 px), the defaults
     ``tagtrail init`` writes: the robot's camera rides a plane, ``auto`` sees that and applies
     the ground-plane prior, and the 9-tag chain no longer bends out of the floor; the robot
@@ -237,8 +260,7 @@ def test_ground_plane_and_wheels_keep_a_corridor_of_tags_level_and_straight(
     cm."""
     from tagtrail.cli import main
 
-    rec = simulate("corridor", tmp_path / "data", detections=True,
-                   corner_noise_px=0.6)["corridor"]
+    rec = simulate("corridor", tmp_path / "data", detections=True, corner_noise_px=0.6)["corridor"]
     monkeypatch.chdir(tmp_path)
     assert main(["init", "--reference", str(rec), "--tag-size", "0.16"]) == 0
     assert main(["run"]) == 0
@@ -255,10 +277,12 @@ def test_ground_plane_and_wheels_keep_a_corridor_of_tags_level_and_straight(
 
     ev_free = other("optimize.joint.drive=free")  # the trajectory takes the map's settings
     ev_none = other("optimize.joint.ground=none")
-    print(f"\ncorridor, 0.6 px: trajectory {mm(ev, 'trajectory'):.1f} mm (max "
-          f"{mm(ev, 'trajectory', 'max'):.1f}), tags {mm(ev, 'tags'):.1f} mm; drive free "
-          f"{mm(ev_free, 'trajectory'):.1f} / {mm(ev_free, 'tags'):.1f} mm; ground none "
-          f"{mm(ev_none, 'trajectory'):.1f} / {mm(ev_none, 'tags'):.1f} mm")
+    print(
+        f"\ncorridor, 0.6 px: trajectory {mm(ev, 'trajectory'):.1f} mm (max "
+        f"{mm(ev, 'trajectory', 'max'):.1f}), tags {mm(ev, 'tags'):.1f} mm; drive free "
+        f"{mm(ev_free, 'trajectory'):.1f} / {mm(ev_free, 'tags'):.1f} mm; ground none "
+        f"{mm(ev_none, 'trajectory'):.1f} / {mm(ev_none, 'tags'):.1f} mm"
+    )
     assert mm(ev_free, "trajectory") <= 0.7 * mm(ev_none, "trajectory")
     assert mm(ev_free, "tags") <= 0.7 * mm(ev_none, "tags")
     assert mm(ev, "trajectory") <= 0.6 * mm(ev_free, "trajectory")

@@ -18,12 +18,25 @@ def bags(room_bags: Path) -> Path:
 
 def test_init_then_run_then_show(bags: Path, tmp_path: Path, monkeypatch, capsys) -> None:
     monkeypatch.chdir(tmp_path)
-    rc = main(["init", "--reference", str(bags / "reference"), "--query", str(bags / "query_1"),
-               "--tag-size", "0.16", "--anchor", "0"])
+    rc = main(
+        [
+            "init",
+            "--reference",
+            str(bags / "reference"),
+            "--query",
+            str(bags / "query_1"),
+            "--tag-size",
+            "0.16",
+            "--anchor",
+            "0",
+        ]
+    )
     assert rc == 0
     doc = yaml.safe_load(Path("pipeline.yaml").read_text())
-    assert doc["datasets"]["reference"]["topics"] == {"detections": "/detections",
-                                                      "camera_info": "/camera_info"}
+    assert doc["datasets"]["reference"]["topics"] == {
+        "detections": "/detections",
+        "camera_info": "/camera_info",
+    }
     assert doc["stages"] == {"pnp": {"tag_size": 0.16}}
     assert doc["datasets"]["reference"]["params"] == {"edges": {"anchor_id": 0}}
     assert main(["init", "--reference", str(bags / "reference")]) == 2
@@ -33,8 +46,9 @@ def test_init_then_run_then_show(bags: Path, tmp_path: Path, monkeypatch, capsys
     assert "report [query]" in out and (tmp_path / "outputs" / "query" / "summary.json").is_file()
     assert main(["show", "extract", "--csv", "det.csv"]) == 0
     header = Path("det.csv").read_text().splitlines()[0]
-    assert header == ("stamp_sec,stamp_nanosec,tag_id,hamming,decision_margin,"
-                      "c0x,c0y,c1x,c1y,c2x,c2y,c3x,c3y")
+    assert header == (
+        "stamp_sec,stamp_nanosec,tag_id,hamming,decision_margin,c0x,c0y,c1x,c1y,c2x,c2y,c3x,c3y"
+    )
 
 
 @pytest.mark.parametrize(
@@ -72,8 +86,9 @@ def test_simulate_bad_option(tmp_path: Path, capsys) -> None:
 
 
 @pytest.mark.parametrize("argv", [["tagtrail.cli", "simulate"], ["tagtrail.sim.cli"]])
-def test_every_entry_point_reports_an_unexpected_error_on_one_line(tmp_path: Path,
-                                                                   argv: list[str]) -> None:
+def test_every_entry_point_reports_an_unexpected_error_on_one_line(
+    tmp_path: Path, argv: list[str]
+) -> None:
     """``tagtrail simulate`` and the standalone ``python -m tagtrail.sim.cli`` share one error
     shell: an unexpected failure (here --out under a file) is one line, exit 1, the traceback in
     a file."""
@@ -81,9 +96,21 @@ def test_every_entry_point_reports_an_unexpected_error_on_one_line(tmp_path: Pat
     import sys
 
     (tmp_path / "file").write_text("")
-    res = subprocess.run([sys.executable, "-m", *argv, "circle", "--out",
-                          str(tmp_path / "file" / "sim"), "--frames", "4"],
-                         capture_output=True, text=True, timeout=120)  # fmt: skip
+    res = subprocess.run(
+        [
+            sys.executable,
+            "-m",
+            *argv,
+            "circle",
+            "--out",
+            str(tmp_path / "file" / "sim"),
+            "--frames",
+            "4",
+        ],
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
     err = res.stderr.strip().splitlines()
     assert res.returncode == 1, res.stderr
     assert len(err) == 1 and err[0].startswith("error: unexpected ") and "Traceback" not in err[0]
@@ -105,7 +132,8 @@ def test_show_and_dag_take_the_same_overrides_as_run(bags, tmp_path, monkeypatch
     assert main(["show", "extract"]) == 0
     out = capsys.readouterr()
     assert "showing the most recent artifact, made with -S extract.min_decision_margin=5" in (
-        out.out + out.err)
+        out.out + out.err
+    )
     assert main(["dag", *override]) == 0
     assert main(["dag", "-S", "extract.min_decision_margin=-1"]) == 2
     assert "min_decision_margin" in one_error_line(capsys)

@@ -28,18 +28,26 @@ EXPORTS = [e.name for m in REGISTRY.values() for e in getattr(m, "EXPORTS", ())]
 TEMP = re.compile(r"^\..+\.[a-z0-9_]{8}$")  # mkstemp's names
 
 
-def tagtrail(cwd: Path, *args: str, fault: str | None = None,
-             timeout: float = 300) -> subprocess.CompletedProcess[str]:
+def tagtrail(
+    cwd: Path, *args: str, fault: str | None = None, timeout: float = 300
+) -> subprocess.CompletedProcess[str]:
     env = {k: v for k, v in os.environ.items() if k != "TAGTRAIL_FAULT"}
     if fault:
         env["TAGTRAIL_FAULT"] = fault
-    return subprocess.run([sys.executable, "-m", "tagtrail.cli", *args], cwd=cwd, env=env,
-                          capture_output=True, text=True, timeout=timeout)
+    return subprocess.run(
+        [sys.executable, "-m", "tagtrail.cli", *args],
+        cwd=cwd,
+        env=env,
+        capture_output=True,
+        text=True,
+        timeout=timeout,
+    )
 
 
 def files(root: Path) -> dict[str, bytes]:
-    return {str(p.relative_to(root)): p.read_bytes() for p in sorted(root.rglob("*"))
-            if p.is_file()}
+    return {
+        str(p.relative_to(root)): p.read_bytes() for p in sorted(root.rglob("*")) if p.is_file()
+    }
 
 
 def stray(project: Path) -> list[str]:
@@ -96,8 +104,9 @@ def test_killed_first_run_recovers(project: Path, good: dict[str, bytes]) -> Non
 
 @pytest.mark.parametrize("stage", list(REGISTRY))
 @pytest.mark.parametrize("where", ["stage", "store"])
-def test_kill_9_inside_every_stage(project: Path, good: dict[str, bytes], stage: str,
-                                   where: str) -> None:
+def test_kill_9_inside_every_stage(
+    project: Path, good: dict[str, bytes], stage: str, where: str
+) -> None:
     recover_and_compare(project, good)
     shutil.rmtree(project / "artifacts" / "objects" / stage)  # so the stage runs again
     killed = tagtrail(project, "run", fault=f"kill@{where}:{stage}")

@@ -46,8 +46,11 @@ def imports(path: Path) -> set[str]:
             for a in node.names:
                 sub = f"{node.module}.{a.name}"
                 names.add(sub if is_module(sub) else node.module)
-    return {n.removeprefix("tagtrail").removeprefix(".") for n in names
-            if n == "tagtrail" or n.startswith("tagtrail.")}
+    return {
+        n.removeprefix("tagtrail").removeprefix(".")
+        for n in names
+        if n == "tagtrail" or n.startswith("tagtrail.")
+    }
 
 
 def allowed(room: str, target: str, module: str) -> bool:
@@ -62,7 +65,8 @@ def allowed(room: str, target: str, module: str) -> bool:
             return False
     rules = ALLOWED[room]
     return any(target == r or target.startswith(r + ".") for r in rules) or (
-        "" in rules and target == "")
+        "" in rules and target == ""
+    )
 
 
 MODULES = sorted(p for p in PACKAGE.rglob("*.py") if room_of(p) in ALLOWED)
@@ -83,12 +87,18 @@ def test_the_rules_cover_every_room() -> None:
 
 
 def test_detector_settings_do_not_load_the_c_library() -> None:
-    assert "pupil_apriltags" not in {n for n in ast.walk(ast.parse(
-        (PACKAGE / "vision" / "detector.py").read_text())) for n in [getattr(n, "module", None)]}
+    assert "pupil_apriltags" not in {
+        n
+        for n in ast.walk(ast.parse((PACKAGE / "vision" / "detector.py").read_text()))
+        for n in [getattr(n, "module", None)]
+    }
     import subprocess
     import sys
-    code = ("import sys, tagtrail.vision.detector, tagtrail.io.sources, tagtrail.stream.localize;"
-            "print('pupil_apriltags' in sys.modules)")
+
+    code = (
+        "import sys, tagtrail.vision.detector, tagtrail.io.sources, tagtrail.stream.localize;"
+        "print('pupil_apriltags' in sys.modules)"
+    )
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
     assert out.stdout.strip() == "False"
 
@@ -111,10 +121,14 @@ def test_the_runner_knows_no_stage() -> None:
                 names |= {base, *(f"{base}.{a.name}" for a in node.names)}
             elif isinstance(node, ast.ImportFrom):  # from . import x
                 names |= {"." * node.level + a.name for a in node.names}
-        bad = {n for n in names if n.split(".")[:2] == ["tagtrail", "stages"]
-               or n.lstrip(".").startswith("stages") and n.startswith("..")}
-        bad |= {n for n in imports(path) if n.startswith("geometry")
-                and n not in RUNNER_GEOMETRY}
+        bad = {
+            n
+            for n in names
+            if n.split(".")[:2] == ["tagtrail", "stages"]
+            or n.lstrip(".").startswith("stages")
+            and n.startswith("..")
+        }
+        bad |= {n for n in imports(path) if n.startswith("geometry") and n not in RUNNER_GEOMETRY}
         if bad:
             found[path.name] = bad
     assert not found, f"runner/ imports stage code: {found}"

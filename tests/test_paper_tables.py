@@ -46,8 +46,10 @@ def test_table_4_2_ten_cm_noise(tmp_path: Path, seed: int) -> None:
     print("\nTable 4.2 (10 cm noise)   ours mean m / deg     paper mean m / deg")
     for block, (pm, pd) in rows.items():
         e = ev[block]
-        print(f"  {block:<16} {e['position_m']['mean']:.4f} / {e['angle_deg']['mean']:.2f}"
-              f"          {pm:.4f} / {pd:.2f}")
+        print(
+            f"  {block:<16} {e['position_m']['mean']:.4f} / {e['angle_deg']['mean']:.2f}"
+            f"          {pm:.4f} / {pd:.2f}"
+        )
     # Sanity, not a target: 10 cm per-axis noise averaged over many observations.
     assert ev["tags"]["position_m"]["mean"] < 0.10
     assert ev["trajectory"]["position_m"]["mean"] < ev["trajectory_raw"]["position_m"]["mean"]

@@ -13,8 +13,9 @@ from tagtrail.stages import REGISTRY
 
 
 def test_the_page_is_up_to_date() -> None:
-    assert docs_params.DOC.read_text(encoding="utf-8") == docs_params.render(), \
+    assert docs_params.DOC.read_text(encoding="utf-8") == docs_params.render(), (
         "docs/PARAMETERS.md is stale: run python -m tagtrail.docs_params"
+    )
 
 
 def test_every_parameter_has_a_row_with_its_meaning_and_default() -> None:

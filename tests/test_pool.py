@@ -17,9 +17,10 @@ def test_results_complete_and_workers_stop() -> None:
 
 
 def test_worker_exception_is_reraised() -> None:
-    with pytest.raises(SourceError, match="bad frame"), WorkerPool(
-        "tests.pool_funcs:fail", 1
-    ) as pool:
+    with (
+        pytest.raises(SourceError, match="bad frame"),
+        WorkerPool("tests.pool_funcs:fail", 1) as pool,
+    ):
         list(pool.imap_unordered((x,) for x in range(3)))
 
 

@@ -18,9 +18,17 @@ from tests.readme import REPO, run_script, section, shell_blocks
 
 PHOTOS = REPO.parent / "shared" / "realdata" / "swatbotics_mapping_feb_2014" / "images"
 # What a reference without ground truth gets (the table also lists the query and eval files).
-REFERENCE_FILES = {"trajectory.csv", "trajectory.tum", "trajectory_raw.csv", "trajectory_std.csv",
-                   "trajectory_evidence.csv", "tag_map.yaml", "tag_map.csv", "map.png",
-                   "diagnostics.csv"}
+REFERENCE_FILES = {
+    "trajectory.csv",
+    "trajectory.tum",
+    "trajectory_raw.csv",
+    "trajectory_std.csv",
+    "trajectory_evidence.csv",
+    "tag_map.yaml",
+    "tag_map.csv",
+    "map.png",
+    "diagnostics.csv",
+}
 
 
 def table_files() -> set[str]:

@@ -39,8 +39,9 @@ def states(output: str) -> list[dict[str, float]]:
 
 def metadata_count(bag: Path, topic: str) -> int:
     text = (bag / "metadata.yaml").read_text()
-    m = re.search(rf"- message_count: (\d+)\n    topic_metadata:\n      name: {re.escape(topic)}\n",
-                  text)  # fmt: skip
+    m = re.search(
+        rf"- message_count: (\d+)\n    topic_metadata:\n      name: {re.escape(topic)}\n", text
+    )
     assert m, text
     return int(m.group(1))
 
@@ -59,13 +60,15 @@ def test_real_robot_workflow(tmp_path: Path) -> None:
     port = free_port()
     here = f"tcp/127.0.0.1:{port}"
     stand_in = {
-        "# drive the robot once along the reference path, then:":
+        "# drive the robot once along the reference path, then:": (
             f"tagtrail stream replay {robot['reference']} --profile limo --mode client "
-            f"--connect {here} --rate 4",
-        "# park the robot at the test pose":
+            f"--connect {here} --rate 4"
+        ),
+        "# park the robot at the test pose": (
             f"tagtrail stream replay {robot['query_1']} --profile limo --mode client "
-            f"--connect {here} --rate 0.2 &",
-    }  # fmt: skip
+            f"--connect {here} --rate 0.2 &"
+        ),
+    }
     blocks = shell_blocks(section("Workflow 1: the real robot (LIMO)"))
     assert len(blocks) == 5 and blocks[0].startswith("# on the robot")
     script = "\n".join(blocks[1:])
@@ -86,16 +89,19 @@ def test_real_robot_workflow(tmp_path: Path) -> None:
 
 
 def test_simulation_workflow(tmp_path: Path) -> None:
-    ports = {"127.0.0.1:7447": f"127.0.0.1:{free_port()}",
-             "127.0.0.1:7448": f"127.0.0.1:{free_port()}"}
+    ports = {
+        "127.0.0.1:7447": f"127.0.0.1:{free_port()}",
+        "127.0.0.1:7448": f"127.0.0.1:{free_port()}",
+    }
     script = "\n".join(shell_blocks(section("Workflow 2: simulation")))
     for old, new in ports.items():
         assert old in script
         script = script.replace(old, new)
     out = run_script(script, tmp_path)
     assert re.search(r"record: interrupted: 1828 messages .* dropped 0", out), out[-4000:]
-    assert metadata_count(tmp_path / "bags" / "reference",
-                          "/camera/color/image_raw/compressed") == 914  # fmt: skip
+    assert (
+        metadata_count(tmp_path / "bags" / "reference", "/camera/color/image_raw/compressed") == 914
+    )
     check_outputs(tmp_path)
     d = [s["distance_m"] for s in states(out)]
     assert max(d) - min(d) < 0.05 and max(d) < 2.0

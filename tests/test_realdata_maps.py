@@ -52,12 +52,16 @@ def test_swatbotics_room_maps_all_20_tags_with_the_loop_closed(
     assert sorted(tags["tag_id"]) == list(range(20))
     edges = artifact(runner, "edges", "edges")
     ids = {t: i for i, t in enumerate(sorted(tags["tag_id"]))}
-    pairs = np.unique(np.array([[ids[a], ids[b]] for a, b in
-                                zip(edges["tag_i"], edges["tag_j"], strict=True)]), axis=0)
+    pairs = np.unique(
+        np.array([[ids[a], ids[b]] for a, b in zip(edges["tag_i"], edges["tag_j"], strict=True)]),
+        axis=0,
+    )
     assert two_edge_connected(pairs, 20)
     res = artifact(runner, "optimize", "edge_residuals")["res_t_m"].to_numpy()
-    print(f"\nswatbotics: 20 tags, {len(pairs)} tag pairs, {len(res)} edges, residual median "
-          f"{np.median(res):.3f} m, p95 {np.percentile(res, 95):.3f} m, max {res.max():.2f} m")
+    print(
+        f"\nswatbotics: 20 tags, {len(pairs)} tag pairs, {len(res)} edges, residual median "
+        f"{np.median(res):.3f} m, p95 {np.percentile(res, 95):.3f} m, max {res.max():.2f} m"
+    )
     # The closed loop is consistent: the typical edge agrees with the map to hand-held single-view
     # PnP noise (tags up to several metres away, no lens distortion given); the few flipped
     # (ambiguous) observations are what the robust loss is for.
@@ -65,8 +69,9 @@ def test_swatbotics_room_maps_all_20_tags_with_the_loop_closed(
     assert np.mean(res < 0.2) > 0.95
 
 
-def lap_map(tmp_path: Path, realdata: Path, lo: int, hi: int, *overrides: str
-            ) -> dict[int, np.ndarray]:
+def lap_map(
+    tmp_path: Path, realdata: Path, lo: int, hi: int, *overrides: str
+) -> dict[int, np.ndarray]:
     """Tag positions mapped from the swatbotics photos IMG_<lo>..IMG_<hi> alone."""
     src = realdata / "swatbotics_mapping_feb_2014" / "images"
     folder = tmp_path / f"img{lo}"
@@ -85,12 +90,17 @@ def lap_map(tmp_path: Path, realdata: Path, lo: int, hi: int, *overrides: str
 
 def distance_differences(a: dict[int, np.ndarray], b: dict[int, np.ndarray]) -> np.ndarray:
     ids = sorted(set(a) & set(b))
-    return np.array([abs(np.linalg.norm(a[i] - a[j]) - np.linalg.norm(b[i] - b[j]))
-                     for i, j in itertools.combinations(ids, 2)])
+    return np.array(
+        [
+            abs(np.linalg.norm(a[i] - a[j]) - np.linalg.norm(b[i] - b[j]))
+            for i, j in itertools.combinations(ids, 2)
+        ]
+    )
 
 
-def test_swatbotics_laps_map_alike_with_the_small_tags_found(tmp_path: Path, realdata: Path
-                                                             ) -> None:
+def test_swatbotics_laps_map_alike_with_the_small_tags_found(
+    tmp_path: Path, realdata: Path
+) -> None:
     """The loop's two laps, mapped apart with the defaults (small tags re-detected): lap 2's 25
     photos add 22 px views of far tags, one mirrored at ambiguity 0.31; the map's check of each
     observation's IPPE solution keeps it from bending lap 2's pose graph."""
@@ -98,8 +108,10 @@ def test_swatbotics_laps_map_alike_with_the_small_tags_found(tmp_path: Path, rea
     lap2 = lap_map(tmp_path, realdata, 1407, 1431)
     unchecked = lap_map(tmp_path, realdata, 1407, 1431, "optimize.branch_check=none")
     d, d_unchecked = distance_differences(lap1, lap2), distance_differences(lap1, unchecked)
-    print(f"\nswatbotics lap 1 vs lap 2, {len(d)} tag pairs: {d.mean():.3f} m mean, "
-          f"{d.max():.3f} m max (unchecked: {d_unchecked.mean():.3f} / {d_unchecked.max():.3f})")
+    print(
+        f"\nswatbotics lap 1 vs lap 2, {len(d)} tag pairs: {d.mean():.3f} m mean, "
+        f"{d.max():.3f} m max (unchecked: {d_unchecked.mean():.3f} / {d_unchecked.max():.3f})"
+    )
     assert len(d) == 190
     assert d.mean() < 0.04 and d.max() < 0.15
     assert d_unchecked.mean() > 1.5 * d.mean()
@@ -126,8 +138,10 @@ def test_photonvision_field_distances_vs_official_layout(tmp_path: Path, realdat
         pending = [t for t in pending if t not in set(tags["tag_id"])]
     rows = []
     for tags in components:
-        pos = {int(t): np.array(p) for t, p in
-               zip(tags["tag_id"], tags[["x_m", "y_m", "z_m"]].to_numpy(), strict=True)}
+        pos = {
+            int(t): np.array(p)
+            for t, p in zip(tags["tag_id"], tags[["x_m", "y_m", "z_m"]].to_numpy(), strict=True)
+        }
         for a, b in itertools.combinations(sorted(pos), 2):
             est = float(np.linalg.norm(pos[a] - pos[b]))
             ref = float(np.linalg.norm(layout[a] - layout[b]))
@@ -137,8 +151,10 @@ def test_photonvision_field_distances_vs_official_layout(tmp_path: Path, realdat
     for a, b, est, ref, err in rows:
         print(f"{a:>6} {b:>7} {est:>14.3f} {ref:>13.3f} {err:>14.3f}")
     errs = np.array([r[4] for r in rows])
-    print(f"mean {errs.mean():.3f}  max {errs.max():.3f}  min {errs.min():.3f}  "
-          f"(paper Table A.1, tape vs map: mean 0.039, max 0.099, min 0.001)")
+    print(
+        f"mean {errs.mean():.3f}  max {errs.max():.3f}  min {errs.min():.3f}  "
+        f"(paper Table A.1, tape vs map: mean 0.039, max 0.099, min 0.001)"
+    )
     rel = errs / np.array([r[3] for r in rows])
     print(f"relative error: median {np.median(rel):.3f}, max {rel.max():.3f}")
     # Single photos 1-6 m from the tags, with the calibration of another unit of the same camera

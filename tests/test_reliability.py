@@ -24,8 +24,9 @@ def bags(room_bags: Path) -> Path:
 
 
 def tree(root: Path) -> dict[str, bytes]:
-    return {str(p.relative_to(root)): p.read_bytes() for p in sorted(root.rglob("*"))
-            if p.is_file()}
+    return {
+        str(p.relative_to(root)): p.read_bytes() for p in sorted(root.rglob("*")) if p.is_file()
+    }
 
 
 def write_pipeline(folder: Path, datasets: dict[str, object], stages: object = None) -> None:
@@ -36,6 +37,7 @@ def write_pipeline(folder: Path, datasets: dict[str, object], stages: object = N
 
 
 # --- 1. dataset names are never paths --------------------------------------------------------
+
 
 @pytest.mark.parametrize("name", ["../x", "..", ".", "", "/ABS", "a/b", "x/../../y", "a\\b"])
 def test_dataset_name_that_is_a_path_is_refused(bags, tmp_path, monkeypatch, capsys, name):
@@ -98,6 +100,7 @@ def test_temp_files_of_killed_writes_are_cleaned(tmp_path: Path) -> None:
 
 # --- 6. parameters are numbers, finite, once -------------------------------------------------
 
+
 @pytest.mark.parametrize(
     "stages, override, message",
     [
@@ -114,8 +117,9 @@ def test_temp_files_of_killed_writes_are_cleaned(tmp_path: Path) -> None:
         (None, "pnp.tag_size=[1,", "bad override -S 'pnp.tag_size=[1,': line 1: invalid YAML"),
     ],
 )
-def test_parameters_must_be_finite_numbers(bags, tmp_path, monkeypatch, capsys, stages, override,
-                                           message):
+def test_parameters_must_be_finite_numbers(
+    bags, tmp_path, monkeypatch, capsys, stages, override, message
+):
     monkeypatch.chdir(tmp_path)
     write_pipeline(tmp_path, {"reference": {"source": str(bags / "reference")}}, stages)
     for cmd in (["run"], ["status"]):
@@ -126,18 +130,29 @@ def test_parameters_must_be_finite_numbers(bags, tmp_path, monkeypatch, capsys, 
 
 def test_tuple_and_int_parameters_still_read_from_yaml(bags, tmp_path, monkeypatch, capsys):
     monkeypatch.chdir(tmp_path)
-    stages = {"extract": {"tag_ids": [0, 1, 2, 3]}, "pnp": {"tag_size": 1, "tag_sizes": {3: 0.16}},
-              "align": {"scale_range": [0.8, 1.2]}}
+    stages = {
+        "extract": {"tag_ids": [0, 1, 2, 3]},
+        "pnp": {"tag_size": 1, "tag_sizes": {3: 0.16}},
+        "align": {"scale_range": [0.8, 1.2]},
+    }
     write_pipeline(tmp_path, {"reference": {"source": str(bags / "reference")}}, stages)
     assert main(["status"]) == 0
 
 
-@pytest.mark.parametrize("text, message", [
-    ("datasets:\n  a: {source: x}\n  a: {source: y}\n", "key 'a' written twice (lines 2 and 3)"),
-    ("datasets:\n  a: {source: x}\nstages:\n  pnp: {tag_size: 0.1, tag_size: 0.2}\n",
-     "key 'tag_size' written twice"),
-    ("datasets:\n  a: {source: x}\nstages: {}\nstages: {}\n", "key 'stages' written twice"),
-])
+@pytest.mark.parametrize(
+    "text, message",
+    [
+        (
+            "datasets:\n  a: {source: x}\n  a: {source: y}\n",
+            "key 'a' written twice (lines 2 and 3)",
+        ),
+        (
+            "datasets:\n  a: {source: x}\nstages:\n  pnp: {tag_size: 0.1, tag_size: 0.2}\n",
+            "key 'tag_size' written twice",
+        ),
+        ("datasets:\n  a: {source: x}\nstages: {}\nstages: {}\n", "key 'stages' written twice"),
+    ],
+)
 def test_a_key_written_twice_is_an_error(tmp_path, monkeypatch, capsys, text, message):
     monkeypatch.chdir(tmp_path)
     (tmp_path / "x").mkdir()
@@ -150,7 +165,8 @@ def test_yaml_merge_keys_may_override(bags, tmp_path, monkeypatch, capsys) -> No
     monkeypatch.chdir(tmp_path)
     src = str(bags / "reference")
     Path("pipeline.yaml").write_text(
-        f"datasets:\n  reference: &r {{source: {src}}}\n  q:\n    <<: *r\n    source: {src}\n")
+        f"datasets:\n  reference: &r {{source: {src}}}\n  q:\n    <<: *r\n    source: {src}\n"
+    )
     assert main(["status"]) == 0
 
 
@@ -164,15 +180,23 @@ def test_init_refuses_a_bad_tag_size(bags, tmp_path, monkeypatch, capsys, size) 
 
 # --- 2. damaged outputs are restored ---------------------------------------------------------
 
+
 def test_damaged_outputs_are_restored_and_force_rewrites(bags, tmp_path, monkeypatch, capsys):
     monkeypatch.chdir(tmp_path)
-    write_pipeline(tmp_path, {
-        "reference": {"source": str(bags / "reference")},
-        "query": {"source": str(bags / "query_1"),
-                  "inputs": {"trajectory.tag_map": "reference:optimize.tag_map",
-                             "trajectory.map_report": "reference:optimize.report",
-                             "align.tag_map": "reference:optimize.tag_map"}},
-    })
+    write_pipeline(
+        tmp_path,
+        {
+            "reference": {"source": str(bags / "reference")},
+            "query": {
+                "source": str(bags / "query_1"),
+                "inputs": {
+                    "trajectory.tag_map": "reference:optimize.tag_map",
+                    "trajectory.map_report": "reference:optimize.report",
+                    "align.tag_map": "reference:optimize.tag_map",
+                },
+            },
+        },
+    )
     assert main(["run"]) == 0
     good = tree(tmp_path / "outputs")
     ref, query = tmp_path / "outputs" / "reference", tmp_path / "outputs" / "query"
@@ -196,14 +220,21 @@ def test_damaged_outputs_are_restored_and_force_rewrites(bags, tmp_path, monkeyp
 
 # --- 7. a read-only project can still be inspected -------------------------------------------
 
+
 def _read_only(folder: Path) -> tuple[list[str], list[str]]:
     """Commands that make ``folder`` read-only and back: a read-only bind mount where this
     process may mount (root, as in CI), else permission bits (which bind any other user)."""
     probe = subprocess.run(["mount", "--bind", str(folder), str(folder)], capture_output=True)
     if probe.returncode == 0:
         subprocess.run(["umount", str(folder)], check=True)
-        return (["sh", "-c", f"mount --bind '{folder}' '{folder}' && "
-                 f"mount -o remount,bind,ro '{folder}'"], ["umount", str(folder)])
+        return (
+            [
+                "sh",
+                "-c",
+                f"mount --bind '{folder}' '{folder}' && mount -o remount,bind,ro '{folder}'",
+            ],
+            ["umount", str(folder)],
+        )
     if os.geteuid() == 0:
         pytest.skip("root without mount rights: permission bits do not bind root")
     return ["chmod", "-R", "a-w", str(folder)], ["chmod", "-R", "u+w", str(folder)]

@@ -51,8 +51,7 @@ def rewrite(src: Path, dst: Path, edit: Edit) -> Path:
     msg)`` (it returns the message to write, edited or not)."""
     store = msgs.typestore()
     with Reader(src) as r, Writer(dst, version=9, storage_plugin=StoragePlugin.MCAP) as w:
-        conns = {c.id: w.add_connection(c.topic, c.msgtype, typestore=store)
-                 for c in r.connections}  # fmt: skip
+        conns = {c.id: w.add_connection(c.topic, c.msgtype, typestore=store) for c in r.connections}
         for i, (c, t, raw) in enumerate(r.messages()):
             msg = edit(c.msgtype, store.deserialize_cdr(raw, c.msgtype), i)
             w.write(conns[c.id], t, store.serialize_cdr(msg, c.msgtype))
@@ -69,8 +68,9 @@ def camera_info(**fields: Any) -> Any:
     return edit
 
 
-def init_and_extract(project: Path, source: Path, monkeypatch: pytest.MonkeyPatch,
-                     *extra: str) -> int:  # fmt: skip
+def init_and_extract(
+    project: Path, source: Path, monkeypatch: pytest.MonkeyPatch, *extra: str
+) -> int:
     project.mkdir()
     monkeypatch.chdir(project)
     rc = main(["init", "--reference", str(source), "--tag-size", "0.16", *extra])
@@ -92,8 +92,9 @@ CAMERA_INFOS = {
 
 @pytest.mark.parametrize("case", list(CAMERA_INFOS))
 @pytest.mark.parametrize("kind", ["images", "detections"])
-def test_bad_camera_info_is_one_line_naming_the_topic(recordings, tmp_path, monkeypatch, capsys,
-                                                      case: str, kind: str) -> None:
+def test_bad_camera_info_is_one_line_naming_the_topic(
+    recordings, tmp_path, monkeypatch, capsys, case: str, kind: str
+) -> None:
     """Item 13: a CameraInfo of 0x0 px was an IndexError in extract (images) or a misleading
     "keep_truncated drops every detection" (detections); every bad field is now one line naming
     the bag, the topic and the field."""
@@ -140,8 +141,9 @@ DETECTIONS = {
 
 
 @pytest.mark.parametrize("case", list(DETECTIONS))
-def test_bad_detection_fields_are_one_line(recordings, tmp_path, monkeypatch, capsys,
-                                           case: str) -> None:  # fmt: skip
+def test_bad_detection_fields_are_one_line(
+    recordings, tmp_path, monkeypatch, capsys, case: str
+) -> None:
     """The class of item 13 in detection messages: a NaN/inf/absurd corner, a negative tag id,
     a stamp's nanoseconds past 1e9 were taken silently; now one line names topic and message."""
     edit, said = DETECTIONS[case]
@@ -155,6 +157,7 @@ def test_bad_detection_fields_are_one_line(recordings, tmp_path, monkeypatch, ca
 def test_empty_compressed_image_is_one_line(recordings, tmp_path, monkeypatch, capsys) -> None:
     """An empty CompressedImage was OpenCV's assertion (rc 1, a traceback log); now one line
     naming the frame."""
+
     def edit(msgtype: str, msg: Any, i: int) -> Any:
         if msgtype == msgs.COMPRESSED_IMAGE and i > 6:
             msg.data = np.zeros(0, np.uint8)
@@ -169,6 +172,7 @@ def test_empty_compressed_image_is_one_line(recordings, tmp_path, monkeypatch, c
 
 def test_a_later_bad_camera_info_is_a_warning(recordings, tmp_path, monkeypatch, caplog) -> None:
     """The first CameraInfo is the camera; a bad one later is said (once), not fatal."""
+
     def edit(msgtype: str, msg: Any, i: int) -> Any:
         if msgtype == msgs.CAMERA_INFO and i > 10:
             msg.width = msg.height = 0
@@ -183,8 +187,9 @@ def _image_folder(folder: Path, stamps: str) -> Path:
     folder.mkdir()
     for i in range(3):
         cv2.imwrite(str(folder / f"f{i}.png"), np.full((48, 64), 255, np.uint8))
-    (folder / "camera.yaml").write_text("camera: {width: 64, height: 48, fx: 50, fy: 50, "
-                                        "cx: 32, cy: 24}\n")  # fmt: skip
+    (folder / "camera.yaml").write_text(
+        "camera: {width: 64, height: 48, fx: 50, fy: 50, cx: 32, cy: 24}\n"
+    )
     (folder / "stamps.csv").write_text("file,stamp_sec,stamp_nanosec\n" + stamps)
     return folder
 
@@ -217,16 +222,17 @@ def test_bad_stamps_csv_is_one_line(tmp_path, monkeypatch, capsys, case: str) ->
 def big_png(width: int, height: int) -> bytes:
     """A real, decodable grey PNG of ``width`` x ``height`` zeros (deflated row by row: this
     process never holds the image); 20000x20000 is 1.7 MB."""
+
     def chunk(kind: bytes, data: bytes) -> bytes:
-        return struct.pack(">I", len(data)) + kind + data + struct.pack(
-            ">I", zlib.crc32(kind + data))
+        return (
+            struct.pack(">I", len(data)) + kind + data + struct.pack(">I", zlib.crc32(kind + data))
+        )
 
     z = zlib.compressobj(1)
     rows = bytes((width + 1) * 100)  # filter byte 0 + zeros, 100 rows at a time
     idat = b"".join([*(z.compress(rows) for _ in range(height // 100)), z.flush()])
     ihdr = struct.pack(">IIBBBBB", width, height, 8, 0, 0, 0, 0)
-    return (b"\x89PNG\r\n\x1a\n" + chunk(b"IHDR", ihdr) + chunk(b"IDAT", idat)
-            + chunk(b"IEND", b""))  # fmt: skip
+    return b"\x89PNG\r\n\x1a\n" + chunk(b"IHDR", ihdr) + chunk(b"IDAT", idat) + chunk(b"IEND", b"")
 
 
 @pytest.fixture(scope="module")
@@ -249,8 +255,14 @@ def run_measured(project: Path, *args: str) -> tuple[int, int, str]:
     """``tagtrail ARGS`` in ``project``: (exit code, peak resident MB of the largest process of
     the run, its workers included, stderr)."""
     env = {**os.environ, "PYTHONPATH": str(REPO)}
-    done = subprocess.run([sys.executable, "-c", PEAK, *args], cwd=project, env=env,
-                          capture_output=True, text=True, timeout=600)  # fmt: skip
+    done = subprocess.run(
+        [sys.executable, "-c", PEAK, *args],
+        cwd=project,
+        env=env,
+        capture_output=True,
+        text=True,
+        timeout=600,
+    )
     rc, peak = map(int, done.stdout.split())
     return rc, peak, done.stderr
 
@@ -275,13 +287,28 @@ def test_oversized_png_frames_are_not_decoded(recordings, huge_png, tmp_path) ->
     bag = rewrite(recordings["images"], tmp_path / "bag", edit)
     project = tmp_path / "p"
     project.mkdir()
-    assert main(["init", "--reference", str(bag), "--tag-size", "0.16",
-                 "-o", str(project / "pipeline.yaml")]) == 0
+    assert (
+        main(
+            [
+                "init",
+                "--reference",
+                str(bag),
+                "--tag-size",
+                "0.16",
+                "-o",
+                str(project / "pipeline.yaml"),
+            ]
+        )
+        == 0
+    )
     rc, peak, err = run_measured(project, "run", "extract", "-S", "extract.workers=1")
     print(f"extract with two 20000x20000 PNG frames: peak {peak} MB")
     assert rc == 0, err
-    assert re.search(r"2 of 12 frames left out, their size is not the camera's 640x480 .*"
-                     r"frame 3 at [\d.]+ s \(20000x20000\), frame 8 at", err), err
+    assert re.search(
+        r"2 of 12 frames left out, their size is not the camera's 640x480 .*"
+        r"frame 3 at [\d.]+ s \(20000x20000\), frame 8 at",
+        err,
+    ), err
     assert peak < PEAK_MB, peak
 
 
@@ -293,8 +320,20 @@ def test_oversized_image_file_is_not_decoded(huge_png, tmp_path) -> None:
     assert frame_size(raw) == (20_000, 20_000)
     project = tmp_path / "p"
     project.mkdir()
-    assert main(["init", "--reference", str(folder), "--tag-size", "0.16",
-                 "-o", str(project / "pipeline.yaml")]) == 0
+    assert (
+        main(
+            [
+                "init",
+                "--reference",
+                str(folder),
+                "--tag-size",
+                "0.16",
+                "-o",
+                str(project / "pipeline.yaml"),
+            ]
+        )
+        == 0
+    )
     rc, peak, err = run_measured(project, "run", "extract", "-S", "extract.workers=1")
     print(f"extract with a 20000x20000 PNG file: peak {peak} MB")
     assert "f1.png (20000x20000)" in err, err
@@ -316,8 +355,9 @@ def test_frame_size_reads_every_kind_of_frame(huge_png, tmp_path) -> None:
     assert frame_size(RawImage("file", str(tmp_path / "missing.png"))) is None
 
 
-@pytest.mark.parametrize("content", [b"", b"\x89PNG\r\n\x1a\n" + b"junk" * 10],
-                         ids=["empty file", "damaged PNG"])  # fmt: skip
+@pytest.mark.parametrize(
+    "content", [b"", b"\x89PNG\r\n\x1a\n" + b"junk" * 10], ids=["empty file", "damaged PNG"]
+)
 def test_damaged_image_file_is_one_line(tmp_path, monkeypatch, capfd, content: bytes) -> None:
     """A damaged image in a folder: one line naming the frame and the file, and nothing else on
     stderr (OpenCV's own log lines from the worker processes are silenced)."""

@@ -22,8 +22,10 @@ from tagtrail.io.layouts import atomic_write_text, remove_stale_temps
 from tagtrail.runner.paths import OUTPUT_FILES
 from tests.cli_helpers import detection_bags, one_error_line
 
-QUERY_INPUTS = {"trajectory.tag_map": "reference:optimize.tag_map",
-                "align.tag_map": "reference:optimize.tag_map"}
+QUERY_INPUTS = {
+    "trajectory.tag_map": "reference:optimize.tag_map",
+    "align.tag_map": "reference:optimize.tag_map",
+}
 
 
 def tree(root: Path) -> dict[str, bytes]:
@@ -47,10 +49,13 @@ def stamps(root: Path) -> dict[str, int]:
 
 def write_pipeline(folder: Path, bags: Path, names: tuple[str, str] = ("reference", "query")):
     ref, query = names
-    doc = {"reference": ref, "datasets": {
-        ref: {"source": str(bags / "reference")},
-        query: {"source": str(bags / "query_1"), "inputs": QUERY_INPUTS},
-    }}
+    doc = {
+        "reference": ref,
+        "datasets": {
+            ref: {"source": str(bags / "reference")},
+            query: {"source": str(bags / "query_1"), "inputs": QUERY_INPUTS},
+        },
+    }
     folder.mkdir(parents=True, exist_ok=True)
     (folder / "pipeline.yaml").write_text(yaml.safe_dump(doc))
 
@@ -59,8 +64,14 @@ def tagtrail(cwd: Path, *args: str, fault: str | None = None) -> subprocess.Comp
     env = {k: v for k, v in os.environ.items() if k != "TAGTRAIL_FAULT"}
     if fault:
         env["TAGTRAIL_FAULT"] = fault
-    return subprocess.run([sys.executable, "-m", "tagtrail.cli", *args], cwd=cwd, env=env,
-                          capture_output=True, text=True, timeout=300)
+    return subprocess.run(
+        [sys.executable, "-m", "tagtrail.cli", *args],
+        cwd=cwd,
+        env=env,
+        capture_output=True,
+        text=True,
+        timeout=300,
+    )
 
 
 def last_error_line(capsys: pytest.CaptureFixture[str]) -> str:
@@ -117,11 +128,22 @@ def replace_with_link(path: Path, target: Path) -> None:
 
 # --- items 1 and 2: the symlink rule ---------------------------------------------------------
 
-@pytest.mark.parametrize("where", [
-    "artifacts/tmp", "artifacts/runs", "artifacts/objects", "artifacts/objects/extract",
-    "artifacts/logs", "artifacts/runs/query", "artifacts/sources.json",
-    "artifacts/runs/reference/extract.json", "outputs/query", "outputs/reference/trajectory.csv",
-])
+
+@pytest.mark.parametrize(
+    "where",
+    [
+        "artifacts/tmp",
+        "artifacts/runs",
+        "artifacts/objects",
+        "artifacts/objects/extract",
+        "artifacts/logs",
+        "artifacts/runs/query",
+        "artifacts/sources.json",
+        "artifacts/runs/reference/extract.json",
+        "outputs/query",
+        "outputs/reference/trajectory.csv",
+    ],
+)
 def test_a_link_below_a_top_folder_leading_out_is_refused(project, victim, capsys, where):
     """Item 1 (``artifacts/tmp``, ``artifacts/runs``) and the rule at every level: refused with
     one line before anything is deleted or written, here or in the link's target."""
@@ -137,8 +159,9 @@ def test_a_link_below_a_top_folder_leading_out_is_refused(project, victim, capsy
         assert stamps(project) == before_project  # nothing ran, nothing was written
 
 
-def test_a_link_below_outputs_is_refused_before_any_stage_runs(bags, tmp_path, victim,
-                                                               monkeypatch, capsys):
+def test_a_link_below_outputs_is_refused_before_any_stage_runs(
+    bags, tmp_path, victim, monkeypatch, capsys
+):
     """Item 2: ``outputs/query`` as a link was refused only after every stage ran."""
     project = tmp_path / "p"
     write_pipeline(project, bags)
@@ -153,12 +176,15 @@ def test_a_link_below_outputs_is_refused_before_any_stage_runs(bags, tmp_path, v
     assert tree(victim) == before
 
 
-@pytest.mark.parametrize("where, target", [
-    ("outputs/query", "missing"),            # dangling, inside outputs/
-    ("outputs/query", "/nonexistent/q"),     # dangling, outside
-    ("outputs/query", "../pipeline.yaml"),   # into the project, outside outputs/
-    ("artifacts/objects", "../outputs"),     # into another top folder
-])
+@pytest.mark.parametrize(
+    "where, target",
+    [
+        ("outputs/query", "missing"),  # dangling, inside outputs/
+        ("outputs/query", "/nonexistent/q"),  # dangling, outside
+        ("outputs/query", "../pipeline.yaml"),  # into the project, outside outputs/
+        ("artifacts/objects", "../outputs"),  # into another top folder
+    ],
+)
 def test_dangling_links_and_links_into_the_project_are_refused(project, capsys, where, target):
     replace_with_link(project / where, Path(target))
     before = stamps(project)
@@ -188,16 +214,18 @@ def test_a_top_folder_may_be_a_link_the_user_made(bags, tmp_path, monkeypatch, c
     assert all((project / top).is_symlink() for top in ("artifacts", "outputs", "sweeps"))
 
 
-@pytest.mark.parametrize("top, target, message", [
-    ("artifacts", ".", "holds the project"),
-    ("artifacts", "..", "holds the project"),
-    ("artifacts", "outputs", "overlaps"),
-    ("outputs", "artifacts/objects", "overlaps"),
-    ("artifacts", "missing", "does not exist"),
-    ("artifacts", "pipeline.yaml", "not a folder"),
-])
-def test_a_top_folder_link_must_lead_to_a_folder_of_its_own(project, capsys, top, target,
-                                                            message):
+@pytest.mark.parametrize(
+    "top, target, message",
+    [
+        ("artifacts", ".", "holds the project"),
+        ("artifacts", "..", "holds the project"),
+        ("artifacts", "outputs", "overlaps"),
+        ("outputs", "artifacts/objects", "overlaps"),
+        ("artifacts", "missing", "does not exist"),
+        ("artifacts", "pipeline.yaml", "not a folder"),
+    ],
+)
+def test_a_top_folder_link_must_lead_to_a_folder_of_its_own(project, capsys, top, target, message):
     shutil.rmtree(project / top)
     (project / top).symlink_to(target)
     before = stamps(project.parent)
@@ -208,15 +236,23 @@ def test_a_top_folder_link_must_lead_to_a_folder_of_its_own(project, capsys, top
 
 # --- item 3: only tagtrail's own files are removed --------------------------------------------
 
-USER_FILES = {".env.override": "X=1\n", ".vscode.settings": "{}\n",
-              ".notes.20241203": "the user's notes\n", ".trajectory.csv.abcd1234": "mine\n"}
+USER_FILES = {
+    ".env.override": "X=1\n",
+    ".vscode.settings": "{}\n",
+    ".notes.20241203": "the user's notes\n",
+    ".trajectory.csv.abcd1234": "mine\n",
+}
 
 
 def test_user_files_named_like_temp_files_are_never_removed(project, capsys):
     """Item 3: dotfiles ``.name.xxxxxxxx`` in ``outputs/<dataset>/`` and ``artifacts/`` survive
     every run; tagtrail's own stale temporary files (``.tagtrail-tmp-…``) are removed."""
-    folders = [project / "outputs" / "reference", project / "artifacts",
-               project / "artifacts" / "runs", project / "artifacts" / "runs" / "query"]
+    folders = [
+        project / "outputs" / "reference",
+        project / "artifacts",
+        project / "artifacts" / "runs",
+        project / "artifacts" / "runs" / "query",
+    ]
     for folder in folders:
         for name, text in USER_FILES.items():
             (folder / name).write_text(text)
@@ -247,6 +283,7 @@ def test_a_temp_file_being_written_is_never_removed(tmp_path: Path) -> None:
 
 # --- item 6: read-only commands write nothing --------------------------------------------------
 
+
 def test_read_only_commands_write_nothing(bags, tmp_path, project, monkeypatch, capsys):
     """Item 6: ``status`` on a fresh project created ``artifacts/sources.json``; ``show``
     rewrote it. Now status, dag, show and eval (without --csv) leave every file untouched."""
@@ -259,16 +296,23 @@ def test_read_only_commands_write_nothing(bags, tmp_path, project, monkeypatch, 
     monkeypatch.chdir(project)
     (project / "artifacts" / "sources.json").unlink()  # a project whose hashes were lost
     before = stamps(project)
-    for cmd in (["status"], ["dag"], ["show", "smooth"], ["show", "pnp", "--dataset", "query"],
-                ["eval"], ["run", "--dry-run"]):
+    for cmd in (
+        ["status"],
+        ["dag"],
+        ["show", "smooth"],
+        ["show", "pnp", "--dataset", "query"],
+        ["eval"],
+        ["run", "--dry-run"],
+    ):
         assert main(cmd) == 0, cmd
         assert stamps(project) == before, cmd
 
 
 def test_a_source_that_is_no_recording_is_refused_at_once(tmp_path, monkeypatch, capsys):
     """Item 6: ``source: /usr`` was hashed for 46 s (a 20 MB sources.json); now one line."""
-    (tmp_path / "pipeline.yaml").write_text(yaml.safe_dump(
-        {"reference": "r", "datasets": {"r": {"source": "/usr"}}}))
+    (tmp_path / "pipeline.yaml").write_text(
+        yaml.safe_dump({"reference": "r", "datasets": {"r": {"source": "/usr"}}})
+    )
     monkeypatch.chdir(tmp_path)
     for cmd in (["status"], ["run"]):
         t0 = time.perf_counter()
@@ -279,6 +323,7 @@ def test_a_source_that_is_no_recording_is_refused_at_once(tmp_path, monkeypatch,
 
 
 # --- item 8: two runs at once ------------------------------------------------------------------
+
 
 @pytest.mark.slow
 def test_two_runs_at_once_both_succeed(bags, tmp_path) -> None:
@@ -292,13 +337,15 @@ def test_two_runs_at_once_both_succeed(bags, tmp_path) -> None:
     env = {k: v for k, v in os.environ.items() if k != "TAGTRAIL_FAULT"}
     cmd = [sys.executable, "-m", "tagtrail.cli", "run", "extract"]
     pause = {**env, "TAGTRAIL_FAULT": "sleep@written:sources.json=8"}
-    first = subprocess.Popen(cmd, cwd=project, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
-                             text=True, env=pause)
+    first = subprocess.Popen(
+        cmd, cwd=project, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=pause
+    )
     deadline = time.monotonic() + 120
     while not list(project.glob("artifacts/.*sources.json.*")) and time.monotonic() < deadline:
         time.sleep(0.02)  # the first run is writing its state
-    second = subprocess.Popen(cmd, cwd=project, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
-                              text=True, env=env)
+    second = subprocess.Popen(
+        cmd, cwd=project, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env
+    )
     results = [(p.returncode, err) for p in (first, second) for _, err in [p.communicate(300)]]
     assert [rc for rc, _ in results] == [0, 0], results
     assert "waiting for another tagtrail run" in results[1][1]
@@ -307,6 +354,7 @@ def test_two_runs_at_once_both_succeed(bags, tmp_path) -> None:
 
 
 # --- item 12: a path in the way of an output ---------------------------------------------------
+
 
 def test_an_empty_folder_or_file_in_the_way_is_replaced(project, done, capsys):
     """Item 12: ``trajectory.csv`` replaced by a folder, or ``outputs/query`` by a file, gave
@@ -325,8 +373,15 @@ def test_an_empty_folder_or_file_in_the_way_is_replaced(project, done, capsys):
     assert (project / "artifacts" / "runs" / "query" / "smooth.json").is_file()
 
 
-@pytest.mark.parametrize("where", ["outputs/reference/trajectory.csv", "outputs/query",
-                                   "artifacts/runs/query/smooth.json", "artifacts/objects"])
+@pytest.mark.parametrize(
+    "where",
+    [
+        "outputs/reference/trajectory.csv",
+        "outputs/query",
+        "artifacts/runs/query/smooth.json",
+        "artifacts/objects",
+    ],
+)
 def test_a_users_file_or_folder_in_the_way_is_refused(project, capsys, where):
     """Item 12: what is in the way holds something (the user's): one line, nothing touched."""
     path = project / where
@@ -345,13 +400,18 @@ def test_a_users_file_or_folder_in_the_way_is_refused(project, capsys, where):
 
 # --- item 13 (part): dataset names that collide or are too long -------------------------------
 
-@pytest.mark.parametrize("name, message", [
-    ("last_run.json", "tagtrail names its own files so"),
-    (".tagtrail-export.json", "tagtrail names its own files so"),
-    ("q" * 300, "300 characters, at most 100"),
-])
-def test_a_dataset_name_tagtrail_cannot_use_is_refused_at_load(bags, tmp_path, monkeypatch,
-                                                               capsys, name, message):
+
+@pytest.mark.parametrize(
+    "name, message",
+    [
+        ("last_run.json", "tagtrail names its own files so"),
+        (".tagtrail-export.json", "tagtrail names its own files so"),
+        ("q" * 300, "300 characters, at most 100"),
+    ],
+)
+def test_a_dataset_name_tagtrail_cannot_use_is_refused_at_load(
+    bags, tmp_path, monkeypatch, capsys, name, message
+):
     write_pipeline(tmp_path, bags, names=("reference", name))
     monkeypatch.chdir(tmp_path)
     for cmd in (["run"], ["status"], ["dag"]):
@@ -362,6 +422,7 @@ def test_a_dataset_name_tagtrail_cannot_use_is_refused_at_load(bags, tmp_path, m
 
 
 # --- item 15: a killed export-mcap --------------------------------------------------------------
+
 
 def test_a_killed_export_mcap_leaves_no_temp_after_the_next(project) -> None:
     """Item 15: SIGKILL during ``export-mcap -o k.mcap`` left ``.k.mcap.XXXX`` for good; the

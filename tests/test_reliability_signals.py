@@ -40,17 +40,30 @@ def env(fault: str | None = None) -> dict[str, str]:
     return out
 
 
-def tagtrail(cwd: Path, *args: str, fault: str | None = None,
-             timeout: float = 300) -> subprocess.CompletedProcess[str]:
-    return subprocess.run([sys.executable, "-m", "tagtrail.cli", *args], cwd=cwd,
-                          env=env(fault), capture_output=True, text=True, timeout=timeout)
+def tagtrail(
+    cwd: Path, *args: str, fault: str | None = None, timeout: float = 300
+) -> subprocess.CompletedProcess[str]:
+    return subprocess.run(
+        [sys.executable, "-m", "tagtrail.cli", *args],
+        cwd=cwd,
+        env=env(fault),
+        capture_output=True,
+        text=True,
+        timeout=timeout,
+    )
 
 
 def start(cwd: Path, *args: str) -> subprocess.Popen[str]:
     """``tagtrail ARGS`` in a session of its own: its process group is what Ctrl-C signals."""
-    return subprocess.Popen([sys.executable, "-m", "tagtrail.cli", *args], cwd=cwd, env=env(),
-                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
-                            start_new_session=True)
+    return subprocess.Popen(
+        [sys.executable, "-m", "tagtrail.cli", *args],
+        cwd=cwd,
+        env=env(),
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+        start_new_session=True,
+    )
 
 
 def children(pid: int) -> list[int]:
@@ -108,8 +121,9 @@ def check_one_line(rc: int, err: str, sig: int = signal.SIGINT) -> None:
 
 
 def files(root: Path) -> dict[str, bytes]:
-    return {str(p.relative_to(root)): p.read_bytes() for p in sorted(root.rglob("*"))
-            if p.is_file()}
+    return {
+        str(p.relative_to(root)): p.read_bytes() for p in sorted(root.rglob("*")) if p.is_file()
+    }
 
 
 def stray(project: Path) -> list[str]:
@@ -120,9 +134,13 @@ def stray(project: Path) -> list[str]:
 
 def new_project(folder: Path, bags: Path) -> Path:
     folder.mkdir(parents=True, exist_ok=True)
-    doc = {"reference": "reference", "datasets": {
-        "reference": {"source": str(bags / "reference")},
-        "query": {"source": str(bags / "query_1")}}}
+    doc = {
+        "reference": "reference",
+        "datasets": {
+            "reference": {"source": str(bags / "reference")},
+            "query": {"source": str(bags / "query_1")},
+        },
+    }
     (folder / "pipeline.yaml").write_text(yaml.safe_dump(doc))
     return folder
 
@@ -158,6 +176,7 @@ def dets_good(tmp_path_factory: pytest.TempPathFactory, dets: Path) -> dict[str,
 
 # --- 9. Ctrl-C during extract ----------------------------------------------------------------
 
+
 @pytest.mark.parametrize("jobs", ["1", "2"])
 def test_ctrl_c_during_extract_ends_within_a_second(images, images_good, tmp_path, jobs):
     """Was: rc 1, ``stage extract failed: KeyboardInterrupt`` and a log file."""
@@ -182,15 +201,19 @@ def test_ctrl_c_during_extract_ends_within_a_second(images, images_good, tmp_pat
 
 # --- 9 (class). A signal at any point of a run ------------------------------------------------
 
-@pytest.mark.parametrize("fault", [
-    "SIGINT@stage:extract",  # extract computed, not stored
-    "SIGINT@store:optimize",  # inside the store's write
-    "SIGINT@export:tag_map",  # exporting the outputs
-    "SIGINT@write:last_run.json",  # the run log, the run's last write
-    "SIGINT@cli:exit",  # the command finished (was: rc -2, no message)
-    "SIGTERM@stage:pnp",
-    "SIGHUP@store:trajectory",
-])
+
+@pytest.mark.parametrize(
+    "fault",
+    [
+        "SIGINT@stage:extract",  # extract computed, not stored
+        "SIGINT@store:optimize",  # inside the store's write
+        "SIGINT@export:tag_map",  # exporting the outputs
+        "SIGINT@write:last_run.json",  # the run log, the run's last write
+        "SIGINT@cli:exit",  # the command finished (was: rc -2, no message)
+        "SIGTERM@stage:pnp",
+        "SIGHUP@store:trajectory",
+    ],
+)
 def test_signal_at_any_point_of_a_run(dets, dets_good, tmp_path, fault):
     project = new_project(tmp_path / "p", dets)
     t0 = time.monotonic()
@@ -207,14 +230,21 @@ def test_signal_at_any_point_of_a_run(dets, dets_good, tmp_path, fault):
 
 # --- 5. Ctrl-C stops a sweep ------------------------------------------------------------------
 
+
 def metrics(table: Path) -> list[dict[str, str]]:
     """sweep.csv's parameter and metric columns (not its timings)."""
     import csv
 
     with table.open() as f:
         rows = list(csv.DictReader(f))
-    return [{k: v for k, v in r.items() if k in ("point", "status", "best") or "[" in k
-             or k.startswith("optimize.")} for r in rows]
+    return [
+        {
+            k: v
+            for k, v in r.items()
+            if k in ("point", "status", "best") or "[" in k or k.startswith("optimize.")
+        }
+        for r in rows
+    ]
 
 
 def test_ctrl_c_stops_a_sweep(dets, tmp_path):
@@ -244,17 +274,20 @@ def test_ctrl_c_stops_a_sweep(dets, tmp_path):
     fresh = tagtrail(fresh_project, "sweep", *few)
     assert fresh.returncode == 0, fresh.stderr
     assert metrics(project / "sweeps" / "few" / "sweep.csv") == metrics(
-        fresh_project / "sweeps" / "few" / "sweep.csv")
+        fresh_project / "sweeps" / "few" / "sweep.csv"
+    )
 
 
 # --- 9 (class). Other commands ----------------------------------------------------------------
 
+
 def test_ctrl_c_during_simulate_and_demo(tmp_path):
     """Rendering recordings (simulate, and demo's first step): 130 and one line within a
     second; rendering again from scratch (``--force``) then succeeds."""
-    for args, marker in ((["simulate", "room", "-o", "sim", "--frames", "400", "--no-progress"],
-                          tmp_path / "sim"),
-                         (["demo", "--dir", "demo"], tmp_path / "demo")):
+    for args, marker in (
+        (["simulate", "room", "-o", "sim", "--frames", "400", "--no-progress"], tmp_path / "sim"),
+        (["demo", "--dir", "demo"], tmp_path / "demo"),
+    ):
         proc = start(tmp_path, *args)
         deadline = time.monotonic() + 120
         while not marker.exists() and proc.poll() is None and time.monotonic() < deadline:
@@ -264,8 +297,19 @@ def test_ctrl_c_during_simulate_and_demo(tmp_path):
         took, _, err = interrupt(proc)
         check_one_line(proc.returncode, err)
         assert took < STOP_S, (args[0], took)
-    again = tagtrail(tmp_path, "simulate", "room", "-o", "sim", "--frames", "20", "--force",
-                     "--no-progress", "--query-frames", "3")
+    again = tagtrail(
+        tmp_path,
+        "simulate",
+        "room",
+        "-o",
+        "sim",
+        "--frames",
+        "20",
+        "--force",
+        "--no-progress",
+        "--query-frames",
+        "3",
+    )
     assert again.returncode == 0, again.stderr
 
 
@@ -276,11 +320,23 @@ def test_ctrl_c_in_other_commands(dets, tmp_path, command):
     project = new_project(tmp_path / "p", dets)
     assert tagtrail(project, "run").returncode == 0
     args, target = {
-        "init": (["init", "--reference", str(dets / "reference"), "--tag-size", "0.16", "-o",
-                  "new.yaml"], "new.yaml"),
+        "init": (
+            [
+                "init",
+                "--reference",
+                str(dets / "reference"),
+                "--tag-size",
+                "0.16",
+                "-o",
+                "new.yaml",
+            ],
+            "new.yaml",
+        ),
         "eval": (["eval", "--csv", "eval.csv"], "eval.csv"),
-        "relocalize": (["relocalize", "outputs/reference", "outputs/query", "-o", "reloc"],
-                       "reloc/relocalization.csv"),
+        "relocalize": (
+            ["relocalize", "outputs/reference", "outputs/query", "-o", "reloc"],
+            "reloc/relocalization.csv",
+        ),
         "export-mcap": (["export-mcap", "-o", "run.mcap"], "run.mcap"),
         "show": (["show", "optimize"], None),
     }[command]
@@ -294,6 +350,7 @@ def test_ctrl_c_in_other_commands(dets, tmp_path, command):
 
 
 # --- 11, 13. Every parameter has a range, checked at load -------------------------------------
+
 
 def _bounded(annotation: object, metadata: list[object], where: str, found: list[str]) -> None:
     """Walk a field's type: every int/float leaf needs a lower and an upper bound (its own
@@ -328,8 +385,10 @@ def _bounded(annotation: object, metadata: list[object], where: str, found: list
         low = any(isinstance(m, at.Ge | at.Gt) for m in metadata)
         high = any(isinstance(m, at.Le | at.Lt) for m in metadata)
         if not (low and high):
-            found.append(f"{where} ({annotation.__name__}: {'no lower ' if not low else ''}"
-                         f"{'no upper ' if not high else ''}bound)")
+            found.append(
+                f"{where} ({annotation.__name__}: {'no lower ' if not low else ''}"
+                f"{'no upper ' if not high else ''}bound)"
+            )
 
 
 def numeric_fields() -> list[tuple[str, str]]:
@@ -413,12 +472,27 @@ def test_out_of_range_in_the_pipeline_file_names_the_file(project, capsys) -> No
 
 # --- 10. YAML alias bombs, bounded messages ---------------------------------------------------
 
+
 def bomb(levels: int) -> str:
-    lines = ["reference: reference", "datasets:", "  reference: {source: bags}",
-             "x0: &x0 [0.1, 0.1, 0.1, 0.1, 0.1, 0.1, 0.1, 0.1, 0.1]"]
+    lines = [
+        "reference: reference",
+        "datasets:",
+        "  reference: {source: bags}",
+        "x0: &x0 [0.1, 0.1, 0.1, 0.1, 0.1, 0.1, 0.1, 0.1, 0.1]",
+    ]
     lines += [f"x{i}: &x{i} [{', '.join([f'*x{i - 1}'] * 9)}]" for i in range(1, levels)]
-    return "\n".join([*lines[:3], "stages:", f"  pnp: {{tag_size: *x{levels - 1}}}",
-                      "anchors:", *("  " + ln for ln in lines[3:])]) + "\n"
+    return (
+        "\n".join(
+            [
+                *lines[:3],
+                "stages:",
+                f"  pnp: {{tag_size: *x{levels - 1}}}",
+                "anchors:",
+                *("  " + ln for ln in lines[3:]),
+            ]
+        )
+        + "\n"
+    )
 
 
 @pytest.mark.parametrize("levels", [6, 7, 9])
@@ -436,14 +510,17 @@ def test_yaml_alias_bomb_is_refused_fast_in_one_short_line(project, capsys, leve
     assert len(err) == 1 and err[0].startswith("error: pipeline.yaml: "), err
     assert len(err[0]) < 300, len(err[0])
     assert took < 5.0, took
-    if 9 ** levels > 1_000_000:
+    if 9**levels > 1_000_000:
         assert "alias" in err[0], err
 
 
-@pytest.mark.parametrize("text", [
-    "a: &a [*a]\n",  # a recursive alias
-    "x: " + "[" * 5000 + "]" * 5000 + "\n",  # nested too deeply
-])
+@pytest.mark.parametrize(
+    "text",
+    [
+        "a: &a [*a]\n",  # a recursive alias
+        "x: " + "[" * 5000 + "]" * 5000 + "\n",  # nested too deeply
+    ],
+)
 def test_yaml_recursion_is_refused(project, capsys, text) -> None:
     from tagtrail.cli import main
 
@@ -453,8 +530,9 @@ def test_yaml_recursion_is_refused(project, capsys, text) -> None:
     assert len(err) == 1 and err[0].startswith("error: pipeline.yaml: "), err
 
 
-@pytest.mark.parametrize("value", ["[" + ", ".join(["0.1"] * 200_000) + "]",
-                                   "[" * 3000 + "]" * 3000])
+@pytest.mark.parametrize(
+    "value", ["[" + ", ".join(["0.1"] * 200_000) + "]", "[" * 3000 + "]" * 3000]
+)
 def test_a_huge_value_in_an_error_is_abbreviated(project, capsys, value) -> None:
     from tagtrail.cli import main
 
@@ -465,12 +543,16 @@ def test_a_huge_value_in_an_error_is_abbreviated(project, capsys, value) -> None
 
 # --- 13. Wiring an artifact of the wrong kind; simulate --size --------------------------------
 
-@pytest.mark.parametrize(("key", "ref", "says"), [
-    ("trajectory.tag_map", "reference:pnp.observations", "takes a tag_map artifact"),
-    ("align.tag_map", "reference:optimize.report", "takes a tag_map artifact"),
-    ("trajectory.tag_map", "reference:optimize.tagmap", "has no output 'tagmap'"),
-    ("trajectory.tag_map", "source", "takes optimize.tag_map only"),
-])
+
+@pytest.mark.parametrize(
+    ("key", "ref", "says"),
+    [
+        ("trajectory.tag_map", "reference:pnp.observations", "takes a tag_map artifact"),
+        ("align.tag_map", "reference:optimize.report", "takes a tag_map artifact"),
+        ("trajectory.tag_map", "reference:optimize.tagmap", "has no output 'tagmap'"),
+        ("trajectory.tag_map", "source", "takes optimize.tag_map only"),
+    ],
+)
 def test_input_of_the_wrong_kind_is_refused_at_load(project, capsys, key, ref, says) -> None:
     """Was: ``KeyError: 'tag_id'`` deep in trajectory, rc 1."""
     from tagtrail.cli import main
@@ -484,9 +566,16 @@ def test_input_of_the_wrong_kind_is_refused_at_load(project, capsys, key, ref, s
     assert not (project / "artifacts" / "objects").exists()
 
 
-@pytest.mark.parametrize("args", [["--size", "20000x20000"], ["--frames", "0"],
-                                  ["--fps", "nan"], ["--tag-size", "1e300"],
-                                  ["--tag-sizes", "1=1e300"]])
+@pytest.mark.parametrize(
+    "args",
+    [
+        ["--size", "20000x20000"],
+        ["--frames", "0"],
+        ["--fps", "nan"],
+        ["--tag-size", "1e300"],
+        ["--tag-sizes", "1=1e300"],
+    ],
+)
 def test_simulate_absurd_sizes_are_one_line(tmp_path, capsys, args) -> None:
     """Was: ``simulate --size 20000x20000``: ``MemoryError``."""
     from tagtrail.cli import main

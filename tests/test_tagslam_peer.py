@@ -55,8 +55,9 @@ def _agreement(traj_file: Path, cams: dict[int, np.ndarray]) -> tuple[float, flo
 
 
 @pytest.mark.parametrize("name", sorted(CASES))
-def test_tagslam_recordings_with_nothing_but_init(name: str, realdata: Path, tmp_path: Path,
-                                                  monkeypatch: pytest.MonkeyPatch) -> None:
+def test_tagslam_recordings_with_nothing_but_init(
+    name: str, realdata: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
     from tagtrail.cli import main
 
     (d_mm, d_deg), (a_mm, a_deg) = CASES[name]
@@ -64,19 +65,35 @@ def test_tagslam_recordings_with_nothing_but_init(name: str, realdata: Path, tmp
     bag = unpack(root, "tag_detections.bag", tmp_path)
     _, cams = tagslam_reference(unpack(root, "reference.bag", tmp_path), root)
     monkeypatch.chdir(tmp_path)
-    assert main(["init", "--reference", str(bag), "--camera", str(root / "cameras.yaml"),
-                 "--tag-size", str(size)]) == 0
+    assert (
+        main(
+            [
+                "init",
+                "--reference",
+                str(bag),
+                "--camera",
+                str(root / "cameras.yaml"),
+                "--tag-size",
+                str(size),
+            ]
+        )
+        == 0
+    )
     assert main(["run"]) == 0
     out = tmp_path / "outputs/reference"
     posed, pos, ang = _agreement(out / "trajectory.csv", cams)
     posed_a, pos_a, ang_a = _agreement(out / "trajectory_raw.csv", cams)  # frames alone
-    default, raw = read_trajectory(out / "trajectory.csv"), read_trajectory(
-        out / "trajectory_raw.csv")
+    default, raw = (
+        read_trajectory(out / "trajectory.csv"),
+        read_trajectory(out / "trajectory_raw.csv"),
+    )
     evidence = pd.read_csv(out / "trajectory_evidence.csv")
     diag = dict(line.split(",", 1) for line in (out / "diagnostics.csv").read_text().split()[1:])
-    print(f"\n{name}: {posed:.0%} of TagSLAM's frames posed; default {1e3 * pos:.2f} mm / "
-          f"{ang:.3f} deg, frames alone (trajectory_raw.csv) {1e3 * pos_a:.2f} mm / "
-          f"{ang_a:.3f} deg")
+    print(
+        f"\n{name}: {posed:.0%} of TagSLAM's frames posed; default {1e3 * pos:.2f} mm / "
+        f"{ang:.3f} deg, frames alone (trajectory_raw.csv) {1e3 * pos_a:.2f} mm / "
+        f"{ang_a:.3f} deg"
+    )
     assert posed >= 0.95 and posed_a == posed
     # a hand-held camera: the ground-plane prior's auto leaves it alone
     runner = Runner(load_pipeline(tmp_path / "pipeline.yaml", REGISTRY))
@@ -98,8 +115,8 @@ def test_tagslam_recordings_with_nothing_but_init(name: str, realdata: Path, tmp
 
 @pytest.mark.parametrize(("shake", "ratio"), [(0.0, 0.6), (0.12, 0.8)])
 def test_simulated_test_16_default_is_nearer_the_truth_than_the_frames_alone(
-        shake: float, ratio: float, realdata: Path, tmp_path: Path,
-        monkeypatch: pytest.MonkeyPatch) -> None:
+    shake: float, ratio: float, realdata: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
     """Test 16 in the simulator (``tests.tagslam.simulate_test_16``) with the corner noise at
     which the frames alone are as rough as TagSLAM's real trajectory (second differences across
     the line of tags); with hand shake (``shake`` m/s^2/sqrt(Hz), more than the real recording
@@ -121,6 +138,8 @@ def test_simulated_test_16_default_is_nearer_the_truth_than_the_frames_alone(
     sim_rms, sim_ac = roughness(alone)
     assert 0.7 < sim_rms[1] / real_rms[1] < 1.4 and sim_ac[1] < -0.5
     err_default, err_alone = agreement(default, ref)[0], agreement(alone, ref)[0]
-    print(f"\nshake {shake}: default {1e3 * err_default:.2f} mm, frames alone "
-          f"{1e3 * err_alone:.2f} mm from the truth")
+    print(
+        f"\nshake {shake}: default {1e3 * err_default:.2f} mm, frames alone "
+        f"{1e3 * err_alone:.2f} mm from the truth"
+    )
     assert err_default <= ratio * err_alone

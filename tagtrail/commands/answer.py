@@ -73,8 +73,10 @@ def reference_block(dataset: str, folder: Path) -> list[str]:
         rms = _num(diag.get("frame_reproj_px_median"))
     rms_text = "" if rms is None else f", corner RMS {rms:.2f} px"
     posed, total = diag.get("frames_with_pose") or "?", diag.get("frames_total") or "?"
-    head = (f"{dataset}: {diag.get('tags_mapped') or '?'} tags mapped, {posed}/{total} frames "
-            f"posed{rms_text}")
+    head = (
+        f"{dataset}: {diag.get('tags_mapped') or '?'} tags mapped, {posed}/{total} frames "
+        f"posed{rms_text}"
+    )
     return [head, *_truth(folder)]
 
 
@@ -99,16 +101,23 @@ def query_block(dataset: str, folder: Path) -> list[str]:
     d, phi = summary["distance_m"], summary["abs_heading_error_deg"]
     parked = _parked(folder) if mode == "point" else None
     if parked is not None:
-        text = (f"{dataset}: parked (point mode): D = {parked[0]:.4f} m, "
-                f"phi = {parked[1]:+.2f} deg")
+        text = f"{dataset}: parked (point mode): D = {parked[0]:.4f} m, phi = {parked[1]:+.2f} deg"
     else:
-        text = (f"{dataset}: {mode} mode, {summary.get('n', '?')} poses: D mean {d['mean']:.4f} m, "
-                f"max {d['max']:.4f} m; |phi| mean {phi['mean']:.2f} deg, max {phi['max']:.2f} deg")
+        text = (
+            f"{dataset}: {mode} mode, {summary.get('n', '?')} poses: D mean {d['mean']:.4f} m, "
+            f"max {d['max']:.4f} m; |phi| mean {phi['mean']:.2f} deg, max {phi['max']:.2f} deg"
+        )
     ref = summary.get("ref_heading") or ("segment" if mode == "point" else "sample")
-    how = f"{summary['association']} association, " \
-        if ref == "sample" and summary.get("association") else ""
-    return [text, f"  {HEADING.get(ref, 'phi vs the reference heading')} "
-                  f"({how}plane {summary.get('plane', '?')})"]
+    how = (
+        f"{summary['association']} association, "
+        if ref == "sample" and summary.get("association")
+        else ""
+    )
+    return [
+        text,
+        f"  {HEADING.get(ref, 'phi vs the reference heading')} "
+        f"({how}plane {summary.get('plane', '?')})",
+    ]
 
 
 def answer_text(written: dict[str, Path], reference: str) -> str:
@@ -116,7 +125,8 @@ def answer_text(written: dict[str, Path], reference: str) -> str:
     order = sorted(written, key=lambda ds: ds != reference)
     lines: list[str] = []
     for ds in order:
-        block = reference_block(ds, written[ds]) if ds == reference else \
-            query_block(ds, written[ds])
+        block = (
+            reference_block(ds, written[ds]) if ds == reference else query_block(ds, written[ds])
+        )
         lines += block
     return "\n".join(["== answer", *lines]) if lines else ""

@@ -24,10 +24,15 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.formatter_class = argparse.RawDescriptionHelpFormatter
     parser.add_argument("--dir", type=Path, default=Path("demo"), help="demo folder (./demo)")
     parser.add_argument("-j", "--jobs", type=int, default=2, help="stages run in parallel (2)")
-    parser.add_argument("--frames", type=int, default=None,
-                        help="frames of the reference recording (default: the full loop)")
-    parser.add_argument("--resimulate", action="store_true",
-                        help="render the recordings again even if they exist")
+    parser.add_argument(
+        "--frames",
+        type=int,
+        default=None,
+        help="frames of the reference recording (default: the full loop)",
+    )
+    parser.add_argument(
+        "--resimulate", action="store_true", help="render the recordings again even if they exist"
+    )
 
 
 def template() -> str:
@@ -54,13 +59,16 @@ def truth_d_phi(gt_reference: Path, gt_query: Path, plane: str) -> dict[str, Any
     ref = read_trajectory(gt_reference / "trajectory.csv")
     test_pose = read_trajectory(gt_query / "test_poses.csv")
     out = report.run(
-        trajectory=test_pose, ref_trajectory=ref,
+        trajectory=test_pose,
+        ref_trajectory=ref,
         alignment=align.alignment_block("none", None, 0, 2),
         params=report.Params(mode="point", plane=plane),  # type: ignore[arg-type]
     )
     row = out["relocalization"].iloc[0]
-    return {"distance_m": float(row["distance_m"]),
-            "heading_error_deg": float(row["heading_error_deg"])}
+    return {
+        "distance_m": float(row["distance_m"]),
+        "heading_error_deg": float(row["heading_error_deg"]),
+    }
 
 
 def main(args: argparse.Namespace) -> int:
@@ -82,8 +90,10 @@ def main(args: argparse.Namespace) -> int:
 
 
 def _fmt_err(block: dict[str, Any], unit: str) -> str:
-    return (f"mean {block['mean']:.4f} {unit}, rmse {block['rmse']:.4f}, "
-            f"p95 {block['p95']:.4f}, max {block['max']:.4f}")
+    return (
+        f"mean {block['mean']:.4f} {unit}, rmse {block['rmse']:.4f}, "
+        f"p95 {block['p95']:.4f}, max {block['max']:.4f}"
+    )
 
 
 def summarize(runner: Any, written: dict[str, Path]) -> str:
@@ -98,8 +108,10 @@ def summarize(runner: Any, written: dict[str, Path]) -> str:
     lines = ["== tagtrail demo summary"]
     ev = art("eval", "evaluation", pipe.reference)
     if ev:
-        lines.append(f"reference map ({ev.get('tags', {}).get('n', '?')} tags) and trajectory "
-                     "vs ground truth:")
+        lines.append(
+            f"reference map ({ev.get('tags', {}).get('n', '?')} tags) and trajectory "
+            "vs ground truth:"
+        )
         for what in ("trajectory", "tags"):
             block = ev.get(what, {})
             if "position_m" in block:
@@ -119,10 +131,12 @@ def summarize(runner: Any, written: dict[str, Path]) -> str:
         text = f"  {name}: D = {d:.4f} m, phi = {phi:+.2f} deg"
         if gt_ref is not None and ds.ground_truth is not None:
             truth = truth_d_phi(gt_ref, ds.ground_truth, pipe.params_for("report", name).plane)
-            text += (f"   | truth D = {truth['distance_m']:.4f} m, "
-                     f"phi = {truth['heading_error_deg']:+.2f} deg"
-                     f"   | error {abs(d - truth['distance_m']) * 1000:.1f} mm, "
-                     f"{abs(phi - truth['heading_error_deg']):.2f} deg")
+            text += (
+                f"   | truth D = {truth['distance_m']:.4f} m, "
+                f"phi = {truth['heading_error_deg']:+.2f} deg"
+                f"   | error {abs(d - truth['distance_m']) * 1000:.1f} mm, "
+                f"{abs(phi - truth['heading_error_deg']):.2f} deg"
+            )
         lines.append(text)
     lines.append("files:")
     for ds, f in written.items():

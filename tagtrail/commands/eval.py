@@ -41,11 +41,21 @@ BLOCKS = (  # (key in the evaluation document, label); gauge-free rows get ", ga
 GAUGE_FREE_BLOCKS = (("trajectory", BLOCKS[0][1]), ("tags", BLOCKS[2][1]))
 STATS = ("mean", "min", "max")
 CSV_COLUMNS = (
-    "table", "metric", "label", "n", "coverage",
-    *(f"{s}_m" for s in STATS), *(f"{s}_deg" for s in STATS),
-    "source_tag", "target_tag", "estimated_m", "measured_m", "abs_error_m", "rel_error_pct",
+    "table",
+    "metric",
+    "label",
+    "n",
+    "coverage",
+    *(f"{s}_m" for s in STATS),
+    *(f"{s}_deg" for s in STATS),
+    "source_tag",
+    "target_tag",
+    "estimated_m",
+    "measured_m",
+    "abs_error_m",
+    "rel_error_pct",
     "status",
-)  # fmt: skip
+)
 _TAG_RE = re.compile(r"(?:tag36h11:)?(\d+)")
 EXAMPLES = """examples:
   tagtrail eval
@@ -88,11 +98,15 @@ class Pair:
 
     def as_dict(self) -> dict[str, Any]:
         return {
-            "source_tag": self.source_tag, "target_tag": self.target_tag,
-            "estimated_m": self.estimated_m, "measured_m": self.measured_m,
-            "abs_error_m": self.abs_error_m, "rel_error_pct": self.rel_error_pct,
-            "status": self.status, "missing": list(self.missing),
-        }  # fmt: skip
+            "source_tag": self.source_tag,
+            "target_tag": self.target_tag,
+            "estimated_m": self.estimated_m,
+            "measured_m": self.measured_m,
+            "abs_error_m": self.abs_error_m,
+            "rel_error_pct": self.rel_error_pct,
+            "status": self.status,
+            "missing": list(self.missing),
+        }
 
 
 # --- the distances CSV ------------------------------------------------------------------------
@@ -102,8 +116,10 @@ def _tag_id(f: Path, where: str, col: str, text: str) -> int:
     m = _TAG_RE.fullmatch(text.strip())
     if m is None:
         shown = repr(text.strip()) if text.strip() else "empty cell"
-        raise SourceError(f"{f}: {where}, column {col}: {shown} is not a tag id "
-                          "(expected an integer or 'tag36h11:<id>')")  # fmt: skip
+        raise SourceError(
+            f"{f}: {where}, column {col}: {shown} is not a tag id "
+            "(expected an integer or 'tag36h11:<id>')"
+        )
     return int(m.group(1))
 
 
@@ -112,11 +128,14 @@ def _metres(f: Path, where: str, col: str, text: str) -> float:
         v = float(text)
     except ValueError:
         shown = repr(text.strip()) if text.strip() else "empty cell"
-        raise SourceError(f"{f}: {where}, column {col}: {shown} is not a number "
-                          "(a distance in metres)") from None  # fmt: skip
+        raise SourceError(
+            f"{f}: {where}, column {col}: {shown} is not a number (a distance in metres)"
+        ) from None
     if not math.isfinite(v) or v <= 0:
-        raise SourceError(f"{f}: {where}, column {col}: {text.strip()!r} is not a positive "
-                          "finite distance in metres")  # fmt: skip
+        raise SourceError(
+            f"{f}: {where}, column {col}: {text.strip()!r} is not a positive "
+            "finite distance in metres"
+        )
     return v
 
 
@@ -133,14 +152,18 @@ def read_distances(f: Path) -> list[Pair]:
     reader = csv.reader(text.splitlines())
     header = next((row for row in reader if any(c.strip() for c in row)), None)
     if header is None:
-        raise SourceError(f"{f}: empty file (expected a header line "
-                          f"{','.join(DISTANCE_COLUMNS)} and one row per tag pair)")  # fmt: skip
+        raise SourceError(
+            f"{f}: empty file (expected a header line "
+            f"{','.join(DISTANCE_COLUMNS)} and one row per tag pair)"
+        )
     names = [c.strip() for c in header]
     missing = [c for c in DISTANCE_COLUMNS if c not in names]
     if missing:
-        raise SourceError(f"{f}: missing column{'s' if len(missing) > 1 else ''} "
-                          f"{', '.join(missing)} (header needed: {','.join(DISTANCE_COLUMNS)}; "
-                          f"found: {','.join(names)})")  # fmt: skip
+        raise SourceError(
+            f"{f}: missing column{'s' if len(missing) > 1 else ''} "
+            f"{', '.join(missing)} (header needed: {','.join(DISTANCE_COLUMNS)}; "
+            f"found: {','.join(names)})"
+        )
     idx = {c: names.index(c) for c in DISTANCE_COLUMNS}
     pairs: list[Pair] = []
     for row in reader:
@@ -150,8 +173,10 @@ def read_distances(f: Path) -> list[Pair]:
         cells: dict[str, str] = {}
         for col, i in idx.items():
             if i >= len(row):
-                raise SourceError(f"{f}: {where}, column {col}: missing cell "
-                                  f"(the row has {len(row)} of {len(names)} columns)")
+                raise SourceError(
+                    f"{f}: {where}, column {col}: missing cell "
+                    f"(the row has {len(row)} of {len(names)} columns)"
+                )
             cells[col] = row[i]
         a = _tag_id(f, where, "source_tag", cells["source_tag"])
         b = _tag_id(f, where, "target_tag", cells["target_tag"])
@@ -171,8 +196,9 @@ def match_distances(pairs: list[Pair], tag_map: pd.DataFrame) -> list[Pair]:
     pos = {int(t): p for t, p in zip(ids, xyz, strict=True)}
     for p in pairs:
         p.missing = [t for t in dict.fromkeys((p.source_tag, p.target_tag)) if t not in pos]
-        p.estimated_m = (None if p.missing
-                         else float(np.linalg.norm(pos[p.source_tag] - pos[p.target_tag])))
+        p.estimated_m = (
+            None if p.missing else float(np.linalg.norm(pos[p.source_tag] - pos[p.target_tag]))
+        )
     return pairs
 
 
@@ -180,11 +206,16 @@ def distance_summary(pairs: list[Pair]) -> dict[str, Any]:
     """Mean/max/min of the absolute (m) and relative (%) errors over the pairs with an estimate."""
     ok = [p for p in pairs if p.estimated_m is not None]
     out: dict[str, Any] = {"n": len(ok), "n_missing": len(pairs) - len(ok)}
-    for key, values in (("abs_error_m", [p.abs_error_m for p in ok]),
-                        ("rel_error_pct", [p.rel_error_pct for p in ok])):
+    for key, values in (
+        ("abs_error_m", [p.abs_error_m for p in ok]),
+        ("rel_error_pct", [p.rel_error_pct for p in ok]),
+    ):
         v = np.array(values, dtype=np.float64)
-        out[key] = ({"mean": None, "max": None, "min": None} if v.size == 0 else
-                    {"mean": float(v.mean()), "max": float(v.max()), "min": float(v.min())})
+        out[key] = (
+            {"mean": None, "max": None, "min": None}
+            if v.size == 0
+            else {"mean": float(v.mean()), "max": float(v.max()), "min": float(v.min())}
+        )
     return out
 
 
@@ -211,8 +242,10 @@ def error_rows(evaluation: Any) -> list[dict[str, Any]]:
     rows = [row(key, label, doc[key]) for key, label in BLOCKS]
     gf = doc.get("gauge_free")
     if gf is not None:
-        rows += [row(f"gauge_free.{key}", f"{label}, gauge-free", gf[key])
-                 for key, label in GAUGE_FREE_BLOCKS]
+        rows += [
+            row(f"gauge_free.{key}", f"{label}, gauge-free", gf[key])
+            for key, label in GAUGE_FREE_BLOCKS
+        ]
     return rows
 
 
@@ -229,46 +262,85 @@ def aligned(
     """Columns padded to their widest cell: the ``text`` columns left-aligned, the others
     (numbers) right-aligned."""
     widths = [max(len(r[i]) for r in [header, *rows]) for i in range(len(header))]
-    return ["  ".join(c.ljust(w) if i in text else c.rjust(w)
-                      for i, (c, w) in enumerate(zip(r, widths, strict=True))).rstrip()
-            for r in [header, *rows]]  # fmt: skip
+    return [
+        "  ".join(
+            c.ljust(w) if i in text else c.rjust(w)
+            for i, (c, w) in enumerate(zip(r, widths, strict=True))
+        ).rstrip()
+        for r in [header, *rows]
+    ]
 
 
 def errors_text(evaluation: Any, dataset: str) -> list[str]:
     doc = _as_dict(evaluation)
-    lines = [f"Errors against ground truth [{dataset}] (layout of paper Tables 4.1/4.2)",
-             f"world: anchor tag {doc['anchor_id']} (ground truth's anchor: tag "
-             f"{doc['gt_anchor_id']})", ""]  # fmt: skip
+    lines = [
+        f"Errors against ground truth [{dataset}] (layout of paper Tables 4.1/4.2)",
+        f"world: anchor tag {doc['anchor_id']} (ground truth's anchor: tag {doc['gt_anchor_id']})",
+        "",
+    ]
 
     def cell(r: dict[str, Any], s: str) -> str:
         return f"{_num(r[f'{s}_m'], 4, ' m')} / {_num(r[f'{s}_deg'], 2, '°')}"
 
-    body = [[r["label"], str(r["n"]), f"{100 * r['coverage']:.1f}%",
-             *(cell(r, s) for s in STATS)] for r in error_rows(doc)]  # fmt: skip
+    body = [
+        [r["label"], str(r["n"]), f"{100 * r['coverage']:.1f}%", *(cell(r, s) for s in STATS)]
+        for r in error_rows(doc)
+    ]
     lines += aligned(["metric", "n", "coverage", "mean error", "minimum", "maximum"], body)
     gf = doc.get("gauge_free")
     if gf is None:
-        lines.append("gauge-free: n/a (fewer than 3 tags in common with ground truth, or all "
-                     "on a line)")
+        lines.append(
+            "gauge-free: n/a (fewer than 3 tags in common with ground truth, or all on a line)"
+        )
     else:
-        lines.append(f"gauge-free: after the best rigid fit of the map to ground truth "
-                     f"(rotation {gf['rotation_deg']:.2f}°, translation "
-                     f"{gf['translation_m']:.4f} m), applied to map and trajectory alike")
+        lines.append(
+            f"gauge-free: after the best rigid fit of the map to ground truth "
+            f"(rotation {gf['rotation_deg']:.2f}°, translation "
+            f"{gf['translation_m']:.4f} m), applied to map and trajectory alike"
+        )
     return lines
 
 
-def distances_text(pairs: list[Pair], summary: dict[str, Any], dataset: str,
-                   source: Path) -> list[str]:  # fmt: skip
-    lines = [f"Tag distances [{dataset}]: optimize.tag_map vs {source} (layout of paper "
-             "Table A.1)", ""]  # fmt: skip
-    body = [[str(p.source_tag), str(p.target_tag), _num(p.estimated_m, 3),
-             _num(p.measured_m, 3), _num(p.abs_error_m, 3), _num(p.rel_error_pct, 1),
-             "" if p.status == "ok" else p.status] for p in pairs]  # fmt: skip
+def distances_text(
+    pairs: list[Pair], summary: dict[str, Any], dataset: str, source: Path
+) -> list[str]:
+    lines = [
+        f"Tag distances [{dataset}]: optimize.tag_map vs {source} (layout of paper Table A.1)",
+        "",
+    ]
+    body = [
+        [
+            str(p.source_tag),
+            str(p.target_tag),
+            _num(p.estimated_m, 3),
+            _num(p.measured_m, 3),
+            _num(p.abs_error_m, 3),
+            _num(p.rel_error_pct, 1),
+            "" if p.status == "ok" else p.status,
+        ]
+        for p in pairs
+    ]
     for stat in ("mean", "max", "min"):
-        body.append([stat.capitalize(), "-", "-", "-", _num(summary["abs_error_m"][stat], 3),
-                     _num(summary["rel_error_pct"][stat], 1), ""])
-    header = ["source tag", "target tag", "estimated [m]", "measured [m]", "abs error [m]",
-              "rel error [%]", ""]  # fmt: skip
+        body.append(
+            [
+                stat.capitalize(),
+                "-",
+                "-",
+                "-",
+                _num(summary["abs_error_m"][stat], 3),
+                _num(summary["rel_error_pct"][stat], 1),
+                "",
+            ]
+        )
+    header = [
+        "source tag",
+        "target tag",
+        "estimated [m]",
+        "measured [m]",
+        "abs error [m]",
+        "rel error [%]",
+        "",
+    ]
     lines += aligned(header, body, text=(0, len(header) - 1))
     note = f"{summary['n']} pair{'s' if summary['n'] != 1 else ''} compared"
     if summary["n_missing"]:
@@ -277,8 +349,9 @@ def distances_text(pairs: list[Pair], summary: dict[str, Any], dataset: str,
     return lines
 
 
-def csv_rows(rows: list[dict[str, Any]], pairs: list[Pair] | None,
-             summary: dict[str, Any] | None) -> pd.DataFrame:  # fmt: skip
+def csv_rows(
+    rows: list[dict[str, Any]], pairs: list[Pair] | None, summary: dict[str, Any] | None
+) -> pd.DataFrame:
     """Both tables in one frame of :data:`CSV_COLUMNS`; ``table`` says which a row is of. The
     distance table's statistics are rows with ``metric`` = mean/max/min (abs and rel error)."""
     out: list[dict[str, Any]] = [{"table": TABLE_ERRORS, **r} for r in rows]
@@ -288,9 +361,14 @@ def csv_rows(rows: list[dict[str, Any]], pairs: list[Pair] | None,
             d.pop("missing")
             out.append({"table": TABLE_DISTANCES, "metric": "pair", **d})
         for stat in ("mean", "max", "min"):
-            out.append({"table": TABLE_DISTANCES, "metric": stat,
-                        "abs_error_m": summary["abs_error_m"][stat],
-                        "rel_error_pct": summary["rel_error_pct"][stat]})
+            out.append(
+                {
+                    "table": TABLE_DISTANCES,
+                    "metric": stat,
+                    "abs_error_m": summary["abs_error_m"][stat],
+                    "rel_error_pct": summary["rel_error_pct"][stat],
+                }
+            )
     df = pd.DataFrame(out, columns=list(CSV_COLUMNS))
     for col in ("n", "source_tag", "target_tag"):
         df[col] = df[col].astype("Int64")
@@ -306,23 +384,39 @@ def add_arguments(parser: argparse.ArgumentParser) -> argparse.ArgumentParser:
     parser.formatter_class = argparse.RawDescriptionHelpFormatter
     parser.add_argument("-p", "--pipeline", default="pipeline.yaml", help="pipeline file")
     parser.add_argument("--dataset", default=None, help="dataset (default: the reference)")
-    parser.add_argument("-S", "--set", action="append", metavar="STAGE.PARAM=VALUE",
-                        help="the parameter overrides the run was made with (repeatable)")
-    parser.add_argument("--distances", type=Path, default=None, metavar="CSV",
-                        help="tape-measured tag-centre distances: source_tag,target_tag,"
-                        "measured_m (Table A.1)")  # fmt: skip
+    parser.add_argument(
+        "-S",
+        "--set",
+        action="append",
+        metavar="STAGE.PARAM=VALUE",
+        help="the parameter overrides the run was made with (repeatable)",
+    )
+    parser.add_argument(
+        "--distances",
+        type=Path,
+        default=None,
+        metavar="CSV",
+        help="tape-measured tag-centre distances: source_tag,target_tag,measured_m (Table A.1)",
+    )
     out = parser.add_mutually_exclusive_group()
-    out.add_argument("--csv", type=Path, default=None, metavar="FILE",
-                     help="also write the table(s) to FILE (column `table`: errors, distances)")
+    out.add_argument(
+        "--csv",
+        type=Path,
+        default=None,
+        metavar="FILE",
+        help="also write the table(s) to FILE (column `table`: errors, distances)",
+    )
     out.add_argument("--json", action="store_true", help="print JSON instead of text")
     return parser
 
 
 def build_parser() -> argparse.ArgumentParser:
-    return add_arguments(argparse.ArgumentParser(
-        prog="tagtrail eval",
-        description="The paper's evaluation tables from the up-to-date artifacts of a run.",
-    ))  # fmt: skip
+    return add_arguments(
+        argparse.ArgumentParser(
+            prog="tagtrail eval",
+            description="The paper's evaluation tables from the up-to-date artifacts of a run.",
+        )
+    )
 
 
 def main(args: argparse.Namespace | Sequence[str] | None = None) -> int:
@@ -351,8 +445,9 @@ def _artifact(runner: Any, ns: argparse.Namespace, stage: str, dataset: str, out
         raise SpecError(f"{stage} [{dataset}] does not run: {why}")
     key = runner.key_of(stage, dataset)
     if key is None:
-        raise SpecError(f"{stage} [{dataset}] is not up to date: run `{_run_hint(ns, stage)}` "
-                        "first")
+        raise SpecError(
+            f"{stage} [{dataset}] is not up to date: run `{_run_hint(ns, stage)}` first"
+        )
     return runner.store.load(stage, key, output)
 
 
@@ -371,8 +466,10 @@ def _main(ns: argparse.Namespace) -> int:
         raise SpecError(f"unknown dataset {dataset!r}{did_you_mean(dataset, pipe.datasets)}")
     has_gt = pipe.datasets[dataset].ground_truth is not None
     if not has_gt and pairs is None:
-        raise SpecError(f"dataset {dataset} has no ground truth (no ground_truth folder): "
-                        "give --distances CSV for the tag-distance table")  # fmt: skip
+        raise SpecError(
+            f"dataset {dataset} has no ground truth (no ground_truth folder): "
+            "give --distances CSV for the tag-distance table"
+        )
     runner = Runner(pipe)
     evaluation = _artifact(runner, ns, "eval", dataset, "evaluation") if has_gt else None
     rows = error_rows(evaluation) if evaluation is not None else []
@@ -386,10 +483,14 @@ def _main(ns: argparse.Namespace) -> int:
             "dataset": dataset,
             "errors": rows if evaluation is not None else None,
             "evaluation": _as_dict(evaluation) if evaluation is not None else None,
-            "distances": None if pairs is None else {
-                "file": str(ns.distances), "pairs": [p.as_dict() for p in pairs], **(summary or {}),
+            "distances": None
+            if pairs is None
+            else {
+                "file": str(ns.distances),
+                "pairs": [p.as_dict() for p in pairs],
+                **(summary or {}),
             },
-        }  # fmt: skip
+        }
         print(json.dumps(doc, indent=2))
         return 0
     blocks = []

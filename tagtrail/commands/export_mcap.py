@@ -55,8 +55,12 @@ REFERENCE_PATH, QUERY_PATH = "/reference_path", "/query_path"
 DISTANCE, HEADING = "/relocalization/distance_m", "/relocalization/heading_error_deg"
 FOLDER_IMAGE, FOLDER_CAMERA_INFO = "/camera/image/compressed", "/camera/camera_info"
 STD_SIGMAS = 3.0  # the uncertainty spheres' radius in standard deviations
-_ORANGE, _BLUE, _RED, _GREEN = (1.0, 0.55, 0.0, 1.0), (0.2, 0.6, 1.0, 0.9), (1.0, 0.2, 0.2, 0.3), (
-    0.1, 0.9, 0.3, 1.0)  # fmt: skip
+_ORANGE, _BLUE, _RED, _GREEN = (
+    (1.0, 0.55, 0.0, 1.0),
+    (0.2, 0.6, 1.0, 0.9),
+    (1.0, 0.2, 0.2, 0.3),
+    (0.1, 0.9, 0.3, 1.0),
+)
 
 # foxglove_msgs (ROS 2 package ros-$ROS_DISTRO-foxglove-msgs), the fields Foxglove's Image panel
 # reads; topics of a type a player's ROS lacks are skipped by ros2 bag play with a warning.
@@ -65,29 +69,35 @@ FOXGLOVE_MSGS = {
     "foxglove_msgs/msg/Point2": "float64 x\nfloat64 y\n",
     "foxglove_msgs/msg/CircleAnnotation": (
         "builtin_interfaces/Time timestamp\nfoxglove_msgs/Point2 position\nfloat64 diameter\n"
-        "float64 thickness\nfoxglove_msgs/Color fill_color\nfoxglove_msgs/Color outline_color\n"),
+        "float64 thickness\nfoxglove_msgs/Color fill_color\nfoxglove_msgs/Color outline_color\n"
+    ),
     "foxglove_msgs/msg/PointsAnnotation": (
         "builtin_interfaces/Time timestamp\nuint8 UNKNOWN=0\nuint8 POINTS=1\nuint8 LINE_LOOP=2\n"
         "uint8 LINE_STRIP=3\nuint8 LINE_LIST=4\nuint8 type\nfoxglove_msgs/Point2[] points\n"
         "foxglove_msgs/Color outline_color\nfoxglove_msgs/Color[] outline_colors\n"
-        "foxglove_msgs/Color fill_color\nfloat64 thickness\n"),
+        "foxglove_msgs/Color fill_color\nfloat64 thickness\n"
+    ),
     "foxglove_msgs/msg/TextAnnotation": (
         "builtin_interfaces/Time timestamp\nfoxglove_msgs/Point2 position\nstring text\n"
         "float64 font_size\nfoxglove_msgs/Color text_color\n"
-        "foxglove_msgs/Color background_color\n"),
+        "foxglove_msgs/Color background_color\n"
+    ),
     "foxglove_msgs/msg/ImageAnnotations": (
         "foxglove_msgs/CircleAnnotation[] circles\nfoxglove_msgs/PointsAnnotation[] points\n"
-        "foxglove_msgs/TextAnnotation[] texts\n"),
-}  # fmt: skip
+        "foxglove_msgs/TextAnnotation[] texts\n"
+    ),
+}
 IMAGE_ANNOTATIONS = "foxglove_msgs/msg/ImageAnnotations"
 _INF = "{sec: 2147483647, nsec: 4294967295}"
 
 
 def qos(latched: bool) -> str:
     """rosbag2's ``offered_qos_profiles`` YAML: reliable, transient local if ``latched``."""
-    return (f"- history: 3\n  depth: 0\n  reliability: 1\n  durability: {1 if latched else 2}\n"
-            f"  deadline: {_INF}\n  lifespan: {_INF}\n  liveliness: 1\n"
-            f"  liveliness_lease_duration: {_INF}\n  avoid_ros_namespace_conventions: false\n")
+    return (
+        f"- history: 3\n  depth: 0\n  reliability: 1\n  durability: {1 if latched else 2}\n"
+        f"  deadline: {_INF}\n  lifespan: {_INF}\n  liveliness: 1\n"
+        f"  liveliness_lease_duration: {_INF}\n  avoid_ros_namespace_conventions: false\n"
+    )
 
 
 @lru_cache(maxsize=1)
@@ -134,8 +144,10 @@ def _header(t_ns: int, frame_id: str) -> Any:
 
 def _pose(row: Sequence[float]) -> Any:
     T = _T()
-    return T["geometry_msgs/msg/Pose"](T["geometry_msgs/msg/Point"](*map(float, row[:3])),
-                                       T["geometry_msgs/msg/Quaternion"](*map(float, row[3:7])))
+    return T["geometry_msgs/msg/Pose"](
+        T["geometry_msgs/msg/Point"](*map(float, row[:3])),
+        T["geometry_msgs/msg/Quaternion"](*map(float, row[3:7])),
+    )
 
 
 POSE7 = ["x_m", "y_m", "z_m", "qx", "qy", "qz", "qw"]
@@ -145,32 +157,47 @@ def path_msg(traj: pd.DataFrame, frame_id: str, t_ns: int) -> bytes:
     """``nav_msgs/msg/Path`` of a trajectory (``t_ns`` + pose columns), each pose its stamp."""
     T = _T()
     PS = T["geometry_msgs/msg/PoseStamped"]
-    poses = [PS(_header(t, frame_id), _pose(row)) for t, row in
-             zip(traj["t_ns"].tolist(), traj[POSE7].to_numpy(np.float64).tolist(), strict=True)]
+    poses = [
+        PS(_header(t, frame_id), _pose(row))
+        for t, row in zip(
+            traj["t_ns"].tolist(), traj[POSE7].to_numpy(np.float64).tolist(), strict=True
+        )
+    ]
     return _cdr(T["nav_msgs/msg/Path"](_header(t_ns, frame_id), poses))
 
 
 def _transform(t_ns: int, parent: str, child: str, row: Sequence[float]) -> Any:
     T = _T()
-    return T["geometry_msgs/msg/TransformStamped"](_header(t_ns, parent), child, T[
-        "geometry_msgs/msg/Transform"](T["geometry_msgs/msg/Vector3"](*map(float, row[:3])),
-                                       T["geometry_msgs/msg/Quaternion"](*map(float, row[3:7]))))
+    return T["geometry_msgs/msg/TransformStamped"](
+        _header(t_ns, parent),
+        child,
+        T["geometry_msgs/msg/Transform"](
+            T["geometry_msgs/msg/Vector3"](*map(float, row[:3])),
+            T["geometry_msgs/msg/Quaternion"](*map(float, row[3:7])),
+        ),
+    )
 
 
 def tf_msgs(traj: pd.DataFrame, camera_frame: str) -> Iterator[tuple[int, bytes]]:
     """``tf2_msgs/msg/TFMessage`` ``map → camera_frame`` (world_T_cam) for each pose."""
     TF_ = _T()["tf2_msgs/msg/TFMessage"]
-    for t, row in zip(traj["t_ns"].tolist(), traj[POSE7].to_numpy(np.float64).tolist(),
-                      strict=True):  # fmt: skip
+    for t, row in zip(
+        traj["t_ns"].tolist(), traj[POSE7].to_numpy(np.float64).tolist(), strict=True
+    ):
         yield int(t), _cdr(TF_([_transform(t, "map", camera_frame, row)]))
 
 
 def tag_frames_msg(tags: pd.DataFrame, t_ns: int) -> bytes:
     """One ``TFMessage``: ``map → tag36h11:<id>`` (world_T_tag) for every mapped tag."""
     rows = tags[POSE7].to_numpy(np.float64).tolist()
-    return _cdr(_T()["tf2_msgs/msg/TFMessage"]([
-        _transform(t_ns, "map", f"tag36h11:{int(i)}", r)
-        for i, r in zip(tags["tag_id"].tolist(), rows, strict=True)]))  # fmt: skip
+    return _cdr(
+        _T()["tf2_msgs/msg/TFMessage"](
+            [
+                _transform(t_ns, "map", f"tag36h11:{int(i)}", r)
+                for i, r in zip(tags["tag_id"].tolist(), rows, strict=True)
+            ]
+        )
+    )
 
 
 def tag_map_msg(tags: pd.DataFrame, anchor_id: int, t_ns: int) -> tuple[bytes, int]:
@@ -181,25 +208,62 @@ def tag_map_msg(tags: pd.DataFrame, anchor_id: int, t_ns: int) -> tuple[bytes, i
 
     M = _T()["visualization_msgs/msg/Marker"]
     sec, nsec = divmod(int(t_ns), 1_000_000_000)
-    std = tags["std_pos_m"].to_numpy(np.float64) if "std_pos_m" in tags else np.full(len(tags),
-                                                                                     np.nan)
+    std = (
+        tags["std_pos_m"].to_numpy(np.float64)
+        if "std_pos_m" in tags
+        else np.full(len(tags), np.nan)
+    )
     out = []
-    for k, (tag_id, row) in enumerate(zip(tags["tag_id"].astype(int).tolist(),
-                                          tags[POSE7].to_numpy(np.float64).tolist(), strict=True)):
+    for k, (tag_id, row) in enumerate(
+        zip(
+            tags["tag_id"].astype(int).tolist(),
+            tags[POSE7].to_numpy(np.float64).tolist(),
+            strict=True,
+        )
+    ):
         s = float(tags["size_m"].iloc[k]) if "size_m" in tags else 0.16
         anchor = tag_id == anchor_id
-        square = marker("tags", tag_id, M.CUBE, "map", sec, nsec, scale=(s, s, 0.004),
-                        color=_ORANGE if anchor else _BLUE)  # fmt: skip
+        square = marker(
+            "tags",
+            tag_id,
+            M.CUBE,
+            "map",
+            sec,
+            nsec,
+            scale=(s, s, 0.004),
+            color=_ORANGE if anchor else _BLUE,
+        )
         out.append(dataclasses.replace(square, pose=_pose(row)))
         z_tag = _rotate(row[3:7], (0.0, 0.0, 1.0))  # the tag's normal, out of its face
         label = f"tag36h11:{tag_id}" + (" (anchor)" if anchor else "")
-        out.append(marker("tag_ids", tag_id, M.TEXT_VIEW_FACING, "map", sec, nsec,
-                          position=(np.asarray(row[:3]) + 0.6 * s * np.asarray(z_tag)).tolist(),
-                          scale=(0.0, 0.0, max(0.05, 0.4 * s)), text=label))  # fmt: skip
+        out.append(
+            marker(
+                "tag_ids",
+                tag_id,
+                M.TEXT_VIEW_FACING,
+                "map",
+                sec,
+                nsec,
+                position=(np.asarray(row[:3]) + 0.6 * s * np.asarray(z_tag)).tolist(),
+                scale=(0.0, 0.0, max(0.05, 0.4 * s)),
+                text=label,
+            )
+        )
         if math.isfinite(std[k]) and std[k] > 0:
             d = 2 * STD_SIGMAS * float(std[k])
-            out.append(marker("tag_std_3sigma", tag_id, M.SPHERE, "map", sec, nsec,
-                              position=row[:3], scale=(d, d, d), color=_RED))  # fmt: skip
+            out.append(
+                marker(
+                    "tag_std_3sigma",
+                    tag_id,
+                    M.SPHERE,
+                    "map",
+                    sec,
+                    nsec,
+                    position=row[:3],
+                    scale=(d, d, d),
+                    color=_RED,
+                )
+            )
     return _cdr(_T()["visualization_msgs/msg/MarkerArray"](out)), len(out)
 
 
@@ -230,8 +294,9 @@ def annotation_msgs(dets: pd.DataFrame, anchor_id: int | None) -> Iterator[tuple
         points, texts = [], []
         for tag_id, quad in zip(grp["tag_id"].astype(int).tolist(), xy, strict=True):
             color = C(*(_ORANGE if tag_id == anchor_id else _GREEN))
-            points.append(PA(stamp, PA.LINE_LOOP, [Pt(*p) for p in quad.tolist()], color, [],
-                             clear, 2.0))  # fmt: skip
+            points.append(
+                PA(stamp, PA.LINE_LOOP, [Pt(*p) for p in quad.tolist()], color, [], clear, 2.0)
+            )
             cx, cy = quad.mean(axis=0).tolist()
             texts.append(TA(stamp, Pt(cx, cy), str(tag_id), 14.0, color, C(0.0, 0.0, 0.0, 0.6)))
         yield t_ns, _cdr(T[IMAGE_ANNOTATIONS]([], points, texts))
@@ -243,10 +308,21 @@ def camera_info_msg(camera: Any, t_ns: int, frame_id: str) -> bytes:
     K = np.asarray(camera.K, dtype=np.float64).reshape(3, 3)
     P = np.hstack([K, np.zeros((3, 1))])
     roi = T["sensor_msgs/msg/RegionOfInterest"](0, 0, 0, 0, False)
-    return _cdr(T["sensor_msgs/msg/CameraInfo"](
-        _header(t_ns, frame_id), int(camera.height), int(camera.width),
-        str(camera.distortion_model), np.asarray(camera.D, dtype=np.float64), K.reshape(-1),
-        np.eye(3).reshape(-1), P.reshape(-1), 0, 0, roi))  # fmt: skip
+    return _cdr(
+        T["sensor_msgs/msg/CameraInfo"](
+            _header(t_ns, frame_id),
+            int(camera.height),
+            int(camera.width),
+            str(camera.distortion_model),
+            np.asarray(camera.D, dtype=np.float64),
+            K.reshape(-1),
+            np.eye(3).reshape(-1),
+            P.reshape(-1),
+            0,
+            0,
+            roi,
+        )
+    )
 
 
 # --- the source's own messages -----------------------------------------------------------------
@@ -260,8 +336,10 @@ def source_messages(source: Any, notes: list[str]) -> tuple[dict[str, str], list
 
     if isinstance(source, BagSource):
         if source.path.suffix == ".bag":
-            notes.append(f"{source.path}: a ROS 1 bag's messages are not copied (ROS 1 "
-                         "encoding); the detections are drawn from the artifacts")
+            notes.append(
+                f"{source.path}: a ROS 1 bag's messages are not copied (ROS 1 "
+                "encoding); the detections are drawn from the artifacts"
+            )
             return {}, []
         from tagtrail.io.bags import open_bag
 
@@ -351,8 +429,9 @@ class Run:
                 words += ["-p", str(self.ns.pipeline)]
             for o in self.ns.set or ():
                 words += ["-S", o]
-            raise SpecError(f"{stage} [{dataset}] is not up to date: run `{' '.join(words)}` "
-                            "first, then export")
+            raise SpecError(
+                f"{stage} [{dataset}] is not up to date: run `{' '.join(words)}` first, then export"
+            )
         return self.runner.store.load(stage, st.key, output)
 
 
@@ -369,21 +448,31 @@ class Channels:
     def add(self, topic: str, typename: str, latched: bool = False) -> None:
         if typename not in self._schemas:
             self._schemas[typename] = self.w.register_schema(
-                name=typename, encoding="ros2msg", data=ros2msg(typename))
+                name=typename, encoding="ros2msg", data=ros2msg(typename)
+            )
         self._channels[topic] = self.w.register_channel(
-            topic=topic, message_encoding="cdr", schema_id=self._schemas[typename],
-            metadata={"offered_qos_profiles": qos(latched)})  # fmt: skip
+            topic=topic,
+            message_encoding="cdr",
+            schema_id=self._schemas[typename],
+            metadata={"offered_qos_profiles": qos(latched)},
+        )
         self.types[topic], self.counts[topic] = typename, 0
 
     def write(self, t_ns: int, topic: str, data: bytes) -> None:
         seq = self.counts[topic]
-        self.w.add_message(channel_id=self._channels[topic], log_time=int(t_ns),
-                           publish_time=int(t_ns), sequence=seq, data=data)  # fmt: skip
+        self.w.add_message(
+            channel_id=self._channels[topic],
+            log_time=int(t_ns),
+            publish_time=int(t_ns),
+            sequence=seq,
+            data=data,
+        )
         self.counts[topic] = seq + 1
 
 
-def export(run: Run, dataset: str, out: Path, images: bool = True) -> tuple[Channels, list[str],
-                                                                           dict[str, str]]:
+def export(
+    run: Run, dataset: str, out: Path, images: bool = True
+) -> tuple[Channels, list[str], dict[str, str]]:
     """Write ``dataset``'s MCAP to ``out`` (atomically); returns its channels, notes for the user
     and the topics the layout names (image, camera_info)."""
     from mcap.writer import CompressionType, Writer
@@ -416,14 +505,21 @@ def export(run: Run, dataset: str, out: Path, images: bool = True) -> tuple[Chan
 
     made: list[tuple[int, str, bytes]] = []
     map_bytes, _ = tag_map_msg(tags, anchor_id, t0)
-    made += [(t0, TAG_MAP, map_bytes), (t0, TF_STATIC, tag_frames_msg(tags, t0)),
-             (t0, REFERENCE_PATH, path_msg(ref_traj, "map", t0))]
+    made += [
+        (t0, TAG_MAP, map_bytes),
+        (t0, TF_STATIC, tag_frames_msg(tags, t0)),
+        (t0, REFERENCE_PATH, path_msg(ref_traj, "map", t0)),
+    ]
     if query:
         made.append((t0, QUERY_PATH, path_msg(traj, "map", t0)))
     made += [(t, TF, b) for t, b in tf_msgs(traj, frame)]
     if reloc is not None:
-        for t, d, phi in zip(reloc["t_ns"].tolist(), reloc["distance_m"].tolist(),
-                             reloc["heading_error_deg"].tolist(), strict=True):  # fmt: skip
+        for t, d, phi in zip(
+            reloc["t_ns"].tolist(),
+            reloc["distance_m"].tolist(),
+            reloc["heading_error_deg"].tolist(),
+            strict=True,
+        ):
             made += [(int(t), DISTANCE, float_msg(d)), (int(t), HEADING, float_msg(phi))]
     if dets is not None and len(dets):
         made += [(t, ANNOTATIONS, b) for t, b in annotation_msgs(dets, anchor_id)]
@@ -436,15 +532,24 @@ def export(run: Run, dataset: str, out: Path, images: bool = True) -> tuple[Chan
     if camera is not None and images and not layout_topics["camera_info"]:
         layout_topics["camera_info"] = FOLDER_CAMERA_INFO
         # at each image of a folder, else at each pose
-        stamps = ([int(t) for t in getattr(source, "stamps_ns", ())]
-                  or sorted({t for t, top, _ in made if top == TF}) or [t0])  # fmt: skip
+        stamps = (
+            [int(t) for t in getattr(source, "stamps_ns", ())]
+            or sorted({t for t, top, _ in made if top == TF})
+            or [t0]
+        )
         made += [(t, FOLDER_CAMERA_INFO, camera_info_msg(camera, t, frame)) for t in stamps]
         copied[FOLDER_CAMERA_INFO] = "sensor_msgs/msg/CameraInfo"
     made.sort(key=lambda m: m[0])
-    types = {TAG_MAP: "visualization_msgs/msg/MarkerArray", TF_STATIC: "tf2_msgs/msg/TFMessage",
-             REFERENCE_PATH: "nav_msgs/msg/Path", QUERY_PATH: "nav_msgs/msg/Path",
-             TF: "tf2_msgs/msg/TFMessage", DISTANCE: "std_msgs/msg/Float64",
-             HEADING: "std_msgs/msg/Float64", ANNOTATIONS: IMAGE_ANNOTATIONS}  # fmt: skip
+    types = {
+        TAG_MAP: "visualization_msgs/msg/MarkerArray",
+        TF_STATIC: "tf2_msgs/msg/TFMessage",
+        REFERENCE_PATH: "nav_msgs/msg/Path",
+        QUERY_PATH: "nav_msgs/msg/Path",
+        TF: "tf2_msgs/msg/TFMessage",
+        DISTANCE: "std_msgs/msg/Float64",
+        HEADING: "std_msgs/msg/Float64",
+        ANNOTATIONS: IMAGE_ANNOTATIONS,
+    }
     latched = {TAG_MAP, TF_STATIC, REFERENCE_PATH, QUERY_PATH}
     channels: list[Channels] = []
 
@@ -511,19 +616,36 @@ def add_arguments(parser: argparse.ArgumentParser) -> argparse.ArgumentParser:
     parser.formatter_class = argparse.RawDescriptionHelpFormatter
     parser.add_argument("-p", "--pipeline", default="pipeline.yaml", help="pipeline file")
     parser.add_argument("--dataset", default=None, help="dataset (default: the reference)")
-    parser.add_argument("-S", "--set", action="append", metavar="STAGE.PARAM=VALUE",
-                        help="the parameter overrides the run was made with (repeatable)")
-    parser.add_argument("-o", "--output", type=Path, required=True, metavar="FILE.mcap",
-                        help="the MCAP file to write (its layout: FILE.layout.json beside it)")
-    parser.add_argument("--no-images", action="store_true",
-                        help="leave the source's image/detection/camera_info messages out")
+    parser.add_argument(
+        "-S",
+        "--set",
+        action="append",
+        metavar="STAGE.PARAM=VALUE",
+        help="the parameter overrides the run was made with (repeatable)",
+    )
+    parser.add_argument(
+        "-o",
+        "--output",
+        type=Path,
+        required=True,
+        metavar="FILE.mcap",
+        help="the MCAP file to write (its layout: FILE.layout.json beside it)",
+    )
+    parser.add_argument(
+        "--no-images",
+        action="store_true",
+        help="leave the source's image/detection/camera_info messages out",
+    )
     return parser
 
 
 def build_parser() -> argparse.ArgumentParser:
-    return add_arguments(argparse.ArgumentParser(
-        prog="tagtrail export-mcap",
-        description="One run as an MCAP file for Foxglove and ros2 bag play."))  # fmt: skip
+    return add_arguments(
+        argparse.ArgumentParser(
+            prog="tagtrail export-mcap",
+            description="One run as an MCAP file for Foxglove and ros2 bag play.",
+        )
+    )
 
 
 def main(args: argparse.Namespace | Sequence[str] | None = None) -> int:
@@ -555,8 +677,9 @@ def _main(ns: argparse.Namespace) -> int:
     layout = layout_path(out)
     atomic_write_text(layout, layout_json(topics["image"], topics["camera_info"], set(ch.types)))
     width = max(map(len, ch.types))
-    print(f"wrote {out} [{dataset}]: {sum(ch.counts.values()):,} messages on "
-          f"{len(ch.types)} topics")
+    print(
+        f"wrote {out} [{dataset}]: {sum(ch.counts.values()):,} messages on {len(ch.types)} topics"
+    )
     for topic, typename in ch.types.items():
         print(f"  {topic:<{width}}  {ch.counts[topic]:>7,}  {typename}")
     for note in notes:

@@ -26,42 +26,88 @@ EXAMPLES = """examples:
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.epilog = EXAMPLES
     parser.formatter_class = argparse.RawDescriptionHelpFormatter
-    parser.add_argument("--reference", type=Path, default=None, metavar="SRC",
-                        help="the reference recording (rosbag2 folder, .bag, image folder); "
-                        "required")
-    parser.add_argument("--query", type=Path, action="append", default=[], metavar="SRC",
-                        help="a query recording (repeatable: query, query_2, …)")
-    parser.add_argument("--camera", type=Path, default=None, metavar="FILE",
-                        help="camera_info YAML (image folders, or to override the bag's)")
-    parser.add_argument("--tag-size", type=float, default=None, metavar="M",
-                        help="edge of the tags' black square in metres; required unless "
-                        "--survey or --profile sim gives it (no source format carries it)")
-    parser.add_argument("--anchor", type=int, default=None, metavar="ID",
-                        help="anchor (world) tag id (default: the most observed tag)")
-    parser.add_argument("--survey", type=Path, default=None, metavar="FILE",
-                        help="known tag poses (tagslam.yaml, a WPILib/PhotonVision layout JSON, "
-                        "a tag_map.yaml): the map in their world (optimize.survey.file), every "
-                        "part of the tag graph placed by its known tags "
-                        "(edges.on_disconnected: keep), and the tag sizes the file gives "
-                        "(pnp.tag_sizes_from)")
-    parser.add_argument("-o", "--output", type=Path, default=Path("pipeline.yaml"),
-                        help="pipeline file to write (pipeline.yaml)")
+    parser.add_argument(
+        "--reference",
+        type=Path,
+        default=None,
+        metavar="SRC",
+        help="the reference recording (rosbag2 folder, .bag, image folder); required",
+    )
+    parser.add_argument(
+        "--query",
+        type=Path,
+        action="append",
+        default=[],
+        metavar="SRC",
+        help="a query recording (repeatable: query, query_2, …)",
+    )
+    parser.add_argument(
+        "--camera",
+        type=Path,
+        default=None,
+        metavar="FILE",
+        help="camera_info YAML (image folders, or to override the bag's)",
+    )
+    parser.add_argument(
+        "--tag-size",
+        type=float,
+        default=None,
+        metavar="M",
+        help="edge of the tags' black square in metres; required unless "
+        "--survey or --profile sim gives it (no source format carries it)",
+    )
+    parser.add_argument(
+        "--anchor",
+        type=int,
+        default=None,
+        metavar="ID",
+        help="anchor (world) tag id (default: the most observed tag)",
+    )
+    parser.add_argument(
+        "--survey",
+        type=Path,
+        default=None,
+        metavar="FILE",
+        help="known tag poses (tagslam.yaml, a WPILib/PhotonVision layout JSON, "
+        "a tag_map.yaml): the map in their world (optimize.survey.file), every "
+        "part of the tag graph placed by its known tags "
+        "(edges.on_disconnected: keep), and the tag sizes the file gives "
+        "(pnp.tag_sizes_from)",
+    )
+    parser.add_argument(
+        "-o",
+        "--output",
+        type=Path,
+        default=Path("pipeline.yaml"),
+        help="pipeline file to write (pipeline.yaml)",
+    )
     parser.add_argument("--force", action="store_true", help="overwrite an existing file")
-    parser.add_argument("--profile", choices=list(PROFILES), default=None,
-                        help="fill topics and parameters for a robot or the simulator; they are "
-                        "written into the file (edit them there; --tag-size overrides)")
-    parser.add_argument("--list-profiles", action="store_true",
-                        help="list the profiles and what each sets, then exit")
+    parser.add_argument(
+        "--profile",
+        choices=list(PROFILES),
+        default=None,
+        help="fill topics and parameters for a robot or the simulator; they are "
+        "written into the file (edit them there; --tag-size overrides)",
+    )
+    parser.add_argument(
+        "--list-profiles",
+        action="store_true",
+        help="list the profiles and what each sets, then exit",
+    )
 
 
-def inspect(source: Path, camera: Path | None,
-            topics_given: dict[str, str] | None = None) -> tuple[DatasetConfig, str]:  # fmt: skip
+def inspect(
+    source: Path, camera: Path | None, topics_given: dict[str, str] | None = None
+) -> tuple[DatasetConfig, str]:
     """Open a source as the pipeline will (with ``topics_given``, e.g. a profile's, else the
     topics found by type); return its dataset entry and a one-line description."""
     from tagtrail.io.sources import BagSource, open_source
 
-    cfg = DatasetConfig(source=_typed(source), camera=_typed(camera) if camera else None,
-                        topics=Topics(**(topics_given or {})))  # fmt: skip
+    cfg = DatasetConfig(
+        source=_typed(source),
+        camera=_typed(camera) if camera else None,
+        topics=Topics(**(topics_given or {})),
+    )
     with open_source(cfg) as src:
         topics: dict[str, Any] = {}
         if isinstance(src, BagSource):  # the one source with topics
@@ -69,8 +115,10 @@ def inspect(source: Path, camera: Path | None,
             if src.camera_info_topic:
                 topics["camera_info"] = src.camera_info_topic
         if src.kind != "observations" and src.camera() is None:
-            raise SourceError(f"{source}: no camera calibration found; pass --camera FILE "
-                            "(a ROS camera_info YAML)")
+            raise SourceError(
+                f"{source}: no camera calibration found; pass --camera FILE "
+                "(a ROS camera_info YAML)"
+            )
         desc = src.describe()
     return cfg.model_copy(update={"topics": Topics(**topics)}), desc
 
@@ -87,8 +135,10 @@ def _rel(path: Path, base: Path) -> str:
         return str(path)
 
 
-NO_SIZE = ("the tags' printed size is not known: pass --tag-size M (edge of the black square, "
-           "metres) or tag_sizes in pipeline.yaml")
+NO_SIZE = (
+    "the tags' printed size is not known: pass --tag-size M (edge of the black square, "
+    "metres) or tag_sizes in pipeline.yaml"
+)
 
 
 def _stage_params(tag_size: float | None, profile: Profile | None = None) -> dict[str, Any]:
@@ -158,8 +208,9 @@ def _survey_params(survey: Path, base: Path, stages: dict[str, Any]) -> str:
 def _needs_size(sources: list[Path]) -> bool:
     """Whether some source has tags to measure (images or corners): only an observations folder
     (camera→tag poses given) needs no tag size."""
-    return any(not (p.name == "observations.csv" or (p / "observations.csv").is_file())
-               for p in sources)
+    return any(
+        not (p.name == "observations.csv" or (p / "observations.csv").is_file()) for p in sources
+    )
 
 
 def main(args: argparse.Namespace) -> int:
@@ -177,8 +228,9 @@ def main(args: argparse.Namespace) -> int:
     survey = _survey_params(args.survey, base, stages) if args.survey is not None else None
     if not stages["pnp"] and _needs_size([args.reference, *args.query]):
         raise SpecError(NO_SIZE)
-    names = ["reference"] + [f"query{'' if i == 0 else f'_{i + 1}'}"
-                             for i in range(len(args.query))]
+    names = ["reference"] + [
+        f"query{'' if i == 0 else f'_{i + 1}'}" for i in range(len(args.query))
+    ]
     datasets: dict[str, Any] = {}
     for name, src in zip(names, [args.reference, *args.query], strict=True):
         try:
@@ -186,8 +238,9 @@ def main(args: argparse.Namespace) -> int:
         except SourceError as err:
             if profile is None:
                 raise
-            raise SourceError(f"{err} (topics of --profile {profile.name}; see tagtrail init "
-                              "--list-profiles)") from err
+            raise SourceError(
+                f"{err} (topics of --profile {profile.name}; see tagtrail init --list-profiles)"
+            ) from err
         entry: dict[str, Any] = {"source": _rel(cfg.source, base)}
         topics = cfg.topics.model_dump(exclude_none=True)
         if topics:
@@ -203,11 +256,15 @@ def main(args: argparse.Namespace) -> int:
     if not stages["pnp"]:
         del stages["pnp"]
     doc = {"reference": "reference", "datasets": datasets, "stages": stages}
-    header = ("# Written by `tagtrail init`. Stage parameters not listed keep their defaults;\n"
-              "# see `tagtrail dag` and `tagtrail run --dry-run`.\n")
+    header = (
+        "# Written by `tagtrail init`. Stage parameters not listed keep their defaults;\n"
+        "# see `tagtrail dag` and `tagtrail run --dry-run`.\n"
+    )
     if profile is not None:
-        header += (f"# Profile {profile.name}: {profile.description}.\n# Its topics and "
-                   "parameters are written below as ordinary settings; edit them freely.\n")
+        header += (
+            f"# Profile {profile.name}: {profile.description}.\n# Its topics and "
+            "parameters are written below as ordinary settings; edit them freely.\n"
+        )
     atomic_write_text(out, header + yaml.safe_dump(doc, sort_keys=False))
     print(f"wrote {out}; next: tagtrail run -p {out}")
     return 0

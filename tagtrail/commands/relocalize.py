@@ -110,15 +110,18 @@ def _relocalize(
         aligned = align_stage.run(
             q_tags if q_tags is not None else _empty_tags(),
             ref_tags if ref_tags is not None else _empty_tags(),
-            q_traj, ref_traj, a_params,
-        )  # fmt: skip
+            q_traj,
+            ref_traj,
+            a_params,
+        )
         result = report_stage.run(aligned["trajectory"], ref_traj, aligned["alignment"], r_params)
     except DataError as err:  # say which files the problem is about
         raise DataError(f"reference {reference}, query {query}: {err}") from err
     reloc, summary = result["relocalization"], result["summary"].model_dump(mode="json")
     try:
-        reloc_files.write_outputs(Path(out), reloc, summary, aligned["trajectory"], ref_traj,
-                                  ref_tags, plane)
+        reloc_files.write_outputs(
+            Path(out), reloc, summary, aligned["trajectory"], ref_traj, ref_tags, plane
+        )
     except OSError as err:
         raise SourceError(f"{out}: cannot write the outputs: {err.strerror or err}") from err
     return {**result, "summary": summary}
@@ -130,8 +133,10 @@ def check_out(out: Path) -> None:
         if p.exists():
             if not p.is_dir():
                 where = "is" if p == out else f"lies under {p}, which is"
-                raise SpecError(f"-o {out}: {where} a file, not a folder; name a folder for the "
-                                "outputs (it is created if missing)")  # fmt: skip
+                raise SpecError(
+                    f"-o {out}: {where} a file, not a folder; name a folder for the "
+                    "outputs (it is created if missing)"
+                )
             return
 
 
@@ -140,15 +145,22 @@ def summary_text(summary: dict[str, Any], reloc: pd.DataFrame, out: Path) -> str
     d, p, a = summary["distance_m"], summary["abs_heading_error_deg"], summary["alignment"]
     assoc = summary.get("association", "nearest")
     how = "nearest point of the path" if assoc == "polyline" else f"{assoc} association"
-    lines = [f"relocalization: {summary['mode']} mode ({how}), plane {summary['plane']}, "
-             f"n={summary['n']}"]  # fmt: skip
-    ref_heading = ("the nearest segment's heading" if summary.get("ref_heading") == "segment"
-                   else "the path's heading at the sample, by centred difference")
+    lines = [
+        f"relocalization: {summary['mode']} mode ({how}), plane {summary['plane']}, "
+        f"n={summary['n']}"
+    ]
+    ref_heading = (
+        "the nearest segment's heading"
+        if summary.get("ref_heading") == "segment"
+        else "the path's heading at the sample, by centred difference"
+    )
     if summary["n"] == 1:
         phi = float(reloc["heading_error_deg"].iloc[0])
         cross = float(reloc["cross_track_m"].iloc[0])
-        lines += [f"  D   = {d['mean']:.4f} m  (cross-track {cross:+.4f} m, > 0: left)",
-                  f"  phi = {phi:+.2f} deg  (against {ref_heading})"]
+        lines += [
+            f"  D   = {d['mean']:.4f} m  (cross-track {cross:+.4f} m, > 0: left)",
+            f"  phi = {phi:+.2f} deg  (against {ref_heading})",
+        ]
     else:
         c = summary["cross_track_m"]
         lines += [
@@ -179,25 +191,50 @@ def add_arguments(parser: argparse.ArgumentParser) -> argparse.ArgumentParser:
     parser.formatter_class = argparse.RawDescriptionHelpFormatter
     parser.add_argument("reference", type=Path, help="reference folder or trajectory file")
     parser.add_argument("query", type=Path, help="query folder or trajectory file")
-    parser.add_argument("-o", "--out", type=Path, default=Path("relocalization"),
-                        help="output folder (default: ./relocalization)")  # fmt: skip
-    parser.add_argument("--mode", choices=["auto", "trajectory", "point"], default="auto",
-                        help="point = a parked robot; auto picks point when the query stays "
-                        "within 0.20 m (default: auto)")  # fmt: skip
-    parser.add_argument("--align", choices=["auto", "none", "tags"], default="auto",
-                        help="align the query map onto the reference map with the common tags "
-                        "(default: auto = when there are 2 or more)")  # fmt: skip
-    parser.add_argument("--align-model", choices=["similarity", "rigid", "sim3", "se3"],
-                        default="similarity", help="default: similarity")  # fmt: skip
-    parser.add_argument("--plane", choices=list(PLANES), default="auto",
-                        help="plane of D and phi (default: auto, fitted to the reference)",
-                        )  # fmt: skip
-    parser.add_argument("--association", choices=["progress", "nearest"], default="progress",
-                        help="trajectory mode: progress = the nearest sample near the previous "
-                        "match (no jumps where the path crosses itself), nearest = the paper's "
-                        "Eq. 3.12 (default: progress)")  # fmt: skip
-    parser.add_argument("--allow-scale", action="store_true",
-                        help="accept an alignment scale outside [0.9, 1.1]")  # fmt: skip
+    parser.add_argument(
+        "-o",
+        "--out",
+        type=Path,
+        default=Path("relocalization"),
+        help="output folder (default: ./relocalization)",
+    )
+    parser.add_argument(
+        "--mode",
+        choices=["auto", "trajectory", "point"],
+        default="auto",
+        help="point = a parked robot; auto picks point when the query stays "
+        "within 0.20 m (default: auto)",
+    )
+    parser.add_argument(
+        "--align",
+        choices=["auto", "none", "tags"],
+        default="auto",
+        help="align the query map onto the reference map with the common tags "
+        "(default: auto = when there are 2 or more)",
+    )
+    parser.add_argument(
+        "--align-model",
+        choices=["similarity", "rigid", "sim3", "se3"],
+        default="similarity",
+        help="default: similarity",
+    )
+    parser.add_argument(
+        "--plane",
+        choices=list(PLANES),
+        default="auto",
+        help="plane of D and phi (default: auto, fitted to the reference)",
+    )
+    parser.add_argument(
+        "--association",
+        choices=["progress", "nearest"],
+        default="progress",
+        help="trajectory mode: progress = the nearest sample near the previous "
+        "match (no jumps where the path crosses itself), nearest = the paper's "
+        "Eq. 3.12 (default: progress)",
+    )
+    parser.add_argument(
+        "--allow-scale", action="store_true", help="accept an alignment scale outside [0.9, 1.1]"
+    )
     return parser
 
 
@@ -223,8 +260,15 @@ def main(args: argparse.Namespace | Sequence[str] | None = None) -> int:
 
 def _main(ns: argparse.Namespace) -> int:
     result = _relocalize(
-        ns.reference, ns.query, ns.out, ns.mode, ns.align, ns.align_model, ns.plane,
-        getattr(ns, "allow_scale", False), getattr(ns, "association", "progress"),
-    )  # fmt: skip
+        ns.reference,
+        ns.query,
+        ns.out,
+        ns.mode,
+        ns.align,
+        ns.align_model,
+        ns.plane,
+        getattr(ns, "allow_scale", False),
+        getattr(ns, "association", "progress"),
+    )
     print(summary_text(result["summary"], result["relocalization"], Path(ns.out)))
     return 0

@@ -58,38 +58,73 @@ def add_arguments(parser: argparse.ArgumentParser) -> argparse.ArgumentParser:
     parser.epilog = EXAMPLES
     parser.formatter_class = argparse.RawDescriptionHelpFormatter
     parser.add_argument("-p", "--pipeline", default="pipeline.yaml", help="pipeline file")
-    parser.add_argument("-S", "--set", action="append", metavar="STAGE.PARAM=V1,V2,…",
-                        help="a grid dimension: the values one parameter takes (repeatable; the "
-                        "points are every combination)")  # fmt: skip
-    parser.add_argument("--points", type=Path, default=None, metavar="FILE",
-                        help="an explicit list of points: CSV (header = stage.param names) or a "
-                        "YAML list of mappings")  # fmt: skip
-    parser.add_argument("--metric", action="append", metavar="NAME",
-                        help="a metric to tabulate (repeatable; the first picks the best point)")
-    parser.add_argument("--dataset", action="append", metavar="NAME",
-                        help="read the metrics from this dataset (repeatable; only these and the "
-                        "reference run)")  # fmt: skip
-    parser.add_argument("--name", default=None,
-                        help="the sweep's folder under sweeps/ (default: from the swept params)")
-    parser.add_argument("-j", "--jobs", type=int, default=1,
-                        help="stages run in parallel (dask: worker processes of the local "
-                        "cluster)")  # fmt: skip
-    parser.add_argument("--executor", choices=("local", "dask"), default=None,
-                        help="where stages run: local threads (default) or one Dask cluster for "
-                        "every point (pip install 'tagtrail[dask]')")  # fmt: skip
-    parser.add_argument("--scheduler", default=None, metavar="ADDRESS",
-                        help="an existing Dask scheduler (tcp://host:8786; implies --executor "
-                        "dask; default: start a local cluster)")  # fmt: skip
-    parser.add_argument("--dry-run", action="store_true",
-                        help="list the points and metric columns; run nothing")
+    parser.add_argument(
+        "-S",
+        "--set",
+        action="append",
+        metavar="STAGE.PARAM=V1,V2,…",
+        help="a grid dimension: the values one parameter takes (repeatable; the "
+        "points are every combination)",
+    )
+    parser.add_argument(
+        "--points",
+        type=Path,
+        default=None,
+        metavar="FILE",
+        help="an explicit list of points: CSV (header = stage.param names) or a "
+        "YAML list of mappings",
+    )
+    parser.add_argument(
+        "--metric",
+        action="append",
+        metavar="NAME",
+        help="a metric to tabulate (repeatable; the first picks the best point)",
+    )
+    parser.add_argument(
+        "--dataset",
+        action="append",
+        metavar="NAME",
+        help="read the metrics from this dataset (repeatable; only these and the reference run)",
+    )
+    parser.add_argument(
+        "--name",
+        default=None,
+        help="the sweep's folder under sweeps/ (default: from the swept params)",
+    )
+    parser.add_argument(
+        "-j",
+        "--jobs",
+        type=int,
+        default=1,
+        help="stages run in parallel (dask: worker processes of the local cluster)",
+    )
+    parser.add_argument(
+        "--executor",
+        choices=("local", "dask"),
+        default=None,
+        help="where stages run: local threads (default) or one Dask cluster for "
+        "every point (pip install 'tagtrail[dask]')",
+    )
+    parser.add_argument(
+        "--scheduler",
+        default=None,
+        metavar="ADDRESS",
+        help="an existing Dask scheduler (tcp://host:8786; implies --executor "
+        "dask; default: start a local cluster)",
+    )
+    parser.add_argument(
+        "--dry-run", action="store_true", help="list the points and metric columns; run nothing"
+    )
     return parser
 
 
 def build_parser() -> argparse.ArgumentParser:
-    return add_arguments(argparse.ArgumentParser(
-        prog="tagtrail sweep",
-        description="Run a grid of parameter overrides on the cache and tabulate the metrics.",
-    ))  # fmt: skip
+    return add_arguments(
+        argparse.ArgumentParser(
+            prog="tagtrail sweep",
+            description="Run a grid of parameter overrides on the cache and tabulate the metrics.",
+        )
+    )
 
 
 def main(args: argparse.Namespace | Sequence[str] | None = None) -> int:
@@ -108,8 +143,18 @@ def _main(ns: argparse.Namespace) -> int:
     rows = sw.read_points(ns.points) if ns.points is not None else None
     points = sw.make_points(ns.set or (), rows)
     executor = ns.executor or ("dask" if ns.scheduler else "local")
-    sweep = sw.prepare(Path(ns.pipeline), REGISTRY, points, ns.metric or (), ns.dataset or (),
-                       ns.name, ns.points, ns.jobs, executor, ns.scheduler)  # fmt: skip
+    sweep = sw.prepare(
+        Path(ns.pipeline),
+        REGISTRY,
+        points,
+        ns.metric or (),
+        ns.dataset or (),
+        ns.name,
+        ns.points,
+        ns.jobs,
+        executor,
+        ns.scheduler,
+    )
     if ns.dry_run:
         print(f"sweep {sweep.name}: {len(points)} points into {sweep.folder}")
         for p in points:
@@ -123,8 +168,10 @@ def _main(ns: argparse.Namespace) -> int:
 
     verbose = bool(getattr(ns, "verbose", False))
     echo = (lambda s: print("    " + s, file=sys.stderr)) if verbose else None
-    progress(f"sweep {sweep.name}: {len(points)} points, metrics "
-             f"{', '.join(c.name for c in sweep.columns)} -> {sweep.folder}")  # fmt: skip
+    progress(
+        f"sweep {sweep.name}: {len(points)} points, metrics "
+        f"{', '.join(c.name for c in sweep.columns)} -> {sweep.folder}"
+    )
     quiet = logging.getLogger("tagtrail")
     level = quiet.level
     if not verbose:  # nine points of stage INFO lines drown the progress; warnings still show
@@ -137,12 +184,16 @@ def _main(ns: argparse.Namespace) -> int:
     print("\n".join(table(sweep)))
     print("\n" + best_line(sweep))
     failed = [r for r in results if r.status != "ok"]
-    print(f"wrote {sweep.folder / sw.TABLE} ({len(results)} rows)"
-          + (f", {plot}" if plot is not None else ""))  # fmt: skip
+    print(
+        f"wrote {sweep.folder / sw.TABLE} ({len(results)} rows)"
+        + (f", {plot}" if plot is not None else "")
+    )
     print(f"open a point's artifacts: tagtrail show STAGE --point N --sweep {sweep.name}")
     if failed:
-        print(f"{len(failed)} point(s) failed: " + ", ".join(str(r.point.index) for r in failed),
-              file=sys.stderr)  # fmt: skip
+        print(
+            f"{len(failed)} point(s) failed: " + ", ".join(str(r.point.index) for r in failed),
+            file=sys.stderr,
+        )
         return 1
     return 0
 
@@ -161,13 +212,17 @@ def best_line(sweep: Sweep) -> str:
     best, leaders = sweep.best(), sweep.leaders()
     if best is not None:
         way = "lowest" if sweep.better == "lower" else "highest"
-        return (f"best ({way} {first}{over}): point {best.point.index}: "
-                f"{best.point.label or '(no overrides)'}")
+        return (
+            f"best ({way} {first}{over}): point {best.point.index}: "
+            f"{best.point.label or '(no overrides)'}"
+        )
     if not leaders:
         return f"best: none (no point has {first})"
     value = sweep.score(leaders[0])
-    return (f"best: none: points {', '.join(str(r.point.index) for r in leaders)} give the same "
-            f"{first}{over} ({digits([value])[0]}) within its noise (relative {NOISE_REL:g})")
+    return (
+        f"best: none: points {', '.join(str(r.point.index) for r in leaders)} give the same "
+        f"{first}{over} ({digits([value])[0]}) within its noise (relative {NOISE_REL:g})"
+    )
 
 
 def digits(values: Sequence[float | None], least: int = 4, most: int = 7) -> list[str]:
@@ -178,14 +233,18 @@ def digits(values: Sequence[float | None], least: int = 4, most: int = 7) -> lis
     real = [v for v in values if v is not None]
     for n in range(least, most + 1):
         text = {v: f"{v:.{n}g}" for v in real}
-        if all(text[a] != text[b] for i, a in enumerate(real) for b in real[i + 1:]
-               if not within_noise(a, b)):
+        if all(
+            text[a] != text[b]
+            for i, a in enumerate(real)
+            for b in real[i + 1 :]
+            if not within_noise(a, b)
+        ):
             break
     return ["-" if v is None else f"{v:.{n}g}" for v in values]
 
 
 def _cut(text: str) -> str:
-    return text if len(text) <= MAX_CELL else text[:MAX_CELL - 1] + "…"
+    return text if len(text) <= MAX_CELL else text[: MAX_CELL - 1] + "…"
 
 
 def table(sweep: Sweep, width: int = WIDTH) -> list[str]:
@@ -197,7 +256,8 @@ def table(sweep: Sweep, width: int = WIDTH) -> list[str]:
     results = sorted(sweep.results, key=lambda r: r.point.index)
     left = [["point", *sweep.params]] + [
         [str(r.point.index), *(_cut(r.point.values.get(p, "")) for p in sweep.params)]
-        for r in results]
+        for r in results
+    ]
     marks = ["*" if r is best else ("failed" if r.status != "ok" else "") for r in results]
     cols = [[c.name, *digits([r.metrics.get(c.name) for r in results])] for c in sweep.columns]
     left_w = sum(max(len(row[i]) for row in left) + 2 for i in range(len(left[0])))
@@ -216,7 +276,8 @@ def table(sweep: Sweep, width: int = WIDTH) -> list[str]:
         header = [*left[0], *(c[0] for c in block), ""]
         body = [[*left[i + 1], *(c[i + 1] for c in block), marks[i]] for i in range(len(results))]
         lines += ([""] if k else []) + aligned(
-            header, body, text=(*range(1, len(left[0])), len(header) - 1))
+            header, body, text=(*range(1, len(left[0])), len(header) - 1)
+        )
     return lines
 
 
@@ -277,8 +338,9 @@ def write_plot(sweep: Sweep, path: Path) -> Path | None:
     if not ok or not params:
         return None
     best = sweep.best()
-    fig = Figure(figsize=(4.4 * len(params), 2.6 * len(metrics) + 0.6), dpi=100,
-                 layout="constrained")  # fmt: skip
+    fig = Figure(
+        figsize=(4.4 * len(params), 2.6 * len(metrics) + 0.6), dpi=100, layout="constrained"
+    )
     axes = fig.subplots(len(metrics), len(params), squeeze=False)
     for i, metric in enumerate(metrics):
         cols = [c.name for c in sweep.columns if c.metric == metric]
@@ -300,24 +362,45 @@ def write_plot(sweep: Sweep, path: Path) -> Path | None:
             nums = [_number(t) for t in texts]
             numeric = all(n is not None for n in nums)
             order = list(dict.fromkeys(texts))
-            xs = [float(n) if numeric and n is not None else float(order.index(t))
-                  for n, t in zip(nums, texts, strict=True)]  # fmt: skip
+            xs = [
+                float(n) if numeric and n is not None else float(order.index(t))
+                for n, t in zip(nums, texts, strict=True)
+            ]
             ys = [value(r) for r in ok]
             pts = [(x, y) for x, y in zip(xs, ys, strict=True) if y is not None]
             if pts:
-                ax.scatter([x for x, _ in pts], [y for _, y in pts], s=14, color="0.55",
-                           zorder=2, label="every point")  # fmt: skip
+                ax.scatter(
+                    [x for x, _ in pts],
+                    [y for _, y in pts],
+                    s=14,
+                    color="0.55",
+                    zorder=2,
+                    label="every point",
+                )
                 low: dict[float, float] = {}
                 for x, y in pts:
                     low[x] = top(y, low.get(x, y))
                 line = sorted(low.items())
-                ax.plot([x for x, _ in line], [y for _, y in line], color="tab:blue",
-                        marker="o", markersize=4, zorder=3,
-                        label="lowest" if top is min else "highest")  # fmt: skip
+                ax.plot(
+                    [x for x, _ in line],
+                    [y for _, y in line],
+                    color="tab:blue",
+                    marker="o",
+                    markersize=4,
+                    zorder=3,
+                    label="lowest" if top is min else "highest",
+                )
             if best is not None and best in ok and (yb := value(best)) is not None:
                 xb = xs[ok.index(best)]
-                ax.scatter([xb], [yb], marker="*", s=160, color="tab:red", zorder=4,
-                           label=f"best (point {best.point.index})")  # fmt: skip
+                ax.scatter(
+                    [xb],
+                    [yb],
+                    marker="*",
+                    s=160,
+                    color="tab:red",
+                    zorder=4,
+                    label=f"best (point {best.point.index})",
+                )
             if numeric:
                 positive = [x for x in xs if x > 0]
                 if len(positive) == len(xs) and max(xs) / min(xs) >= 20:

@@ -213,8 +213,9 @@ class PathTracker:
             self._prev = k
         href = float(self.path.heading_rad[k])
         j, t, cross = self._nearest_on_segments(u, v, (k - 1, k), href, k)
-        return self._track(k, d, _wrap(heading_rad - href), href, j, t, cross,
-                           again or d > self.params.lost_m)  # fmt: skip
+        return self._track(
+            k, d, _wrap(heading_rad - href), href, j, t, cross, again or d > self.params.lost_m
+        )
 
     def track_segment(self, u: float, v: float, heading_rad: float, seg: int) -> Track:
         """As :meth:`track` for point mode: the match is the nearest point of segment ``seg``
@@ -222,11 +223,13 @@ class PathTracker:
         href = float(self.path.seg_heading_rad[seg])
         j, t, cross = self._nearest_on_segments(u, v, (seg,), href, seg)
         d = abs(cross)
-        return self._track(seg, d, _wrap(heading_rad - href), href, j, t, cross,
-                           d > self.params.lost_m)  # fmt: skip
+        return self._track(
+            seg, d, _wrap(heading_rad - href), href, j, t, cross, d > self.params.lost_m
+        )
 
-    def _nearest_on_segments(self, u: float, v: float, segs: tuple[int, ...], href: float,
-                             k: int) -> tuple[int, float, float]:  # fmt: skip
+    def _nearest_on_segments(
+        self, u: float, v: float, segs: tuple[int, ...], href: float, k: int
+    ) -> tuple[int, float, float]:
         """``(segment, fraction along it, signed distance)`` of the nearest point of the
         non-degenerate segments ``segs``; with none, the sample ``k`` itself (side by the
         heading ``href``)."""
@@ -252,8 +255,9 @@ class PathTracker:
             return min(k, n_seg - 1), float(k > n_seg - 1), math.copysign(dist, side)
         return best[1], best[2], best[3]
 
-    def _track(self, k: int, d: float, phi: float, href: float, j: int, t: float, cross: float,
-               lost: bool) -> Track:  # fmt: skip
+    def _track(
+        self, k: int, d: float, phi: float, href: float, j: int, t: float, cross: float, lost: bool
+    ) -> Track:
         progress = self._s[j] + t * self._seg_len[j]
         curv = float(np.interp(progress, self.s, self.curvature))
         la_s = min(progress + self.params.lookahead_m, self._s[-1])
@@ -262,5 +266,17 @@ class PathTracker:
         seg = self._seg_len[lj]
         lt = min(1.0, max(0.0, (la_s - self._s[lj]) / seg)) if seg > 1e-12 else 0.0
         (au, av), (bu, bv) = self._uv[lj], self._uv[lj + 1]
-        return Track(k, d, phi, href, cross, progress, curv, au + lt * (bu - au),
-                     av + lt * (bv - av), lj, lt, lost)  # fmt: skip
+        return Track(
+            k,
+            d,
+            phi,
+            href,
+            cross,
+            progress,
+            curv,
+            au + lt * (bu - au),
+            av + lt * (bv - av),
+            lj,
+            lt,
+            lost,
+        )

@@ -55,19 +55,24 @@ class CameraModel:
         if not np.isfinite(K).all():
             raise SourceError(f"camera matrix K has non-finite values: {K.reshape(-1).tolist()}")
         if K[0, 0] <= 0 or K[1, 1] <= 0:
-            raise SourceError(f"camera matrix K is not a calibration: fx = {K[0, 0]:g}, "
-                              f"fy = {K[1, 1]:g} (both must be > 0)")  # fmt: skip
+            raise SourceError(
+                f"camera matrix K is not a calibration: fx = {K[0, 0]:g}, "
+                f"fy = {K[1, 1]:g} (both must be > 0)"
+            )
         if not np.isfinite(D).all():
             raise SourceError(f"distortion coefficients are not finite: {D.tolist()}")
         if abs(K[1, 0]) + abs(K[2, 0]) + abs(K[2, 1]) + abs(K[2, 2] - 1) > 1e-6:
-            raise SourceError(f"camera matrix K is not [fx s cx, 0 fy cy, 0 0 1]: "
-                              f"{K.reshape(-1).tolist()}")  # fmt: skip
+            raise SourceError(
+                f"camera matrix K is not [fx s cx, 0 fy cy, 0 0 1]: {K.reshape(-1).tolist()}"
+            )
         if model not in ("equidistant", "none") and D.size > _OPENCV_NCOEF[-1]:
             raise SourceError(f"{D.size} distortion coefficients: OpenCV takes at most 14")
         w, h = self.width, self.height
         if not all(isinstance(v, int | np.integer) and 1 <= v <= MAX_SIDE_PX for v in (w, h)):
-            raise SourceError(f"image size {w}x{h} is not a camera's (width and height: whole "
-                              f"pixels, 1 to {MAX_SIDE_PX})")  # fmt: skip
+            raise SourceError(
+                f"image size {w}x{h} is not a camera's (width and height: whole "
+                f"pixels, 1 to {MAX_SIDE_PX})"
+            )
         if model == "equidistant":
             D = np.concatenate([D, np.zeros(4)])[:4] if D.size != 4 else D
         elif model == "none":
@@ -142,8 +147,7 @@ class CameraModel:
     def value_key(self) -> tuple[object, ...]:
         """A hashable key of the calibration's values (instances compare by identity): for caches
         of per-camera tables."""
-        return (self.width, self.height, self.distortion_model, self.K.tobytes(),
-                self.D.tobytes())
+        return (self.width, self.height, self.distortion_model, self.K.tobytes(), self.D.tobytes())
 
     def same_as(self, other: CameraModel, rtol: float = 1e-9) -> bool:
         """Equal size, model and (to ``rtol``) coefficients."""
@@ -218,8 +222,9 @@ class CameraModel:
         return np.stack([K[0, 0] * x + K[0, 1] * y + K[0, 2], K[1, 1] * y + K[1, 2]], axis=-1)
 
     def _project_cv(self, p: F64) -> F64:
-        uv, _ = cv2.projectPoints(p.reshape(-1, 1, 3), np.zeros(3), np.zeros(3), self.K,
-                                  self._cv_D())
+        uv, _ = cv2.projectPoints(
+            p.reshape(-1, 1, 3), np.zeros(3), np.zeros(3), self.K, self._cv_D()
+        )
         return np.asarray(uv, dtype=np.float64).reshape(p.shape[:-1] + (2,))
 
 

@@ -108,8 +108,14 @@ def multi_tag_pnp(
         return None, 0
     K = np.eye(3)
     ok, rvec, tvec, inl = cv2.solvePnPRansac(
-        obj, img, K, None, iterationsCount=100, reprojectionError=ransac_thresh,
-        confidence=0.999, flags=cv2.SOLVEPNP_AP3P,
+        obj,
+        img,
+        K,
+        None,
+        iterationsCount=100,
+        reprojectionError=ransac_thresh,
+        confidence=0.999,
+        flags=cv2.SOLVEPNP_AP3P,
     )
     if not ok or inl is None or len(inl) < max(6, min_inlier_ratio * len(obj)):
         return None, 0
@@ -198,8 +204,7 @@ def frame_poses(
     if method == "avg":
         T = fuse_mean(est, group, n_frames)
     else:
-        T = fuse_robust(est, group, n_frames, loss=loss, f_scale=f_scale,
-                        rot_weight_m=rot_weight_m)  # fmt: skip
+        T = fuse_robust(est, group, n_frames, loss=loss, f_scale=f_scale, rot_weight_m=rot_weight_m)
     used = np.zeros(n_frames, dtype=bool)
     if method == "pnp" and corners_px is not None and camera is not None:
         size = np.full(len(group), np.nan) if size_m is None else np.asarray(size_m, np.float64)
@@ -212,7 +217,12 @@ def frame_poses(
 
 
 def _pnp_frames(
-    T: F64, world_T_tag: F64, group: I64, corners_px: F64, size: F64, camera: CameraModel,
+    T: F64,
+    world_T_tag: F64,
+    group: I64,
+    corners_px: F64,
+    size: F64,
+    camera: CameraModel,
     ransac_px: float,
 ) -> tuple[F64, NDArray[np.bool_]]:
     """``T`` with the frames that have >= 2 usable tags replaced by multi-tag PnP poses."""

@@ -82,8 +82,12 @@ def ambiguity(reproj_px: NDArray[Any], alt_reproj_px: NDArray[Any]) -> NDArray[n
     return out
 
 
-def best_pose(pose: F64, alt_pose: F64 | None = None, reproj_px: F64 | None = None,
-              alt_reproj_px: F64 | None = None) -> F64:
+def best_pose(
+    pose: F64,
+    alt_pose: F64 | None = None,
+    reproj_px: F64 | None = None,
+    alt_reproj_px: F64 | None = None,
+) -> F64:
     """``cam_T_tag`` ``(N, 4, 4)`` from ``pose`` ``(N, 7)`` (x, y, z, qx, qy, qz, qw): of the two
     IPPE solutions, the one with the lower reprojection error; without the alternative (poses
     given by a source), the only pose."""
@@ -109,8 +113,16 @@ class Branches(NamedTuple):
 
 
 def consistent_branches(
-    group: NDArray[np.int64], T_i: F64, T_j: F64, w_i: F64, w_j: F64, *,
-    max_deg: float = 10.0, max_rel: float = 0.1, max_abs_m: float = 0.05, seeds: int = 24,
+    group: NDArray[np.int64],
+    T_i: F64,
+    T_j: F64,
+    w_i: F64,
+    w_j: F64,
+    *,
+    max_deg: float = 10.0,
+    max_rel: float = 0.1,
+    max_abs_m: float = 0.05,
+    seeds: int = 24,
 ) -> Branches:
     """The IPPE solutions of co-observed tags that agree across frames.
 
@@ -138,8 +150,13 @@ def consistent_branches(
     Tj = np.where(np.isfinite(T_j), T_j, np.eye(4))
     cand = np.einsum("mbij,mcjk->mbcik", inv_i, Tj).reshape(m, 4, 4, 4)  # combo = 2*bi + bj
     w = (w_i[:, :, None] * w_j[:, None, :]).reshape(m, 4)
-    out = Branches(np.full(m, -1, np.int64), np.full((m, 4, 4), np.nan),
-                   np.full(m, -1, np.int64), np.full((m, 4, 4), np.nan), np.zeros(m))
+    out = Branches(
+        np.full(m, -1, np.int64),
+        np.full((m, 4, 4), np.nan),
+        np.full(m, -1, np.int64),
+        np.full((m, 4, 4), np.nan),
+        np.zeros(m),
+    )
     cos_max = np.cos(np.radians(max_deg))
     order = np.argsort(group, kind="stable")
     starts = np.flatnonzero(np.r_[True, np.diff(group[order]) != 0])
@@ -153,16 +170,18 @@ def consistent_branches(
         seed = (pick[:, None] * 4 + np.arange(4)).reshape(-1)
         seed = seed[valid[seed]]
 
-        def near(s: NDArray[np.int64], R: F64 = R, t: F64 = t,
-                 valid: NDArray[np.bool_] = valid) -> tuple[F64, NDArray[np.bool_]]:
+        def near(
+            s: NDArray[np.int64], R: F64 = R, t: F64 = t, valid: NDArray[np.bool_] = valid
+        ) -> tuple[F64, NDArray[np.bool_]]:
             cos = (R[s] @ R.T - 1.0) / 2.0  # cos of the angle between rotations
             dist = np.linalg.norm(t[s][:, None, :] - t[None, :, :], axis=2)
             scale = max_rel * np.linalg.norm(t[s], axis=1)[:, None] + max_abs_m
             return cos, (cos >= cos_max) & (dist <= scale) & valid[None, :]
 
         _, ok = near(seed)
-        support = (np.where(ok, wr[None, :], 0.0)
-                   .reshape(len(seed), len(rows), 4).max(axis=2).sum(axis=1))
+        support = (
+            np.where(ok, wr[None, :], 0.0).reshape(len(seed), len(rows), 4).max(axis=2).sum(axis=1)
+        )
         best = int(np.argmax(support))
         rival = ~ok[best, seed]  # seeds outside the winner's bounds
         for which, s in (("win", best), ("alt", int(np.argmax(np.where(rival, support, -1.0))))):
@@ -182,8 +201,9 @@ def consistent_branches(
     return out
 
 
-def map_branches(frame: NDArray[np.int64], world_R_tag: F64, cam_R_tag: F64,
-                 *, cap_deg: float = 15.0) -> NDArray[np.int64]:
+def map_branches(
+    frame: NDArray[np.int64], world_R_tag: F64, cam_R_tag: F64, *, cap_deg: float = 15.0
+) -> NDArray[np.int64]:
     """Per observation, the IPPE solution (0 or 1) a tag map agrees with, frame by frame.
 
     A mirrored solution of a small or distant tag can have the lower reprojection error and

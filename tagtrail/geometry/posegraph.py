@@ -140,9 +140,7 @@ def initial_guess(g: PoseGraph) -> tuple[F64, F64]:
     flip = g.idx_i > g.idx_j
     # Express every observation as lo_T_hi.
     R_lh = np.where(flip[:, None, None], np.swapaxes(g.R_obs, -1, -2), g.R_obs)
-    t_lh = np.where(
-        flip[:, None], -np.einsum("eba,eb->ea", g.R_obs, g.t_obs), g.t_obs
-    )
+    t_lh = np.where(flip[:, None], -np.einsum("eba,eb->ea", g.R_obs, g.t_obs), g.t_obs)
     pair_key = lo * n + hi
     keys, pair = np.unique(pair_key, return_inverse=True)
     count = np.bincount(pair, minlength=len(keys)).astype(np.float64)
@@ -280,9 +278,13 @@ class _Normal:
         self.col, self.n_params = col, 6 * len(free)
         # Each pair's 12 unknowns [d_i, t_i, d_j, t_j] (-1: the anchor's, held fixed).
         k6 = np.arange(6)
-        idx = np.concatenate([np.where(col[self.pi, None] >= 0, col[self.pi, None] + k6, -1),
-                              np.where(col[self.pj, None] >= 0, col[self.pj, None] + k6, -1)],
-                             axis=1)  # fmt: skip
+        idx = np.concatenate(
+            [
+                np.where(col[self.pi, None] >= 0, col[self.pi, None] + k6, -1),
+                np.where(col[self.pj, None] >= 0, col[self.pj, None] + k6, -1),
+            ],
+            axis=1,
+        )
         rows, cols = np.broadcast_arrays(idx[:, :, None], idx[:, None, :])
         self.h_keep = ((rows >= 0) & (cols >= 0)).reshape(-1)
         self.h_rows, self.h_cols = rows.reshape(-1)[self.h_keep], cols.reshape(-1)[self.h_keep]
@@ -326,10 +328,13 @@ class _Normal:
         Ct, Lt = np.swapaxes(C, 1, 2), np.swapaxes(L, 1, 2)
         H = W[:, None, None] * (Ct @ C) + Lt @ (S @ L)
         grad = (Ct @ v[:, :, None] + Lt @ u[:, :, None])[..., 0]
-        Hs = coo_matrix((H.reshape(-1)[self.h_keep], (self.h_rows, self.h_cols)),
-                        shape=(self.n_params, self.n_params)).tocsr()  # fmt: skip
-        gs = np.bincount(self.g_idx, weights=grad.reshape(-1)[self.g_keep],
-                         minlength=self.n_params).astype(np.float64)  # fmt: skip
+        Hs = coo_matrix(
+            (H.reshape(-1)[self.h_keep], (self.h_rows, self.h_cols)),
+            shape=(self.n_params, self.n_params),
+        ).tocsr()
+        gs = np.bincount(
+            self.g_idx, weights=grad.reshape(-1)[self.g_keep], minlength=self.n_params
+        ).astype(np.float64)
         return Hs, gs
 
     def retract(self, R: F64, t: F64, dx: F64) -> tuple[F64, F64]:
@@ -371,8 +376,12 @@ def solve(
         dH = H.diagonal()
         A = (H + diags(lam * np.maximum(dH, 1e-12 * max(float(dH.max()), 1e-300)))).tocsc()
         try:
-            lu = splu(A, permc_spec="MMD_AT_PLUS_A", diag_pivot_thresh=0.0,
-                      options={"SymmetricMode": True})  # fmt: skip
+            lu = splu(
+                A,
+                permc_spec="MMD_AT_PLUS_A",
+                diag_pivot_thresh=0.0,
+                options={"SymmetricMode": True},
+            )
             dx = -lu.solve(grad)
         except RuntimeError:  # an exactly singular factor (e.g. zero weights): damp more
             dx = np.full(prob.n_params, np.nan)

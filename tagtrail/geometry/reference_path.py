@@ -228,8 +228,9 @@ class ReferencePath:
         (_, _, fx), (_, _, fy), (_, _, fz) = np.asarray(world_R_cam, dtype=np.float64).tolist()
         return self.query_point(x, y, z, fx, fy, fz)
 
-    def query_point(self, x: float, y: float, z: float, fx: float, fy: float,
-                    fz: float) -> PoseMatch:  # fmt: skip
+    def query_point(
+        self, x: float, y: float, z: float, fx: float, fy: float, fz: float
+    ) -> PoseMatch:
         """:meth:`query_one` of plain floats: position ``(x, y, z)`` (m) and optical axis
         ``f = world_R_cam[:, 2]`` — the live node's per-pose call, with no array conversions."""
         u, v, hq = self.planar_point(x, y, z, fx, fy, fz)
@@ -238,8 +239,9 @@ class ReferencePath:
         phi = math.pi - (math.pi - (hq - href)) % (2.0 * math.pi)
         return PoseMatch(k, dist, phi, hq, href, u, v, float(self._u[k]), float(self._v[k]))
 
-    def planar_point(self, x: float, y: float, z: float, fx: float, fy: float,
-                     fz: float) -> tuple[float, float, float]:  # fmt: skip
+    def planar_point(
+        self, x: float, y: float, z: float, fx: float, fy: float, fz: float
+    ) -> tuple[float, float, float]:
         """``(u, v, θ)`` (m, m, rad) of a world position ``(x, y, z)`` (m) and optical axis
         ``f = world_R_cam[:, 2]``, in plain floats (the live node's per-pose call)."""
         (a1, b1, c1), (a2, b2, c2) = self._e1, self._e2

@@ -74,8 +74,11 @@ def right_jacobian_inv_coefficient(th: ArrayLike) -> F64:
     # sin(t) -> 0 at t = pi: the coefficient stays finite (1/pi^2) but the formula divides 0/0.
     s = np.sin(ths)
     s = np.where(np.abs(s) < 1e-12, 1e-12, s)
-    out: F64 = np.where(small, 1.0 / 12.0 + th * th / 720.0,
-                        1.0 / (ths * ths) - (1.0 + np.cos(ths)) / (2.0 * ths * s))
+    out: F64 = np.where(
+        small,
+        1.0 / 12.0 + th * th / 720.0,
+        1.0 / (ths * ths) - (1.0 + np.cos(ths)) / (2.0 * ths * s),
+    )
     return out
 
 

@@ -43,7 +43,11 @@ def segment_triples(t_s: F64, max_gap_s: float) -> I64:
 
 class _Smoother:
     def __init__(
-        self, t_s: F64, R_hat: F64, p_hat: F64, triples: I64,
+        self,
+        t_s: F64,
+        R_hat: F64,
+        p_hat: F64,
+        triples: I64,
         sig: tuple[float, float, float, float],
     ) -> None:
         self.R_hat, self.p_hat, self.k = R_hat, p_hat, triples
@@ -144,9 +148,17 @@ def smooth_poses(
     # ~10 iterations of doubling before the first real step).
     x0 = np.concatenate([p, np.zeros_like(p)], axis=1).reshape(-1)
     sol = least_squares(
-        prob.fun, x0, jac=prob.jac, method="trf",
-        loss=block_loss(loss, 3), f_scale=f_scale, x_scale="jac", tr_solver="lsmr",
-        max_nfev=max_nfev, ftol=1e-6, xtol=1e-6,
+        prob.fun,
+        x0,
+        jac=prob.jac,
+        method="trf",
+        loss=block_loss(loss, 3),
+        f_scale=f_scale,
+        x_scale="jac",
+        tr_solver="lsmr",
+        max_nfev=max_nfev,
+        ftol=1e-6,
+        xtol=1e-6,
     )
     R_s, p_s, _ = prob.unpack(sol.x)
     return R_s, p_s

@@ -155,11 +155,12 @@ def from_wpilib(doc: dict[str, Any]) -> Survey:
             q = pose["rotation"]["quaternion"]
             q_xyzw = _quat([q["X"], q["Y"], q["Z"], q["W"]], f"tags[{k}].pose.rotation")
             pos = _xyz(pose["translation"], f"tags[{k}].pose.translation")
-            entries.append((int(tag["ID"]), pos, R_from_quat_xyzw(q_xyzw) @ WPILIB_R_SPEC,
-                            None))
+            entries.append((int(tag["ID"]), pos, R_from_quat_xyzw(q_xyzw) @ WPILIB_R_SPEC, None))
         except (KeyError, TypeError) as err:
-            raise ValueError(f"tags[{k}]: expected {{ID, pose: {{translation, rotation: "
-                             f"{{quaternion}}}}}} (missing {err})") from err
+            raise ValueError(
+                f"tags[{k}]: expected {{ID, pose: {{translation, rotation: "
+                f"{{quaternion}}}}}} (missing {err})"
+            ) from err
     if not entries:
         raise ValueError("tags: no tag")
     return make_survey(entries)
@@ -199,9 +200,11 @@ def file_format(doc: Any) -> str:
         return "wpilib"
     if isinstance(doc, dict) and isinstance(doc.get("tags"), dict):
         return "tag_map"
-    raise ValueError("not a known-poses file (expected TagSLAM's tagslam.yaml with bodies:, a "
-                     "WPILib/PhotonVision field layout JSON with tags: [...], or a tagtrail "
-                     "tag_map.yaml)")
+    raise ValueError(
+        "not a known-poses file (expected TagSLAM's tagslam.yaml with bodies:, a "
+        "WPILib/PhotonVision field layout JSON with tags: [...], or a tagtrail "
+        "tag_map.yaml)"
+    )
 
 
 def parse_survey(doc: Any) -> tuple[str, Survey]:
@@ -272,18 +275,27 @@ def parse_tag_sizes(doc: Any) -> tuple[str, TagSizes]:
     gives none (a WPILib field layout has no size field)."""
     fmt = file_format(doc)
     if fmt == "wpilib":
-        raise ValueError("a WPILib/PhotonVision field layout gives no tag sizes (set "
-                         "pnp.tag_size or pnp.tag_sizes)")
+        raise ValueError(
+            "a WPILib/PhotonVision field layout gives no tag sizes (set "
+            "pnp.tag_size or pnp.tag_sizes)"
+        )
     if fmt == "tagslam":
         sizes = _tagslam_sizes(doc)
     else:
         sv = from_tag_map(doc)
-        sizes = TagSizes({int(i): _size(float(s), f"tag {int(i)}: size")
-                          for i, s in zip(sv.ids, sv.size, strict=True) if not np.isnan(s)},
-                         None)
+        sizes = TagSizes(
+            {
+                int(i): _size(float(s), f"tag {int(i)}: size")
+                for i, s in zip(sv.ids, sv.size, strict=True)
+                if not np.isnan(s)
+            },
+            None,
+        )
     if not sizes.per_id and sizes.default is None:
-        raise ValueError(f"no tag size given (a {fmt} file sizes tags with "
-                         f"{'size: or default_tag_size:' if fmt == 'tagslam' else 'size:'})")
+        raise ValueError(
+            f"no tag size given (a {fmt} file sizes tags with "
+            f"{'size: or default_tag_size:' if fmt == 'tagslam' else 'size:'})"
+        )
     return fmt, sizes
 
 
@@ -320,14 +332,18 @@ def _points(T: F64, full: np.ndarray, half: F64) -> tuple[F64, np.ndarray]:
     k = np.flatnonzero(full)
     if len(k):
         local = corners[None] * half[k, None, None]
-        pts.append((np.einsum("kij,kcj->kci", T[k, :3, :3], local) + T[k, None, :3, 3])
-                   .reshape(-1, 3))
+        pts.append(
+            (np.einsum("kij,kcj->kci", T[k, :3, :3], local) + T[k, None, :3, 3]).reshape(-1, 3)
+        )
         row.append(np.repeat(k, 4))
     return np.concatenate(pts), np.concatenate(row)
 
 
 def fit_survey(
-    map_ids: np.ndarray, map_T_tag: F64, survey: Survey, similarity: bool = False,
+    map_ids: np.ndarray,
+    map_T_tag: F64,
+    survey: Survey,
+    similarity: bool = False,
     map_size: F64 | None = None,
 ) -> SurveyFit:
     """``survey_T_map`` from the mapped tags ``map_ids (N,)`` at ``map_T_tag (N, 4, 4)`` (sizes
@@ -339,8 +355,9 @@ def fit_survey(
     common = np.intersect1d(ids, survey.ids)
     missing = np.setdiff1d(survey.ids, ids).astype(int).tolist()
     if not len(common):
-        raise ValueError(f"none of the known tags {survey.ids.tolist()} is in the map "
-                         f"(mapped: {ids.tolist()})")
+        raise ValueError(
+            f"none of the known tags {survey.ids.tolist()} is in the map (mapped: {ids.tolist()})"
+        )
     known = survey.subset(common.tolist())
     est = np.asarray(map_T_tag, dtype=np.float64)[np.searchsorted(ids, common)]
     half = known.size.copy()
@@ -353,11 +370,15 @@ def fit_survey(
     spread = np.linalg.svd(centres, compute_uv=False) if len(common) > 1 else np.zeros(3)
     planar = len(common) >= 3 and spread[1] > 1e-3 * max(spread[0], 1e-9)
     if similarity and not planar:
-        raise ValueError(f"a similarity needs 3 or more known tags not on one line in the map "
-                         f"(have {common.tolist()}); use model: rigid")
+        raise ValueError(
+            f"a similarity needs 3 or more known tags not on one line in the map "
+            f"(have {common.tolist()}); use model: rigid"
+        )
     if not full.any() and not planar:
-        raise ValueError(f"position-only known tags {common.tolist()} do not fix the world: "
-                         "give 3 or more not on one line, or one tag's full pose")
+        raise ValueError(
+            f"position-only known tags {common.tolist()} do not fix the world: "
+            "give 3 or more not on one line, or one tag's full pose"
+        )
     T_known = np.tile(np.eye(4), (len(common), 1, 1))
     T_known[:, :3, 3] = known.position
     T_known[full, :3, :3] = known.R[full]

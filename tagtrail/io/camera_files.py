@@ -30,10 +30,17 @@ from tagtrail.geometry.camera import CameraModel
 from tagtrail.io.layouts import load_yaml, yaml_error_text
 from tagtrail.schemas.ranges import check_expansion
 
-_ROS_KEYS = ("image_width", "image_height", "camera_matrix", "distortion_model",
-             "distortion_coefficients")  # fmt: skip
-_ROS_NEEDS = ("a camera_info YAML needs image_width, image_height, camera_matrix.data (9 numbers), "
-              "distortion_model and distortion_coefficients.data")  # fmt: skip
+_ROS_KEYS = (
+    "image_width",
+    "image_height",
+    "camera_matrix",
+    "distortion_model",
+    "distortion_coefficients",
+)
+_ROS_NEEDS = (
+    "a camera_info YAML needs image_width, image_height, camera_matrix.data (9 numbers), "
+    "distortion_model and distortion_coefficients.data"
+)
 
 
 def split_camera_path(path: Path | str) -> tuple[Path, str | None]:
@@ -59,8 +66,12 @@ def read_camera_file(path: Path | str) -> CameraModel:
             return _from_kalibr(doc, name)
         if name is not None:
             raise SourceError(f"names camera {name!r} but is not a Kalibr/TagSLAM camchain")
-        ros = isinstance(doc, dict) and "camera_matrix" in doc and "image_width" in doc and (
-            "distortion_model" in doc or "camera_name" in doc)
+        ros = (
+            isinstance(doc, dict)
+            and "camera_matrix" in doc
+            and "image_width" in doc
+            and ("distortion_model" in doc or "camera_name" in doc)
+        )
         if isinstance(doc, dict) and any(k in doc for k in _CV_MATRIX) and not ros:
             return _from_opencv(doc)
         return _from_doc(doc)
@@ -69,8 +80,13 @@ def read_camera_file(path: Path | str) -> CameraModel:
 
 
 _CV_MATRIX = ("camera_matrix", "cameraMatrix", "Camera_Matrix", "cameraIntrinsics")
-_CV_DIST = ("distortion_coefficients", "distCoeffs", "dist_coeffs", "Distortion_Coefficients",
-            "cameraExtrinsics")  # PhotonVision's older files store the distortion under that name
+_CV_DIST = (
+    "distortion_coefficients",
+    "distCoeffs",
+    "dist_coeffs",
+    "Distortion_Coefficients",
+    "cameraExtrinsics",
+)  # PhotonVision's older files store the distortion under that name
 
 
 def _load(path: Path) -> Any:
@@ -91,8 +107,9 @@ def _load(path: Path) -> Any:
         doc = yaml.load(body, Loader=_OpenCVLoader)  # a SafeLoader plus !!opencv-matrix
         return check_expansion(doc)
     except yaml.YAMLError as err:
-        raise SourceError(f"{path}: not valid OpenCV YAML (camera file): "
-                          f"{yaml_error_text(err)}") from err
+        raise SourceError(
+            f"{path}: not valid OpenCV YAML (camera file): {yaml_error_text(err)}"
+        ) from err
     except (ValueError, RecursionError) as err:
         raise SourceError(f"{path}: refused (camera file): {err or 'nested too deeply'}") from err
 
@@ -103,18 +120,23 @@ class _OpenCVLoader(yaml.SafeLoader):
 
 _OpenCVLoader.add_constructor(
     "tag:yaml.org,2002:opencv-matrix",
-    lambda loader, node: loader.construct_mapping(node, deep=True))  # type: ignore[arg-type]
+    lambda loader, node: loader.construct_mapping(node, deep=True),  # type: ignore[arg-type]
+)
 
 
 def _is_kalibr(doc: Any) -> bool:
-    return isinstance(doc, dict) and bool(doc) and all(
-        isinstance(v, dict) and "intrinsics" in v for v in doc.values())
+    return (
+        isinstance(doc, dict)
+        and bool(doc)
+        and all(isinstance(v, dict) and "intrinsics" in v for v in doc.values())
+    )
 
 
 def _from_kalibr(doc: dict[str, Any], name: str | None) -> CameraModel:
     if name is None and len(doc) > 1:
-        raise SourceError(f"a camchain of {len(doc)} cameras ({', '.join(map(str, doc))}): "
-                          "name one as FILE#NAME")
+        raise SourceError(
+            f"a camchain of {len(doc)} cameras ({', '.join(map(str, doc))}): name one as FILE#NAME"
+        )
     if name is not None and name not in doc:
         raise SourceError(f"no camera {name!r} (it has {', '.join(map(str, doc))})")
     key = name if name is not None else next(iter(doc))
@@ -129,8 +151,9 @@ def _from_kalibr(doc: dict[str, Any], name: str | None) -> CameraModel:
     dist = str(cam.get("distortion_model", "none"))
     models = {"radtan": "plumb_bob", "equidistant": "equidistant", "none": "none"}
     if dist not in models:
-        raise SourceError(f"{key}: distortion_model {dist!r} is not supported "
-                          f"(radtan, equidistant, none)")
+        raise SourceError(
+            f"{key}: distortion_model {dist!r} is not supported (radtan, equidistant, none)"
+        )
     return CameraModel(
         width=_pixels(res[0], f"{key}.resolution[0]"),
         height=_pixels(res[1], f"{key}.resolution[1]"),
@@ -164,20 +187,29 @@ def _from_opencv(doc: dict[str, Any]) -> CameraModel:
     elif isinstance(size, list | tuple) and len(size) == 2:
         w, h = size
     else:
-        raise SourceError("no image size: an OpenCV calibration needs image_width and "
-                          "image_height (or image_size: [w, h])")
+        raise SourceError(
+            "no image size: an OpenCV calibration needs image_width and "
+            "image_height (or image_size: [w, h])"
+        )
     model = str(doc.get("distortion_model", "plumb_bob" if D.size <= 5 else "rational_polynomial"))
     if doc.get("fisheye") in (True, 1, "true"):
         model = "equidistant"
-    return CameraModel(width=_pixels(w, "image_width"), height=_pixels(h, "image_height"),
-                       K=K, D=D, distortion_model=model)
+    return CameraModel(
+        width=_pixels(w, "image_width"),
+        height=_pixels(h, "image_height"),
+        K=K,
+        D=D,
+        distortion_model=model,
+    )
+
 
 def _from_doc(doc: Any) -> CameraModel:
     if doc is None:
         raise SourceError(f"empty file; {_ROS_NEEDS}")
     if not isinstance(doc, dict):
-        raise SourceError(f"not a camera_info YAML (it holds {type(doc).__name__}, not a "
-                          f"mapping); {_ROS_NEEDS}")  # fmt: skip
+        raise SourceError(
+            f"not a camera_info YAML (it holds {type(doc).__name__}, not a mapping); {_ROS_NEEDS}"
+        )
     cam = doc["camera"] if isinstance(doc.get("camera"), dict) else doc
     if "fx" in cam and not any(k in doc for k in _ROS_KEYS):
         return _from_simple(cam)
@@ -197,12 +229,15 @@ def _from_doc(doc: Any) -> CameraModel:
         distortion_model=str(doc.get("distortion_model", "plumb_bob")),
     )
 
+
 def _from_simple(cam: dict[str, Any]) -> CameraModel:
     missing = [k for k in ("width", "height", "fx", "fy", "cx", "cy") if k not in cam]
     if missing:
-        raise SourceError(f"camera: no {', '.join(missing)} (the short form needs width, "
-                          "height, fx, fy, cx, cy and optionally distortion_model, "
-                          "distortion)")  # fmt: skip
+        raise SourceError(
+            f"camera: no {', '.join(missing)} (the short form needs width, "
+            "height, fx, fy, cx, cy and optionally distortion_model, "
+            "distortion)"
+        )
     f = {k: _number(cam[k], k) for k in ("fx", "fy", "cx", "cy")}
     D = cam.get("distortion") or cam.get("D") or []
     return CameraModel(
@@ -212,7 +247,6 @@ def _from_simple(cam: dict[str, Any]) -> CameraModel:
         D=_numbers(D, "distortion"),
         distortion_model=str(cam.get("distortion_model", "plumb_bob" if D else "none")),
     )
-
 
 
 def _number(value: Any, name: str) -> float:

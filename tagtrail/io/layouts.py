@@ -191,8 +191,10 @@ def _read_tum(f: Path) -> pd.DataFrame:
     names = ["stamp", *_CSV_TRAJ_HEADER[2:]]
     for n, fields in lines:
         if len(fields) != 8:
-            raise SourceError(f"{f}: line {n}: {len(fields)} fields, a TUM trajectory line has 8 "
-                              "(stamp x y z qx qy qz qw)")  # fmt: skip
+            raise SourceError(
+                f"{f}: line {n}: {len(fields)} fields, a TUM trajectory line has 8 "
+                "(stamp x y z qx qy qz qw)"
+            )
         for name, cell in zip(names, fields, strict=True):
             try:
                 ok = np.isfinite(float(cell))
@@ -201,8 +203,9 @@ def _read_tum(f: Path) -> pd.DataFrame:
             if not ok:
                 raise SourceError(f"{f}: line {n}, field {name}: {cell!r} is not a finite number")
     if not lines:
-        return pd.DataFrame({c: pd.Series(dtype=np.int64 if c == "t_ns" else np.float64)
-                             for c in TRAJ_COLS})  # fmt: skip
+        return pd.DataFrame(
+            {c: pd.Series(dtype=np.int64 if c == "t_ns" else np.float64) for c in TRAJ_COLS}
+        )
     arr = np.loadtxt(f, ndmin=2)
     out = pd.DataFrame(arr[:, 1:8], columns=POSE_COLS)
     out.insert(0, "t_ns", np.round(arr[:, 0] * 1e9).astype(np.int64))
@@ -394,15 +397,20 @@ def tag_map_yaml_text(tags: pd.DataFrame, anchor_id: int) -> str:
         entry: dict[str, Any] = {
             "position": {"x": float(row.x_m), "y": float(row.y_m), "z": float(row.z_m)},
             "orientation": {
-                "x": float(row.qx), "y": float(row.qy), "z": float(row.qz), "w": float(row.qw)
+                "x": float(row.qx),
+                "y": float(row.qy),
+                "z": float(row.qz),
+                "w": float(row.qw),
             },
         }
         if "size_m" in tags.columns and pd.notna(row.size_m):
             entry["size"] = float(row.size_m)
         entry["n_obs"] = int(row.n_obs)
         if all(c in tags.columns for c in STD_COLS) and np.isfinite(row.std_pos_m):
-            entry["std"] = {"position_m": float(row.std_pos_m),
-                            "orientation_deg": float(row.std_rot_deg)}
+            entry["std"] = {
+                "position_m": float(row.std_pos_m),
+                "orientation_deg": float(row.std_rot_deg),
+            }
         entries[tag_name(row.tag_id)] = entry
     doc = {"world_frame": "map", "anchor_tag": tag_name(anchor_id), "tags": entries}
     return yaml.safe_dump(doc, sort_keys=False)
@@ -445,8 +453,12 @@ def tag_ids(f: Path, names: pd.Series) -> NDArray[np.int64]:
         try:
             out[i] = parse_tag_name("" if pd.isna(name) else name)
         except SourceError:
-            raise _bad_cell(f, i, str(names.name), f"{_cell_text(name)} is not a tag name "
-                            "(expected 'tag36h11:<id>')") from None  # fmt: skip
+            raise _bad_cell(
+                f,
+                i,
+                str(names.name),
+                f"{_cell_text(name)} is not a tag name (expected 'tag36h11:<id>')",
+            ) from None
     return out
 
 
@@ -454,8 +466,10 @@ def _check_unique(f: Path, ids: NDArray[np.int64], where: Callable[[int], str]) 
     seen: dict[int, int] = {}
     for i, k in enumerate(ids.tolist()):
         if k in seen:
-            raise SourceError(f"{f}: tag {tag_name(k)} is listed twice ({where(seen[k])} and "
-                              f"{where(i)}); keep one entry per tag")  # fmt: skip
+            raise SourceError(
+                f"{f}: tag {tag_name(k)} is listed twice ({where(seen[k])} and "
+                f"{where(i)}); keep one entry per tag"
+            )
         seen[k] = i
 
 
@@ -502,15 +516,17 @@ def _read_tag_map_yaml(f: Path) -> tuple[pd.DataFrame, int | None]:
         try:
             tag_id = parse_tag_name(name)
         except SourceError:
-            raise SourceError(f"{f}: tags: key {name!r} is not a tag name "
-                              "(expected 'tag36h11:<id>')") from None  # fmt: skip
+            raise SourceError(
+                f"{f}: tags: key {name!r} is not a tag name (expected 'tag36h11:<id>')"
+            ) from None
         row: dict[str, Any] = {"tag_id": tag_id}
-        for key, axes, cols in (("position", "xyz", POSE_COLS[:3]),
-                                ("orientation", "xyzw", POSE_COLS[3:])):  # fmt: skip
+        for key, axes, cols in (
+            ("position", "xyz", POSE_COLS[:3]),
+            ("orientation", "xyzw", POSE_COLS[3:]),
+        ):
             sub = e.get(key) if isinstance(e, dict) else None
             if not isinstance(sub, dict):
-                raise SourceError(f"{f}: tag {name}: missing '{key}:' mapping "
-                                  f"({', '.join(axes)})")  # fmt: skip
+                raise SourceError(f"{f}: tag {name}: missing '{key}:' mapping ({', '.join(axes)})")
             for axis, col in zip(axes, cols, strict=True):
                 if axis not in sub:
                     raise SourceError(f"{f}: tag {name}: {key}.{axis} is missing")
@@ -531,5 +547,6 @@ def _read_tag_map_yaml(f: Path) -> tuple[pd.DataFrame, int | None]:
     try:
         return out, parse_tag_name(anchor)
     except SourceError:
-        raise SourceError(f"{f}: anchor_tag {anchor!r} is not a tag name "
-                          "(expected 'tag36h11:<id>')") from None  # fmt: skip
+        raise SourceError(
+            f"{f}: anchor_tag {anchor!r} is not a tag name (expected 'tag36h11:<id>')"
+        ) from None

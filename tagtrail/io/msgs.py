@@ -36,8 +36,7 @@ ISAAC_MSGS = {
         "geometry_msgs/PoseWithCovarianceStamped pose\n"
     ),
     "isaac_ros_apriltag_interfaces/msg/AprilTagDetectionArray": (
-        "std_msgs/Header header\n"
-        "isaac_ros_apriltag_interfaces/AprilTagDetection[] detections\n"
+        "std_msgs/Header header\nisaac_ros_apriltag_interfaces/AprilTagDetection[] detections\n"
     ),
 }
 
@@ -91,18 +90,36 @@ class DetectionType:
 
 
 DETECTION_SOURCES: dict[str, DetectionType] = {
-    DETECTIONS: DetectionType(DETECTIONS, "apriltag_ros (ROS 2, the AprilTag C library)",
-                              C_LIBRARY, hamming=True, decision_margin=True, family=True),
+    DETECTIONS: DetectionType(
+        DETECTIONS,
+        "apriltag_ros (ROS 2, the AprilTag C library)",
+        C_LIBRARY,
+        hamming=True,
+        decision_margin=True,
+        family=True,
+    ),
     # family holds the detector's name: MIT (corners already OpenCV's: TagSLAM's test 16 maps at
     # 0.10 px with them as recorded) or umich (the C library); empty = MIT (the default).
     TAGSLAM_DETECTIONS: DetectionType(
-        TAGSLAM_DETECTIONS, "TagSLAM's apriltag_ros (ROS 1)", 0.0, hamming=True,
-        decision_margin=False, family=False, offsets=(("mit", 0.0), ("umich", C_LIBRARY))),
+        TAGSLAM_DETECTIONS,
+        "TagSLAM's apriltag_ros (ROS 1)",
+        0.0,
+        hamming=True,
+        decision_margin=False,
+        family=False,
+        offsets=(("mit", 0.0), ("umich", C_LIBRARY)),
+    ),
     # cuAprilTags / VPI on the rectified image, "a drop-in replacement for the reference
     # detector": taken in the C library's convention (not measured: no capture to hand).
-    ISAAC_DETECTIONS: DetectionType(ISAAC_DETECTIONS, "isaac_ros_apriltag (NVIDIA Isaac ROS)",
-                                    C_LIBRARY, hamming=False, decision_margin=False, family=True,
-                                    rectified=True),
+    ISAAC_DETECTIONS: DetectionType(
+        ISAAC_DETECTIONS,
+        "isaac_ros_apriltag (NVIDIA Isaac ROS)",
+        C_LIBRARY,
+        hamming=False,
+        decision_margin=False,
+        family=True,
+        rectified=True,
+    ),
 }
 DETECTION_TYPES = tuple(DETECTION_SOURCES)
 

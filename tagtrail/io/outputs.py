@@ -65,11 +65,19 @@ def _recording_map_png(folder: Path, name: str, v: dict[str, Any]) -> None:
     what = "camera views" if is_photo_set(v["uv"]) else "trajectory"
     empty = pd.DataFrame({c: np.zeros(0) for c in columns("report.relocalization")})
     reloc_files.write_map_png(
-        folder / name, v["uv"], np.zeros((0, 2)), empty, v["tags_uv"], v["tag_ids"],
-        reloc_files.plane_axis_names(v["plane_name"]), v["flip_v"],
+        folder / name,
+        v["uv"],
+        np.zeros((0, 2)),
+        empty,
+        v["tags_uv"],
+        v["tag_ids"],
+        reloc_files.plane_axis_names(v["plane_name"]),
+        v["flip_v"],
         f"{v['dataset']}: {what} and tag map (plane {v['plane_name']}, seen from above)",
-        weak_tags=v["weak_tags"], tag_std_m=v["tag_std_m"], ref_heading_rad=v["ref_heading_rad"],
-    )  # fmt: skip
+        weak_tags=v["weak_tags"],
+        tag_std_m=v["tag_std_m"],
+        ref_heading_rad=v["ref_heading_rad"],
+    )
 
 
 def _relocalization(folder: Path, name: str, kwargs: dict[str, Any]) -> None:
@@ -95,6 +103,7 @@ def write(folder: Path, name: str, fmt: str, value: Any) -> None:
     """Write ``value`` as file ``name`` of ``folder`` in format ``fmt`` (one of :data:`FORMATS`)."""
     writer = FORMATS.get(fmt)
     if writer is None:
-        raise SpecError(f"{folder / name}: unknown output format {fmt!r} (formats: "
-                        f"{', '.join(FORMATS)})")  # fmt: skip
+        raise SpecError(
+            f"{folder / name}: unknown output format {fmt!r} (formats: {', '.join(FORMATS)})"
+        )
     writer(Path(folder), name, value)

@@ -26,13 +26,28 @@ from tagtrail.io.reloc_plots import map_figure, point_figure, timeline_figure
 from tagtrail.schemas.artifacts import poses
 
 RELOC_HEADER = [
-    "stamp_sec", "stamp_nanosec", "t_rel_s", "nearest_ref_idx", "distance_m",
-    "heading_error_deg", "query_heading_deg", "ref_heading_deg", "query_u", "query_v",
-    "ref_u", "ref_v",
-]  # fmt: skip
+    "stamp_sec",
+    "stamp_nanosec",
+    "t_rel_s",
+    "nearest_ref_idx",
+    "distance_m",
+    "heading_error_deg",
+    "query_heading_deg",
+    "ref_heading_deg",
+    "query_u",
+    "query_v",
+    "ref_u",
+    "ref_v",
+]
 # the path tracker's columns, after the seed's (SPEC): lost is written 0/1
-TRACK_HEADER = ["cross_track_m", "progress_m", "curvature_1pm", "lookahead_u", "lookahead_v",
-                "lost"]  # fmt: skip
+TRACK_HEADER = [
+    "cross_track_m",
+    "progress_m",
+    "curvature_1pm",
+    "lookahead_u",
+    "lookahead_v",
+    "lost",
+]
 _FLOATS = RELOC_HEADER[4:] + TRACK_HEADER[:-1]
 _PNG_META = {"Software": None}
 
@@ -46,8 +61,9 @@ def relocalization_csv_text(reloc: pd.DataFrame) -> str:
     lost = reloc["lost"].to_numpy(bool).astype(int)
     lines = [",".join(RELOC_HEADER + TRACK_HEADER)]
     for s, n, tr, k, row, lo in zip(sec, nsec, t_rel, idx, vals, lost, strict=True):
-        lines.append(f"{s},{n},{float(tr)!r},{k}," + ",".join(repr(float(v)) for v in row)
-                     + f",{lo}")
+        lines.append(
+            f"{s},{n},{float(tr)!r},{k}," + ",".join(repr(float(v)) for v in row) + f",{lo}"
+        )
     return "\n".join(lines) + "\n"
 
 
@@ -99,12 +115,18 @@ def write_relocalization_png(path: Path, reloc: pd.DataFrame, title: str = "") -
     _save(timeline_figure(reloc, title), path)
 
 
-def write_point_png(path: Path, row: pd.Series, ref_uv: ArrayLike, query_uv: ArrayLike,
-                    query_heading_rad: ArrayLike, axis_names: tuple[str, str] = ("u", "v"),
-                    flip_v: bool = False, title: str = "") -> None:  # fmt: skip
+def write_point_png(
+    path: Path,
+    row: pd.Series,
+    ref_uv: ArrayLike,
+    query_uv: ArrayLike,
+    query_heading_rad: ArrayLike,
+    axis_names: tuple[str, str] = ("u", "v"),
+    flip_v: bool = False,
+    title: str = "",
+) -> None:
     """``relocalization.png`` of point mode: the close-up of :func:`reloc_plots.point_figure`."""
-    _save(point_figure(row, ref_uv, query_uv, query_heading_rad, axis_names, flip_v, title),
-          path)  # fmt: skip
+    _save(point_figure(row, ref_uv, query_uv, query_heading_rad, axis_names, flip_v, title), path)
 
 
 def write_map_png(
@@ -133,8 +155,23 @@ def write_map_png(
     downwards (when the normal points down, so that the picture is seen from above rather than
     from below).
     """
-    _save(map_figure(ref_uv, query_uv, reloc, tags_uv, tag_ids, axis_names, flip_v, title,
-                     weak_tags, tag_std_m, ref_heading_rad, photos), path)  # fmt: skip
+    _save(
+        map_figure(
+            ref_uv,
+            query_uv,
+            reloc,
+            tags_uv,
+            tag_ids,
+            axis_names,
+            flip_v,
+            title,
+            weak_tags,
+            tag_std_m,
+            ref_heading_rad,
+            photos,
+        ),
+        path,
+    )
 
 
 def plane_axis_names(plane_name: str) -> tuple[str, str]:
@@ -169,14 +206,28 @@ def write_outputs(
     write_summary_json(out / "summary.json", summary)
     q_P, q_R = poses(q_traj)
     if summary["mode"] == "point":
-        write_point_png(out / "relocalization.png", reloc.iloc[0], plane.to_uv(ref_P),
-                        plane.to_uv(q_P), plane.heading(q_R), names, flip_v,
-                        title + "\nparked pose against the nearest segment")  # fmt: skip
+        write_point_png(
+            out / "relocalization.png",
+            reloc.iloc[0],
+            plane.to_uv(ref_P),
+            plane.to_uv(q_P),
+            plane.heading(q_R),
+            names,
+            flip_v,
+            title + "\nparked pose against the nearest segment",
+        )
     else:
         write_relocalization_png(out / "relocalization.png", reloc, title)
     tags_uv = None if ref_tags is None else plane.to_uv(ref_tags[["x_m", "y_m", "z_m"]].to_numpy())
     write_map_png(
-        out / "map.png", plane.to_uv(ref_P), plane.to_uv(q_P), reloc,
-        tags_uv, [] if ref_tags is None else ref_tags["tag_id"].astype(int).tolist(),
-        names, flip_v, title, ref_heading_rad=plane.heading(ref_R),
-    )  # fmt: skip
+        out / "map.png",
+        plane.to_uv(ref_P),
+        plane.to_uv(q_P),
+        reloc,
+        tags_uv,
+        [] if ref_tags is None else ref_tags["tag_id"].astype(int).tolist(),
+        names,
+        flip_v,
+        title,
+        ref_heading_rad=plane.heading(ref_R),
+    )

@@ -44,10 +44,20 @@ def is_photo_set(uv: ArrayLike) -> bool:
     return float(np.median(np.hypot(*np.diff(p, axis=0).T))) > PHOTO_STEP_SHARE * extent
 
 
-def _arrows(ax: Axes, p: np.ndarray, heading: np.ndarray, length: float, color: str,
-            width: float = 0.004) -> None:  # fmt: skip
-    ax.quiver(p[:, 0], p[:, 1], np.cos(heading) * length, np.sin(heading) * length,
-              angles="xy", scale_units="xy", scale=1, color=color, width=width)  # fmt: skip
+def _arrows(
+    ax: Axes, p: np.ndarray, heading: np.ndarray, length: float, color: str, width: float = 0.004
+) -> None:
+    ax.quiver(
+        p[:, 0],
+        p[:, 1],
+        np.cos(heading) * length,
+        np.sin(heading) * length,
+        angles="xy",
+        scale_units="xy",
+        scale=1,
+        color=color,
+        width=width,
+    )
 
 
 def map_figure(
@@ -77,50 +87,107 @@ def map_figure(
     span = float(np.ptp(np.vstack([ref, qry]), axis=0).max()) if len(ref) + len(qry) else 1.0
     span = span or 1.0
     if photos:
-        ax.plot(ref[:, 0], ref[:, 1], marker="o", color="black", markersize=5, linestyle="",
-                label=f"camera views ({len(ref)} photos; #: file order)", zorder=3)  # fmt: skip
+        ax.plot(
+            ref[:, 0],
+            ref[:, 1],
+            marker="o",
+            color="black",
+            markersize=5,
+            linestyle="",
+            label=f"camera views ({len(ref)} photos; #: file order)",
+            zorder=3,
+        )
         if ref_heading_rad is not None:
             h = np.asarray(ref_heading_rad, dtype=np.float64).reshape(-1)
             _arrows(ax, ref, h, 0.06 * span, "black")
         for i, (u, v) in enumerate(ref):
-            ax.annotate(f"#{i + 1}", (u, v), xytext=(4, -9), textcoords="offset points",
-                        fontsize=7, color="0.3")  # fmt: skip
+            ax.annotate(
+                f"#{i + 1}",
+                (u, v),
+                xytext=(4, -9),
+                textcoords="offset points",
+                fontsize=7,
+                color="0.3",
+            )
     elif len(ref):
-        ax.plot(ref[:, 0], ref[:, 1], color="black", linewidth=1.8, label="reference path",
-                zorder=2)  # fmt: skip
+        ax.plot(
+            ref[:, 0], ref[:, 1], color="black", linewidth=1.8, label="reference path", zorder=2
+        )
         ax.plot(*ref[0], marker="^", color="green", markersize=8, linestyle="", label="start")
         ax.plot(*ref[-1], marker="x", color="black", markersize=8, linestyle="", label="end")
     if tags_uv is not None and len(tag_ids):
         tags = np.asarray(tags_uv, dtype=np.float64).reshape(-1, 2)
-        weak = (np.zeros(len(tags), bool) if weak_tags is None
-                else np.asarray(weak_tags, bool).reshape(-1))  # fmt: skip
-        std = (np.full(len(tags), np.nan) if tag_std_m is None
-               else np.asarray(tag_std_m, np.float64).reshape(-1))  # fmt: skip
+        weak = (
+            np.zeros(len(tags), bool)
+            if weak_tags is None
+            else np.asarray(weak_tags, bool).reshape(-1)
+        )
+        std = (
+            np.full(len(tags), np.nan)
+            if tag_std_m is None
+            else np.asarray(tag_std_m, np.float64).reshape(-1)
+        )
         if (~weak).any():
-            ax.scatter(tags[~weak, 0], tags[~weak, 1], marker="s", s=24, color="tab:orange",
-                       label="tags")  # fmt: skip
+            ax.scatter(
+                tags[~weak, 0], tags[~weak, 1], marker="s", s=24, color="tab:orange", label="tags"
+            )
         if weak.any():
-            ax.scatter(tags[weak, 0], tags[weak, 1], marker="s", s=40, facecolors="none",
-                       edgecolors="tab:red", linewidths=1.5, label="poorly constrained tags")
+            ax.scatter(
+                tags[weak, 0],
+                tags[weak, 1],
+                marker="s",
+                s=40,
+                facecolors="none",
+                edgecolors="tab:red",
+                linewidths=1.5,
+                label="poorly constrained tags",
+            )
         for (u, v), k, w, sd in zip(tags, tag_ids, weak, std, strict=True):
             text = f"{k} (±{100 * sd:.1f} cm)" if w and np.isfinite(sd) else str(k)
-            ax.annotate(text, (u, v), xytext=(0, 5), textcoords="offset points",
-                        ha="center", fontsize=7, color="tab:red" if w else "#3a4a6a")
+            ax.annotate(
+                text,
+                (u, v),
+                xytext=(0, 5),
+                textcoords="offset points",
+                ha="center",
+                fontsize=7,
+                color="tab:red" if w else "#3a4a6a",
+            )
     if len(pq) == 1:  # a parked query: its samples, its pose and the nearest reference point
         if len(qry):
-            ax.scatter(qry[:, 0], qry[:, 1], s=6, color="tab:blue", alpha=0.5,
-                       label="query samples")  # fmt: skip
-        ax.plot(*pq[0], marker="o", color="tab:blue", markersize=9, linestyle="",
-                label="query (parked, median)")  # fmt: skip
-        ax.plot(*pr[0], marker="o", color="tab:red", markersize=7, linestyle="",
-                label="nearest on reference")  # fmt: skip
+            ax.scatter(
+                qry[:, 0], qry[:, 1], s=6, color="tab:blue", alpha=0.5, label="query samples"
+            )
+        ax.plot(
+            *pq[0],
+            marker="o",
+            color="tab:blue",
+            markersize=9,
+            linestyle="",
+            label="query (parked, median)",
+        )
+        ax.plot(
+            *pr[0],
+            marker="o",
+            color="tab:red",
+            markersize=7,
+            linestyle="",
+            label="nearest on reference",
+        )
     elif len(qry):
         ax.scatter(qry[:, 0], qry[:, 1], s=6, color="tab:blue", alpha=0.5, label="query poses")
     if len(pq):
         step = max(1, len(pq) // 120)
         for i, (a, b) in enumerate(np.stack([pq[::step], pr[::step]], axis=1)):
-            ax.plot([a[0], b[0]], [a[1], b[1]], color="tab:red", linewidth=0.8, alpha=0.6,
-                    zorder=1, label="D (to the reference)" if i == 0 else None)  # fmt: skip
+            ax.plot(
+                [a[0], b[0]],
+                [a[1], b[1]],
+                color="tab:red",
+                linewidth=0.8,
+                alpha=0.6,
+                zorder=1,
+                label="D (to the reference)" if i == 0 else None,
+            )
         every = max(1, len(pq) // 30)  # heading arrows: query (blue) and reference (red)
         hq = np.radians(reloc["query_heading_deg"].to_numpy(np.float64))[::every]
         hr = np.radians(reloc["ref_heading_deg"].to_numpy(np.float64))[::every]
@@ -149,8 +216,13 @@ def timeline_figure(reloc: pd.DataFrame, title: str = "") -> Figure:
     ax_p.plot(t, reloc["heading_error_deg"].to_numpy(np.float64), color="tab:orange", **style)
     lost = reloc["lost"].to_numpy(bool)
     if lost.any():  # where the association had no match within lost_m, or re-acquired
-        ax_d.plot(t[lost], reloc["distance_m"].to_numpy(np.float64)[lost], "x", color="tab:red",
-                  label="lost / re-acquired")  # fmt: skip
+        ax_d.plot(
+            t[lost],
+            reloc["distance_m"].to_numpy(np.float64)[lost],
+            "x",
+            color="tab:red",
+            label="lost / re-acquired",
+        )
         ax_d.legend(loc="best", fontsize=8)
     for ax in (ax_c, ax_p):
         ax.axhline(0.0, color="0.6", linewidth=0.8)
@@ -198,27 +270,79 @@ def point_figure(
     if 0 < seen.sum() <= 60:  # the samples, where they are few enough to tell apart
         ax.plot(ref[seen, 0], ref[seen, 1], "o", color="black", markersize=2.5, zorder=2)
     seg = ref[k : k + 2]
-    ax.plot(seg[:, 0], seg[:, 1], color="tab:orange", linewidth=4, alpha=0.8, zorder=3,
-            label=f"nearest segment (samples {k}, {k + 1})")  # fmt: skip
+    ax.plot(
+        seg[:, 0],
+        seg[:, 1],
+        color="tab:orange",
+        linewidth=4,
+        alpha=0.8,
+        zorder=3,
+        label=f"nearest segment (samples {k}, {k + 1})",
+    )
     if len(qry):
-        ax.scatter(qry[:, 0], qry[:, 1], s=10, color="tab:blue", alpha=0.35, zorder=4,
-                   label=f"query samples (n={len(qry)})")  # fmt: skip
-    ax.add_patch(Circle(tuple(pq), r95, fill=False, linestyle=":", color="tab:blue", zorder=4,
-                        label=f"spread: p95 radius {1000 * r95:.1f} mm, heading ±{h95:.2f} deg"))
-    ax.plot([pq[0], pr[0]], [pq[1], pr[1]], "--", color="tab:red", linewidth=1.5, zorder=5,
-            label=f"D = {d:.4f} m (cross-track {float(row['cross_track_m']):+.4f} m, > 0: left)")
-    ax.plot(*pq, marker="o", color="tab:blue", markersize=10, linestyle="", zorder=6,
-            label="parked pose (median position)")  # fmt: skip
-    ax.plot(*pr, marker="o", color="tab:red", markersize=8, linestyle="", zorder=6,
-            label="nearest point of the reference")  # fmt: skip
+        ax.scatter(
+            qry[:, 0],
+            qry[:, 1],
+            s=10,
+            color="tab:blue",
+            alpha=0.35,
+            zorder=4,
+            label=f"query samples (n={len(qry)})",
+        )
+    ax.add_patch(
+        Circle(
+            tuple(pq),
+            r95,
+            fill=False,
+            linestyle=":",
+            color="tab:blue",
+            zorder=4,
+            label=f"spread: p95 radius {1000 * r95:.1f} mm, heading ±{h95:.2f} deg",
+        )
+    )
+    ax.plot(
+        [pq[0], pr[0]],
+        [pq[1], pr[1]],
+        "--",
+        color="tab:red",
+        linewidth=1.5,
+        zorder=5,
+        label=f"D = {d:.4f} m (cross-track {float(row['cross_track_m']):+.4f} m, > 0: left)",
+    )
+    ax.plot(
+        *pq,
+        marker="o",
+        color="tab:blue",
+        markersize=10,
+        linestyle="",
+        zorder=6,
+        label="parked pose (median position)",
+    )
+    ax.plot(
+        *pr,
+        marker="o",
+        color="tab:red",
+        markersize=8,
+        linestyle="",
+        zorder=6,
+        label="nearest point of the reference",
+    )
     arrow = 0.45 * half
     hq, hr = np.radians(row["query_heading_deg"]), np.radians(row["ref_heading_deg"])
-    for p, h, color, name in ((pq, hq, "tab:blue", "query heading (circular mean)"),
-                              (pr, hr, "tab:orange", "segment heading")):  # fmt: skip
-        ax.annotate("", xy=(p[0] + arrow * np.cos(h), p[1] + arrow * np.sin(h)), xytext=tuple(p),
-                    arrowprops={"arrowstyle": "-|>", "color": color, "lw": 2}, zorder=7)
-        ax.plot([], [], color=color, marker=">", linewidth=2,
-                label=f"{name} {np.degrees(h):+.2f} deg")  # fmt: skip
+    for p, h, color, name in (
+        (pq, hq, "tab:blue", "query heading (circular mean)"),
+        (pr, hr, "tab:orange", "segment heading"),
+    ):
+        ax.annotate(
+            "",
+            xy=(p[0] + arrow * np.cos(h), p[1] + arrow * np.sin(h)),
+            xytext=tuple(p),
+            arrowprops={"arrowstyle": "-|>", "color": color, "lw": 2},
+            zorder=7,
+        )
+        ax.plot(
+            [], [], color=color, marker=">", linewidth=2, label=f"{name} {np.degrees(h):+.2f} deg"
+        )
     ax.set_xlim(centre[0] - half, centre[0] + half)
     ax.set_ylim(centre[1] - half, centre[1] + half)
     ax.set_aspect("equal", adjustable="box")
@@ -228,6 +352,7 @@ def point_figure(
     ax.set_ylabel(f"{axis_names[1]} [m]" + (" (pointing down: seen from above)" if flip_v else ""))
     ax.grid(alpha=0.3)
     ax.legend(loc="upper left", bbox_to_anchor=(1.02, 1.0), fontsize=8, borderaxespad=0)
-    ax.set_title(title or f"parked pose: D {d:.4f} m, phi {phi:+.2f} deg (vs the segment)",
-                 fontsize=10)  # fmt: skip
+    ax.set_title(
+        title or f"parked pose: D {d:.4f} m, phi {phi:+.2f} deg (vs the segment)", fontsize=10
+    )
     return fig

@@ -128,8 +128,10 @@ def source_kind(path: Path) -> str:
     if not path.exists():
         raise SourceError(f"{path}: no such file or folder (dataset source)")
     if path.is_file() and path.suffix in UNPACK:
-        raise SourceError(f"{path}: a compressed file; unpack it first (`{UNPACK[path.suffix]} "
-                          f"{path}`) and name {path.with_suffix('').name} as the source")
+        raise SourceError(
+            f"{path}: a compressed file; unpack it first (`{UNPACK[path.suffix]} "
+            f"{path}`) and name {path.with_suffix('').name} as the source"
+        )
     if path.is_file():
         if path.suffix == ".bag":
             return "bag1"
@@ -163,8 +165,10 @@ def source_kind(path: Path) -> str:
         raise SourceError(f"{path}: holds ROS 1 bags; name one as the source, e.g. {bags[0]}")
     packed = sorted(p for p in path.iterdir() if p.suffix in UNPACK)
     if packed:
-        raise SourceError(f"{path}: holds compressed files only; unpack one first, e.g. "
-                          f"`{UNPACK[packed[0].suffix]} {packed[0]}`")
+        raise SourceError(
+            f"{path}: holds compressed files only; unpack one first, e.g. "
+            f"`{UNPACK[packed[0].suffix]} {packed[0]}`"
+        )
     raise SourceError(
         f"{path}: empty or unrecognised source folder (expected metadata.yaml of a rosbag2 "
         f"recording, jpg/png images, or observations.csv)"
@@ -213,13 +217,15 @@ def detections_from_msg(msg: Any, msgtype: str = msgs.DETECTIONS) -> list[TagDet
     for d in items:
         family = str(d.family)
         corners = np.array([[c.x, c.y] for c in d.corners], dtype=np.float64)
-        out.append(TagDetection(
-            tag_id=int(d.id),
-            hamming=int(d.hamming) if kind.hamming else -1,
-            decision_margin=float(d.decision_margin) if kind.decision_margin else float("nan"),
-            corners=corners - kind.pixel_offset(family),
-            family=family if kind.family else "",
-        ))
+        out.append(
+            TagDetection(
+                tag_id=int(d.id),
+                hamming=int(d.hamming) if kind.hamming else -1,
+                decision_margin=float(d.decision_margin) if kind.decision_margin else float("nan"),
+                corners=corners - kind.pixel_offset(family),
+                family=family if kind.family else "",
+            )
+        )
     return out
 
 
@@ -234,8 +240,10 @@ def detection_problem(dets: list[TagDetection]) -> str | None:
         bad = ~(np.abs(c) <= MAX_CORNER_PX).all(axis=-1)
         if bad.any():
             k = int(np.argmax(bad))
-            return (f"tag {d.tag_id}: corner {k} is {tuple(c[k].tolist())}, not a pixel "
-                    "position (finite, within 1e6 px)")
+            return (
+                f"tag {d.tag_id}: corner {k} is {tuple(c[k].tolist())}, not a pixel "
+                "position (finite, within 1e6 px)"
+            )
     return None
 
 
@@ -266,14 +274,21 @@ class BagSource(Source):
             for c in reader.connections:
                 by_topic.setdefault(c.topic, []).append(c)
             self._types: dict[str, str] = {t: cs[0].msgtype for t, cs in by_topic.items()}
-            self._counts: dict[str, int] = {t: sum(c.msgcount for c in cs)
-                                            for t, cs in by_topic.items()}
+            self._counts: dict[str, int] = {
+                t: sum(c.msgcount for c in cs) for t, cs in by_topic.items()
+            }
             self.kind, self.topic = self._choose_topic(cfg)
             self.detection_type = msgs.DETECTION_SOURCES.get(self._types[self.topic])
             if self.detection_type is not None:
                 kind = self.detection_type
-                log.info("%s: %s is %s: %s%s", self.path, self.topic, kind.writer,
-                         kind.convention(), "; in the rectified image" * kind.rectified)
+                log.info(
+                    "%s: %s is %s: %s%s",
+                    self.path,
+                    self.topic,
+                    kind.writer,
+                    kind.convention(),
+                    "; in the rectified image" * kind.rectified,
+                )
             self.camera_info_topic: str | None = None
             self._camera = camera
             if camera is not None:
@@ -285,12 +300,21 @@ class BagSource(Source):
                     self.camera_origin = f"CameraInfo of {self.camera_info_topic}"
         if self._counts[self.topic] == 0:
             raise SourceError(f"{self.path}: topic {self.topic} has no messages (empty bag?)")
-        if (self.detection_type is not None and self.detection_type.rectified
-                and self._camera is not None and np.any(np.asarray(self._camera.D) != 0)):
-            log.warning("%s: %s detects in the rectified image, but the camera (%s) has lens "
-                        "distortion %s: give the rectified camera (its K, no distortion) with "
-                        "`camera:` or topics.camera_info", self.path, self.detection_type.writer,
-                        self.camera_origin, np.round(self._camera.D, 6).tolist())
+        if (
+            self.detection_type is not None
+            and self.detection_type.rectified
+            and self._camera is not None
+            and np.any(np.asarray(self._camera.D) != 0)
+        ):
+            log.warning(
+                "%s: %s detects in the rectified image, but the camera (%s) has lens "
+                "distortion %s: give the rectified camera (its K, no distortion) with "
+                "`camera:` or topics.camera_info",
+                self.path,
+                self.detection_type.writer,
+                self.camera_origin,
+                np.round(self._camera.D, 6).tolist(),
+            )
 
     @contextmanager
     def _reader(self, keep: bool = False) -> Iterator[AnyReader]:
@@ -351,8 +375,9 @@ class BagSource(Source):
         if cfg.topics.detections is not None:
             if cfg.topics.image is not None:
                 log.warning("%s: topics.detections is set, so topics.image is ignored", self.path)
-            return "detections", self._topic_of(cfg.topics.detections, "detections",
-                                                msgs.DETECTION_TYPES)
+            return "detections", self._topic_of(
+                cfg.topics.detections, "detections", msgs.DETECTION_TYPES
+            )
         if cfg.topics.image is not None:
             return "images", self._topic_of(cfg.topics.image, "image", IMAGE_TYPES)
         image = self._unique(IMAGE_TYPES, "image")
@@ -419,8 +444,9 @@ class BagSource(Source):
                             except SourceError as err:
                                 same, why = False, f"has an invalid message later ({err})"
                             if not same:
-                                log.warning("%s: %s %s; using the first message", self.path,
-                                            conn.topic, why)  # fmt: skip
+                                log.warning(
+                                    "%s: %s %s; using the first message", self.path, conn.topic, why
+                                )
                                 warned = True
                         continue
                     t_ns = self._stamp(msg.header.stamp, idx) or int(t_recv)
@@ -438,14 +464,14 @@ class BagSource(Source):
                     f"{self.path}: cannot read message {idx} of {self.topic}: {err}"
                 ) from err
 
-
     def _bad(self, idx: int, problem: str) -> SourceError:
         return SourceError(f"{self.path}: topic {self.topic}, message {idx}: {problem}")
 
     def _stamp(self, stamp: Any, idx: int) -> int:
         """``header.stamp`` in ns; a nanosecond field out of [0, 1e9) is an error."""
-        problem = msgs.stamp_problem(int(stamp.nanosec if hasattr(stamp, "nanosec")
-                                         else stamp.nsecs))  # fmt: skip
+        problem = msgs.stamp_problem(
+            int(stamp.nanosec if hasattr(stamp, "nanosec") else stamp.nsecs)
+        )
         if problem is not None:
             raise self._bad(idx, problem)
         return _stamp_ns(stamp)

@@ -188,8 +188,10 @@ class Store:
     def load(self, stage: str, key: str, output: str) -> Any:
         manifest = self.lookup(stage, key)
         if manifest is None or output not in manifest["outputs"]:
-            raise ArtifactError(f"artifact {stage}.{output} ({key[:12]}) is missing or corrupt; "
-                                "rerun to recompute it")
+            raise ArtifactError(
+                f"artifact {stage}.{output} ({key[:12]}) is missing or corrupt; "
+                "rerun to recompute it"
+            )
         f = self.entry(stage, key) / manifest["outputs"][output]["file"]
         if f.suffix == ".json":
             return documents.load(f"{stage}.{output}", json.loads(f.read_text()))
@@ -232,8 +234,7 @@ class Store:
         clean_temp_files(self.root)
         runs = self.root / "runs"
         if runs.is_dir() and not runs.is_symlink():
-            for folder in (runs, *(p for p in runs.iterdir()
-                                   if p.is_dir() and not p.is_symlink())):
+            for folder in (runs, *(p for p in runs.iterdir() if p.is_dir() and not p.is_symlink())):
                 clean_temp_files(folder)
 
     def record_path(self, dataset: str, stage: str) -> Path:
@@ -248,4 +249,3 @@ class Store:
             return rec
         except (OSError, ValueError):
             return None
-

@@ -67,11 +67,12 @@ def _short(v: Any) -> str:
     """A value for a change line: a mapping (a known-poses block, tag sizes) by its keys, any
     value cut to :data:`MAX_VALUE` characters."""
     text = "{" + ", ".join(map(str, v)) + "}" if isinstance(v, dict) else repr(v)
-    return text if len(text) <= MAX_VALUE else text[:MAX_VALUE - 1] + "…"
+    return text if len(text) <= MAX_VALUE else text[: MAX_VALUE - 1] + "…"
 
 
-def _param_diff(old: dict[str, Any], new: dict[str, Any], prefix: str = "",
-                limit: int = MAX_DIFF) -> str:
+def _param_diff(
+    old: dict[str, Any], new: dict[str, Any], prefix: str = "", limit: int = MAX_DIFF
+) -> str:
     """The changed parameters, nested ones by their dotted name (a file's tag sizes or known
     poses: ``tag_sizes_from.sizes.2: 0.16 → 0.2``, not the whole block twice); each value at
     most :data:`MAX_VALUE` characters, the list at most ``limit`` (then ``… and N more``)."""
@@ -131,8 +132,12 @@ class Runner:
     worker processes, or the workers of ``scheduler``; see :mod:`tagtrail.runner.executors`)."""
 
     def __init__(
-        self, pipe: Pipeline, jobs: int = 1, echo: Callable[[str], None] | None = None,
-        executor: str = "local", scheduler: str | None = None,
+        self,
+        pipe: Pipeline,
+        jobs: int = 1,
+        echo: Callable[[str], None] | None = None,
+        executor: str = "local",
+        scheduler: str | None = None,
     ) -> None:
         self.pipe = pipe
         self.graph: Graph = build_graph(pipe)
@@ -227,8 +232,11 @@ class Runner:
             record = self.record_for(node, keys)
             if record is None:
                 ups = sorted(str(u) for u in self.graph.deps(node) if u not in keys)
-                states.append(NodeState(node.stage, node.dataset, "stale",
-                                        f"upstream out of date: {', '.join(ups)}"))
+                states.append(
+                    NodeState(
+                        node.stage, node.dataset, "stale", f"upstream out of date: {', '.join(ups)}"
+                    )
+                )
                 continue
             key = sha256_text(canonical_json(record))
             if not force and self.store.lookup(node.stage, key) is not None:
@@ -256,17 +264,21 @@ class Runner:
                 upstream[arg] = (up.stage, keys[up], ref.output)
         module = self.pipe.stages[node.stage].module
         return NodeTask(
-            stage=node.stage, dataset=node.dataset, module=module.__name__,
+            stage=node.stage,
+            dataset=node.dataset,
+            module=module.__name__,
             module_file=getattr(module, "__file__", None),
             params=self.pipe.params_for(node.stage, node.dataset),
-            config=self.pipe.datasets[node.dataset], key=key, record=record,
-            specials=specials, upstream=upstream, artifacts=self.store.root.resolve(),
+            config=self.pipe.datasets[node.dataset],
+            key=key,
+            record=record,
+            specials=specials,
+            upstream=upstream,
+            artifacts=self.store.root.resolve(),
             log_level=logging.getLogger("tagtrail").getEffectiveLevel(),
         )
 
-    def _submit(
-        self, pool: cf.Executor, task: NodeTask
-    ) -> cf.Future[tuple[int | None, float]]:
+    def _submit(self, pool: cf.Executor, task: NodeTask) -> cf.Future[tuple[int | None, float]]:
         """Submit a node; its future gives (rows written, seconds the node took to compute)."""
         if getattr(pool, "remote", False):  # another process: it rebuilds the stage from names
             return pool.submit(timed_call, run_remote, task)
@@ -280,8 +292,12 @@ class Runner:
         states: dict[Node, NodeState] = {}
         failure: BaseException | None = None
         check_project(self.pipe, ("artifacts",))  # before any work: no symlink leads out
-        with self.store.lock(), open_executor(self.executor, self.jobs, self.scheduler,
-                                              self.echo, self.store.root.resolve()) as pool:
+        with (
+            self.store.lock(),
+            open_executor(
+                self.executor, self.jobs, self.scheduler, self.echo, self.store.root.resolve()
+            ) as pool,
+        ):
             clear_obstacles(self.pipe, ("artifacts",))
             running: dict[cf.Future[tuple[int | None, float]], tuple[Node, NodeState, float]] = {}
             pending = list(order)
@@ -350,8 +366,9 @@ class Runner:
         return wrapped
 
     def _save_run_log(self, states: list[NodeState]) -> None:
-        atomic_write_text(inside(self.pipe.artifacts / "runs", RUN_LOG),
-                          pretty_json([asdict(s) for s in states]))
+        atomic_write_text(
+            inside(self.pipe.artifacts / "runs", RUN_LOG), pretty_json([asdict(s) for s in states])
+        )
 
     def key_of(self, stage: str, dataset: str) -> str | None:
         """The key of the up-to-date artifact of a node, if there is one (for ``show``)."""
@@ -362,4 +379,3 @@ class Runner:
             if (st.stage, st.dataset) == (stage, dataset):
                 return st.key if st.status == "cached" else None
         return None
-

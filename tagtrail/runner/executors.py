@@ -229,8 +229,11 @@ def _cluster_tasks(func: str, tasks: Iterable[tuple[Any, ...]]) -> Iterator[Any]
             if args is None:
                 return False
             [data] = client.scatter([args], hash=False, workers=[here])  # lost only with us
-            running.add(client.submit(pool.run_one, func, data, pure=False,
-                                      key=f"{name}-{uuid.uuid4().hex}"))
+            running.add(
+                client.submit(
+                    pool.run_one, func, data, pure=False, key=f"{name}-{uuid.uuid4().hex}"
+                )
+            )
             return True
 
         for _ in range(limit):
@@ -268,7 +271,9 @@ class DaskSession:
     processes on 127.0.0.1 it starts (and stops). Prints one line with the dashboard link."""
 
     def __init__(
-        self, scheduler: str | None = None, workers: int = 2,
+        self,
+        scheduler: str | None = None,
+        workers: int = 2,
         echo: Callable[[str], None] | None = None,
     ) -> None:
         self.scheduler = scheduler
@@ -288,17 +293,24 @@ class DaskSession:
             quiet.setLevel(max(quiet.getEffectiveLevel(), logging.WARNING))
             if self.scheduler is None:
                 port = DASHBOARD_PORT if _port_free(DASHBOARD_PORT) else 0
-                cluster = stack.enter_context(distributed.LocalCluster(
-                    n_workers=self.workers, threads_per_worker=1, processes=True,
-                    host="127.0.0.1", dashboard_address=f"127.0.0.1:{port}",
-                    silence_logs=logging.CRITICAL, env=dict.fromkeys(BLAS_VARS, "1"),
-                ))
+                cluster = stack.enter_context(
+                    distributed.LocalCluster(
+                        n_workers=self.workers,
+                        threads_per_worker=1,
+                        processes=True,
+                        host="127.0.0.1",
+                        dashboard_address=f"127.0.0.1:{port}",
+                        silence_logs=logging.CRITICAL,
+                        env=dict.fromkeys(BLAS_VARS, "1"),
+                    )
+                )
                 client = stack.enter_context(distributed.Client(cluster))
                 where = f"a local cluster of {self.workers} worker processes"
             else:
                 try:
-                    client = stack.enter_context(distributed.Client(
-                        self.scheduler, timeout=CONNECT_TIMEOUT_S))
+                    client = stack.enter_context(
+                        distributed.Client(self.scheduler, timeout=CONNECT_TIMEOUT_S)
+                    )
                 except (OSError, TimeoutError, ValueError) as err:
                     raise SpecError(
                         f"cannot reach the dask scheduler at {self.scheduler} ({err}); start "
@@ -333,10 +345,12 @@ class DaskSession:
         envs: dict[str, dict[str, str | None]] = self.client.run(_blas_env)
         multi = sorted(w for w, env in envs.items() if any(v != "1" for v in env.values()))
         if multi:
-            self.echo(f"warning: {len(multi)} of {len(envs)} dask workers may run a "
-                      "multi-threaded BLAS (start them with OPENBLAS_NUM_THREADS=1 "
-                      "OMP_NUM_THREADS=1 MKL_NUM_THREADS=1): outputs can differ from a local "
-                      "run in the last bit")
+            self.echo(
+                f"warning: {len(multi)} of {len(envs)} dask workers may run a "
+                "multi-threaded BLAS (start them with OPENBLAS_NUM_THREADS=1 "
+                "OMP_NUM_THREADS=1 MKL_NUM_THREADS=1): outputs can differ from a local "
+                "run in the last bit"
+            )
 
     def check_shared(self, path: Path) -> None:
         """Refuse to run when a worker does not see ``path`` (the artifact store)."""
@@ -370,9 +384,11 @@ class DaskExecutor(cf.Executor):
             if err is None:
                 outer.set_result(inner.result())
             elif type(err).__name__ == "KilledWorker":
-                died = WorkerDied("the dask worker running it died each time it was tried "
-                                  "(killed or out of memory: see the worker's log); nothing "
-                                  "partial was kept, rerun to retry")
+                died = WorkerDied(
+                    "the dask worker running it died each time it was tried "
+                    "(killed or out of memory: see the worker's log); nothing "
+                    "partial was kept, rerun to retry"
+                )
                 died.__cause__ = err
                 outer.set_exception(died)
             else:
@@ -389,12 +405,15 @@ class DaskExecutor(cf.Executor):
 
 
 _SESSION: contextvars.ContextVar[DaskSession | None] = contextvars.ContextVar(
-    "tagtrail_dask_session", default=None)
+    "tagtrail_dask_session", default=None
+)
 
 
 @contextlib.contextmanager
 def dask_session(
-    scheduler: str | None = None, workers: int = 2, echo: Callable[[str], None] | None = None,
+    scheduler: str | None = None,
+    workers: int = 2,
+    echo: Callable[[str], None] | None = None,
 ) -> Iterator[DaskSession]:
     """One dask client for several runs (a sweep): runners with ``executor="dask"`` inside the
     block use it instead of starting a cluster each."""
@@ -408,8 +427,11 @@ def dask_session(
 
 @contextlib.contextmanager
 def open_executor(
-    kind: str = "local", jobs: int = 1, scheduler: str | None = None,
-    echo: Callable[[str], None] | None = None, store: Path | None = None,
+    kind: str = "local",
+    jobs: int = 1,
+    scheduler: str | None = None,
+    echo: Callable[[str], None] | None = None,
+    store: Path | None = None,
 ) -> Iterator[cf.Executor]:
     """The executor of one run. ``dask``: the active :func:`dask_session` when it matches
     ``scheduler``, else a session for this run (``jobs`` local workers without a scheduler);

@@ -40,8 +40,11 @@ STAMP = EXPORT_STAMP
 
 
 def _hashes(folder: Path) -> dict[str, str]:
-    return {p.name: file_sha256(p) for p in sorted(folder.iterdir())
-            if p.is_file() and not p.name.startswith(".")}
+    return {
+        p.name: file_sha256(p)
+        for p in sorted(folder.iterdir())
+        if p.is_file() and not p.name.startswith(".")
+    }
 
 
 def _unchanged(folder: Path, stamp: str) -> bool:
@@ -50,8 +53,11 @@ def _unchanged(folder: Path, stamp: str) -> bool:
     try:
         doc = json.loads((folder / STAMP).read_text())
         files = doc["files"]
-        return bool(doc["stamp"] == stamp and isinstance(files, dict) and all(
-            file_sha256(folder / name) == digest for name, digest in files.items()))
+        return bool(
+            doc["stamp"] == stamp
+            and isinstance(files, dict)
+            and all(file_sha256(folder / name) == digest for name, digest in files.items())
+        )
     except (OSError, ValueError, KeyError, TypeError):
         return False
 
@@ -71,18 +77,36 @@ def export_outputs(runner: Runner, force: bool = False) -> dict[str, Path]:
 def _export(runner: Runner, force: bool) -> dict[str, Path]:
     keys = {(s.stage, s.dataset): s.key for s in runner.plan() if s.status == "cached"}
     exporting = [spec for spec in runner.pipe.stages.values() if spec.exports]
-    drawn_with = sorted({ref.removeprefix(PARAMS) for spec in exporting for e in spec.exports
-                         for ref in e.inputs.values() if ref.startswith(PARAMS)})  # fmt: skip
-    code = sha256_text(canonical_json({  # this module and io's writers; each stage's makers
-        "export": code_fingerprint(sys.modules[__name__]),
-        "stages": {spec.name: spec.code_fingerprint for spec in exporting}}))
+    drawn_with = sorted(
+        {
+            ref.removeprefix(PARAMS)
+            for spec in exporting
+            for e in spec.exports
+            for ref in e.inputs.values()
+            if ref.startswith(PARAMS)
+        }
+    )
+    code = sha256_text(
+        canonical_json(
+            {  # this module and io's writers; each stage's makers
+                "export": code_fingerprint(sys.modules[__name__]),
+                "stages": {spec.name: spec.code_fingerprint for spec in exporting},
+            }
+        )
+    )
     written: dict[str, Path] = {}
     for dataset in runner.pipe.datasets:
-        used = sorted(f"{st}/{ds}/{k}" for (st, ds), k in keys.items()
-                      if ds in (dataset, runner.pipe.reference))
+        used = sorted(
+            f"{st}/{ds}/{k}"
+            for (st, ds), k in keys.items()
+            if ds in (dataset, runner.pipe.reference)
+        )
         # the parameters the exporters draw with (report.plane for map.png): a change redraws
-        drawn = {st: runner.pipe.params_for(st, dataset).model_dump(mode="json")
-                 for st in drawn_with if st in runner.pipe.stages}  # fmt: skip
+        drawn = {
+            st: runner.pipe.params_for(st, dataset).model_dump(mode="json")
+            for st in drawn_with
+            if st in runner.pipe.stages
+        }
         stamp = sha256_text(canonical_json({"code": code, "artifacts": used, "params": drawn}))
         folder = inside(runner.pipe.outputs, dataset)
         clean_temp_files(folder)
@@ -91,12 +115,14 @@ def _export(runner: Runner, force: bool) -> dict[str, Path]:
             continue
         cache: dict[tuple[str, str, str], Any] = {}
 
-        def get(text: str, dataset: str = dataset,
-                cache: dict[tuple[str, str, str], Any] = cache) -> Any:
+        def get(
+            text: str, dataset: str = dataset, cache: dict[tuple[str, str, str], Any] = cache
+        ) -> Any:
             if text.startswith(PARAMS):  # a stage's parameters for this dataset
                 stage = text.removeprefix(PARAMS)
-                return runner.pipe.params_for(stage, dataset) if stage in runner.pipe.stages \
-                    else None
+                return (
+                    runner.pipe.params_for(stage, dataset) if stage in runner.pipe.stages else None
+                )
             ref = InputRef.parse(text)
             ds = runner.pipe.reference if ref.from_reference else dataset
             assert ref.stage is not None and ref.output is not None
@@ -129,8 +155,10 @@ def _write(export: Export, get: Callable[[str], Any], folder: Path, dataset: str
         return False
     for name, what in made.items():
         if name not in export.files:
-            raise SpecError(f"export {export.name} made {name!r}, which it does not declare "
-                            f"(files: {', '.join(export.files)})")  # fmt: skip
+            raise SpecError(
+                f"export {export.name} made {name!r}, which it does not declare "
+                f"(files: {', '.join(export.files)})"
+            )
         if what is None:
             (folder / name).unlink(missing_ok=True)  # not a stale one from another run
         else:

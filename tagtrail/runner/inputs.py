@@ -76,6 +76,7 @@ def resolve(special: str, ds: DatasetConfig, label: str, stack: ExitStack) -> An
         tags, anchor = read_tag_map(ds.ground_truth)
         return GroundTruth(ds.ground_truth, read_trajectory(ds.ground_truth), tags, anchor)
     src = stack.enter_context(open_source(ds))
-    bar = stack.enter_context(tqdm(total=len(src), unit="frame", desc=label, disable=None,
-                                   leave=False))
+    bar = stack.enter_context(
+        tqdm(total=len(src), unit="frame", desc=label, disable=None, leave=False)
+    )
     return _Progress(src, bar)

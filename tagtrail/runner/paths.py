@@ -34,9 +34,20 @@ ARTIFACT_FILES = ("sources.json", ".lock")
 RUN_LOG = "last_run.json"  # in artifacts/runs/, beside the datasets' folders
 EXPORT_STAMP = ".tagtrail-export.json"
 OUTPUT_FILES = (  # what the exporters write in outputs/<dataset>/ (tests/test_reliability_paths)
-    "trajectory.csv", "trajectory.tum", "trajectory_std.csv", "trajectory_evidence.csv",
-    "trajectory_raw.csv", "tag_map.yaml", "tag_map.csv", "diagnostics.csv", "map.png",
-    "evaluation.json", "relocalization.csv", "summary.json", "relocalization.png", EXPORT_STAMP,
+    "trajectory.csv",
+    "trajectory.tum",
+    "trajectory_std.csv",
+    "trajectory_evidence.csv",
+    "trajectory_raw.csv",
+    "tag_map.yaml",
+    "tag_map.csv",
+    "diagnostics.csv",
+    "map.png",
+    "evaluation.json",
+    "relocalization.csv",
+    "summary.json",
+    "relocalization.png",
+    EXPORT_STAMP,
 )
 SWEEP_FILES = ("sweep.json", "sweep.csv", "sweep.png", "runs.json", "times.json")
 
@@ -73,14 +84,18 @@ def check_top(root: Path, top: str) -> Path:
     if path.is_symlink():
         target = path.resolve()
         if not target.exists():
-            raise SpecError(f"{path} is a symlink to {target}, which does not exist: create "
-                            "that folder or remove the link")
+            raise SpecError(
+                f"{path} is a symlink to {target}, which does not exist: create "
+                "that folder or remove the link"
+            )
         if not target.is_dir():
             raise SpecError(f"{path} is a symlink to {target}, which is not a folder")
         project = Path(root).resolve()
         if target == project or target in project.parents:
-            raise SpecError(f"{path} is a symlink to {target}, which holds the project; "
-                            "link it to a folder of its own")
+            raise SpecError(
+                f"{path} is a symlink to {target}, which holds the project; "
+                "link it to a folder of its own"
+            )
         return target
     if path.exists() and not path.is_dir():
         raise SpecError(f"{path} is not a folder: tagtrail keeps its {top} there; move it away")
@@ -93,11 +108,14 @@ def check_tops(root: Path, tops: Iterable[str] = TOPS) -> dict[str, Path]:
     every = {top: resolved.get(top) or (Path(root) / top).resolve() for top in TOPS}
     for a in resolved:
         for b in TOPS:
-            if a != b and (every[a] == every[b] or every[b] in every[a].parents
-                           or every[a] in every[b].parents):
-                raise SpecError(f"{Path(root) / a} leads to {every[a]}, which overlaps "
-                                f"{Path(root) / b} ({every[b]}): each of {', '.join(TOPS)} "
-                                "needs a folder of its own")
+            if a != b and (
+                every[a] == every[b] or every[b] in every[a].parents or every[a] in every[b].parents
+            ):
+                raise SpecError(
+                    f"{Path(root) / a} leads to {every[a]}, which overlaps "
+                    f"{Path(root) / b} ({every[b]}): each of {', '.join(TOPS)} "
+                    "needs a folder of its own"
+                )
     return resolved
 
 
@@ -110,17 +128,24 @@ def _has_content(path: Path) -> bool:
 def _refuse_link(step: Path, top: Path, resolved_top: Path) -> None:
     target = step.resolve()
     if target == resolved_top or resolved_top not in target.parents:
-        raise SpecError(f"{step} is a symlink leading outside {top} (to {target}); tagtrail "
-                        "writes there: remove the link")
+        raise SpecError(
+            f"{step} is a symlink leading outside {top} (to {target}); tagtrail "
+            "writes there: remove the link"
+        )
     if not target.exists():
-        raise SpecError(f"{step} is a symlink to {target}, which does not exist; tagtrail "
-                        "writes there: remove the link")
-    raise SpecError(f"{step} is a symlink (to {target}); tagtrail writes there and follows no "
-                    f"symlink below {top}: remove the link")
+        raise SpecError(
+            f"{step} is a symlink to {target}, which does not exist; tagtrail "
+            "writes there: remove the link"
+        )
+    raise SpecError(
+        f"{step} is a symlink (to {target}); tagtrail writes there and follows no "
+        f"symlink below {top}: remove the link"
+    )
 
 
-def check_below(root: Path, top: str, parts: tuple[str, ...], folder: bool,
-                resolved_top: Path) -> None:
+def check_below(
+    root: Path, top: str, parts: tuple[str, ...], folder: bool, resolved_top: Path
+) -> None:
     """Refuse ``root/top/parts…`` if it, or any folder on the way, is a symlink (leading out
     of the top folder, nowhere, or to another of tagtrail's own paths), or if a non-empty file
     holds a folder's place (or the reverse)."""
@@ -133,8 +158,10 @@ def check_below(root: Path, top: str, parts: tuple[str, ...], folder: bool,
         wants_dir = folder or i < len(parts)
         if wants_dir != step.is_dir() and _has_content(step):
             kind, held = ("folder", "file") if wants_dir else ("file", "folder")
-            raise SpecError(f"{step} is a {held} where tagtrail writes a {kind}, and it is not "
-                            "empty: move it away (an empty one is replaced)")
+            raise SpecError(
+                f"{step} is a {held} where tagtrail writes a {kind}, and it is not "
+                "empty: move it away (an empty one is replaced)"
+            )
 
 
 def clear_empty_obstacle(path: Path, folder: bool) -> None:
@@ -151,8 +178,9 @@ def clear_empty_obstacle(path: Path, folder: bool) -> None:
         pass
 
 
-def planned(pipe: Pipeline, tops: Iterable[str] = TOPS,
-            sweep: str | None = None) -> list[tuple[str, tuple[str, ...], bool]]:
+def planned(
+    pipe: Pipeline, tops: Iterable[str] = TOPS, sweep: str | None = None
+) -> list[tuple[str, tuple[str, ...], bool]]:
     """(top, parts, is a folder) of every path a run (``tops``) writes or deletes, but the
     cache entries (``objects/<stage>/<key>``, checked as each is written)."""
     out: list[tuple[str, tuple[str, ...], bool]] = []

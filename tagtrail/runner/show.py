@@ -42,14 +42,22 @@ def most_recent(runner: Runner, stage: str, dataset: str) -> tuple[str, str]:
     last = runner.store.last_record(dataset, stage)
     key = sha256_text(canonical_json(last)) if last is not None else None
     if last is None or key is None or runner.store.lookup(stage, key) is None:
-        raise SpecError(f"{stage} [{dataset}] is not up to date: run `tagtrail run {stage}` first "
-                        "(with the same -S overrides, if any)")
+        raise SpecError(
+            f"{stage} [{dataset}] is not up to date: run `tagtrail run {stage}` first "
+            "(with the same -S overrides, if any)"
+        )
     made = last.get("params") or {}
     now = runner.pipe.params_for(stage, dataset).key_dump()
-    diff = [f"-S {stage}.{k}={_value(made.get(k))}" for k in sorted(set(made) | set(now))
-            if made.get(k) != now.get(k)]  # fmt: skip
-    why = (f"made with {' '.join(diff)}" if diff
-           else "made with the same parameters, before its code or inputs changed")
+    diff = [
+        f"-S {stage}.{k}={_value(made.get(k))}"
+        for k in sorted(set(made) | set(now))
+        if made.get(k) != now.get(k)
+    ]
+    why = (
+        f"made with {' '.join(diff)}"
+        if diff
+        else "made with the same parameters, before its code or inputs changed"
+    )
     return key, f"note: not up to date; showing the most recent artifact, {why}"
 
 

@@ -35,8 +35,11 @@ def _fmt_validation(where: str, err: ValidationError, fields: Iterable[str] = ()
     if e["type"] == "extra_forbidden":
         key = str(e["loc"][-1])
         return f"{where}: unknown key {loc!r}{did_you_mean(key, fields)}"
-    got = f" (got {short_repr(e['input'])})" if "input" in e and not isinstance(
-        e["input"], dict) else ""
+    got = (
+        f" (got {short_repr(e['input'])})"
+        if "input" in e and not isinstance(e["input"], dict)
+        else ""
+    )
     msg = abbreviate(str(e["msg"]).removeprefix("Value error, "))
     if e["type"] == "value_error":
         got = ""
@@ -93,7 +96,9 @@ def _unique_mapping(loader: _UniqueKeyLoader, node: yaml.MappingNode, deep: bool
             continue
         if first is not None:
             raise yaml.constructor.ConstructorError(
-                None, None, f"key {key!r} written twice (lines {first} and {line})",
+                None,
+                None,
+                f"key {key!r} written twice (lines {first} and {line})",
                 key_node.start_mark,
             )
     return loader.construct_mapping(node, deep=deep)
@@ -101,12 +106,11 @@ def _unique_mapping(loader: _UniqueKeyLoader, node: yaml.MappingNode, deep: bool
 
 # YAML 1.2 reads `1e-3` as a number; PyYAML (YAML 1.1) would read it as the string "1e-3".
 _UniqueKeyLoader.add_implicit_resolver(
-    "tag:yaml.org,2002:float", re.compile(r"^[-+]?[0-9][0-9_]*(?:\.[0-9_]*)?[eE][-+]?[0-9]+$"),
+    "tag:yaml.org,2002:float",
+    re.compile(r"^[-+]?[0-9][0-9_]*(?:\.[0-9_]*)?[eE][-+]?[0-9]+$"),
     list("-+0123456789"),
 )
-_UniqueKeyLoader.add_constructor(
-    yaml.resolver.BaseResolver.DEFAULT_MAPPING_TAG, _unique_mapping
-)
+_UniqueKeyLoader.add_constructor(yaml.resolver.BaseResolver.DEFAULT_MAPPING_TAG, _unique_mapping)
 
 
 def load_yaml(text: str, where: str) -> Any:
@@ -145,8 +149,9 @@ def _resolve_dataset(name: str, ds: DatasetConfig, root: Path, check: bool) -> D
     assert source is not None
     if not check:  # only the parameters are wanted (a live node on a machine without the data)
         gt = absolute(ds.ground_truth)
-        return ds.model_copy(update={"source": source, "camera": absolute(ds.camera),
-                                     "ground_truth": gt})
+        return ds.model_copy(
+            update={"source": source, "camera": absolute(ds.camera), "ground_truth": gt}
+        )
     if not source.exists():
         raise SpecError(f"dataset {name!r}: source {source} does not exist")
     camera = absolute(ds.camera)
@@ -160,16 +165,18 @@ def _resolve_dataset(name: str, ds: DatasetConfig, root: Path, check: bool) -> D
     return ds.model_copy(update={"source": source, "camera": camera, "ground_truth": gt})
 
 
-def _origin(path: Path, given: Mapping[tuple[str, str], str], stage: str,
-            err: ValidationError) -> str:
+def _origin(
+    path: Path, given: Mapping[tuple[str, str], str], stage: str, err: ValidationError
+) -> str:
     """Where a bad parameter came from: the ``-S`` that set it, else the pipeline file."""
     loc = err.errors()[0]["loc"]
     text = given.get((stage, str(loc[0]))) if loc else None
     return f"-S {short_repr(text, 120)[1:-1]}: " if text is not None else f"{path}: "
 
 
-def _check_kind(path: Path, dataset: str, key: str, ref: InputRef,
-                stages: Mapping[str, StageSpec]) -> None:
+def _check_kind(
+    path: Path, dataset: str, key: str, ref: InputRef, stages: Mapping[str, StageSpec]
+) -> None:
     """A rewired input must name an artifact that exists and is of the kind the stage's input
     takes (the output name of its default wiring: a ``tag_map``, a ``trajectory``, …): else
     the stage would fail deep inside on a missing column."""
@@ -187,8 +194,10 @@ def _check_kind(path: Path, dataset: str, key: str, ref: InputRef,
         outs = ", ".join(stages[ref.stage].outputs)
         raise SpecError(f"{where}: stage {ref.stage} has no output {ref.output!r} (it has {outs})")
     if ref.output != default.output:
-        raise SpecError(f"{where}: {stage}'s input {arg} takes a {default.output} artifact "
-                        f"(e.g. {default}); {ref.stage}.{ref.output} is not one")
+        raise SpecError(
+            f"{where}: {stage}'s input {arg} takes a {default.output} artifact "
+            f"(e.g. {default}); {ref.stage}.{ref.output} is not one"
+        )
 
 
 def check_declarations(stages: Mapping[str, StageSpec]) -> None:
@@ -199,25 +208,32 @@ def check_declarations(stages: Mapping[str, StageSpec]) -> None:
     for name, spec in stages.items():
         for m in spec.metrics:
             if m.name in owner:
-                raise SpecError(f"metric {m.name!r} is declared by both stage {owner[m.name]} "
-                                f"and stage {name}")  # fmt: skip
+                raise SpecError(
+                    f"metric {m.name!r} is declared by both stage {owner[m.name]} and stage {name}"
+                )
             owner[m.name] = name
         for e in spec.exports:
             if e.name in exports:
-                raise SpecError(f"export {e.name!r} is declared by both stage {exports[e.name]} "
-                                f"and stage {name}")  # fmt: skip
+                raise SpecError(
+                    f"export {e.name!r} is declared by both stage {exports[e.name]} "
+                    f"and stage {name}"
+                )
             exports[e.name] = name
             for arg, text in e.inputs.items():
                 if text.startswith(PARAMS):
                     if text.removeprefix(PARAMS) not in stages:
-                        raise SpecError(f"stage {name}: export {e.name!r} input {arg} refers to "
-                                        f"{text!r}, which is no registered stage")  # fmt: skip
+                        raise SpecError(
+                            f"stage {name}: export {e.name!r} input {arg} refers to "
+                            f"{text!r}, which is no registered stage"
+                        )
                     continue
                 ref = InputRef.parse(text)
                 spec_of = stages.get(ref.stage or "")
                 if spec_of is None or ref.output not in spec_of.outputs:
-                    raise SpecError(f"stage {name}: export {e.name!r} input {arg} refers to "
-                                    f"{text!r}, which no registered stage outputs")  # fmt: skip
+                    raise SpecError(
+                        f"stage {name}: export {e.name!r} input {arg} refers to "
+                        f"{text!r}, which no registered stage outputs"
+                    )
 
 
 def load_pipeline(
@@ -268,8 +284,11 @@ def load_pipeline(
     for name in raw:
         if name not in stages:
             by = next((t for (st, _), t in given.items() if st == name), None)
-            src = str(path) if name in config.stages or by is None else \
-                f"-S {short_repr(by, 120)[1:-1]}"
+            src = (
+                str(path)
+                if name in config.stages or by is None
+                else f"-S {short_repr(by, 120)[1:-1]}"
+            )
             raise SpecError(f"{src}: unknown stage {name!r}{did_you_mean(name, stages)}")
     root = path.resolve().parent
     ctx = {"root": root}  # files named by parameters (optimize.survey.file) are taken from here
@@ -285,19 +304,23 @@ def load_pipeline(
     for ds_name, ds in config.datasets.items():
         for name, extra in ds.params.items():
             if name not in stages:
-                raise SpecError(f"{path}: datasets.{ds_name}.params: unknown stage {name!r}"
-                                f"{did_you_mean(name, stages)}")
+                raise SpecError(
+                    f"{path}: datasets.{ds_name}.params: unknown stage {name!r}"
+                    f"{did_you_mean(name, stages)}"
+                )
             merged = {**raw.get(name, {}), **(extra or {})}
             try:
                 dataset_params[(name, ds_name)] = stages[name].params_model.model_validate(
-                    merged, context=ctx)
+                    merged, context=ctx
+                )
             except ValidationError as err:
                 where = f"{_origin(path, given, name, err)}datasets.{ds_name}.params.{name}"
                 fields = stages[name].params_model.model_fields
                 raise SpecError(_fmt_validation(where, err, fields)) from err
 
-    datasets = {n: _resolve_dataset(n, ds, root, check_sources)
-                for n, ds in config.datasets.items()}
+    datasets = {
+        n: _resolve_dataset(n, ds, root, check_sources) for n, ds in config.datasets.items()
+    }
     for n, ds in datasets.items():
         for key, ref in ds.inputs.items():
             stage, _, arg = key.partition(".")
@@ -308,5 +331,11 @@ def load_pipeline(
                 )
             _check_kind(path, n, key, InputRef.parse(ref), stages)
     config = config.model_copy(update={"datasets": datasets})
-    return Pipeline(path=path, root=root, config=config, stages=stages, params=params,
-                    dataset_params=dataset_params)
+    return Pipeline(
+        path=path,
+        root=root,
+        config=config,
+        stages=stages,
+        params=params,
+        dataset_params=dataset_params,
+    )

@@ -77,8 +77,12 @@ def _strip_docstrings(tree: ast.AST) -> ast.AST:
     for node in ast.walk(tree):
         if isinstance(node, (ast.Module, ast.ClassDef, ast.FunctionDef, ast.AsyncFunctionDef)):
             body = node.body
-            if body and isinstance(body[0], ast.Expr) and isinstance(body[0].value, ast.Constant) \
-                    and isinstance(body[0].value.value, str):
+            if (
+                body
+                and isinstance(body[0], ast.Expr)
+                and isinstance(body[0].value, ast.Constant)
+                and isinstance(body[0].value.value, str)
+            ):
                 node.body = body[1:] or [ast.Pass()]
     return tree
 
@@ -209,9 +213,7 @@ _METRIC_NAME = re.compile(r"^[A-Za-z_][A-Za-z0-9_.]*$")
 _FILE_NAME = re.compile(r"^[A-Za-z0-9_][A-Za-z0-9_.-]*$")
 
 
-def _metrics(
-    module: ModuleType, outputs: tuple[str, ...], bad: Any
-) -> tuple[Metric, ...]:
+def _metrics(module: ModuleType, outputs: tuple[str, ...], bad: Any) -> tuple[Metric, ...]:
     """The stage's ``METRICS``, checked: each a :class:`Metric` on one of its outputs."""
     metrics = getattr(module, "METRICS", ())
     if not isinstance(metrics, tuple) or not all(isinstance(m, Metric) for m in metrics):
@@ -244,8 +246,11 @@ def _exports(module: ModuleType, bad: Any) -> tuple[Export, ...]:
         if not isinstance(e.name, str) or not re.fullmatch(_NAME, e.name) or e.name in names:
             raise bad(f"{where}: a name of lower-case letters, digits and '_', declared once")
         names.add(e.name)
-        if not (isinstance(e.files, tuple) and e.files
-                and all(isinstance(f, str) and _FILE_NAME.match(f) for f in e.files)):
+        if not (
+            isinstance(e.files, tuple)
+            and e.files
+            and all(isinstance(f, str) and _FILE_NAME.match(f) for f in e.files)
+        ):
             raise bad(f"{where}: files must be a non-empty tuple of plain file names")
         if "dataset" in e.inputs:
             raise bad(f"{where}: 'dataset' names the dataset, not an input")
@@ -262,6 +267,8 @@ def _exports(module: ModuleType, bad: Any) -> tuple[Export, ...]:
             raise bad(f"{where}: make must be a function")
         args = set(inspect.signature(e.make).parameters) - {"dataset"}
         if args != set(e.inputs):
-            raise bad(f"{where}: make() takes {sorted(args)} but its inputs are "
-                      f"{sorted(e.inputs)} (and optionally dataset)")  # fmt: skip
+            raise bad(
+                f"{where}: make() takes {sorted(args)} but its inputs are "
+                f"{sorted(e.inputs)} (and optionally dataset)"
+            )
     return exports

@@ -104,8 +104,9 @@ def declared_metrics(pipe: Pipeline) -> dict[str, tuple[str, Metric]]:
 def _by_default(pipe: Pipeline) -> list[tuple[str, StageSpec]]:
     """The stages that declare metrics, those with the first default columns first."""
     have = [(name, spec) for name, spec in pipe.stages.items() if spec.metrics]
-    return sorted(have, key=lambda t: min((m.default for m in t[1].metrics if m.default),
-                                          default=math.inf))  # fmt: skip
+    return sorted(
+        have, key=lambda t: min((m.default for m in t[1].metrics if m.default), default=math.inf)
+    )
 
 
 def metric_help(pipe: Pipeline) -> str:
@@ -128,8 +129,9 @@ def resolve_columns(
     known = declared_metrics(pipe)
     for name in metrics:
         if name not in known:
-            raise SpecError(f"unknown metric {name!r}{did_you_mean(name, known)} "
-                            f"(metrics: {metric_help(pipe)})")  # fmt: skip
+            raise SpecError(
+                f"unknown metric {name!r}{did_you_mean(name, known)} (metrics: {metric_help(pipe)})"
+            )
     if len(set(metrics)) != len(metrics):
         twice = next(m for m in metrics if list(metrics).count(m) > 1)
         raise SpecError(f"--metric {twice} given twice")
@@ -147,8 +149,9 @@ def resolve_columns(
         if not chosen and metrics:
             node = Node(stage, wanted[0])
             why = graph.skipped.get(node, "not in the pipeline")
-            raise SpecError(f"metric {name}: no dataset of the sweep has it ({node} does not "
-                            f"run: {why})")  # fmt: skip
+            raise SpecError(
+                f"metric {name}: no dataset of the sweep has it ({node} does not run: {why})"
+            )
         columns += [Column(name, d, stage, m) for d in chosen]
     return columns
 
@@ -239,8 +242,10 @@ def parse_dimension(text: str) -> tuple[str, list[str]]:
         raise SpecError(f"-S {text!r}: no values (expected {param}=v1,v2,…)")
     values = split_values(rhs)
     if not all(values):
-        raise SpecError(f"-S {text!r}: an empty value in the list (values are separated by "
-                        "commas; quote a value that contains one)")  # fmt: skip
+        raise SpecError(
+            f"-S {text!r}: an empty value in the list (values are separated by "
+            "commas; quote a value that contains one)"
+        )
     parsed = [parse_override(f"{param}={v}")[2] for v in values]
     for i, v in enumerate(parsed):
         if v in parsed[:i]:
@@ -272,21 +277,27 @@ def read_points(path: Path) -> list[dict[str, str]]:
         reader = csv.reader(text.splitlines())
         header = next(reader, None)
         if header is None or not any(h.strip() for h in header):
-            raise SpecError(f"--points {path}: empty file (expected a header of stage.param "
-                            "names and one row per point)")  # fmt: skip
+            raise SpecError(
+                f"--points {path}: empty file (expected a header of stage.param "
+                "names and one row per point)"
+            )
         params = [_param(h, f"--points {path}, header") for h in header]
         for row in reader:
             if not any(c.strip() for c in row):
                 continue
             if len(row) > len(params):
-                raise SpecError(f"--points {path}, line {reader.line_num}: {len(row)} cells "
-                                f"for {len(params)} columns")  # fmt: skip
+                raise SpecError(
+                    f"--points {path}, line {reader.line_num}: {len(row)} cells "
+                    f"for {len(params)} columns"
+                )
             rows.append({p: c.strip() for p, c in zip(params, row, strict=False) if c.strip()})
     else:
         doc = load_yaml(text, f"--points {path}")
         if not isinstance(doc, list) or not all(isinstance(r, dict) for r in doc):
-            raise SpecError(f"--points {path}: expected a list of mappings "
-                            "(- {stage.param: value, …}) or a CSV file")  # fmt: skip
+            raise SpecError(
+                f"--points {path}: expected a list of mappings "
+                "(- {stage.param: value, …}) or a CSV file"
+            )
         for r in doc:
             rows.append({_param(str(k), f"--points {path}"): yaml_text(v) for k, v in r.items()})
     if not rows:
@@ -316,8 +327,10 @@ def make_points(sets: Sequence[str], rows: Sequence[dict[str, str]] | None = Non
     parsed = [{k: parse_override(f"{k}={v}")[2] for k, v in p.values.items()} for p in points]
     for i, values in enumerate(parsed):
         if values in parsed[:i]:
-            raise SpecError(f"points {parsed.index(values) + 1} and {i + 1} are the same "
-                            f"({points[i].label or 'no overrides'})")  # fmt: skip
+            raise SpecError(
+                f"points {parsed.index(values) + 1} and {i + 1} are the same "
+                f"({points[i].label or 'no overrides'})"
+            )
     return points
 
 
@@ -334,8 +347,10 @@ def varied_params(points: Sequence[Point]) -> list[str]:
 def check_name(name: str) -> str:
     if not _NAME.fullmatch(name) or name in (".", "..") or len(name) > 120:
         shown = name if len(name) <= 40 else f"{name[:37]}…"
-        raise SpecError(f"sweep name {shown!r} is not allowed: use letters, digits, '_', '-' and "
-                        "'.', at most 120 (it names a folder under sweeps/)")  # fmt: skip
+        raise SpecError(
+            f"sweep name {shown!r} is not allowed: use letters, digits, '_', '-' and "
+            "'.', at most 120 (it names a folder under sweeps/)"
+        )
     return name
 
 
@@ -438,9 +453,18 @@ class Sweep:
     # --- the table ---
 
     def header(self) -> list[str]:
-        return ["point", *self.params, *(c.name for c in self.columns), "best", "status", "ran",
-                "cached", "wall_s", *(f"time_s.{s}" for s in self.stages),
-                *(f"key.{n.stage}[{n.dataset}]" for n in self.nodes)]  # fmt: skip
+        return [
+            "point",
+            *self.params,
+            *(c.name for c in self.columns),
+            "best",
+            "status",
+            "ran",
+            "cached",
+            "wall_s",
+            *(f"time_s.{s}" for s in self.stages),
+            *(f"key.{n.stage}[{n.dataset}]" for n in self.nodes),
+        ]
 
     def rows(self) -> list[list[str]]:
         best = self.best()
@@ -450,13 +474,20 @@ class Sweep:
 
         out = []
         for r in sorted(self.results, key=lambda r: r.point.index):
-            out.append([
-                str(r.point.index), *(r.point.values.get(p, "") for p in self.params),
-                *(num(r.metrics.get(c.name)) for c in self.columns),
-                "true" if r is best else "false", r.status, str(r.ran), str(r.cached),
-                f"{r.wall_s:.3f}", *(num(r.stage_s.get(s)) for s in self.stages),
-                *(r.keys.get(f"{n.stage}[{n.dataset}]", "") for n in self.nodes),
-            ])  # fmt: skip
+            out.append(
+                [
+                    str(r.point.index),
+                    *(r.point.values.get(p, "") for p in self.params),
+                    *(num(r.metrics.get(c.name)) for c in self.columns),
+                    "true" if r is best else "false",
+                    r.status,
+                    str(r.ran),
+                    str(r.cached),
+                    f"{r.wall_s:.3f}",
+                    *(num(r.stage_s.get(s)) for s in self.stages),
+                    *(r.keys.get(f"{n.stage}[{n.dataset}]", "") for n in self.nodes),
+                ]
+            )
         return out
 
     def csv_text(self) -> str:
@@ -468,11 +499,16 @@ class Sweep:
 
     def definition(self) -> dict[str, Any]:
         return {
-            "name": self.name, "pipeline": self.path.name, "params": self.params,
-            "metrics": [c.name for c in self.columns], "stages": self.stages,
-            "points": [{"point": p.index, "values": p.values, "overrides": p.overrides}
-                       for p in self.points],
-        }  # fmt: skip
+            "name": self.name,
+            "pipeline": self.path.name,
+            "params": self.params,
+            "metrics": [c.name for c in self.columns],
+            "stages": self.stages,
+            "points": [
+                {"point": p.index, "values": p.values, "overrides": p.overrides}
+                for p in self.points
+            ],
+        }
 
     # --- the loop ---
 
@@ -511,8 +547,9 @@ class Sweep:
             left = n - point.index + 1
             eta = f" … ETA {_duration(sum(busy) / len(busy) * left)}" if busy else ""
             progress(f"sweep: point {point.index}/{n} ({point.label or 'no overrides'}){eta}")
-            runner = Runner(pipe, jobs=self.jobs, echo=echo, executor=self.executor,
-                            scheduler=self.scheduler)  # fmt: skip
+            runner = Runner(
+                pipe, jobs=self.jobs, echo=echo, executor=self.executor, scheduler=self.scheduler
+            )
             runner.store, runner.hasher = store, hasher  # verified entries stay verified
             t0 = time.perf_counter()
             status = "ok"
@@ -529,21 +566,39 @@ class Sweep:
             self.results.append(result)
             if result.ran:
                 busy.append(wall)
-            run_log.append({"point": point.index, "overrides": point.overrides,
-                            "status": status, "wall_s": wall,
-                            "nodes": [asdict(s) for s in states]})  # fmt: skip
+            run_log.append(
+                {
+                    "point": point.index,
+                    "overrides": point.overrides,
+                    "status": status,
+                    "wall_s": wall,
+                    "nodes": [asdict(s) for s in states],
+                }
+            )
             atomic_write_text(folder / TIMES, pretty_json(times))
             atomic_write_text(folder / RUN_LOG, pretty_json(run_log))
             atomic_write_text(folder / TABLE, self.csv_text())
-            progress(f"  {result.ran} ran, {result.cached} cached in {_duration(wall)}"
-                     + ("" if status == "ok" else f"; {status}"))  # fmt: skip
+            progress(
+                f"  {result.ran} ran, {result.cached} cached in {_duration(wall)}"
+                + ("" if status == "ok" else f"; {status}")
+            )
             faults.point(f"sweep:point-{point.index}")
         return self.results
 
-    def _result(self, point: Point, runner: Runner, status: str, states: list[NodeState],
-                wall: float, times: dict[str, float]) -> PointResult:  # fmt: skip
-        done = {Node(s.stage, s.dataset): s.key for s in states
-                if s.status in ("ran", "cached") and s.key}  # fmt: skip
+    def _result(
+        self,
+        point: Point,
+        runner: Runner,
+        status: str,
+        states: list[NodeState],
+        wall: float,
+        times: dict[str, float],
+    ) -> PointResult:
+        done = {
+            Node(s.stage, s.dataset): s.key
+            for s in states
+            if s.status in ("ran", "cached") and s.key
+        }
         docs: dict[tuple[str, str, str], dict[str, Any] | None] = {}
         metrics: dict[str, float | None] = {}
         for col in self.columns:
@@ -552,15 +607,21 @@ class Sweep:
             memo = (col.stage, col.dataset, m.output)
             if memo not in docs:
                 key = done.get(Node(col.stage, col.dataset))
-                docs[memo] = None if key is None else documents.dump(
-                    f"{col.stage}.{m.output}", runner.store.load(col.stage, key, m.output))
+                docs[memo] = (
+                    None
+                    if key is None
+                    else documents.dump(
+                        f"{col.stage}.{m.output}", runner.store.load(col.stage, key, m.output)
+                    )
+                )
             doc = docs[memo]
             metrics[col.name] = None if doc is None else metric_value(doc, m.path)
         stage_s: dict[str, float | None] = {}
         for stage in self.stages:
             secs = [times.get(f"{n.stage}/{done.get(n)}") for n in self.nodes if n.stage == stage]
-            stage_s[stage] = None if any(s is None for s in secs) else sum(
-                s for s in secs if s is not None)
+            stage_s[stage] = (
+                None if any(s is None for s in secs) else sum(s for s in secs if s is not None)
+            )
         keys = {f"{n.stage}[{n.dataset}]": k for n, k in done.items() if k is not None}
         return PointResult(point, status, metrics, states, wall, stage_s, keys)
 
@@ -577,12 +638,17 @@ class Sweep:
             except (OSError, ValueError):
                 continue
             if isinstance(doc, list):  # a run log
-                times.update({f"{s['stage']}/{s['key']}": float(s["seconds"]) for s in doc
-                              if isinstance(s, dict) and s.get("status") == "ran"
-                              and s.get("key")})  # fmt: skip
+                times.update(
+                    {
+                        f"{s['stage']}/{s['key']}": float(s["seconds"])
+                        for s in doc
+                        if isinstance(s, dict) and s.get("status") == "ran" and s.get("key")
+                    }
+                )
             elif isinstance(doc, dict):
-                times.update({str(k): float(v) for k, v in doc.items()
-                              if isinstance(v, int | float)})  # fmt: skip
+                times.update(
+                    {str(k): float(v) for k, v in doc.items() if isinstance(v, int | float)}
+                )
         return times
 
 
@@ -639,8 +705,7 @@ def prepare(
             raise SpecError(f"sweep point {p.index}/{len(points)} ({p.label}): {err}") from err
     for d in datasets:
         if d not in pipes[0].datasets:
-            raise SpecError(f"--dataset {d}: unknown dataset"
-                            f"{did_you_mean(d, pipes[0].datasets)}")  # fmt: skip
+            raise SpecError(f"--dataset {d}: unknown dataset{did_you_mean(d, pipes[0].datasets)}")
     if datasets:
         pipes = [_restrict(p, datasets) for p in pipes]
     graph = build_graph(pipes[0])  # the wiring does not depend on parameters
@@ -650,8 +715,19 @@ def prepare(
     nodes = [n for n in graph.order if n in chosen]
     run_stages = list(dict.fromkeys(n.stage for n in nodes))
     sweep_name = check_name(name) if name is not None else default_name(points, points_file)
-    return Sweep(Path(pipeline), sweep_name, points, pipes, columns, stages, run_stages, nodes,
-                 jobs, executor, scheduler)
+    return Sweep(
+        Path(pipeline),
+        sweep_name,
+        points,
+        pipes,
+        columns,
+        stages,
+        run_stages,
+        nodes,
+        jobs,
+        executor,
+        scheduler,
+    )
 
 
 # --- reading a sweep back (``tagtrail show --point``) ---------------------------------------
@@ -677,14 +753,18 @@ def point_overrides(pipeline: Path, point: int, sweep: str | None = None) -> tup
     elif sweep in by_name:
         folder = by_name[sweep]
     else:
-        raise SpecError(f"no sweep {sweep!r} in {root / SWEEPS}{did_you_mean(sweep, by_name)} "
-                        f"(sweeps: {', '.join(by_name)})")  # fmt: skip
+        raise SpecError(
+            f"no sweep {sweep!r} in {root / SWEEPS}{did_you_mean(sweep, by_name)} "
+            f"(sweeps: {', '.join(by_name)})"
+        )
     try:
         doc = json.loads((folder / DEFINITION).read_text())
         listed = {int(p["point"]): [str(o) for o in p["overrides"]] for p in doc["points"]}
     except (OSError, ValueError, KeyError, TypeError) as err:
-        raise SpecError(f"{folder / DEFINITION}: unreadable sweep definition "
-                        f"({one_line(err)}); run the sweep again") from err  # fmt: skip
+        raise SpecError(
+            f"{folder / DEFINITION}: unreadable sweep definition "
+            f"({one_line(err)}); run the sweep again"
+        ) from err
     if point not in listed:
         raise SpecError(f"sweep {folder.name} has points 1..{len(listed)}, not {point}")
     return folder.name, listed[point]

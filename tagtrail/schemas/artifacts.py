@@ -18,31 +18,61 @@ from tagtrail.geometry.se3 import R_from_quat_xyzw, T_from_xyz_quat
 VERSION = 4
 
 I32, I64, F64 = pa.int32(), pa.int64(), pa.float64()
-POSE = [("x_m", F64), ("y_m", F64), ("z_m", F64), ("qx", F64), ("qy", F64), ("qz", F64),
-        ("qw", F64)]  # fmt: skip
+POSE = [
+    ("x_m", F64),
+    ("y_m", F64),
+    ("z_m", F64),
+    ("qx", F64),
+    ("qy", F64),
+    ("qz", F64),
+    ("qw", F64),
+]
 ALT_POSE = [(f"alt_{n}", t) for n, t in POSE]
 CORNERS = [(f"c{i}{a}", F64) for i in range(4) for a in "xy"]
 TRAJECTORY = pa.schema([("t_ns", I64), *POSE, ("n_tags", I32)])
 
 SCHEMAS: dict[str, pa.Schema] = {
-    "extract.frames": pa.schema([("t_ns", I64), ("frame_idx", I32), ("n_det", I32),
-                                 ("timed", pa.bool_())]),
+    "extract.frames": pa.schema(
+        [("t_ns", I64), ("frame_idx", I32), ("n_det", I32), ("timed", pa.bool_())]
+    ),
     "extract.detections": pa.schema(
-        [("t_ns", I64), ("frame_idx", I32), ("tag_id", I32), ("hamming", I32),
-         ("decision_margin", F64), *CORNERS]  # fmt: skip
+        [
+            ("t_ns", I64),
+            ("frame_idx", I32),
+            ("tag_id", I32),
+            ("hamming", I32),
+            ("decision_margin", F64),
+            *CORNERS,
+        ]
     ),
     "extract.observations": pa.schema([("t_ns", I64), ("frame_idx", I32), ("tag_id", I32), *POSE]),
     "pnp.observations": pa.schema(
-        [("t_ns", I64), ("frame_idx", I32), ("tag_id", I32), ("size_m", F64), *POSE,
-         ("reproj_px", F64), *ALT_POSE, ("alt_reproj_px", F64), ("ambiguity", F64)]  # fmt: skip
+        [
+            ("t_ns", I64),
+            ("frame_idx", I32),
+            ("tag_id", I32),
+            ("size_m", F64),
+            *POSE,
+            ("reproj_px", F64),
+            *ALT_POSE,
+            ("alt_reproj_px", F64),
+            ("ambiguity", F64),
+        ]
     ),
     "edges.edges": pa.schema(
-        [("t_ns", I64), ("tag_i", I32), ("tag_j", I32), *POSE, ("weight", F64),
-         ("hypothesis", I32)]
+        [("t_ns", I64), ("tag_i", I32), ("tag_j", I32), *POSE, ("weight", F64), ("hypothesis", I32)]
     ),
     "optimize.tag_map": pa.schema(
-        [("tag_id", I32), *POSE, ("n_obs", I64), ("size_m", F64), ("res_t_rms_m", F64),
-         ("res_r_rms_deg", F64), ("std_pos_m", F64), ("std_rot_deg", F64)]  # fmt: skip
+        [
+            ("tag_id", I32),
+            *POSE,
+            ("n_obs", I64),
+            ("size_m", F64),
+            ("res_t_rms_m", F64),
+            ("res_r_rms_deg", F64),
+            ("std_pos_m", F64),
+            ("std_rot_deg", F64),
+        ]
     ),
     "optimize.edge_residuals": pa.schema(
         [("tag_i", I32), ("tag_j", I32), ("t_ns", I64), ("res_t_m", F64), ("res_r_deg", F64)]
@@ -51,11 +81,25 @@ SCHEMAS: dict[str, pa.Schema] = {
     "smooth.trajectory": TRAJECTORY,
     "align.trajectory": TRAJECTORY,
     "report.relocalization": pa.schema(
-        [("t_ns", I64), ("t_rel_s", F64), ("nearest_ref_idx", I64), ("distance_m", F64),
-         ("heading_error_deg", F64), ("query_heading_deg", F64), ("ref_heading_deg", F64),
-         ("query_u", F64), ("query_v", F64), ("ref_u", F64), ("ref_v", F64),
-         ("cross_track_m", F64), ("progress_m", F64), ("curvature_1pm", F64),
-         ("lookahead_u", F64), ("lookahead_v", F64), ("lost", pa.bool_())]  # fmt: skip
+        [
+            ("t_ns", I64),
+            ("t_rel_s", F64),
+            ("nearest_ref_idx", I64),
+            ("distance_m", F64),
+            ("heading_error_deg", F64),
+            ("query_heading_deg", F64),
+            ("ref_heading_deg", F64),
+            ("query_u", F64),
+            ("query_v", F64),
+            ("ref_u", F64),
+            ("ref_v", F64),
+            ("cross_track_m", F64),
+            ("progress_m", F64),
+            ("curvature_1pm", F64),
+            ("lookahead_u", F64),
+            ("lookahead_v", F64),
+            ("lost", pa.bool_()),
+        ]
     ),
 }
 
@@ -75,7 +119,8 @@ def per_frame(traj: pd.DataFrame) -> pd.DataFrame:
     if not all(c in traj.columns for c in ALONE_POSE_COLS):
         return traj
     return traj.drop(columns=POSE_COLS).rename(
-        columns=dict(zip(ALONE_POSE_COLS, POSE_COLS, strict=True)))
+        columns=dict(zip(ALONE_POSE_COLS, POSE_COLS, strict=True))
+    )
 
 
 def columns(name: str) -> list[str]:
@@ -85,15 +130,23 @@ def columns(name: str) -> list[str]:
 
 def ippe_solutions(
     obs: pd.DataFrame,
-) -> tuple[NDArray[np.float64], NDArray[np.float64] | None, NDArray[np.float64] | None,
-           NDArray[np.float64] | None]:
+) -> tuple[
+    NDArray[np.float64],
+    NDArray[np.float64] | None,
+    NDArray[np.float64] | None,
+    NDArray[np.float64] | None,
+]:
     """(pose, alt_pose, reproj_px, alt_reproj_px) arrays of ``pnp.observations`` rows, for
     :func:`tagtrail.geometry.ippe.best_pose`; the alternative is None where it is absent."""
     pose = obs[POSE_COLS].to_numpy(np.float64)
     if not all(c in obs.columns for c in [*ALT_POSE_COLS, "reproj_px", "alt_reproj_px"]):
         return pose, None, None, None
-    return (pose, obs[ALT_POSE_COLS].to_numpy(np.float64), obs["reproj_px"].to_numpy(np.float64),
-            obs["alt_reproj_px"].to_numpy(np.float64))
+    return (
+        pose,
+        obs[ALT_POSE_COLS].to_numpy(np.float64),
+        obs["reproj_px"].to_numpy(np.float64),
+        obs["alt_reproj_px"].to_numpy(np.float64),
+    )
 
 
 def poses(traj: pd.DataFrame) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
@@ -120,9 +173,7 @@ def conform(name: str, df: pd.DataFrame) -> pa.Table:
     except (pa.ArrowInvalid, pa.ArrowNotImplementedError) as err:
         raise TypeError(f"artifact {name} does not fit its schema: {err}") from err
     extra = [c for c in table.column_names if c not in schema.names]
-    return pa.Table.from_arrays(
-        cols + [table[c] for c in extra], names=schema.names + extra
-    )
+    return pa.Table.from_arrays(cols + [table[c] for c in extra], names=schema.names + extra)
 
 
 def timed(frames: pd.DataFrame | None) -> bool:
@@ -131,8 +182,9 @@ def timed(frames: pd.DataFrame | None) -> bool:
     return frames is None or "timed" not in frames.columns or bool(frames["timed"].all())
 
 
-def corner_rows(observations: pd.DataFrame, detections: pd.DataFrame,
-                tags: NDArray[np.int64]) -> pd.DataFrame:
+def corner_rows(
+    observations: pd.DataFrame, detections: pd.DataFrame, tags: NDArray[np.int64]
+) -> pd.DataFrame:
     """``pnp.observations`` rows of the mapped ``tags`` joined with their corners
     (``CORNER_COLS``), with a finite pose and size; one row per (frame, tag) -- a tag seen
     twice in a frame is ambiguous and left out -- in (time, frame, tag) order."""
@@ -140,8 +192,10 @@ def corner_rows(observations: pd.DataFrame, detections: pd.DataFrame,
     obs = obs[~obs.duplicated(["frame_idx", "tag_id"], keep=False)]
     det = detections.drop_duplicates(["frame_idx", "tag_id"], keep=False)
     m = obs.merge(det[["frame_idx", "tag_id", *CORNER_COLS]], on=["frame_idx", "tag_id"])
-    m = m[np.isfinite(m[CORNER_COLS].to_numpy(np.float64)).all(axis=1)
-          & np.isfinite(m[POSE_COLS].to_numpy(np.float64)).all(axis=1)]
+    m = m[
+        np.isfinite(m[CORNER_COLS].to_numpy(np.float64)).all(axis=1)
+        & np.isfinite(m[POSE_COLS].to_numpy(np.float64)).all(axis=1)
+    ]
     m = m[np.isfinite(m["size_m"].to_numpy(np.float64)) & (m["size_m"] > 0)]
     out: pd.DataFrame = m.sort_values(["t_ns", "frame_idx", "tag_id"], kind="stable")
     return out.reset_index(drop=True)

@@ -309,12 +309,15 @@ def dump(name: str, value: Any) -> dict[str, Any]:
     model = DOCUMENTS.get(name)
     if isinstance(value, BaseModel):
         if model is not None and not isinstance(value, model):
-            raise TypeError(f"artifact {name} must be a {model.__name__}, not "
-                            f"{type(value).__name__}")
+            raise TypeError(
+                f"artifact {name} must be a {model.__name__}, not {type(value).__name__}"
+            )
         return value.model_dump(mode="json")
     if not isinstance(value, dict):
-        raise TypeError(f"artifact {name} is a {type(value).__name__}; a stage returns "
-                        "DataFrames, documents or dicts")
+        raise TypeError(
+            f"artifact {name} is a {type(value).__name__}; a stage returns "
+            "DataFrames, documents or dicts"
+        )
     return value if model is None else model.model_validate(value).model_dump(mode="json")
 
 
@@ -329,6 +332,8 @@ def load(name: str, data: Any) -> Any:
     try:
         doc = model.model_validate(data)
     except ValidationError as err:
-        raise ArtifactError(f"artifact {name} does not fit its model: "
-                            f"{err.errors()[0]['loc']} {err.errors()[0]['msg']}") from err
+        raise ArtifactError(
+            f"artifact {name} does not fit its model: "
+            f"{err.errors()[0]['loc']} {err.errors()[0]['msg']}"
+        ) from err
     return doc.model() if isinstance(doc, CameraDoc) else doc

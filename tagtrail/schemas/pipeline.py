@@ -49,11 +49,15 @@ def check_dataset_name(name: object) -> str:
             "(not '.' or '..'); a dataset name names a folder under outputs/, never a path"
         )
     if len(name) > MAX_NAME:
-        raise ValueError(f"dataset name {shown} is not allowed: {len(name)} characters, at most "
-                         f"{MAX_NAME} (it names folders and files)")
+        raise ValueError(
+            f"dataset name {shown} is not allowed: {len(name)} characters, at most "
+            f"{MAX_NAME} (it names folders and files)"
+        )
     if name in RESERVED_NAMES or name.startswith(".tagtrail"):
-        raise ValueError(f"dataset name {shown} is not allowed: tagtrail names its own files so "
-                         "(artifacts/runs/last_run.json, .tagtrail-…); choose another")
+        raise ValueError(
+            f"dataset name {shown} is not allowed: tagtrail names its own files so "
+            "(artifacts/runs/last_run.json, .tagtrail-…); choose another"
+        )
     return name
 
 
@@ -157,8 +161,10 @@ class SurveyConfig(BaseModel):
         if self.use is not None:
             absent = sorted(set(self.use) - set(known))
             if absent:
-                raise ValueError(f"survey.use names tags {absent} that no known pose gives "
-                                 f"(known: {sorted(known)})")
+                raise ValueError(
+                    f"survey.use names tags {absent} that no known pose gives "
+                    f"(known: {sorted(known)})"
+                )
             known = {k: v for k, v in known.items() if k in self.use}
         if self.position_only:
             known = {k: v.model_copy(update={"orientation": None}) for k, v in known.items()}
@@ -170,10 +176,21 @@ class SurveyConfig(BaseModel):
 
     def survey(self) -> Survey:
         """The known poses as a :class:`~tagtrail.geometry.survey.Survey`."""
-        return make_survey([
-            (k, v.position, None if v.orientation is None else R_from_quat_xyzw(
-                np.asarray(v.orientation) / np.linalg.norm(v.orientation)), v.size)
-            for k, v in self.known.items()])
+        return make_survey(
+            [
+                (
+                    k,
+                    v.position,
+                    None
+                    if v.orientation is None
+                    else R_from_quat_xyzw(
+                        np.asarray(v.orientation) / np.linalg.norm(v.orientation)
+                    ),
+                    v.size,
+                )
+                for k, v in self.known.items()
+            ]
+        )
 
 
 def _resolve(file: str, info: ValidationInfo | None) -> Path:
@@ -191,14 +208,17 @@ def _read_doc(path: Path, kind: str, param: str) -> Any:
     """The decoded document of a YAML or JSON (``.json``) file; one-line ``ValueError``s
     naming the file, its ``kind`` and the ``param`` that names it."""
     if not path.is_file():
-        raise ValueError(f"{path}: {kind} file not found ({param}; a relative path is taken "
-                         "from the pipeline file's folder)")
+        raise ValueError(
+            f"{path}: {kind} file not found ({param}; a relative path is taken "
+            "from the pipeline file's folder)"
+        )
     try:
         text = path.read_text(encoding="utf-8")
         doc = json.loads(text) if path.suffix.lower() == ".json" else yaml.safe_load(text)
     except (OSError, UnicodeDecodeError, json.JSONDecodeError, yaml.YAMLError) as err:
-        raise ValueError(f"{path}: cannot read the {kind} file: {str(err).splitlines()[0]}"
-                         ) from err
+        raise ValueError(
+            f"{path}: cannot read the {kind} file: {str(err).splitlines()[0]}"
+        ) from err
     except RecursionError as err:
         raise ValueError(f"{path}: cannot read the {kind} file: nested too deeply") from err
     try:
@@ -219,8 +239,9 @@ def _read_known(path: Path) -> tuple[str, dict[int, KnownTag]]:
         q = None if not sv.full[k] else tuple(float(v) for v in quat_xyzw_from_R(sv.R[k]))
         size = float(sv.size[k]) if np.isfinite(sv.size[k]) else None
         try:
-            known[int(i)] = KnownTag(position=tuple(float(v) for v in sv.position[k]),
-                                     orientation=q, size=size)
+            known[int(i)] = KnownTag(
+                position=tuple(float(v) for v in sv.position[k]), orientation=q, size=size
+            )
         except ValueError as err:
             raise ValueError(f"{path}: {_first_error(err, f'tag {i}')}") from err
     return fmt, known

@@ -50,39 +50,52 @@ class Profile(BaseModel):
 # `tagtrail simulate` documents and renders.
 _LIMO_STAGES: dict[str, dict[str, Any]] = {"report": {"plane": "xz"}}
 
-PROFILES: dict[str, Profile] = {p.name: p for p in (
-    Profile(
-        name="limo",
-        description="the real LIMO, the original workflow: apriltag_ros on the robot publishes "
-        "/detections with /camera_info",
-        topics={"detections": "/detections", "camera_info": "/camera_info"},
-        record=(("/detections", DETECTIONS), ("/camera_info", CAMERA_INFO)),
-        stages=_LIMO_STAGES,
-        live=LiveKeys(detections_key="detections", camera_info_key="camera_info"),
-    ),
-    Profile(
-        name="limo-images",
-        description="the real LIMO's camera driver: raw 640x480 images on "
-        "/camera/color/image_raw with /camera/color/camera_info (tags detected by tagtrail)",
-        topics={"image": "/camera/color/image_raw", "camera_info": "/camera/color/camera_info"},
-        record=(("/camera/color/image_raw", IMAGE), ("/camera/color/camera_info", CAMERA_INFO)),
-        stages=_LIMO_STAGES,
-        live=LiveKeys(image_key="camera/color/image_raw", image_type="raw",
-                      camera_info_key="camera/color/camera_info"),
-    ),
-    Profile(
-        name="sim",
-        description="recordings of `tagtrail simulate --compressed`: jpeg images on "
-        "/camera/color/image_raw/compressed with /camera/color/camera_info",
-        topics={"image": "/camera/color/image_raw/compressed",
-                "camera_info": "/camera/color/camera_info"},
-        record=(("/camera/color/image_raw/compressed", COMPRESSED_IMAGE),
-                ("/camera/color/camera_info", CAMERA_INFO)),
-        stages={"pnp": {"tag_size": 0.16}, "report": {"plane": "auto"}},
-        live=LiveKeys(image_key="camera/color/image_raw/compressed", image_type="compressed",
-                      camera_info_key="camera/color/camera_info"),
-    ),
-)}  # fmt: skip
+PROFILES: dict[str, Profile] = {
+    p.name: p
+    for p in (
+        Profile(
+            name="limo",
+            description="the real LIMO, the original workflow: apriltag_ros on the robot publishes "
+            "/detections with /camera_info",
+            topics={"detections": "/detections", "camera_info": "/camera_info"},
+            record=(("/detections", DETECTIONS), ("/camera_info", CAMERA_INFO)),
+            stages=_LIMO_STAGES,
+            live=LiveKeys(detections_key="detections", camera_info_key="camera_info"),
+        ),
+        Profile(
+            name="limo-images",
+            description="the real LIMO's camera driver: raw 640x480 images on "
+            "/camera/color/image_raw with /camera/color/camera_info (tags detected by tagtrail)",
+            topics={"image": "/camera/color/image_raw", "camera_info": "/camera/color/camera_info"},
+            record=(("/camera/color/image_raw", IMAGE), ("/camera/color/camera_info", CAMERA_INFO)),
+            stages=_LIMO_STAGES,
+            live=LiveKeys(
+                image_key="camera/color/image_raw",
+                image_type="raw",
+                camera_info_key="camera/color/camera_info",
+            ),
+        ),
+        Profile(
+            name="sim",
+            description="recordings of `tagtrail simulate --compressed`: jpeg images on "
+            "/camera/color/image_raw/compressed with /camera/color/camera_info",
+            topics={
+                "image": "/camera/color/image_raw/compressed",
+                "camera_info": "/camera/color/camera_info",
+            },
+            record=(
+                ("/camera/color/image_raw/compressed", COMPRESSED_IMAGE),
+                ("/camera/color/camera_info", CAMERA_INFO),
+            ),
+            stages={"pnp": {"tag_size": 0.16}, "report": {"plane": "auto"}},
+            live=LiveKeys(
+                image_key="camera/color/image_raw/compressed",
+                image_type="compressed",
+                camera_info_key="camera/color/camera_info",
+            ),
+        ),
+    )
+}
 
 
 def get_profile(name: str | None) -> Profile | None:
@@ -90,8 +103,10 @@ def get_profile(name: str | None) -> Profile | None:
     if name is None:
         return None
     if name not in PROFILES:
-        raise SpecError(f"unknown profile {name!r}; choose one of {', '.join(PROFILES)} "
-                        "(tagtrail init --list-profiles)")
+        raise SpecError(
+            f"unknown profile {name!r}; choose one of {', '.join(PROFILES)} "
+            "(tagtrail init --list-profiles)"
+        )
     return PROFILES[name]
 
 

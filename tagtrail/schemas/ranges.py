@@ -46,8 +46,10 @@ def check_expansion(doc: object) -> object:
         for child in children:
             n += size(child, depth + 1)
             if n > MAX_VALUES:
-                raise ValueError(f"more than {MAX_VALUES:,} values once its aliases are "
-                                 "expanded (a YAML alias bomb?)")
+                raise ValueError(
+                    f"more than {MAX_VALUES:,} values once its aliases are "
+                    "expanded (a YAML alias bomb?)"
+                )
         sizes[id(node)] = n
         return n
 

@@ -59,8 +59,9 @@ class StageParams(BaseModel):
     """
 
     # use_attribute_docstrings: each field's docstring is its description (docs/PARAMETERS.md)
-    model_config = ConfigDict(extra="forbid", frozen=True, strict=True, allow_inf_nan=False,
-                              use_attribute_docstrings=True)
+    model_config = ConfigDict(
+        extra="forbid", frozen=True, strict=True, allow_inf_nan=False, use_attribute_docstrings=True
+    )
     EXECUTION_ONLY: ClassVar[frozenset[str]] = frozenset()
 
     @model_validator(mode="before")
@@ -69,8 +70,12 @@ class StageParams(BaseModel):
         if not isinstance(data, dict):
             return data
         fields = cls.model_fields
-        return {k: tuple(v) if isinstance(v, list) and k in fields
-                and _is_tuple(fields[k].annotation) else v for k, v in data.items()}
+        return {
+            k: tuple(v)
+            if isinstance(v, list) and k in fields and _is_tuple(fields[k].annotation)
+            else v
+            for k, v in data.items()
+        }
 
     def key_dump(self) -> dict[str, object]:
         """The parameters that enter the cache key, as JSON-able values."""

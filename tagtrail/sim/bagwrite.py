@@ -51,9 +51,17 @@ def camera_info_msg(scene: Scene, t_ns: int) -> Any:
     P = np.hstack([c.K, np.zeros((3, 1))])
     roi = _t("sensor_msgs/msg/RegionOfInterest")(0, 0, 0, 0, False)
     return _t(msgs.CAMERA_INFO)(
-        header=_header(t_ns, FRAME_ID), height=c.height, width=c.width,
-        distortion_model=c.distortion_model, d=c.D, k=c.K.reshape(-1), r=np.eye(3).reshape(-1),
-        p=P.reshape(-1), binning_x=0, binning_y=0, roi=roi,
+        header=_header(t_ns, FRAME_ID),
+        height=c.height,
+        width=c.width,
+        distortion_model=c.distortion_model,
+        d=c.D,
+        k=c.K.reshape(-1),
+        r=np.eye(3).reshape(-1),
+        p=P.reshape(-1),
+        binning_x=0,
+        binning_y=0,
+        roi=roi,
     )
 
 
@@ -66,12 +74,18 @@ def pose_msg(world_T_cam: F64, t_ns: int) -> Any:
     return _t(msgs.POSE_STAMPED)(header=_header(t_ns, "map"), pose=pose)
 
 
-def synth_detections(scene: Scene, opts: SimOptions, rng: np.random.Generator
-                     ) -> tuple[Visibility, F64, F64]:
+def synth_detections(
+    scene: Scene, opts: SimOptions, rng: np.random.Generator
+) -> tuple[Visibility, F64, F64]:
     """Detector output per frame and tag: ``(visibility, corners (N, M, 4, 2) px in apriltag's
     convention (+0.5, noisy), decision margins (N, M))``."""
-    vis = tag_visibility(scene.camera, scene.cam_T_tags(), scene.tag_sizes,
-                         max_range_m=opts.max_range_m, max_incidence_deg=opts.max_incidence_deg)
+    vis = tag_visibility(
+        scene.camera,
+        scene.cam_T_tags(),
+        scene.tag_sizes,
+        max_range_m=opts.max_range_m,
+        max_incidence_deg=opts.max_incidence_deg,
+    )
     noise = rng.normal(0.0, opts.corner_noise_px, vis.corners_px.shape)
     corners = vis.corners_px + 0.5 + noise
     base = 50.0 + 100.0 * np.clip(vis.edge_px / 100.0, 0.0, 1.0) * np.clip(vis.cos_incidence, 0, 1)
@@ -91,7 +105,11 @@ def detections_msg(t_ns: int, frame_id: str, ids: np.ndarray, corners: F64, marg
     Point = _t("apriltag_msgs/msg/Point")
     dets = [
         _t("apriltag_msgs/msg/AprilTagDetection")(
-            family="36h11", id=int(i), hamming=0, goodness=0.0, decision_margin=float(m),
+            family="36h11",
+            id=int(i),
+            hamming=0,
+            goodness=0.0,
+            decision_margin=float(m),
             centre=Point(*map(float, _centre(c))),
             corners=[Point(float(x), float(y)) for x, y in c],
             homography=np.zeros(9),
@@ -125,8 +143,13 @@ def write_bag(folder: Path, scene: Scene, opts: SimOptions, rng: np.random.Gener
     """Render (or synthesise detections for) every frame of ``scene`` into the bag ``folder``."""
     world_T_cam = scene.world_T_cam()
     fid = FRAME_ID
-    frames = tqdm(range(len(scene.t_ns)), desc=scene.name, unit="frame", leave=False,
-                  disable=not opts.progress)
+    frames = tqdm(
+        range(len(scene.t_ns)),
+        desc=scene.name,
+        unit="frame",
+        leave=False,
+        disable=not opts.progress,
+    )
     with _Bag(folder, opts.storage) as bag:
         if opts.detections:
             vis, corners, margins = synth_detections(scene, opts, rng)
@@ -143,29 +166,47 @@ def write_bag(folder: Path, scene: Scene, opts: SimOptions, rng: np.random.Gener
             t = int(scene.t_ns[i])
             rgb = renderer.render(scene.scene_T_cam[i], rng, float(gains[i]))
             if opts.compressed:
-                ok, buf = cv2.imencode(".jpg", cv2.cvtColor(rgb, cv2.COLOR_RGB2BGR),
-                                       [cv2.IMWRITE_JPEG_QUALITY, opts.jpeg_quality])
-                msg = _t(msgs.COMPRESSED_IMAGE)(header=_header(t, fid),
-                                                format="rgb8; jpeg compressed bgr8",
-                                                data=buf.reshape(-1))
+                ok, buf = cv2.imencode(
+                    ".jpg",
+                    cv2.cvtColor(rgb, cv2.COLOR_RGB2BGR),
+                    [cv2.IMWRITE_JPEG_QUALITY, opts.jpeg_quality],
+                )
+                msg = _t(msgs.COMPRESSED_IMAGE)(
+                    header=_header(t, fid),
+                    format="rgb8; jpeg compressed bgr8",
+                    data=buf.reshape(-1),
+                )
                 bag.write(COMPRESSED_TOPIC, t, msg)
             else:
                 h, w = rgb.shape[:2]
-                msg = _t(msgs.IMAGE)(header=_header(t, fid), height=h, width=w, encoding="rgb8",
-                                     is_bigendian=0, step=3 * w, data=rgb.reshape(-1))
+                msg = _t(msgs.IMAGE)(
+                    header=_header(t, fid),
+                    height=h,
+                    width=w,
+                    encoding="rgb8",
+                    is_bigendian=0,
+                    step=3 * w,
+                    data=rgb.reshape(-1),
+                )
                 bag.write(IMAGE_TOPIC, t, msg)
             bag.write(INFO_TOPIC, t, camera_info_msg(scene, t))
             bag.write(GT_TOPIC, t, pose_msg(world_T_cam[i], t))
 
 
-def write_observations(folder: Path, scene: Scene, opts: SimOptions, rng: np.random.Generator
-                       ) -> int:
+def write_observations(
+    folder: Path, scene: Scene, opts: SimOptions, rng: np.random.Generator
+) -> int:
     """Write ``observations.csv`` (cam_T_tag of every tag in view, §4.1 of the paper): exact
     rigid transforms plus zero-mean Gaussian noise, per axis, of std ``noise_t_m`` on the
     translation and ``noise_r_deg`` on the rotation (left-multiplied axis-angle). Returns the
     number of rows."""
-    vis = tag_visibility(scene.camera, scene.cam_T_tags(), scene.tag_sizes,
-                         max_range_m=opts.max_range_m, max_incidence_deg=opts.max_incidence_deg)
+    vis = tag_visibility(
+        scene.camera,
+        scene.cam_T_tags(),
+        scene.tag_sizes,
+        max_range_m=opts.max_range_m,
+        max_incidence_deg=opts.max_incidence_deg,
+    )
     fr, tg = np.nonzero(vis.visible)
     cam_T_tag = scene.cam_T_tags()[fr, tg]
     dR = R_from_rotvec(rng.normal(0.0, np.radians(opts.noise_r_deg), (len(fr), 3)))

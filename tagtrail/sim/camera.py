@@ -38,8 +38,9 @@ def _undistortion(camera: CameraModel) -> tuple[F64, tuple[float, float, float, 
     hit = _GRIDS.get(key)
     if hit is not None:
         return hit
-    u, v = np.meshgrid(np.arange(camera.width, dtype=np.float64),
-                       np.arange(camera.height, dtype=np.float64))
+    u, v = np.meshgrid(
+        np.arange(camera.width, dtype=np.float64), np.arange(camera.height, dtype=np.float64)
+    )
     px = np.stack([u, v], -1)
     grid = camera.undistort(px)
     back = camera.project(np.concatenate([grid, np.ones_like(u)[..., None]], -1))
@@ -47,10 +48,15 @@ def _undistortion(camera: CameraModel) -> tuple[F64, tuple[float, float, float, 
     if not err < 1e-3:
         raise CameraModelError(
             f"camera distortion {camera.distortion_model} {camera.D.tolist()} is not "
-            f"invertible over the image (residual {err:.3g} px)")
+            f"invertible over the image (residual {err:.3g} px)"
+        )
     grid.setflags(write=False)
-    bounds = (float(grid[..., 0].min()), float(grid[..., 0].max()),
-              float(grid[..., 1].min()), float(grid[..., 1].max()))
+    bounds = (
+        float(grid[..., 0].min()),
+        float(grid[..., 0].max()),
+        float(grid[..., 1].min()),
+        float(grid[..., 1].max()),
+    )
     if len(_GRIDS) >= 8:
         _GRIDS.clear()
     _GRIDS[key] = grid, bounds

@@ -36,75 +36,169 @@ examples:
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     """Add ``tagtrail simulate``'s arguments to ``parser``."""
-    parser.description = ("Render simulated rosbag2 recordings (or observations) among tag36h11 "
-                          "tags, with ground truth in OUT/<recording>/ground_truth/.")
+    parser.description = (
+        "Render simulated rosbag2 recordings (or observations) among tag36h11 "
+        "tags, with ground truth in OUT/<recording>/ground_truth/."
+    )
     parser.epilog = EXAMPLES
     parser.formatter_class = argparse.RawDescriptionHelpFormatter
     a = parser.add_argument
     o = SimOptions  # one default per option: SimOptions'
-    a("scenario", metavar="SCENARIO", choices=(*SCENARIOS, "follow"),
-      help=" | ".join((*SCENARIOS, "follow")))
+    a(
+        "scenario",
+        metavar="SCENARIO",
+        choices=(*SCENARIOS, "follow"),
+        help=" | ".join((*SCENARIOS, "follow")),
+    )
     a("--out", "-o", type=Path, required=True, metavar="DIR", help="output folder")
-    a("--storage", choices=("mcap", "sqlite3"), default=o.storage,
-      help="bag storage (%(default)s)")
+    a("--storage", choices=("mcap", "sqlite3"), default=o.storage, help="bag storage (%(default)s)")
     a("--compressed", action="store_true", help="jpeg CompressedImage instead of raw rgb8")
-    a("--jpeg-quality", type=int, default=o.jpeg_quality, metavar="Q",
-      help="jpeg quality (%(default)s)")
-    a("--detections", action="store_true",
-      help="write /detections (apriltag_msgs) + /camera_info instead of images")
-    a("--seed", type=int, default=o.seed,
-      help="random seed: same seed, same recordings (%(default)s)")
+    a(
+        "--jpeg-quality",
+        type=int,
+        default=o.jpeg_quality,
+        metavar="Q",
+        help="jpeg quality (%(default)s)",
+    )
+    a(
+        "--detections",
+        action="store_true",
+        help="write /detections (apriltag_msgs) + /camera_info instead of images",
+    )
+    a(
+        "--seed",
+        type=int,
+        default=o.seed,
+        help="random seed: same seed, same recordings (%(default)s)",
+    )
     a("--force", action="store_true", help="overwrite existing recordings")
     a("--no-progress", action="store_true", help="no progress bar")
     g = parser.add_argument_group("path and timing")
-    g.add_argument("--frames", type=int, metavar="N",
-                   help="frames of a moving recording (default: path length / speed * fps)")
+    g.add_argument(
+        "--frames",
+        type=int,
+        metavar="N",
+        help="frames of a moving recording (default: path length / speed * fps)",
+    )
     g.add_argument("--fps", type=float, default=o.fps, help="frame rate (%(default)s)")
-    g.add_argument("--speed", type=float, default=o.speed_mps, metavar="M_S",
-                   help="speed, m/s (%(default)s)")
-    g.add_argument("--query-frames", type=int, default=o.query_frames, metavar="N",
-                   help="frames of each parked query recording (%(default)s)")
+    g.add_argument(
+        "--speed", type=float, default=o.speed_mps, metavar="M_S", help="speed, m/s (%(default)s)"
+    )
+    g.add_argument(
+        "--query-frames",
+        type=int,
+        default=o.query_frames,
+        metavar="N",
+        help="frames of each parked query recording (%(default)s)",
+    )
     g = parser.add_argument_group("tags and camera")
-    g.add_argument("--tag-size", type=float, default=o.tag_size_m, metavar="M",
-                   help="edge of the black square, m (%(default)s: the pipeline's pnp.tag_size)")
+    g.add_argument(
+        "--tag-size",
+        type=float,
+        default=o.tag_size_m,
+        metavar="M",
+        help="edge of the black square, m (%(default)s: the pipeline's pnp.tag_size)",
+    )
     g.add_argument("--tag-sizes", metavar="ID=M,...", help="per-id sizes, e.g. 0=0.2,5=0.1")
-    g.add_argument("--tag-ids", metavar="IDS",
-                   help="relabel the tags in layout order: 10-33 or 1,4,7")
+    g.add_argument(
+        "--tag-ids", metavar="IDS", help="relabel the tags in layout order: 10-33 or 1,4,7"
+    )
     g.add_argument("--anchor", type=int, metavar="ID", help="anchor tag (default: first tag)")
     g.add_argument("--size", metavar="WxH", help="image size; the LIMO lens scaled (640x480)")
     g = parser.add_argument_group("noise and realism")
-    g.add_argument("--noise-t", type=float, default=o.noise_t_m, metavar="M",
-                   help="observations: translation noise std per axis, m (paper: 0.10)")
-    g.add_argument("--noise-r-deg", type=float, default=o.noise_r_deg, metavar="DEG",
-                   help="observations: rotation noise std per axis, degrees")
-    g.add_argument("--corner-noise", type=float, default=o.corner_noise_px, metavar="PX",
-                   help="--detections: corner noise std, px (%(default)s)")
-    g.add_argument("--max-range", type=float, default=o.max_range_m, metavar="M",
-                   help="detections/observations: farthest tag reported, m (%(default)s)")
+    g.add_argument(
+        "--noise-t",
+        type=float,
+        default=o.noise_t_m,
+        metavar="M",
+        help="observations: translation noise std per axis, m (paper: 0.10)",
+    )
+    g.add_argument(
+        "--noise-r-deg",
+        type=float,
+        default=o.noise_r_deg,
+        metavar="DEG",
+        help="observations: rotation noise std per axis, degrees",
+    )
+    g.add_argument(
+        "--corner-noise",
+        type=float,
+        default=o.corner_noise_px,
+        metavar="PX",
+        help="--detections: corner noise std, px (%(default)s)",
+    )
+    g.add_argument(
+        "--max-range",
+        type=float,
+        default=o.max_range_m,
+        metavar="M",
+        help="detections/observations: farthest tag reported, m (%(default)s)",
+    )
     r = Realism()
     f = parser.add_argument_group("follow (closed loop; docs/FOLLOW.md)")
-    f.add_argument("--reference", type=Path, default=None,
-                   help="trajectory to follow, in the scene's world (default: the figure eight's "
-                   "ground truth)")
-    f.add_argument("--start-offset", type=float, default=0.3, metavar="M",
-                   help="start this far left of the reference's start (%(default)s)")
-    f.add_argument("--start-heading", type=float, default=30.0, metavar="DEG",
-                   help="start turned this far left of the reference (%(default)s)")
-    f.add_argument("--blackout", type=float, default=0.0, metavar="S",
-                   help="no tag in view for S seconds from mid-path (%(default)s)")
-    f.add_argument("--law", choices=("stanley", "pure_pursuit"), default="stanley",
-                   help="stream follow's control law (%(default)s)")
-    f.add_argument("--images", action="store_true",
-                   help="render 640x480 images (stream localize detects the tags) instead of "
-                   "publishing detections")
-    g.add_argument("--image-noise", type=float, default=r.noise_sigma, metavar="DN",
-                   help=f"sensor noise std, grey levels ({r.noise_sigma})")
-    g.add_argument("--blur", type=float, default=r.blur_sigma, metavar="PX",
-                   help=f"Gaussian blur sigma, px ({r.blur_sigma})")
+    f.add_argument(
+        "--reference",
+        type=Path,
+        default=None,
+        help="trajectory to follow, in the scene's world (default: the figure eight's "
+        "ground truth)",
+    )
+    f.add_argument(
+        "--start-offset",
+        type=float,
+        default=0.3,
+        metavar="M",
+        help="start this far left of the reference's start (%(default)s)",
+    )
+    f.add_argument(
+        "--start-heading",
+        type=float,
+        default=30.0,
+        metavar="DEG",
+        help="start turned this far left of the reference (%(default)s)",
+    )
+    f.add_argument(
+        "--blackout",
+        type=float,
+        default=0.0,
+        metavar="S",
+        help="no tag in view for S seconds from mid-path (%(default)s)",
+    )
+    f.add_argument(
+        "--law",
+        choices=("stanley", "pure_pursuit"),
+        default="stanley",
+        help="stream follow's control law (%(default)s)",
+    )
+    f.add_argument(
+        "--images",
+        action="store_true",
+        help="render 640x480 images (stream localize detects the tags) instead of "
+        "publishing detections",
+    )
+    g.add_argument(
+        "--image-noise",
+        type=float,
+        default=r.noise_sigma,
+        metavar="DN",
+        help=f"sensor noise std, grey levels ({r.noise_sigma})",
+    )
+    g.add_argument(
+        "--blur",
+        type=float,
+        default=r.blur_sigma,
+        metavar="PX",
+        help=f"Gaussian blur sigma, px ({r.blur_sigma})",
+    )
     g.add_argument("--exposure", type=float, default=r.exposure, help="exposure gain (1.0)")
     g.add_argument("--contrast", type=float, default=r.contrast, help="contrast (1.0)")
-    g.add_argument("--exposure-jitter", type=float, default=r.exposure_jitter, metavar="REL",
-                   help=f"slow exposure drift, relative std ({r.exposure_jitter})")
+    g.add_argument(
+        "--exposure-jitter",
+        type=float,
+        default=r.exposure_jitter,
+        metavar="REL",
+        help=f"slow exposure drift, relative std ({r.exposure_jitter})",
+    )
 
 
 def _int_list(text: str) -> tuple[int, ...]:
@@ -134,11 +228,21 @@ def _sizes(text: str) -> dict[int, float]:
 
 MAX_SIDE_PX = 8192  # the live node's limit on an image's side, too
 RANGES: tuple[tuple[str, float, float], ...] = (  # a value outside: one error line
-    ("--frames", 1, 1_000_000), ("--query-frames", 1, 1_000_000), ("--fps", 0.01, 1000.0),
-    ("--speed", 1e-3, 100.0), ("--tag-size", 1e-3, 10.0), ("--jpeg-quality", 0, 100),
-    ("--noise-t", 0.0, 10.0), ("--noise-r-deg", 0.0, 180.0), ("--corner-noise", 0.0, 100.0),
-    ("--max-range", 0.01, 1000.0), ("--image-noise", 0.0, 255.0), ("--blur", 0.0, 100.0),
-    ("--exposure", 0.0, 100.0), ("--contrast", 0.0, 100.0), ("--exposure-jitter", 0.0, 10.0),
+    ("--frames", 1, 1_000_000),
+    ("--query-frames", 1, 1_000_000),
+    ("--fps", 0.01, 1000.0),
+    ("--speed", 1e-3, 100.0),
+    ("--tag-size", 1e-3, 10.0),
+    ("--jpeg-quality", 0, 100),
+    ("--noise-t", 0.0, 10.0),
+    ("--noise-r-deg", 0.0, 180.0),
+    ("--corner-noise", 0.0, 100.0),
+    ("--max-range", 0.01, 1000.0),
+    ("--image-noise", 0.0, 255.0),
+    ("--blur", 0.0, 100.0),
+    ("--exposure", 0.0, 100.0),
+    ("--contrast", 0.0, 100.0),
+    ("--exposure-jitter", 0.0, 10.0),
 )
 
 
@@ -153,26 +257,38 @@ def options_from_args(args: argparse.Namespace) -> dict[str, Any]:
         if width < 16 or height < 16:
             raise SpecError(f"--size: {args.size} is too small (at least 16x16)")
         if width > MAX_SIDE_PX or height > MAX_SIDE_PX:
-            raise SpecError(f"--size: {args.size[:40]} is too large (at most {MAX_SIDE_PX} px a "
-                            "side)")
+            raise SpecError(
+                f"--size: {args.size[:40]} is too large (at most {MAX_SIDE_PX} px a side)"
+            )
         camera = camera.scaled(width, height)
     for flag, lo, hi in RANGES:
         v = getattr(args, flag.removeprefix("--").replace("-", "_"))
         if v is not None and not (lo <= v <= hi):  # NaN fails too
             raise SpecError(f"{flag}: {v:g} is out of range ({lo:g} to {hi:g})")
     return {
-        "storage": args.storage, "compressed": args.compressed, "jpeg_quality": args.jpeg_quality,
-        "detections": args.detections, "seed": args.seed, "force": args.force,
+        "storage": args.storage,
+        "compressed": args.compressed,
+        "jpeg_quality": args.jpeg_quality,
+        "detections": args.detections,
+        "seed": args.seed,
+        "force": args.force,
         "progress": not args.no_progress and sys.stderr.isatty(),
-        "frames": args.frames, "fps": args.fps, "speed_mps": args.speed,
-        "query_frames": args.query_frames, "tag_size_m": args.tag_size,
+        "frames": args.frames,
+        "fps": args.fps,
+        "speed_mps": args.speed,
+        "query_frames": args.query_frames,
+        "tag_size_m": args.tag_size,
         "tag_sizes_m": _sizes(args.tag_sizes) if args.tag_sizes else {},
         "tag_ids": _int_list(args.tag_ids) if args.tag_ids else None,
-        "anchor_id": args.anchor, "camera": camera,
-        "noise_t_m": args.noise_t, "noise_r_deg": args.noise_r_deg,
-        "corner_noise_px": args.corner_noise, "max_range_m": args.max_range,
-        "realism": Realism(args.image_noise, args.blur, args.exposure, args.contrast,
-                           args.exposure_jitter),
+        "anchor_id": args.anchor,
+        "camera": camera,
+        "noise_t_m": args.noise_t,
+        "noise_r_deg": args.noise_r_deg,
+        "corner_noise_px": args.corner_noise,
+        "max_range_m": args.max_range,
+        "realism": Realism(
+            args.image_noise, args.blur, args.exposure, args.contrast, args.exposure_jitter
+        ),
     }
 
 
@@ -201,13 +317,23 @@ def _follow(args: argparse.Namespace) -> int:
         raise SpecError("follow: --speed must be in (0, 1] m/s and --blackout >= 0")
     if (args.out / "follow_summary.json").exists() and not args.force:
         raise SpecError(f"{args.out} holds a follow run already; use --force to overwrite it")
-    s = run(args.out, reference=args.reference, start_offset_m=args.start_offset,
-            start_heading_deg=args.start_heading, speed_mps=args.speed,
-            blackout_s=args.blackout, seed=args.seed, law=args.law, images=args.images)
+    s = run(
+        args.out,
+        reference=args.reference,
+        start_offset_m=args.start_offset,
+        start_heading_deg=args.start_heading,
+        speed_mps=args.speed,
+        blackout_s=args.blackout,
+        seed=args.seed,
+        law=args.law,
+        images=args.images,
+    )
     keys = ("converged_s", "cross_track_rms_m", "cross_track_max_m", "completed")
     print(json.dumps({k: s[k] for k in keys}))
-    print(f"follow: {args.out / 'follow.csv'}, {args.out / 'follow_summary.json'}, "
-          f"{args.out / 'follow.png'}")
+    print(
+        f"follow: {args.out / 'follow.csv'}, {args.out / 'follow_summary.json'}, "
+        f"{args.out / 'follow.png'}"
+    )
     return 0
 
 

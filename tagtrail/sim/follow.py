@@ -64,8 +64,9 @@ from tagtrail.stream.follow import decode_twist
 from tagtrail.stream.session import make_config
 
 PLANE = "xz"  # the floor of the anchor's frame (world y up: n = −y points down)
-COLUMNS = ("t_s,x,y,yaw_rad,true_cross_track_m,cross_track_m,distance_m,heading_error_deg,"
-           "v_mps,omega_rps")
+COLUMNS = (
+    "t_s,x,y,yaw_rad,true_cross_track_m,cross_track_m,distance_m,heading_error_deg,v_mps,omega_rps"
+)
 CONVERGED_M = 0.05
 IMAGE_KEY, IMAGE_INFO_KEY = "camera/color/image_raw", "camera/color/camera_info"  # the LIMO's
 SETTLE_S = 5.0  # the issue's allowance to converge: RMS and max are taken after it
@@ -84,10 +85,12 @@ def eight_scene(opts: SimOptions) -> Scene:
     """The reference recording: the figure eight driven at ``opts.speed_mps``, ``opts.fps``."""
     poses_: list[np.ndarray] = []
     for x in np.arange(-2.45, 2.5, 0.7):  # long walls, 8 tags each
-        poses_.append(upright_pose(np.array([x, 1.8, 0.30 + 0.08 * (len(poses_) % 3)]),
-                                   np.array([0.0, -1.0])))  # fmt: skip
-        poses_.append(upright_pose(np.array([x, -1.8, 0.30 + 0.08 * (len(poses_) % 3)]),
-                                   np.array([0.0, 1.0])))  # fmt: skip
+        poses_.append(
+            upright_pose(np.array([x, 1.8, 0.30 + 0.08 * (len(poses_) % 3)]), np.array([0.0, -1.0]))
+        )
+        poses_.append(
+            upright_pose(np.array([x, -1.8, 0.30 + 0.08 * (len(poses_) % 3)]), np.array([0.0, 1.0]))
+        )
     for y in np.arange(-1.2, 1.21, 0.6):  # short walls, 5 tags each
         poses_.append(upright_pose(np.array([3.0, y, 0.34]), np.array([-1.0, 0.0])))
         poses_.append(upright_pose(np.array([-3.0, y, 0.38]), np.array([1.0, 0.0])))
@@ -96,10 +99,22 @@ def eight_scene(opts: SimOptions) -> Scene:
     _, _, length = resample_path(poly, 2, False)
     n = max(2, int(round(length / opts.speed_mps * opts.fps)))
     xy, yaw, _ = resample_path(poly, n, False)
-    info = {"scenario": "follow", "path": "figure eight (lemniscate, a = 1.8 m)",
-            "path_length_m": length, "frames": n}
-    return Scene("reference", opts.camera, tags, box_walls(-3.0, -1.8, 3.0, 1.8, 2.5), anchor,
-                 scene_T_cam_planar(xy, yaw, opts.mount), stamps_ns(n, opts.fps), info=info)
+    info = {
+        "scenario": "follow",
+        "path": "figure eight (lemniscate, a = 1.8 m)",
+        "path_length_m": length,
+        "frames": n,
+    }
+    return Scene(
+        "reference",
+        opts.camera,
+        tags,
+        box_walls(-3.0, -1.8, 3.0, 1.8, 2.5),
+        anchor,
+        scene_T_cam_planar(xy, yaw, opts.mount),
+        stamps_ns(n, opts.fps),
+        info=info,
+    )
 
 
 def _port() -> int:
@@ -113,9 +128,14 @@ class _Proc:
 
     def __init__(self, args: list[str], cwd: Path) -> None:
         env = {**os.environ, "PYTHONUNBUFFERED": "1"}
-        self.p = subprocess.Popen([sys.executable, "-m", "tagtrail.stream.cli", *args], cwd=cwd,
-                                  env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
-                                  text=True)  # fmt: skip
+        self.p = subprocess.Popen(
+            [sys.executable, "-m", "tagtrail.stream.cli", *args],
+            cwd=cwd,
+            env=env,
+            stdout=subprocess.PIPE,
+            stderr=subprocess.STDOUT,
+            text=True,
+        )
         self.lines: list[str] = []
         threading.Thread(target=self._read, daemon=True).start()
 
@@ -165,11 +185,19 @@ class _Truth:
         return m.cross_track_m, m.progress_m
 
 
-def run(out: Path, *, reference: Path | None = None, start_offset_m: float = 0.3,
-        start_heading_deg: float = 30.0, speed_mps: float = 0.3, blackout_s: float = 0.0,
-        seed: int = 0, law: str = "stanley", images: bool = False,
-        max_time_s: float | None = None,
-        ) -> dict[str, Any]:  # fmt: skip
+def run(
+    out: Path,
+    *,
+    reference: Path | None = None,
+    start_offset_m: float = 0.3,
+    start_heading_deg: float = 30.0,
+    speed_mps: float = 0.3,
+    blackout_s: float = 0.0,
+    seed: int = 0,
+    law: str = "stanley",
+    images: bool = False,
+    max_time_s: float | None = None,
+) -> dict[str, Any]:
     """Run the closed loop (module docstring); returns the summary written to
     ``out/follow_summary.json``."""
     out = Path(out)
@@ -184,7 +212,8 @@ def run(out: Path, *, reference: Path | None = None, start_offset_m: float = 0.3
     # the start: the reference's first base pose, start_offset_m to its left, turned left
     yaw0 = float(math.atan2(scene.scene_T_cam[0, 1, 2], scene.scene_T_cam[0, 0, 2]))
     p0 = scene.scene_T_cam[0, :2, 3] - opts.mount.forward_m * np.array(
-        [math.cos(yaw0), math.sin(yaw0)])  # fmt: skip
+        [math.cos(yaw0), math.sin(yaw0)]
+    )
     left = np.array([-math.sin(yaw0), math.cos(yaw0)])
     x0, y0 = (p0 + start_offset_m * left).tolist()
     kin = limo.Kinematics(x=x0, y=y0, yaw=yaw0 + math.radians(start_heading_deg))
@@ -230,18 +259,73 @@ def run(out: Path, *, reference: Path | None = None, start_offset_m: float = 0.3
     session_b = None
     try:
         common = ["--stats-period", "0"]
-        inputs = (["--image-key", IMAGE_KEY, "--image-type", "raw", "--camera-info-key",
-                   IMAGE_INFO_KEY] if images else [])  # fmt: skip
-        procs.append(_Proc(["localize", "--map", str(gt), "--tag-size", str(opts.tag_size_m),
-                            *inputs, "--listen", ep[1], "--connect", ep[0], *common], out))
+        inputs = (
+            ["--image-key", IMAGE_KEY, "--image-type", "raw", "--camera-info-key", IMAGE_INFO_KEY]
+            if images
+            else []
+        )
+        procs.append(
+            _Proc(
+                [
+                    "localize",
+                    "--map",
+                    str(gt),
+                    "--tag-size",
+                    str(opts.tag_size_m),
+                    *inputs,
+                    "--listen",
+                    ep[1],
+                    "--connect",
+                    ep[0],
+                    *common,
+                ],
+                out,
+            )
+        )
         procs[-1].wait_for("localize: ready")
-        procs.append(_Proc(["relocalize", "--reference", str(ref), "--plane", PLANE,
-                            "--listen", ep[2], "--connect", ep[1], "--path-period", "0",
-                            *common], out))  # fmt: skip
+        procs.append(
+            _Proc(
+                [
+                    "relocalize",
+                    "--reference",
+                    str(ref),
+                    "--plane",
+                    PLANE,
+                    "--listen",
+                    ep[2],
+                    "--connect",
+                    ep[1],
+                    "--path-period",
+                    "0",
+                    *common,
+                ],
+                out,
+            )
+        )
         procs[-1].wait_for("relocalize: ready")
-        procs.append(_Proc(["follow", "--profile", "limo", "--reference", str(ref), "--plane",
-                            PLANE, "--speed", str(speed_mps), "--law", law, "--connect", ep[2],
-                            "--connect", ep[0], *common], out))  # fmt: skip
+        procs.append(
+            _Proc(
+                [
+                    "follow",
+                    "--profile",
+                    "limo",
+                    "--reference",
+                    str(ref),
+                    "--plane",
+                    PLANE,
+                    "--speed",
+                    str(speed_mps),
+                    "--law",
+                    law,
+                    "--connect",
+                    ep[2],
+                    "--connect",
+                    ep[0],
+                    *common,
+                ],
+                out,
+            )
+        )
         procs[-1].wait_for("follow: ready")
         session_b = zenoh.open(make_config("peer", connect=[ep[2]]))
         subs.append(session_b.declare_subscriber("relocalization/state", on_state))
@@ -281,9 +365,20 @@ def run(out: Path, *, reference: Path | None = None, start_offset_m: float = 0.3
                 with lock:
                     s = dict(state)
                     c = list(cmd)
-                rows.append((t_sim, kin.x, kin.y, kin.yaw, ct,
-                             *(float(s.get(k, math.nan)) for k in
-                               ("cross_track_m", "distance_m", "heading_error_deg")), *c))
+                rows.append(
+                    (
+                        t_sim,
+                        kin.x,
+                        kin.y,
+                        kin.yaw,
+                        ct,
+                        *(
+                            float(s.get(k, math.nan))
+                            for k in ("cross_track_m", "distance_m", "heading_error_deg")
+                        ),
+                        *c,
+                    )
+                )
             if prog >= truth.length - 0.15 and abs(kin.v) < 0.005:
                 if math.isnan(t_end_seen):
                     t_end_seen = t_sim
@@ -303,32 +398,56 @@ def run(out: Path, *, reference: Path | None = None, start_offset_m: float = 0.3
             session_b.close()  # type: ignore[no-untyped-call]
         session.close()  # type: ignore[no-untyped-call]
     data = np.array(rows, dtype=np.float64).reshape(-1, 10)
-    summary = _summary(data, completed, truth.length, lat, blackout_s, blind_from,
-                       "images" if images else "detections")
-    summary["nodes"] = {n: {"exit": c, "stats": p.stats()} for n, c, p in
-                        zip(("localize", "relocalize", "follow"), codes, procs, strict=False)}
-    summary["params"] = {"start_offset_m": start_offset_m, "start_heading_deg": start_heading_deg,
-                         "speed_mps": speed_mps, "blackout_s": blackout_s, "seed": seed,
-                         "law": law, "reference": str(ref), "plane": PLANE,
-                         "input": "images" if images else "detections"}  # fmt: skip
+    summary = _summary(
+        data,
+        completed,
+        truth.length,
+        lat,
+        blackout_s,
+        blind_from,
+        "images" if images else "detections",
+    )
+    summary["nodes"] = {
+        n: {"exit": c, "stats": p.stats()}
+        for n, c, p in zip(("localize", "relocalize", "follow"), codes, procs, strict=False)
+    }
+    summary["params"] = {
+        "start_offset_m": start_offset_m,
+        "start_heading_deg": start_heading_deg,
+        "speed_mps": speed_mps,
+        "blackout_s": blackout_s,
+        "seed": seed,
+        "law": law,
+        "reference": str(ref),
+        "plane": PLANE,
+        "input": "images" if images else "detections",
+    }
     summary = dict(_rounded(summary))
-    np.savetxt(out / "follow.csv", data, delimiter=",", header=COLUMNS, comments="",
-               fmt="%.6f")
+    np.savetxt(out / "follow.csv", data, delimiter=",", header=COLUMNS, comments="", fmt="%.6f")
     atomic_write_text(out / "follow_summary.json", json.dumps(summary, indent=2) + "\n")
     _plot(out / "follow.png", data, scene, summary)
     return summary
 
 
-def _summary(d: np.ndarray, completed: bool, length: float, lat: list[float],
-             blackout_s: float, blind_from: float, inputs: str) -> dict[str, Any]:  # fmt: skip
+def _summary(
+    d: np.ndarray,
+    completed: bool,
+    length: float,
+    lat: list[float],
+    blackout_s: float,
+    blind_from: float,
+    inputs: str,
+) -> dict[str, Any]:
     t, x, y, ct = d[:, 0], d[:, 1], d[:, 2], np.abs(d[:, 4])
     inside = np.nonzero(ct < CONVERGED_M)[0]
     conv = float(t[inside[0]]) if len(inside) else None
 
     def stats(sel: np.ndarray) -> dict[str, float | None]:
         v = ct[sel]
-        return {"rms_m": float(np.sqrt(np.mean(v**2))) if len(v) else None,
-                "max_m": float(v.max()) if len(v) else None}  # fmt: skip
+        return {
+            "rms_m": float(np.sqrt(np.mean(v**2))) if len(v) else None,
+            "max_m": float(v.max()) if len(v) else None,
+        }
 
     settled = t >= max(SETTLE_S, conv if conv is not None else math.inf)
     lat_ms = np.array(lat) * 1e3
@@ -344,16 +463,22 @@ def _summary(d: np.ndarray, completed: bool, length: float, lat: list[float],
         "crossing": stats(crossing),
         "duration_s": float(t[-1]) if len(t) else 0.0,
         "path_length_m": length,
-        "measured_minus_true_cross_track_rms_m": float(np.sqrt(np.nanmean(
-            (d[settled, 5] - d[settled, 4]) ** 2))) if settled.any() else None,  # fmt: skip
+        "measured_minus_true_cross_track_rms_m": float(
+            np.sqrt(np.nanmean((d[settled, 5] - d[settled, 4]) ** 2))
+        )
+        if settled.any()
+        else None,
         f"latency_{inputs}_to_twist_ms": {
             "n": int(len(lat_ms)),
             "p50": float(np.percentile(lat_ms, 50)) if len(lat_ms) else None,
-            "p99": float(np.percentile(lat_ms, 99)) if len(lat_ms) else None},
+            "p99": float(np.percentile(lat_ms, 99)) if len(lat_ms) else None,
+        },
     }
     if blackout_s > 0:
-        out["blackout"] = {"from_s": None if math.isnan(blind_from) else blind_from,
-                           "s": blackout_s}
+        out["blackout"] = {
+            "from_s": None if math.isnan(blind_from) else blind_from,
+            "s": blackout_s,
+        }
     return out
 
 
@@ -379,11 +504,12 @@ def _plot(path: Path, d: np.ndarray, scene: Scene, summary: dict[str, Any]) -> N
     a.plot(cam[:1, 0], cam[:1, 1], "C0o")
     a.set_aspect("equal")
     a.legend(loc="upper right")
-    conv, rms, mx = (summary[k] for k in ("converged_s", "cross_track_rms_m",
-                                           "cross_track_max_m"))  # fmt: skip
-    a.set_title(f"converged {conv if conv is None else round(conv, 2)} s, after {SETTLE_S:g} s: "
-                f"RMS {rms if rms is None else round(rms * 100, 2)} cm, max "
-                f"{mx if mx is None else round(mx * 100, 2)} cm, completed {summary['completed']}")
+    conv, rms, mx = (summary[k] for k in ("converged_s", "cross_track_rms_m", "cross_track_max_m"))
+    a.set_title(
+        f"converged {conv if conv is None else round(conv, 2)} s, after {SETTLE_S:g} s: "
+        f"RMS {rms if rms is None else round(rms * 100, 2)} cm, max "
+        f"{mx if mx is None else round(mx * 100, 2)} cm, completed {summary['completed']}"
+    )
     b.plot(d[:, 0], d[:, 4] * 100, label="true cross-track")
     b.plot(d[:, 0], d[:, 5] * 100, lw=0.8, label="measured (relocalize)")
     b.axhline(5, color="grey", ls=":")

@@ -69,13 +69,15 @@ class Kinematics:
         a = min(1.0, dt / self.tau_s)
         self.v += a * (v_c - self.v)
         self.omega += a * (w_c - self.omega)
-        self.omega = max(-abs(self.v) / MIN_TURN_RADIUS_M,
-                         min(abs(self.v) / MIN_TURN_RADIUS_M, self.omega))  # fmt: skip
+        self.omega = max(
+            -abs(self.v) / MIN_TURN_RADIUS_M, min(abs(self.v) / MIN_TURN_RADIUS_M, self.omega)
+        )
         mid = self.yaw + 0.5 * self.omega * dt
         self.x += self.v * math.cos(mid) * dt
         self.y += self.v * math.sin(mid) * dt
-        self.yaw = math.atan2(math.sin(self.yaw + self.omega * dt),
-                              math.cos(self.yaw + self.omega * dt))  # fmt: skip
+        self.yaw = math.atan2(
+            math.sin(self.yaw + self.omega * dt), math.cos(self.yaw + self.omega * dt)
+        )
 
 
 @dataclass
@@ -103,8 +105,9 @@ class WheelOdometry:
         vl, vr = v - omega * TRACK_M / 2, v + omega * TRACK_M / 2
         ml, mr = vl * self.scale_l, vr * self.scale_r
         self.v = (ml + mr) / 2
-        self.omega = ((mr - ml) / TRACK_M * (1.0 + self.slip_per_mps2 * abs(v * omega))
-                      + self.drift_rps)  # fmt: skip
+        self.omega = (mr - ml) / TRACK_M * (
+            1.0 + self.slip_per_mps2 * abs(v * omega)
+        ) + self.drift_rps
         mid = self.yaw + 0.5 * self.omega * dt
         self.x += self.v * math.cos(mid) * dt
         self.y += self.v * math.sin(mid) * dt
@@ -116,15 +119,20 @@ class WheelOdometry:
         V3, Q = t["geometry_msgs/msg/Vector3"], t["geometry_msgs/msg/Quaternion"]
         pose = t["geometry_msgs/msg/Pose"](
             position=t["geometry_msgs/msg/Point"](self.x, self.y, 0.0),
-            orientation=Q(0.0, 0.0, math.sin(self.yaw / 2), math.cos(self.yaw / 2)))
+            orientation=Q(0.0, 0.0, math.sin(self.yaw / 2), math.cos(self.yaw / 2)),
+        )
         cov = np.diag([1e-3, 1e-3, 1e6, 1e6, 1e6, 1e-2]).reshape(-1)  # the LIMO's placeholder
         msg = t["nav_msgs/msg/Odometry"](
-            header=bagwrite._header(stamp_ns, "odom"), child_frame_id="base_link",
+            header=bagwrite._header(stamp_ns, "odom"),
+            child_frame_id="base_link",
             pose=t["geometry_msgs/msg/PoseWithCovariance"](pose=pose, covariance=cov),
             twist=t["geometry_msgs/msg/TwistWithCovariance"](
-                twist=t["geometry_msgs/msg/Twist"](linear=V3(self.v, 0.0, 0.0),
-                                                   angular=V3(0.0, 0.0, self.omega)),
-                covariance=cov))  # fmt: skip
+                twist=t["geometry_msgs/msg/Twist"](
+                    linear=V3(self.v, 0.0, 0.0), angular=V3(0.0, 0.0, self.omega)
+                ),
+                covariance=cov,
+            ),
+        )
         return bytes(msgs.typestore().serialize_cdr(msg, "nav_msgs/msg/Odometry"))
 
 
@@ -133,34 +141,63 @@ def camera_pose(scene: Scene, x: float, y: float, yaw: float) -> F64:
     return np.asarray(scene_T_cam_planar(np.array([[x, y]]), np.array([yaw]))[0])
 
 
-def detections(scene: Scene, scene_T_cam: F64, stamp_ns: int, opts: SimOptions,
-               rng: np.random.Generator, blind: bool = False,
-               ) -> tuple[bytes, bytes, int]:  # fmt: skip
+def detections(
+    scene: Scene,
+    scene_T_cam: F64,
+    stamp_ns: int,
+    opts: SimOptions,
+    rng: np.random.Generator,
+    blind: bool = False,
+) -> tuple[bytes, bytes, int]:
     """CDR ``(AprilTagDetectionArray, CameraInfo, number of tags)`` of one frame; ``blind``:
     no tag in view (an empty array, as apriltag_ros publishes)."""
-    one = Scene(scene.name, scene.camera, scene.tags, scene.walls, scene.anchor_id,
-                scene_T_cam[None], np.array([stamp_ns]))  # fmt: skip
+    one = Scene(
+        scene.name,
+        scene.camera,
+        scene.tags,
+        scene.walls,
+        scene.anchor_id,
+        scene_T_cam[None],
+        np.array([stamp_ns]),
+    )
     vis, corners, margins = bagwrite.synth_detections(one, opts, rng)
     sel = vis.visible[0] & (not blind)
     ts = msgs.typestore()
-    det = bagwrite.detections_msg(stamp_ns, FRAME_ID, one.tag_ids[sel], corners[0, sel],
-                                  margins[0, sel])  # fmt: skip
+    det = bagwrite.detections_msg(
+        stamp_ns, FRAME_ID, one.tag_ids[sel], corners[0, sel], margins[0, sel]
+    )
     info = bagwrite.camera_info_msg(one, stamp_ns)
-    return (bytes(ts.serialize_cdr(det, msgs.DETECTIONS)),
-            bytes(ts.serialize_cdr(info, msgs.CAMERA_INFO)), int(sel.sum()))
+    return (
+        bytes(ts.serialize_cdr(det, msgs.DETECTIONS)),
+        bytes(ts.serialize_cdr(info, msgs.CAMERA_INFO)),
+        int(sel.sum()),
+    )
 
 
-def image(renderer: Renderer, scene: Scene, scene_T_cam: F64, stamp_ns: int,
-          rng: np.random.Generator, blind: bool = False) -> tuple[bytes, bytes]:  # fmt: skip
+def image(
+    renderer: Renderer,
+    scene: Scene,
+    scene_T_cam: F64,
+    stamp_ns: int,
+    rng: np.random.Generator,
+    blind: bool = False,
+) -> tuple[bytes, bytes]:
     """CDR ``(sensor_msgs/msg/Image rgb8, CameraInfo)`` of one rendered frame (the renderer of
     ``tagtrail simulate``); ``blind``: a black frame (the lens covered: no tag in view)."""
     c = scene.camera
-    rgb = (np.zeros((c.height, c.width, 3), np.uint8) if blind
-           else renderer.render(scene_T_cam, rng))  # fmt: skip
+    rgb = np.zeros((c.height, c.width, 3), np.uint8) if blind else renderer.render(scene_T_cam, rng)
     h, w = rgb.shape[:2]
-    msg = bagwrite._t(msgs.IMAGE)(header=bagwrite._header(stamp_ns, FRAME_ID), height=h, width=w,
-                                  encoding="rgb8", is_bigendian=0, step=3 * w,
-                                  data=rgb.reshape(-1))  # fmt: skip
+    msg = bagwrite._t(msgs.IMAGE)(
+        header=bagwrite._header(stamp_ns, FRAME_ID),
+        height=h,
+        width=w,
+        encoding="rgb8",
+        is_bigendian=0,
+        step=3 * w,
+        data=rgb.reshape(-1),
+    )
     ts = msgs.typestore()
-    return (bytes(ts.serialize_cdr(msg, msgs.IMAGE)),
-            bytes(ts.serialize_cdr(bagwrite.camera_info_msg(scene, stamp_ns), msgs.CAMERA_INFO)))
+    return (
+        bytes(ts.serialize_cdr(msg, msgs.IMAGE)),
+        bytes(ts.serialize_cdr(bagwrite.camera_info_msg(scene, stamp_ns), msgs.CAMERA_INFO)),
+    )

@@ -51,14 +51,22 @@ class Realism:
     exposure_jitter: float = 0.03
 
     def __post_init__(self) -> None:
-        bad = [flag for flag, ok in (
-            ("--image-noise", self.noise_sigma >= 0), ("--blur", self.blur_sigma >= 0),
-            ("--exposure", self.exposure > 0), ("--contrast", self.contrast > 0),
-            ("--exposure-jitter", 0 <= self.exposure_jitter < 1),
-        ) if not ok]
+        bad = [
+            flag
+            for flag, ok in (
+                ("--image-noise", self.noise_sigma >= 0),
+                ("--blur", self.blur_sigma >= 0),
+                ("--exposure", self.exposure > 0),
+                ("--contrast", self.contrast > 0),
+                ("--exposure-jitter", 0 <= self.exposure_jitter < 1),
+            )
+            if not ok
+        ]
         if bad:
-            raise SpecError(f"invalid image realism option(s): {', '.join(bad)} "
-                            "(noise and blur >= 0, exposure and contrast > 0, jitter in [0, 1))")
+            raise SpecError(
+                f"invalid image realism option(s): {', '.join(bad)} "
+                "(noise and blur >= 0, exposure and contrast > 0, jitter in [0, 1))"
+            )
 
 
 def tag_bits(tag_id: int) -> np.ndarray:
@@ -176,21 +184,34 @@ class Renderer:
         tex = self._texture(int(self._ids[k]), level)
         n, s = tex.shape[0], self._outer[k]
         # texture pixel (u, v) -> tag plane (x, y) -> ideal canvas pixel (ROI-relative)
-        A = np.array([[s / n, 0.0, s / (2 * n) - s / 2], [0.0, -s / n, s / 2 - s / (2 * n)],
-                      [0.0, 0.0, 1.0]])
+        A = np.array(
+            [[s / n, 0.0, s / (2 * n) - s / 2], [0.0, -s / n, s / 2 - s / (2 * n)], [0.0, 0.0, 1.0]]
+        )
         Hp = self.K_ideal @ np.column_stack([cam_T_tag[:3, 0], cam_T_tag[:3, 1], cam_T_tag[:3, 3]])
         roi_shift = np.array([[1.0, 0.0, -x0], [0.0, 1.0, -y0], [0.0, 0.0, 1.0]])
         M = roi_shift @ Hp @ A
         roi = canvas[y0:y1, x0:x1]
         if not clipped:
-            cv2.warpPerspective(tex, M, (x1 - x0, y1 - y0), dst=roi, flags=cv2.INTER_LINEAR,
-                                borderMode=cv2.BORDER_TRANSPARENT)
+            cv2.warpPerspective(
+                tex,
+                M,
+                (x1 - x0, y1 - y0),
+                dst=roi,
+                flags=cv2.INTER_LINEAR,
+                borderMode=cv2.BORDER_TRANSPARENT,
+            )
             return
         # Part of the tag is behind the near plane: rays of ROI pixels outside the clipped
         # polygon hit the tag plane behind the camera, so mask them out.
         tmp = roi.copy()
-        cv2.warpPerspective(tex, M, (x1 - x0, y1 - y0), dst=tmp, flags=cv2.INTER_LINEAR,
-                            borderMode=cv2.BORDER_TRANSPARENT)
+        cv2.warpPerspective(
+            tex,
+            M,
+            (x1 - x0, y1 - y0),
+            dst=tmp,
+            flags=cv2.INTER_LINEAR,
+            borderMode=cv2.BORDER_TRANSPARENT,
+        )
         mask = np.zeros_like(roi)
         cv2.fillConvexPoly(mask, np.round((px - (x0, y0)) * 16).astype(np.int32), 1, shift=4)
         np.copyto(roi, tmp, where=mask.astype(bool))
@@ -199,8 +220,10 @@ class Renderer:
         """Undistorted grey canvas (``canvas_wh``; ideal pixel = canvas pixel − ``offset``)."""
         canvas = self._background.copy()
         cam_T_scene = inv(scene_T_cam)
-        wall_d = [np.linalg.norm(cam_T_scene[:3, :3] @ w.corners_scene.mean(0) + cam_T_scene[:3, 3])
-                  for w in self._walls]
+        wall_d = [
+            np.linalg.norm(cam_T_scene[:3, :3] @ w.corners_scene.mean(0) + cam_T_scene[:3, 3])
+            for w in self._walls
+        ]
         for i in np.argsort(wall_d)[::-1]:
             self._draw_wall(canvas, self._walls[i], cam_T_scene)
         cam_T_tags = cam_T_scene @ self._scene_T_tags
@@ -215,8 +238,9 @@ class Renderer:
 
     # --- sensor -------------------------------------------------------------------------------
 
-    def render(self, scene_T_cam: F64, rng: np.random.Generator | None = None,
-               gain: float = 1.0) -> np.ndarray:
+    def render(
+        self, scene_T_cam: F64, rng: np.random.Generator | None = None, gain: float = 1.0
+    ) -> np.ndarray:
         """RGB image ``(H, W, 3)`` uint8 of the view from ``scene_T_cam``; noise drawn from ``rng``
         (None: no noise), ``gain`` multiplies the exposure."""
         gray = self.distort(self.render_ideal(scene_T_cam))
@@ -229,7 +253,7 @@ class Renderer:
             gray = cv2.LUT(gray, np.clip(np.round(lut), 0, 255).astype(np.uint8))
         if rng is not None and r.noise_sigma > 0:
             oy, ox = rng.integers(0, _NOISE_PAD, size=2)
-            crop = self._noise[oy:oy + self.camera.height, ox:ox + self.camera.width]
+            crop = self._noise[oy : oy + self.camera.height, ox : ox + self.camera.width]
             gray = cv2.add(gray, crop, dtype=cv2.CV_8U)
         return cv2.cvtColor(gray, cv2.COLOR_GRAY2RGB)
 

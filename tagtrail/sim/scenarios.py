@@ -85,13 +85,17 @@ class SimOptions:
 
     def __post_init__(self) -> None:
         checks = {
-            "fps": self.fps > 0, "speed": self.speed_mps > 0, "query-frames": self.query_frames > 0,
+            "fps": self.fps > 0,
+            "speed": self.speed_mps > 0,
+            "query-frames": self.query_frames > 0,
             "frames": self.frames is None or self.frames >= 2,
             "tag-size": self.tag_size_m > 0 and all(v > 0 for v in self.tag_sizes_m.values()),
             "storage": self.storage in ("mcap", "sqlite3"),
             "jpeg-quality": 1 <= self.jpeg_quality <= 100,
-            "noise-t": self.noise_t_m >= 0, "noise-r-deg": self.noise_r_deg >= 0,
-            "corner-noise": self.corner_noise_px >= 0, "max-range": self.max_range_m > 0,
+            "noise-t": self.noise_t_m >= 0,
+            "noise-r-deg": self.noise_r_deg >= 0,
+            "corner-noise": self.corner_noise_px >= 0,
+            "max-range": self.max_range_m > 0,
             "max-incidence": 0 < self.max_incidence_deg < 90,
         }
         bad = [k for k, ok in checks.items() if not ok]
@@ -102,11 +106,18 @@ class SimOptions:
 
     def to_dict(self) -> dict[str, Any]:
         return {
-            "frames": self.frames, "fps": self.fps, "speed_mps": self.speed_mps,
-            "query_frames": self.query_frames, "storage": self.storage,
-            "compressed": self.compressed, "detections": self.detections, "seed": self.seed,
-            "noise_t_m": self.noise_t_m, "noise_r_deg": self.noise_r_deg,
-            "corner_noise_px": self.corner_noise_px, "max_range_m": self.max_range_m,
+            "frames": self.frames,
+            "fps": self.fps,
+            "speed_mps": self.speed_mps,
+            "query_frames": self.query_frames,
+            "storage": self.storage,
+            "compressed": self.compressed,
+            "detections": self.detections,
+            "seed": self.seed,
+            "noise_t_m": self.noise_t_m,
+            "noise_r_deg": self.noise_r_deg,
+            "corner_noise_px": self.corner_noise_px,
+            "max_range_m": self.max_range_m,
             "max_incidence_deg": self.max_incidence_deg,
             "mount": {"height_m": self.mount.height_m, "forward_m": self.mount.forward_m},
             "realism": {k: float(v) for k, v in vars(self.realism).items()},
@@ -125,19 +136,37 @@ def _tags(poses: list[F64], opts: SimOptions) -> tuple[tuple[Tag, ...], int]:
     unknown = sorted(set(opts.tag_sizes_m) - set(ids))
     if unknown:
         raise SpecError(f"--tag-sizes names tags {unknown} that are not in the scenario")
-    tags = tuple(Tag(int(i), float(opts.tag_sizes_m.get(i, opts.tag_size_m)), P)
-                 for i, P in zip(ids, poses, strict=True))
+    tags = tuple(
+        Tag(int(i), float(opts.tag_sizes_m.get(i, opts.tag_size_m)), P)
+        for i, P in zip(ids, poses, strict=True)
+    )
     return tags, int(anchor)
 
 
-def _moving(name: str, poly: F64, closed: bool, tags: tuple[Tag, ...], walls: tuple[Wall, ...],
-            anchor: int, opts: SimOptions, info: dict[str, Any]) -> Scene:
+def _moving(
+    name: str,
+    poly: F64,
+    closed: bool,
+    tags: tuple[Tag, ...],
+    walls: tuple[Wall, ...],
+    anchor: int,
+    opts: SimOptions,
+    info: dict[str, Any],
+) -> Scene:
     _, _, length = resample_path(poly, 2, closed)
     n = opts.frames or max(2, int(round(length / opts.speed_mps * opts.fps)))
     xy, yaw, _ = resample_path(poly, n, closed)
     info = {**info, "path_length_m": length, "frames": n}
-    return Scene(name, opts.camera, tags, walls, anchor, scene_T_cam_planar(xy, yaw, opts.mount),
-                 stamps_ns(n, opts.fps), info=info)
+    return Scene(
+        name,
+        opts.camera,
+        tags,
+        walls,
+        anchor,
+        scene_T_cam_planar(xy, yaw, opts.mount),
+        stamps_ns(n, opts.fps),
+        info=info,
+    )
 
 
 def circle(opts: SimOptions, name: str = "circle") -> list[Scene]:
@@ -157,16 +186,22 @@ def circle(opts: SimOptions, name: str = "circle") -> list[Scene]:
 
 def _room_tags(width: float, depth: float) -> list[F64]:
     # Counter-clockwise from the east wall (x = width): 4, 5, 4, 5 tags, heights 0.30-0.46 m.
-    sides = [((width, 0.0), (width, depth), (-1.0, 0.0), 4), ((width, depth), (0.0, depth),
-             (0.0, -1.0), 5), ((0.0, depth), (0.0, 0.0), (1.0, 0.0), 4),
-             ((0.0, 0.0), (width, 0.0), (0.0, 1.0), 5)]
+    sides = [
+        ((width, 0.0), (width, depth), (-1.0, 0.0), 4),
+        ((width, depth), (0.0, depth), (0.0, -1.0), 5),
+        ((0.0, depth), (0.0, 0.0), (1.0, 0.0), 4),
+        ((0.0, 0.0), (width, 0.0), (0.0, 1.0), 5),
+    ]
     poses: list[F64] = []
     for p0, p1, normal, k in sides:
         a, b = np.array(p0), np.array(p1)
         for j in range(k):
             c = a + (b - a) * (j + 0.5) / k
-            poses.append(upright_pose(np.array([c[0], c[1], 0.30 + 0.08 * (len(poses) % 3)]),
-                                      np.array(normal)))
+            poses.append(
+                upright_pose(
+                    np.array([c[0], c[1], 0.30 + 0.08 * (len(poses) % 3)]), np.array(normal)
+                )
+            )
     return poses
 
 
@@ -186,12 +221,27 @@ def room(opts: SimOptions) -> list[Scene]:
         p, h = xy[k] + offset * left, yaw[k] + np.radians(turn)
         T = scene_T_cam_planar(p[None], np.array([h]), opts.mount)
         n = opts.query_frames
-        qinfo = {**info, "query": q, "loop_fraction": frac, "offset_left_m": offset,
-                 "turn_deg": turn, "frames": n}
-        scenes.append(Scene(f"query_{q}", opts.camera, tags, walls, anchor,
-                            np.repeat(T, n, axis=0),
-                            stamps_ns(n, opts.fps, EPOCH_NS + q * QUERY_EPOCH_STEP_NS),
-                            parked=True, info=qinfo))
+        qinfo = {
+            **info,
+            "query": q,
+            "loop_fraction": frac,
+            "offset_left_m": offset,
+            "turn_deg": turn,
+            "frames": n,
+        }
+        scenes.append(
+            Scene(
+                f"query_{q}",
+                opts.camera,
+                tags,
+                walls,
+                anchor,
+                np.repeat(T, n, axis=0),
+                stamps_ns(n, opts.fps, EPOCH_NS + q * QUERY_EPOCH_STEP_NS),
+                parked=True,
+                info=qinfo,
+            )
+        )
     return scenes
 
 
@@ -223,18 +273,29 @@ def hall(opts: SimOptions) -> list[Scene]:
     poses = []
     for side, first in ((1.0, 2.6), (-1.0, 2.2)):  # left (+y) wall (the anchor first), right
         for i, x in enumerate(np.arange(first, 13.01, step)):
-            poses.append(upright_pose(np.array([x, side * width / 2, 0.30 + 0.06 * (i % 2)]),
-                                      np.array([0.0, -side])))
+            poses.append(
+                upright_pose(
+                    np.array([x, side * width / 2, 0.30 + 0.06 * (i % 2)]), np.array([0.0, -side])
+                )
+            )
     tags, anchor = _tags(poses, opts)
     walls = box_walls(0.0, -width / 2, length, width / 2, height_m=2.5)
     x_turn = 12.5
     a = np.linspace(-np.pi / 2, np.pi / 2, 181)[1:-1]
-    poly = np.vstack([np.stack([np.linspace(0.3, x_turn, 1220), np.full(1220, -lane)], -1),
-                      np.stack([x_turn + lane * np.cos(a), lane * np.sin(a)], -1),
-                      np.stack([np.linspace(x_turn, 3.5, 900), np.full(900, lane)], -1)])
+    poly = np.vstack(
+        [
+            np.stack([np.linspace(0.3, x_turn, 1220), np.full(1220, -lane)], -1),
+            np.stack([x_turn + lane * np.cos(a), lane * np.sin(a)], -1),
+            np.stack([np.linspace(x_turn, 3.5, 900), np.full(900, lane)], -1),
+        ]
+    )
     poly = ease_curvature(poly, False, ROOM_CURVATURE_RAMP_M)
-    info = {"scenario": "hall", "hall_m": [length, width], "lane_offset_m": lane,
-            "tag_spacing_m": step}
+    info = {
+        "scenario": "hall",
+        "hall_m": [length, width],
+        "lane_offset_m": lane,
+        "tag_spacing_m": step,
+    }
     return [_moving("hall", poly, False, tags, walls, anchor, opts, info)]
 
 

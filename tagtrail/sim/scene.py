@@ -108,8 +108,14 @@ def scene_T_cam_planar(xy: F64, yaw: F64, mount: Mount = Mount()) -> F64:
     y_ax = np.stack([zeros, zeros, -ones], -1)
     z_ax = np.stack([c, s, zeros], -1)
     R = np.stack([x_ax, y_ax, z_ax], -1)
-    pos = np.stack([xy[:, 0] + mount.forward_m * c, xy[:, 1] + mount.forward_m * s,
-                    np.full_like(c, mount.height_m)], -1)
+    pos = np.stack(
+        [
+            xy[:, 0] + mount.forward_m * c,
+            xy[:, 1] + mount.forward_m * s,
+            np.full_like(c, mount.height_m),
+        ],
+        -1,
+    )
     return make_T(R, pos)
 
 
@@ -126,16 +132,29 @@ def upright_pose(center: F64, normal_xy: F64) -> F64:
 
 def wall_quad(p0: F64, p1: F64, height_m: float) -> F64:
     """A vertical wall ``(4, 3)`` standing on the floor segment ``p0 → p1`` (2,) metres."""
-    return np.array([[p0[0], p0[1], 0.0], [p1[0], p1[1], 0.0],
-                     [p1[0], p1[1], height_m], [p0[0], p0[1], height_m]])
+    return np.array(
+        [
+            [p0[0], p0[1], 0.0],
+            [p1[0], p1[1], 0.0],
+            [p1[0], p1[1], height_m],
+            [p0[0], p0[1], height_m],
+        ]
+    )
 
 
-def box_walls(x0: float, y0: float, x1: float, y1: float, height_m: float = 1.2,
-              grays: tuple[int, ...] = (178, 160, 186, 168)) -> tuple[Wall, ...]:
+def box_walls(
+    x0: float,
+    y0: float,
+    x1: float,
+    y1: float,
+    height_m: float = 1.2,
+    grays: tuple[int, ...] = (178, 160, 186, 168),
+) -> tuple[Wall, ...]:
     """The four walls of the rectangular room ``[x0, x1] x [y0, y1]``."""
     pts = [np.array(p, dtype=np.float64) for p in ((x0, y0), (x1, y0), (x1, y1), (x0, y1))]
-    return tuple(Wall(wall_quad(pts[i], pts[(i + 1) % 4], height_m), grays[i % len(grays)])
-                 for i in range(4))
+    return tuple(
+        Wall(wall_quad(pts[i], pts[(i + 1) % 4], height_m), grays[i % len(grays)]) for i in range(4)
+    )
 
 
 def resample_path(poly: F64, n: int, closed: bool) -> tuple[F64, F64, float]:
@@ -153,16 +172,25 @@ def resample_path(poly: F64, n: int, closed: bool) -> tuple[F64, F64, float]:
         qa, qb = (q + h) % length, (q - h) % length
     else:
         qa, qb = np.minimum(q + h, length), np.maximum(q - h, 0.0)
-    d = np.stack([np.interp(qa, s, pts[:, 0]) - np.interp(qb, s, pts[:, 0]),
-                  np.interp(qa, s, pts[:, 1]) - np.interp(qb, s, pts[:, 1])], -1)
+    d = np.stack(
+        [
+            np.interp(qa, s, pts[:, 0]) - np.interp(qb, s, pts[:, 0]),
+            np.interp(qa, s, pts[:, 1]) - np.interp(qb, s, pts[:, 1]),
+        ],
+        -1,
+    )
     return xy, np.arctan2(d[:, 1], d[:, 0]), length
 
 
 def rounded_rect(x0: float, y0: float, x1: float, y1: float, r: float, k: int = 64) -> F64:
     """Dense counter-clockwise polyline ``(K, 2)`` of a rounded rectangle, starting at the
     middle of its bottom edge."""
-    arcs = [((x1 - r, y0 + r), -np.pi / 2), ((x1 - r, y1 - r), 0.0),
-            ((x0 + r, y1 - r), np.pi / 2), ((x0 + r, y0 + r), np.pi)]
+    arcs = [
+        ((x1 - r, y0 + r), -np.pi / 2),
+        ((x1 - r, y1 - r), 0.0),
+        ((x0 + r, y1 - r), np.pi / 2),
+        ((x0 + r, y0 + r), np.pi),
+    ]
     out = [np.array([[(x0 + x1) / 2, y0]])]
     for (cx, cy), a0 in arcs:
         a = a0 + np.linspace(0.0, np.pi / 2, k)
@@ -191,17 +219,24 @@ def ease_curvature(poly: F64, closed: bool, ramp_m: float, step_m: float = 1e-3)
     heading = np.unwrap(yaw)
     kappa = np.diff(heading) / ds  # (n-1,) curvature of each step
     if closed:
-        kappa = np.r_[kappa, wrap_angle(heading[0] + 2 * np.pi * round((heading[-1] - heading[0])
-                                                                        / (2 * np.pi))
-                                        - heading[-1]) / ds]
+        kappa = np.r_[
+            kappa,
+            wrap_angle(
+                heading[0]
+                + 2 * np.pi * round((heading[-1] - heading[0]) / (2 * np.pi))
+                - heading[-1]
+            )
+            / ds,
+        ]
     w = max(int(round(ramp_m / ds)), 1)
     box = np.ones(w) / w
     if closed:
         padded = np.r_[kappa[-w:], kappa, kappa[:w]]
         kappa = np.convolve(padded, box, mode="same")[w:-w]
     else:
-        kappa = np.convolve(np.r_[np.full(w, kappa[0]), kappa, np.full(w, kappa[-1])], box,
-                            mode="same")[w:-w]
+        kappa = np.convolve(
+            np.r_[np.full(w, kappa[0]), kappa, np.full(w, kappa[-1])], box, mode="same"
+        )[w:-w]
     theta = heading[0] + np.r_[0.0, np.cumsum(kappa)] * ds  # heading at each step's start
     mid = 0.5 * (theta[:-1] + theta[1:])  # midpoint rule: exact on arcs to O(ds^2)
     steps = ds * np.stack([np.cos(mid), np.sin(mid)], -1)

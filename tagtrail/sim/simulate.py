@@ -56,10 +56,16 @@ def write_ground_truth(folder: Path, scene: Scene, scenario: str, opts: SimOptio
     world_T_cam = scene.world_T_cam()
     write_trajectory_csv(folder / "trajectory.csv", _pose_frame(world_T_cam, scene.t_ns))
     if scene.parked:
-        write_trajectory_csv(folder / "test_poses.csv",
-                             _pose_frame(world_T_cam[:1], scene.t_ns[:1]))
-    vis = tag_visibility(scene.camera, scene.cam_T_tags(), scene.tag_sizes,
-                         max_range_m=opts.max_range_m, max_incidence_deg=opts.max_incidence_deg)
+        write_trajectory_csv(
+            folder / "test_poses.csv", _pose_frame(world_T_cam[:1], scene.t_ns[:1])
+        )
+    vis = tag_visibility(
+        scene.camera,
+        scene.cam_T_tags(),
+        scene.tag_sizes,
+        max_range_m=opts.max_range_m,
+        max_incidence_deg=opts.max_incidence_deg,
+    )
     tags = _pose_frame(scene.world_T_tags(), np.zeros(len(scene.tags)))
     tags = tags.drop(columns="t_ns")
     tags.insert(0, "tag_id", scene.tag_ids)
@@ -78,9 +84,15 @@ def write_ground_truth(folder: Path, scene: Scene, scenario: str, opts: SimOptio
         "n_frames": len(scene.t_ns),
         "fps": opts.fps,
         "parked": scene.parked,
-        "content": ("observations" if scenario == "observations"
-                    else "detections" if opts.detections
-                    else "compressed images" if opts.compressed else "images"),
+        "content": (
+            "observations"
+            if scenario == "observations"
+            else "detections"
+            if opts.detections
+            else "compressed images"
+            if opts.compressed
+            else "images"
+        ),
         "options": opts.to_dict(),
         "info": scene.info,
     }

@@ -87,11 +87,24 @@ def transform_trajectory(traj: pd.DataFrame, A: F64, R: F64) -> pd.DataFrame:
 def alignment_block(model: str, al: Alignment | None, n_common: int, dim: int) -> AlignmentBlock:
     """SPEC ``summary.json`` "alignment" block (``translation`` in plane (u, v) or world, m)."""
     if al is None:
-        return AlignmentBlock(model="none", scale=1.0, rotation_deg=0.0, translation=[0.0] * dim,
-                              inliers=0, common_tags=n_common, rms_m=None)
-    return AlignmentBlock(model=model, scale=al.scale, rotation_deg=al.rotation_deg,
-                          translation=[float(v) for v in al.t], inliers=int(al.inliers.sum()),
-                          common_tags=n_common, rms_m=al.rms_m)
+        return AlignmentBlock(
+            model="none",
+            scale=1.0,
+            rotation_deg=0.0,
+            translation=[0.0] * dim,
+            inliers=0,
+            common_tags=n_common,
+            rms_m=None,
+        )
+    return AlignmentBlock(
+        model=model,
+        scale=al.scale,
+        rotation_deg=al.rotation_deg,
+        translation=[float(v) for v in al.t],
+        inliers=int(al.inliers.sum()),
+        common_tags=n_common,
+        rms_m=al.rms_m,
+    )
 
 
 def estimate(
@@ -139,8 +152,10 @@ def run(
         plane = reference_plane(params.plane, *poses(ref_trajectory))
     al, n_common = estimate(tag_map, ref_tag_map, plane, params)
     if al is None:
-        return {"alignment": alignment_block(params.model, None, n_common, dim),
-                "trajectory": trajectory.copy()}
+        return {
+            "alignment": alignment_block(params.model, None, n_common, dim),
+            "trajectory": trajectory.copy(),
+        }
     A, R = world_transform(al, plane)
     return {
         "alignment": alignment_block(params.model, al, n_common, dim),

@@ -119,8 +119,9 @@ def _components(key: np.ndarray, n: int) -> tuple[int, np.ndarray]:
     return int(n_comp), label
 
 
-def _bridging(obs: pd.DataFrame, keep: np.ndarray, amb: np.ndarray, ids: np.ndarray,
-              min_edge_obs: int) -> np.ndarray:
+def _bridging(
+    obs: pd.DataFrame, keep: np.ndarray, amb: np.ndarray, ids: np.ndarray, min_edge_obs: int
+) -> np.ndarray:
     """Mask of the ambiguous observations (``amb``) seen in a frame with a tag that the
     unambiguous ones (``keep``) leave in another part of the tag graph: dropped, they would
     split the graph (issue 12: kept and down-weighted instead), where the two parts are seen
@@ -166,8 +167,9 @@ def pair_indices(frame: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return a, b
 
 
-def _consistent(ob: pd.DataFrame, T: np.ndarray, a: np.ndarray, b: np.ndarray,
-                key: np.ndarray) -> Branches:
+def _consistent(
+    ob: pd.DataFrame, T: np.ndarray, a: np.ndarray, b: np.ndarray, key: np.ndarray
+) -> Branches:
     """``consistent_branches`` on the co-observations ``(a, b)`` (rows of ``ob``, poses ``T``)."""
     alt_cols = [f"alt_{c}" for c in POSE_COLS]
     if all(c in ob.columns for c in alt_cols):
@@ -236,8 +238,10 @@ def _bridge_pairs(
     m = in_map[i] & in_map[j]
     pairs = np.stack([i[m], j[m]], axis=1)
     n_of = {(u, v): c for (u, v), c in zip(pairs.tolist(), counts[m].tolist(), strict=True)}
-    return [{"tag_i": int(ids[u]), "tag_j": int(ids[v]), "n_frames": int(n_of[(u, v)])}
-            for u, v in sorted(bridges(pairs, len(ids)))]
+    return [
+        {"tag_i": int(ids[u]), "tag_j": int(ids[v]), "n_frames": int(n_of[(u, v)])}
+        for u, v in sorted(bridges(pairs, len(ids)))
+    ]
 
 
 def run(observations: pd.DataFrame, params: Params) -> dict[str, Any]:
@@ -254,11 +258,18 @@ def run(observations: pd.DataFrame, params: Params) -> dict[str, Any]:
     ids = n_obs.index.to_numpy(np.int64)  # sorted
     back = _bridging(obs, keep, amb, ids, params.min_edge_obs)
     if amb.any():
-        log.info("edges: %d views of a tag left out of the tag-pair links: ambiguous (its two "
-                 "mirror-image poses fit almost equally)", int((amb & ~back).sum()))
+        log.info(
+            "edges: %d views of a tag left out of the tag-pair links: ambiguous (its two "
+            "mirror-image poses fit almost equally)",
+            int((amb & ~back).sum()),
+        )
     if back.any():
-        log.warning("edges: %d ambiguous observations kept (their edges weighted x%g): without "
-                    "them the tag graph splits", int(back.sum()), params.ambiguous_weight)
+        log.warning(
+            "edges: %d ambiguous observations kept (their edges weighted x%g): without "
+            "them the tag graph splits",
+            int(back.sum()),
+            params.ambiguous_weight,
+        )
     ob = obs[keep | back].assign(_back=back[keep | back])
     ob = ob.sort_values(["frame_idx", "tag_id"], kind="stable")
 
@@ -272,8 +283,12 @@ def run(observations: pd.DataFrame, params: Params) -> dict[str, Any]:
         br = _consistent(ob, T, a, b, ni * len(ids) + nj)
         n_alt = int((br.choice > 0).sum())
         if n_alt:
-            log.info("edges: %d of %d tag pairs seen together use a tag's other mirror-image "
-                     "pose (the one the pair agrees on across frames)", n_alt, len(a))
+            log.info(
+                "edges: %d of %d tag pairs seen together use a tag's other mirror-image "
+                "pose (the one the pair agrees on across frames)",
+                n_alt,
+                len(a),
+            )
         close = (br.ratio >= params.rival_ratio) & (br.alt_choice >= 0)
         alt = (a[close], b[close], br.alt_T_ij[close], br.ratio[close])
         T_ij = br.T_ij
@@ -296,8 +311,10 @@ def run(observations: pd.DataFrame, params: Params) -> dict[str, Any]:
             f" {anchor} by unambiguous co-observations (frames showing two tags together,"
             " directly or through other tags)"
         )
-        msg_keep = ("; with known tag poses (optimize.survey), edges.on_disconnected=keep "
-                    "places each part by its known tags")
+        msg_keep = (
+            "; with known tag poses (optimize.survey), edges.on_disconnected=keep "
+            "places each part by its known tags"
+        )
         if params.on_disconnected == "fail":
             raise DisconnectedTagGraph(
                 msg + "; record frames showing them together with mapped tags, choose another"
@@ -317,8 +334,11 @@ def run(observations: pd.DataFrame, params: Params) -> dict[str, Any]:
         w = np.ones(len(a))
     w = np.where(weak_row[a] | weak_row[b], w * params.ambiguous_weight, w)
     edges = pd.DataFrame(
-        {"t_ns": ob["t_ns"].to_numpy(np.int64)[a], "tag_i": ti.astype(np.int32),
-         "tag_j": tj.astype(np.int32)}
+        {
+            "t_ns": ob["t_ns"].to_numpy(np.int64)[a],
+            "tag_i": ti.astype(np.int32),
+            "tag_j": tj.astype(np.int32),
+        }
     )
     edges[POSE_COLS] = np.concatenate([xyz, q], axis=1)
     edges["weight"] = w
@@ -331,27 +351,44 @@ def run(observations: pd.DataFrame, params: Params) -> dict[str, Any]:
         # rivals only where nothing else can tell: a pair in a loop of the tag graph is checked
         # by the loop (the pose graph's robust loss); a bridge is the only link of its parts
         ra, rb, rT, ratio = alt
-        on = np.isin(tag[ra] * (1 << 32) + tag[rb],
-                     [b["tag_i"] * (1 << 32) + b["tag_j"] for b in bridge])
+        on = np.isin(
+            tag[ra] * (1 << 32) + tag[rb], [b["tag_i"] * (1 << 32) + b["tag_j"] for b in bridge]
+        )
         ra, rb, rT, ratio = ra[on], rb[on], rT[on], ratio[on]
         rxyz, rq = xyz_quat_from_T(rT)
-        rw = (edge_weights(dist[ra], dist[rb], size[ra], size[rb]) if params.weighting == "distance"
-              else np.ones(len(ra)))
+        rw = (
+            edge_weights(dist[ra], dist[rb], size[ra], size[rb])
+            if params.weighting == "distance"
+            else np.ones(len(ra))
+        )
         rw = np.where(weak_row[ra] | weak_row[rb], rw * params.ambiguous_weight, rw)
-        rival = pd.DataFrame({"t_ns": ob["t_ns"].to_numpy(np.int64)[ra],
-                              "tag_i": tag[ra].astype(np.int32), "tag_j": tag[rb].astype(np.int32)})
+        rival = pd.DataFrame(
+            {
+                "t_ns": ob["t_ns"].to_numpy(np.int64)[ra],
+                "tag_i": tag[ra].astype(np.int32),
+                "tag_j": tag[rb].astype(np.int32),
+            }
+        )
         rival[POSE_COLS] = np.concatenate([rxyz, rq], axis=1)
         rival["weight"] = rw
         rival["hypothesis"] = np.ones(len(rival), np.int32)
         edges = pd.concat([edges, rival], ignore_index=True)
         first = ~rival.duplicated(["tag_i", "tag_j"]).to_numpy()
-        rivals = [{"tag_i": int(i), "tag_j": int(j), "support_ratio": float(r)}
-                  for i, j, r in zip(tag[ra][first], tag[rb][first], ratio[first], strict=True)]
+        rivals = [
+            {"tag_i": int(i), "tag_j": int(j), "support_ratio": float(r)}
+            for i, j, r in zip(tag[ra][first], tag[rb][first], ratio[first], strict=True)
+        ]
     if weak:
-        log.warning("edges: weak links in the tag graph (the only connection between two parts "
-                    "of the map, seen together in < %d frames): %s", WEAK_LINK_OBS,
-                    ", ".join(f"{w['tag_i']}-{w['tag_j']} ({w['n_frames']} frame"
-                              f"{'s' if w['n_frames'] > 1 else ''})" for w in weak))
+        log.warning(
+            "edges: weak links in the tag graph (the only connection between two parts "
+            "of the map, seen together in < %d frames): %s",
+            WEAK_LINK_OBS,
+            ", ".join(
+                f"{w['tag_i']}-{w['tag_j']} ({w['n_frames']} frame"
+                f"{'s' if w['n_frames'] > 1 else ''})"
+                for w in weak
+            ),
+        )
     graph = {
         "anchor_id": anchor,
         "tags": [int(t) for t in ids[in_map]],

@@ -51,29 +51,34 @@ INPUTS = {
 OUTPUTS = ("evaluation",)
 SCOPE = "all"
 
-ERROR_BLOCKS = ("trajectory", "trajectory_raw", "tags", "gauge_free.trajectory",
-                "gauge_free.tags")  # fmt: skip
+ERROR_BLOCKS = ("trajectory", "trajectory_raw", "tags", "gauge_free.trajectory", "gauge_free.tags")
 ERROR_STATS = ("mean", "median", "rmse", "p95", "max", "min")
 _DEFAULTS = {"trajectory.rmse_m": 1, "tags.rmse_m": 2}  # the sweep's first columns
 METRICS = tuple(
-    Metric(name, "evaluation", (*block.split("."), key, stat), unit,
-           default=_DEFAULTS.get(name, 0))
-    for block in ERROR_BLOCKS for stat in ERROR_STATS
+    Metric(name, "evaluation", (*block.split("."), key, stat), unit, default=_DEFAULTS.get(name, 0))
+    for block in ERROR_BLOCKS
+    for stat in ERROR_STATS
     for unit, key in (("m", "position_m"), ("deg", "angle_deg"))
     for name in [f"{block}.{stat}_{unit}"]
-)  # fmt: skip
-METRICS_HELP = (f"BLOCK.STAT_m and BLOCK.STAT_deg (errors vs ground truth; BLOCK: "
-                f"{', '.join(ERROR_BLOCKS)}; STAT: {', '.join(ERROR_STATS)})")  # fmt: skip
+)
+METRICS_HELP = (
+    f"BLOCK.STAT_m and BLOCK.STAT_deg (errors vs ground truth; BLOCK: "
+    f"{', '.join(ERROR_BLOCKS)}; STAT: {', '.join(ERROR_STATS)})"
+)
 
 
 def _evaluation_file(evaluation: Evaluation | None) -> ExportFiles | None:
     """``evaluation.json``: errors vs ground truth (datasets that have it)."""
-    return None if evaluation is None else {
-        "evaluation.json": ("json", evaluation.model_dump(mode="json"))}
+    return (
+        None
+        if evaluation is None
+        else {"evaluation.json": ("json", evaluation.model_dump(mode="json"))}
+    )
 
 
-EXPORTS = (Export("evaluation", ("evaluation.json",), {"evaluation": "eval.evaluation"},
-                  _evaluation_file),)
+EXPORTS = (
+    Export("evaluation", ("evaluation.json",), {"evaluation": "eval.evaluation"}, _evaluation_file),
+)
 
 
 def error_stats(x: np.ndarray) -> dict[str, float | None]:
@@ -145,8 +150,10 @@ def run(
     anchor = estimated_anchor(tag_map)
     if anchor is None:
         anchor = gt_anchor
-        log.warning("eval: no tag of the map is at the identity (a surveyed world?): the "
-                    "anchored errors take it to be ground truth's world")
+        log.warning(
+            "eval: no tag of the map is at the identity (a surveyed world?): the "
+            "anchored errors take it to be ground truth's world"
+        )
     if anchor is not None and anchor != gt_anchor:
         if anchor not in gt_tags.index:
             raise DataError(
@@ -163,13 +170,15 @@ def run(
     T_tag = _poses(est_tags)
     T_tag_gt = inv(gt_T_world) @ _poses(gt_tags.loc[common])
     n_tags = len(gt_tags) - (anchor in gt_tags.index)
-    fix = gauge_fit(_poses(tag_map.set_index("tag_id").loc[both]),
-                    inv(gt_T_world) @ _poses(gt_tags.loc[both]))
+    fix = gauge_fit(
+        _poses(tag_map.set_index("tag_id").loc[both]), inv(gt_T_world) @ _poses(gt_tags.loc[both])
+    )
     gauge_free = None
     if fix is not None:
         gauge_free = {
-            "rotation_deg": float(np.degrees(np.arccos(np.clip((np.trace(fix[:3, :3]) - 1) / 2,
-                                                               -1.0, 1.0)))),
+            "rotation_deg": float(
+                np.degrees(np.arccos(np.clip((np.trace(fix[:3, :3]) - 1) / 2, -1.0, 1.0)))
+            ),
             "translation_m": float(np.linalg.norm(fix[:3, 3])),
             "trajectory": trajectory_errors(trajectory, gt_traj, gt_T_world, fix),
             "tags": _block(fix @ T_tag, T_tag_gt, n_tags),

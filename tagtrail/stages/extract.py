@@ -70,30 +70,41 @@ class Params(StageParams):
     """Sharpening of the decoded tag image (the C library's decode_sharpening); helps with small,
     blurred tags."""
     max_hamming: Annotated[int, Field(ge=0, le=3)] | Literal["auto"] = Field(
-        "auto", description="bit errors corrected (the C library's bits_corrected, 0-3) or kept "
+        "auto",
+        description="bit errors corrected (the C library's bits_corrected, 0-3) or kept "
         "from detection messages. auto (default, on evidence, bench/bench_hamming.py): 0 for "
         "images, 2 for detection messages. No false detection at any of 0-3 on the real photos, "
         "noise, real clutter or 4000 random tag-like codes; on images 2 adds no tag on the real "
         "photos and 2 of 66 on rendered frames, one of them with its corners 2.4 px off (a "
         "small tag decoded with 2 bit errors); TagSLAM test 1's recorded detections with "
         "hamming 1-2 (110 of 764; TagSLAM uses them) bring its trajectory from 22.1 to 12.8 mm "
-        "of TagSLAM's. 3: ~5 s to build the decode table per worker")
+        "of TagSLAM's. 3: ~5 s to build the decode table per worker",
+    )
     min_decision_margin: float = Field(
-        20.0, ge=0.0, le=1e6, description="drop detections whose decision margin is lower "
-        "(not applied to sources that carry no margin: TagSLAM's, Isaac ROS')")
+        20.0,
+        ge=0.0,
+        le=1e6,
+        description="drop detections whose decision margin is lower "
+        "(not applied to sources that carry no margin: TagSLAM's, Isaac ROS')",
+    )
     tag_ids: tuple[TagId, ...] | None = None
     """Keep only these tag ids (null: every tag36h11 id)."""
     refit_corners: bool = Field(
-        True, description="re-fit corners to the border's edges (io.corners); false: the "
-        "detector's own")
+        True,
+        description="re-fit corners to the border's edges (io.corners); false: the detector's own",
+    )
     keep_truncated: bool = Field(
-        False, description="keep tags whose white quiet zone runs off the image (their corners "
-        "are unreliable)")
+        False,
+        description="keep tags whose white quiet zone runs off the image (their corners "
+        "are unreliable)",
+    )
     small_tags: Literal["redetect", "off"] = Field(
-        "redetect", description="redetect (default): the tags quad_decimate loses (shorter side "
+        "redetect",
+        description="redetect (default): the tags quad_decimate loses (shorter side "
         "under ~35 px) re-detected at full resolution in crops around tag-like dark blobs not in "
         "a found tag (1.1-1.5x the decimated pass's time, bench/bench_recall.py); off: the "
-        "decimated pass only")
+        "decimated pass only",
+    )
     EXECUTION_ONLY = frozenset({"workers", "chunk_size"})  # same output whatever their values
 
     @field_validator("max_hamming", mode="before")
@@ -139,8 +150,9 @@ def run(source: Source, params: Params) -> dict[str, Any]:
         obs = src.observations()[OBSERVATION_COLS]
         frames = obs.groupby(["frame_idx", "t_ns"], sort=True).size().reset_index(name="n_det")
         return {
-            "frames": _frames_table(frames["t_ns"], frames["frame_idx"], frames["n_det"],
-                                    getattr(src, "timed", True)),
+            "frames": _frames_table(
+                frames["t_ns"], frames["frame_idx"], frames["n_det"], getattr(src, "timed", True)
+            ),
             "detections": _detections_table(*_empty_detections()),
             "camera": None,
             "observations": _typed(obs, OBSERVATION_COLS),
@@ -154,16 +166,23 @@ def run(source: Source, params: Params) -> dict[str, Any]:
         )
     start = time.perf_counter()
     if src.kind == "detections":
-        t_ns, frame_idx, n_det, det = _from_detection_msgs(src, params.detector("detections"),
-                                                           camera)
+        t_ns, frame_idx, n_det, det = _from_detection_msgs(
+            src, params.detector("detections"), camera
+        )
     else:
         t_ns, frame_idx, n_det, det = _detect_images(src, params, camera)
     n_frames = len(frame_idx)
     if n_frames == 0:
         raise SourceError(f"{src.describe()}: no frames")
     dt = max(time.perf_counter() - start, 1e-9)
-    log.info("extract: %d frames, %d detections in %.2f s (%.1f frames/s) from %s",
-             n_frames, len(det[0]), dt, n_frames / dt, src.describe())
+    log.info(
+        "extract: %d frames, %d detections in %.2f s (%.1f frames/s) from %s",
+        n_frames,
+        len(det[0]),
+        dt,
+        n_frames / dt,
+        src.describe(),
+    )
     obs = pd.DataFrame({c: np.zeros(0) for c in OBSERVATION_COLS})
     return {
         "frames": _frames_table(t_ns, frame_idx, n_det, getattr(src, "timed", True)),
@@ -214,8 +233,13 @@ def report_filters(
     for line in most:
         log.warning("%s: %s", src.describe(), line)
     if not most and n_kept < n_total:
-        log.info("%s: kept %d of %d detections, dropped %s", src.describe(), n_kept, n_total,
-                 _counts(dropped))
+        log.info(
+            "%s: kept %d of %d detections, dropped %s",
+            src.describe(),
+            n_kept,
+            n_total,
+            _counts(dropped),
+        )
 
 
 def _counts(dropped: Counter[str]) -> str:
@@ -251,8 +275,13 @@ def _detect_images(src: Source, params: Params, camera: CameraModel) -> tuple[An
     shapes = np.concatenate([p["shape"] for p in parts])[order] if parts else np.zeros((0, 2))
     dropped: Counter[str] = Counter()
     for p in parts:  # what each filter dropped, counted by the workers
-        dropped.update({k[len("dropped_"):]: int(v) for k, v in p.items()
-                        if k.startswith("dropped_") and int(v)})
+        dropped.update(
+            {
+                k[len("dropped_") :]: int(v)
+                for k, v in p.items()
+                if k.startswith("dropped_") and int(v)
+            }
+        )
     t_ns = np.array([t_of[int(i)] for i in frame_idx], dtype=np.int64)
     det_frame = np.concatenate([p["det_frame"] for p in parts]) if parts else np.zeros(0, int)
     det_t = np.array([t_of[int(i)] for i in det_frame], dtype=np.int64)
@@ -270,8 +299,12 @@ def _detect_images(src: Source, params: Params, camera: CameraModel) -> tuple[An
 
 
 def _report_wrong_size(
-    src: Source, camera: CameraModel, frame_idx: NDArray[Any], t_ns: NDArray[Any],
-    shapes: NDArray[Any], n_frames: int,
+    src: Source,
+    camera: CameraModel,
+    frame_idx: NDArray[Any],
+    t_ns: NDArray[Any],
+    shapes: NDArray[Any],
+    n_frames: int,
 ) -> None:
     """Warn about the frames (of ``n_frames``) whose decoded size ``shapes (k, 2)`` (H, W) is not
     the camera's: they are left out; a :class:`SourceError` when no frame is left."""
@@ -283,56 +316,76 @@ def _report_wrong_size(
             f"{src.path}: no frame has the size {cam} of the camera ({src.camera_origin}), they "
             f"are {found}; give the camera calibration for their resolution (or images of {cam})"
         )
-    names = [f"{src.frame_name(int(i), int(t))} ({k})"
-             for i, t, k in zip(frame_idx, t_ns, size, strict=True)]  # fmt: skip
+    names = [
+        f"{src.frame_name(int(i), int(t))} ({k})"
+        for i, t, k in zip(frame_idx, t_ns, size, strict=True)
+    ]
     more = f" and {len(names) - 5} more" if len(names) > 5 else ""
-    log.warning("%s: %d of %d frames left out, their size is not the camera's %s (%s): %s%s",
-                src.describe(), len(names), n_frames, cam, src.camera_origin,
-                ", ".join(names[:5]), more)  # fmt: skip
+    log.warning(
+        "%s: %d of %d frames left out, their size is not the camera's %s (%s): %s%s",
+        src.describe(),
+        len(names),
+        n_frames,
+        cam,
+        src.camera_origin,
+        ", ".join(names[:5]),
+        more,
+    )
 
 
 def _map_chunks(
-    chunks: Iterator[list[Frame]], cfg: DetectorConfig, params: Params, camera: CameraModel,
+    chunks: Iterator[list[Frame]],
+    cfg: DetectorConfig,
+    params: Params,
+    camera: CameraModel,
     n_frames: int,
 ) -> Iterator[dict[str, NDArray[Any]]]:
     """``detect_chunk`` with ``cfg`` over ``chunks`` in worker processes (never in this one), or
     as tasks of the cluster the node runs on (``pool.task_mapper``)."""
     workers = min(_n_workers(params.workers), max(1, -(-n_frames // params.chunk_size)))
-    yield from map_tasks("tagtrail.vision.apriltag:detect_chunk",
-                         ((chunk, cfg, camera) for chunk in chunks), workers)
+    yield from map_tasks(
+        "tagtrail.vision.apriltag:detect_chunk", ((chunk, cfg, camera) for chunk in chunks), workers
+    )
 
 
 # --- tables ------------------------------------------------------------------------------------
 
 
 def _empty_detections() -> tuple[Any, Any, Any, Any]:
-    return np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros((0, 2), np.int32), np.zeros(
-        (0, 9)
+    return (
+        np.zeros(0, np.int64),
+        np.zeros(0, np.int64),
+        np.zeros((0, 2), np.int32),
+        np.zeros((0, 9)),
     )
 
 
 def _frames_table(t_ns: Any, frame_idx: Any, n_det: Any, timed: bool) -> pd.DataFrame:
     """``timed``: the stamps are capture times (False for an image folder without stamps.csv:
     then no motion prior links its frames)."""
-    return pd.DataFrame({
-        "t_ns": np.asarray(t_ns, dtype=np.int64),
-        "frame_idx": np.asarray(frame_idx, dtype=np.int32),
-        "n_det": np.asarray(n_det, dtype=np.int32),
-        "timed": np.full(len(np.asarray(t_ns)), bool(timed)),
-    })
+    return pd.DataFrame(
+        {
+            "t_ns": np.asarray(t_ns, dtype=np.int64),
+            "frame_idx": np.asarray(frame_idx, dtype=np.int32),
+            "n_det": np.asarray(n_det, dtype=np.int32),
+            "timed": np.full(len(np.asarray(t_ns)), bool(timed)),
+        }
+    )
 
 
 def _detections_table(t_ns: Any, frame_idx: Any, ints: Any, floats: Any) -> pd.DataFrame:
     """One row per detection, sorted by (frame_idx, tag_id), detector order within ties."""
     frame_idx = np.asarray(frame_idx, dtype=np.int64)
     order = np.lexsort((ints[:, 0], frame_idx))
-    out = pd.DataFrame({
-        "t_ns": np.asarray(t_ns, dtype=np.int64)[order],
-        "frame_idx": frame_idx[order].astype(np.int32),
-        "tag_id": ints[order, 0].astype(np.int32),
-        "hamming": ints[order, 1].astype(np.int32),
-        "decision_margin": floats[order, 0].astype(np.float64),
-    })
+    out = pd.DataFrame(
+        {
+            "t_ns": np.asarray(t_ns, dtype=np.int64)[order],
+            "frame_idx": frame_idx[order].astype(np.int32),
+            "tag_id": ints[order, 0].astype(np.int32),
+            "hamming": ints[order, 1].astype(np.int32),
+            "decision_margin": floats[order, 0].astype(np.float64),
+        }
+    )
     for k, col in enumerate(CORNER_COLS):
         out[col] = floats[order, 1 + k].astype(np.float64)
     return out

@@ -111,8 +111,7 @@ OLD_KEYS = {
     "max_nfev": "the pose graph stops after 100 evaluations, fixed",
     "rival_max_pairs": "the 16 closest rival pairs are tried, fixed",
     "rival_max_iter": "each rival is scored by 10 iterations of the joint solve, fixed",
-    "link_tags": "tags are always linked through the trajectory (stamps that are capture "
-                 "times)",
+    "link_tags": "tags are always linked through the trajectory (stamps that are capture times)",
     **{k: v.format(joint="optimize.joint") for k, v in JOINT_OLD_KEYS.items()},
 }
 
@@ -195,8 +194,13 @@ def surveyed_world(tag_map: pd.DataFrame, cfg: SurveyConfig) -> tuple[pd.DataFra
     vals = tag_map[POSE_COLS].to_numpy(np.float64)
     map_T_tag = make_T(R_from_quat_xyzw(vals[:, 3:]), vals[:, :3])
     try:
-        fit = fit_survey(ids, map_T_tag, cfg.survey(), cfg.model == "similarity",
-                         tag_map["size_m"].to_numpy(np.float64))
+        fit = fit_survey(
+            ids,
+            map_T_tag,
+            cfg.survey(),
+            cfg.model == "similarity",
+            tag_map["size_m"].to_numpy(np.float64),
+        )
     except ValueError as err:
         raise DataError(f"optimize: surveyed world ({cfg.file or 'survey.tags'}): {err}") from err
     W = fit.apply(map_T_tag)
@@ -207,41 +211,79 @@ def surveyed_world(tag_map: pd.DataFrame, cfg: SurveyConfig) -> tuple[pd.DataFra
             out[c] = tag_map[c] * fit.scale
     rot = np.nan_to_num(fit.res_rot_deg, nan=0.0)
     full = np.isfinite(fit.res_rot_deg)
-    per_tag = [{"tag_id": int(i), "res_pos_m": float(p),
-                "res_rot_deg": float(r) if np.isfinite(r) else None}
-               for i, p, r in zip(fit.ids, fit.res_pos_m, fit.res_rot_deg, strict=True)]
+    per_tag = [
+        {
+            "tag_id": int(i),
+            "res_pos_m": float(p),
+            "res_rot_deg": float(r) if np.isfinite(r) else None,
+        }
+        for i, p, r in zip(fit.ids, fit.res_pos_m, fit.res_rot_deg, strict=True)
+    ]
     block = {
-        "source": cfg.file or "inline", "format": cfg.format, "model": cfg.model,
-        "scale": fit.scale, "rotation_deg": float(np.degrees(rotation_angle(fit.R))),
-        "translation_m": [float(v) for v in fit.t], "tags": fit.ids.astype(int).tolist(),
+        "source": cfg.file or "inline",
+        "format": cfg.format,
+        "model": cfg.model,
+        "scale": fit.scale,
+        "rotation_deg": float(np.degrees(rotation_angle(fit.R))),
+        "translation_m": [float(v) for v in fit.t],
+        "tags": fit.ids.astype(int).tolist(),
         "missing": fit.missing,
         "res_pos_rms_m": float(np.sqrt(np.mean(fit.res_pos_m**2))),
         "res_pos_max_m": float(fit.res_pos_m.max()),
         "res_rot_rms_deg": float(np.sqrt(np.mean(rot[full] ** 2))) if full.any() else None,
         "per_tag": per_tag,
     }
-    rot_text = ("" if block["res_rot_rms_deg"] is None
-                else f", {block['res_rot_rms_deg']:.2f} deg rms")
-    log.info("optimize: surveyed world (%s, %s, %s) from known tags %s: residuals %.1f mm rms "
-             "(max %.1f mm)%s%s", block["source"], cfg.format, cfg.model, block["tags"],
-             1e3 * block["res_pos_rms_m"], 1e3 * block["res_pos_max_m"], rot_text,
-             f"; known tags not in the map: {fit.missing}" if fit.missing else "")
+    rot_text = (
+        "" if block["res_rot_rms_deg"] is None else f", {block['res_rot_rms_deg']:.2f} deg rms"
+    )
+    log.info(
+        "optimize: surveyed world (%s, %s, %s) from known tags %s: residuals %.1f mm rms "
+        "(max %.1f mm)%s%s",
+        block["source"],
+        cfg.format,
+        cfg.model,
+        block["tags"],
+        1e3 * block["res_pos_rms_m"],
+        1e3 * block["res_pos_max_m"],
+        rot_text,
+        f"; known tags not in the map: {fit.missing}" if fit.missing else "",
+    )
     return out, block
 
 
-def _problem(m: pd.DataFrame, k: np.ndarray, cam_T_tag: np.ndarray, camera: CameraModel,
-             settings: JointSettings, timed: bool) -> CornerProblem:
+def _problem(
+    m: pd.DataFrame,
+    k: np.ndarray,
+    cam_T_tag: np.ndarray,
+    camera: CameraModel,
+    settings: JointSettings,
+    timed: bool,
+) -> CornerProblem:
     """The joint problem of ``corner_rows`` ``m`` (tag indices ``k``, IPPE solutions
     ``cam_T_tag``)."""
     return corner_problem(
-        m["frame_idx"].to_numpy(np.int64), m["t_ns"].to_numpy(np.int64), k,
-        m[CORNER_COLS].to_numpy(np.float64).reshape(-1, 4, 2), m["size_m"].to_numpy(np.float64),
-        cam_T_tag, camera, settings, timed)
+        m["frame_idx"].to_numpy(np.int64),
+        m["t_ns"].to_numpy(np.int64),
+        k,
+        m[CORNER_COLS].to_numpy(np.float64).reshape(-1, 4, 2),
+        m["size_m"].to_numpy(np.float64),
+        cam_T_tag,
+        camera,
+        settings,
+        timed,
+    )
 
 
 def refine_on_corners(
-    R: np.ndarray, t: np.ndarray, tags: np.ndarray, anchor: int, observations: pd.DataFrame,
-    detections: pd.DataFrame, camera: CameraModel, params: Params, is_timed: bool,
+    R: np.ndarray,
+    t: np.ndarray,
+    tags: np.ndarray,
+    anchor: int,
+    observations: pd.DataFrame,
+    detections: pd.DataFrame,
+    camera: CameraModel,
+    params: Params,
+    is_timed: bool,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, dict[str, Any]] | None:
     """The joint solve from the pose-graph map ``R (T, 3, 3)``, ``t (T, 3)`` of the sorted ids
     ``tags``: the ids it maps (``tags`` plus tags linked through the trajectory), their
@@ -251,9 +293,12 @@ def refine_on_corners(
     m = corner_rows(observations, detections, np.unique(observations["tag_id"].to_numpy()))
     n_frames = int(m.loc[m["tag_id"].isin(tags), "frame_idx"].nunique())
     if n_frames < params.joint_min_frames:
-        log.info("optimize: only %d frames see a mapped tag (joint_min_frames %d): the map from "
-                 "tag pairs is kept, not refined over all frames together", n_frames,
-                 params.joint_min_frames)
+        log.info(
+            "optimize: only %d frames see a mapped tag (joint_min_frames %d): the map from "
+            "tag pairs is kept, not refined over all frames together",
+            n_frames,
+            params.joint_min_frames,
+        )
         return None
     ids = np.union1d(tags, m["tag_id"].to_numpy(np.int64))
     W = np.full((len(ids), 4, 4), np.nan)
@@ -265,8 +310,9 @@ def refine_on_corners(
     settings = params.joint
     if is_timed and not known[k].all():
         pb = _problem(m, k, cam_T_tag, camera, settings, is_timed)
-        W, now = link_tags(W, known, cam_T_tag, pb.ob, pb.t_s, px_per_unit=camera.focal_px,
-                           max_gap_s=pb.max_gap_s)
+        W, now = link_tags(
+            W, known, cam_T_tag, pb.ob, pb.t_s, px_per_unit=camera.focal_px, max_gap_s=pb.max_gap_s
+        )
         linked = ids[now & ~known].tolist()
         if linked:
             log.info("optimize: tags %s linked to the map through the trajectory", linked)
@@ -283,8 +329,9 @@ def refine_on_corners(
     for line in [] if out.ground is None else out.ground.lines():
         log.info("optimize: %s", line)
     if not res.converged:
-        log.warning("optimize: the joint solve stopped after %d iterations before converging",
-                    res.iters)
+        log.warning(
+            "optimize: the joint solve stopped after %d iterations before converging", res.iters
+        )
     n_tags = np.bincount(pb.ob.frame, minlength=len(pb.t_ns))
     block = {
         "frames": int(len(pb.t_ns)),
@@ -309,10 +356,17 @@ def refine_on_corners(
 
 
 def choose_hypotheses(
-    edges: pd.DataFrame, hyp: np.ndarray, rivals: list[RivalPair],
-    graph_of: Callable[[np.ndarray], PoseGraph], res: PoseGraphResult, tags: np.ndarray,
-    edges_anchor: int, observations: pd.DataFrame, detections: pd.DataFrame,
-    camera: CameraModel, params: Params,
+    edges: pd.DataFrame,
+    hyp: np.ndarray,
+    rivals: list[RivalPair],
+    graph_of: Callable[[np.ndarray], PoseGraph],
+    res: PoseGraphResult,
+    tags: np.ndarray,
+    edges_anchor: int,
+    observations: pd.DataFrame,
+    detections: pd.DataFrame,
+    camera: CameraModel,
+    params: Params,
 ) -> tuple[np.ndarray, PoseGraphResult, list[list[int]]]:
     """Decide the tag pairs with a rival hypothesis (``edges.rival_pairs``) by the frames'
     continuity: for each, closest call first (at most ``RIVAL_MAX_PAIRS``), the pose graph is
@@ -329,9 +383,15 @@ def choose_hypotheses(
     free = (np.arange(len(tags)) != anchor) & (np.bincount(k, minlength=len(tags)) > 0)
 
     def cost(r: PoseGraphResult) -> float:
-        return solve_on_corners(pb, make_T(r.R, r.t), free, params.joint,
-                                max_iter=RIVAL_MAX_ITER, covariance=False,
-                                decide=False).res.cost
+        return solve_on_corners(
+            pb,
+            make_T(r.R, r.t),
+            free,
+            params.joint,
+            max_iter=RIVAL_MAX_ITER,
+            covariance=False,
+            decide=False,
+        ).res.cost
 
     key = edges["tag_i"].to_numpy(np.int64) * (1 << 32) + edges["tag_j"].to_numpy(np.int64)
     ranked = sorted(rivals, key=lambda p: -p.support_ratio)[:RIVAL_MAX_PAIRS]
@@ -340,21 +400,29 @@ def choose_hypotheses(
     flipped: list[list[int]] = []
     for r in order:
         trial = np.where(key == r, hyp == 1, use)
-        r_res = solve(graph_of(trial), loss=params.loss, f_scale=params.f_scale,
-                      max_nfev=MAX_NFEV)  # afresh: a flip turns a whole branch
+        r_res = solve(
+            graph_of(trial), loss=params.loss, f_scale=params.f_scale, max_nfev=MAX_NFEV
+        )  # afresh: a flip turns a whole branch
         c = cost(r_res)
         if c < best:
             use, res, best = trial, r_res, c
             flipped.append([int(r >> 32), int(r & 0xFFFFFFFF)])
     if flipped:
-        log.info("optimize: tag pairs %s: the other of the two mirror-image poses fits the "
-                 "camera's smooth motion better and is used", flipped)
+        log.info(
+            "optimize: tag pairs %s: the other of the two mirror-image poses fits the "
+            "camera's smooth motion better and is used",
+            flipped,
+        )
     return use, res, flipped
 
 
 def map_checked_edges(
-    edges: pd.DataFrame, use: np.ndarray, tags: np.ndarray, res: PoseGraphResult,
-    observations: pd.DataFrame, rivals: list[RivalPair],
+    edges: pd.DataFrame,
+    use: np.ndarray,
+    tags: np.ndarray,
+    res: PoseGraphResult,
+    observations: pd.DataFrame,
+    rivals: list[RivalPair],
 ) -> tuple[pd.DataFrame, int]:
     """``edges`` with the rows in ``use`` rebuilt from the IPPE solutions the map ``res`` (over
     ``tags``) picks for their observations (geometry.ippe.map_branches) where that turns them
@@ -391,8 +459,9 @@ def components(edges: pd.DataFrame, graph: TagGraph) -> list[np.ndarray]:
     """The tag graph's connected components (tag ids), the anchor's first, then by size."""
     tags = np.asarray(sorted(int(t) for t in graph.get("tags", [])), dtype=np.int64)
     if graph.anchor_id not in tags:
-        raise DataError(f"optimize: anchor tag {graph.anchor_id} is not among the mapped tags "
-                        f"{tags}")
+        raise DataError(
+            f"optimize: anchor tag {graph.anchor_id} is not among the mapped tags {tags}"
+        )
     ti, tj = edges["tag_i"].to_numpy(np.int64), edges["tag_j"].to_numpy(np.int64)
     if not (np.isin(ti, tags).all() and np.isin(tj, tags).all()):
         raise DataError("optimize: edges name tags missing from the graph's tag list")
@@ -406,8 +475,9 @@ def components(edges: pd.DataFrame, graph: TagGraph) -> list[np.ndarray]:
             f"optimize: tags {lost.tolist()} share no edge path with anchor tag "
             f"{graph.anchor_id} (the edges and graph artifacts disagree; re-run the edges stage)"
         )
-    order = sorted(range(n), key=lambda c: (c != first, -int((label == c).sum()),
-                                            int(tags[label == c].min())))
+    order = sorted(
+        range(n), key=lambda c: (c != first, -int((label == c).sum()), int(tags[label == c].min()))
+    )
     return [tags[label == c] for c in order]
 
 
@@ -432,21 +502,32 @@ def run(
         return _solve(edges, graph, observations, detections, params, camera, frames)
     rest = np.concatenate(comps[1:])
     if params.survey is None:
-        log.warning("optimize: tags %s are not linked to anchor tag %d by co-observations and "
-                    "there is no surveyed world (optimize.survey) to place them: left out",
-                    rest.tolist(), graph.anchor_id)
+        log.warning(
+            "optimize: tags %s are not linked to anchor tag %d by co-observations and "
+            "there is no surveyed world (optimize.survey) to place them: left out",
+            rest.tolist(),
+            graph.anchor_id,
+        )
 
-    def part(tags: np.ndarray, anchor: int, obs_all: bool
-             ) -> tuple[pd.DataFrame, TagGraph, pd.DataFrame, pd.DataFrame | None]:
+    def part(
+        tags: np.ndarray, anchor: int, obs_all: bool
+    ) -> tuple[pd.DataFrame, TagGraph, pd.DataFrame, pd.DataFrame | None]:
         e = edges[edges["tag_i"].isin(tags).to_numpy()]
-        g = graph.model_copy(update={
-            "anchor_id": anchor, "tags": [int(t) for t in tags],
-            "rival_pairs": [r for r in graph.rival_pairs if r.tag_i in tags]})
+        g = graph.model_copy(
+            update={
+                "anchor_id": anchor,
+                "tags": [int(t) for t in tags],
+                "rival_pairs": [r for r in graph.rival_pairs if r.tag_i in tags],
+            }
+        )
         if obs_all:  # the anchor's solve keeps every observation: the trajectory may link tags
             return e, g, observations, detections
-        return (e, g, observations[observations["tag_id"].isin(tags).to_numpy()],
-                None if detections is None else
-                detections[detections["tag_id"].isin(tags).to_numpy()])
+        return (
+            e,
+            g,
+            observations[observations["tag_id"].isin(tags).to_numpy()],
+            None if detections is None else detections[detections["tag_id"].isin(tags).to_numpy()],
+        )
 
     out = _solve(*part(comps[0], graph.anchor_id, True), params, camera=camera, frames=frames)
     if params.survey is None:
@@ -462,18 +543,28 @@ def run(
         try:
             sub = _solve(*part(tags, anchor, False), params, camera=camera, frames=frames)
         except DataError as err:
-            log.warning("optimize: tags %s (not linked to anchor tag %d) left out: %s",
-                        tags.tolist(), graph.anchor_id, err)
+            log.warning(
+                "optimize: tags %s (not linked to anchor tag %d) left out: %s",
+                tags.tolist(),
+                graph.anchor_id,
+                err,
+            )
             continue
         new = ~sub["tag_map"]["tag_id"].isin(list(done)).to_numpy()
         maps.append(sub["tag_map"][new])
         residuals.append(sub["edge_residuals"])
         done.update(sub["tag_map"]["tag_id"][new].tolist())
-        placed.append(PlacedComponent(anchor_id=anchor, tags=[int(t) for t in tags],
-                                      survey=sub["report"].survey))
+        placed.append(
+            PlacedComponent(
+                anchor_id=anchor, tags=[int(t) for t in tags], survey=sub["report"].survey
+            )
+        )
     tag_map = pd.concat(maps, ignore_index=True).sort_values("tag_id", ignore_index=True)
-    return {"tag_map": tag_map, "edge_residuals": pd.concat(residuals, ignore_index=True),
-            "report": out["report"].model_copy(update={"components": placed})}
+    return {
+        "tag_map": tag_map,
+        "edge_residuals": pd.concat(residuals, ignore_index=True),
+        "report": out["report"].model_copy(update={"components": placed}),
+    }
 
 
 def _solve(
@@ -490,16 +581,25 @@ def _solve(
     anchor = graph.anchor_id
     ti, tj = edges["tag_i"].to_numpy(np.int64), edges["tag_j"].to_numpy(np.int64)
     ii, jj = np.searchsorted(tags, ti), np.searchsorted(tags, tj)
-    hyp = (edges["hypothesis"].to_numpy(np.int64) if "hypothesis" in edges.columns
-           else np.zeros(len(edges), np.int64))
+    hyp = (
+        edges["hypothesis"].to_numpy(np.int64)
+        if "hypothesis" in edges.columns
+        else np.zeros(len(edges), np.int64)
+    )
     use = hyp == 0
 
     def graph_of(use: np.ndarray) -> PoseGraph:
         vals = edges[POSE_COLS].to_numpy(np.float64)[use]
         return PoseGraph(
-            n_tags=len(tags), anchor=int(np.searchsorted(tags, anchor)), idx_i=ii[use],
-            idx_j=jj[use], R_obs=R_from_quat_xyzw(vals[:, 3:]), t_obs=vals[:, :3],
-            weight=edges["weight"].to_numpy(np.float64)[use], rot_weight_m=ROT_WEIGHT_M)
+            n_tags=len(tags),
+            anchor=int(np.searchsorted(tags, anchor)),
+            idx_i=ii[use],
+            idx_j=jj[use],
+            R_obs=R_from_quat_xyzw(vals[:, 3:]),
+            t_obs=vals[:, :3],
+            weight=edges["weight"].to_numpy(np.float64)[use],
+            rot_weight_m=ROT_WEIGHT_M,
+        )
 
     g = graph_of(use)
     res = solve(g, loss=params.loss, f_scale=params.f_scale, max_nfev=MAX_NFEV)
@@ -512,16 +612,32 @@ def _solve(
         g = graph_of(use)
         res = solve(g, loss=params.loss, f_scale=params.f_scale, max_nfev=MAX_NFEV)
     if rebuilt:
-        log.info("optimize: %d tag-pair links rebuilt from the mirror-image poses the map agrees "
-                 "with", rebuilt)
-    joint = (params.method == "joint" and detections is not None and len(detections) > 0
-             and camera is not None)
+        log.info(
+            "optimize: %d tag-pair links rebuilt from the mirror-image poses the map agrees with",
+            rebuilt,
+        )
+    joint = (
+        params.method == "joint"
+        and detections is not None
+        and len(detections) > 0
+        and camera is not None
+    )
     flipped: list[list[int]] = []
     if joint and (hyp > 0).any() and params.rival_search and timed(frames):
         assert detections is not None and camera is not None
-        use, res, flipped = choose_hypotheses(edges, hyp, graph.rival_pairs, graph_of, res,
-                                              tags, anchor, observations, detections, camera,
-                                              params)
+        use, res, flipped = choose_hypotheses(
+            edges,
+            hyp,
+            graph.rival_pairs,
+            graph_of,
+            res,
+            tags,
+            anchor,
+            observations,
+            detections,
+            camera,
+            params,
+        )
         g = graph_of(use)
     edges = edges[use]
     ti, tj = ti[use], tj[use]
@@ -533,10 +649,13 @@ def _solve(
         assert detections is not None and camera is not None
         is_timed = timed(frames)
         if not is_timed and params.joint.motion != "none":
-            log.info("optimize: the stamps are the files' order, not capture times: no motion "
-                     "prior, no tags linked through the trajectory")
-        out = refine_on_corners(R_map, t_map, tags, g.anchor, observations, detections, camera,
-                                params, is_timed)
+            log.info(
+                "optimize: the stamps are the files' order, not capture times: no motion "
+                "prior, no tags linked through the trajectory"
+            )
+        out = refine_on_corners(
+            R_map, t_map, tags, g.anchor, observations, detections, camera, params, is_timed
+        )
         if out is not None:
             ids, R_map, t_map, std, bundle = out
             bundle["rival_pairs_flipped"] = flipped
@@ -589,33 +708,44 @@ def _solve(
         "survey": survey,
         "joint": params.joint,
     }
-    return {"tag_map": tag_map, "edge_residuals": residuals,
-            "report": OptimizeReport.model_validate(report)}
+    return {
+        "tag_map": tag_map,
+        "edge_residuals": residuals,
+        "report": OptimizeReport.model_validate(report),
+    }
 
 
 # --- what a sweep ranks by and what a run exports (declared for the runner) ----------------
 
 METRICS = tuple(
     Metric(f"map.{name}", "report", path, unit, default=5 if name == "rms_t_m" else 0)
-    for name, path, unit in (("rms_t_m", ("rms_t_m",), "m"), ("rms_r_deg", ("rms_r_deg",), "deg"),
-                             ("rms_px", ("bundle", "rms_px"), "px"), ("cost", ("cost",), "1"),
-                             ("nfev", ("nfev",), "1"))
-)  # fmt: skip
+    for name, path, unit in (
+        ("rms_t_m", ("rms_t_m",), "m"),
+        ("rms_r_deg", ("rms_r_deg",), "deg"),
+        ("rms_px", ("bundle", "rms_px"), "px"),
+        ("cost", ("cost",), "1"),
+        ("nfev", ("nfev",), "1"),
+    )
+)
 
 
-def _tag_map_files(tag_map: pd.DataFrame | None, report: OptimizeReport | None
-                   ) -> ExportFiles | None:  # fmt: skip
+def _tag_map_files(
+    tag_map: pd.DataFrame | None, report: OptimizeReport | None
+) -> ExportFiles | None:
     """``tag_map.yaml`` and ``tag_map.csv``."""
     if tag_map is None or report is None:
         return None
-    return {"tag_map.yaml": ("tag_map_yaml", (tag_map, report.anchor_id)),
-            "tag_map.csv": ("tag_map_csv", tag_map)}
+    return {
+        "tag_map.yaml": ("tag_map_yaml", (tag_map, report.anchor_id)),
+        "tag_map.csv": ("tag_map_csv", tag_map),
+    }
 
 
 def _evidence_rows(traj: pd.DataFrame) -> list[tuple[str, Any]]:
     """The reference trajectory against its evidence: corner RMS of the output and of the
     frames on their own corners (medians, and their ratio), the temporal step's change, and the
     frames it moved beyond their own uncertainty."""
+
     def med(c: str) -> Any:
         v = traj[c].to_numpy(np.float64)
         return float(np.nanmedian(v)) if np.isfinite(v).any() else ""
@@ -627,18 +757,27 @@ def _evidence_rows(traj: pd.DataFrame) -> list[tuple[str, Any]]:
     rp, ar = med("reproj_px"), med("alone_reproj_px")
     sig = traj["shift_sigma"].to_numpy(np.float64)
     beyond = int(np.sum(sig > SHIFT_SIGMA_BOUND)) if np.isfinite(sig).any() else ""
-    return [("frame_reproj_px_median", rp), ("frame_alone_reproj_px_median", ar),
-            ("frame_reproj_ratio", rp / ar if rp != "" and ar != "" and ar > 0 else ""),
-            ("frame_shift_m_median", med("shift_m")), ("frame_shift_m_max", top("shift_m")),
-            ("frame_shift_deg_max", top("shift_deg")),
-            ("frame_shift_sigma_max", top("shift_sigma")),
-            ("frames_moved_beyond_evidence", beyond)]
+    return [
+        ("frame_reproj_px_median", rp),
+        ("frame_alone_reproj_px_median", ar),
+        ("frame_reproj_ratio", rp / ar if rp != "" and ar != "" and ar > 0 else ""),
+        ("frame_shift_m_median", med("shift_m")),
+        ("frame_shift_m_max", top("shift_m")),
+        ("frame_shift_deg_max", top("shift_deg")),
+        ("frame_shift_sigma_max", top("shift_sigma")),
+        ("frames_moved_beyond_evidence", beyond),
+    ]
 
 
 def _diagnostics_file(
-    frames: pd.DataFrame | None, dets: pd.DataFrame | None, obs: pd.DataFrame | None,
-    graph: TagGraph | None, edges: pd.DataFrame | None, tags: pd.DataFrame | None,
-    report: OptimizeReport | None, traj: pd.DataFrame | None,
+    frames: pd.DataFrame | None,
+    dets: pd.DataFrame | None,
+    obs: pd.DataFrame | None,
+    graph: TagGraph | None,
+    edges: pd.DataFrame | None,
+    tags: pd.DataFrame | None,
+    report: OptimizeReport | None,
+    traj: pd.DataFrame | None,
 ) -> ExportFiles | None:
     """``diagnostics.csv`` (metric,value), a superset of the original ``diagnostico_erros.csv``."""
     if frames is None or obs is None:
@@ -658,44 +797,68 @@ def _diagnostics_file(
     ]
     bundle = report.bundle if report is not None else None
     if bundle is not None:  # the joint solve
-        rows += [("map_method", "joint"), ("joint_frames", bundle.frames),
-                 ("joint_single_tag_frames", bundle.single_tag_frames),
-                 ("joint_motion_prior_frames", bundle.motion_prior_frames),
-                 ("joint_ippe_second_solution", bundle.ippe_second_solution),
-                 ("joint_corner_rms_px", bundle.rms_px),
-                 ("joint_variance_factor", bundle.variance_factor),
-                 ("joint_corner_sigma_px", bundle.corner_sigma_px),
-                 ("joint_rival_pairs_flipped", " ".join(
-                     f"tag36h11:{i}-tag36h11:{j}" for i, j in bundle.rival_pairs_flipped))]
+        rows += [
+            ("map_method", "joint"),
+            ("joint_frames", bundle.frames),
+            ("joint_single_tag_frames", bundle.single_tag_frames),
+            ("joint_motion_prior_frames", bundle.motion_prior_frames),
+            ("joint_ippe_second_solution", bundle.ippe_second_solution),
+            ("joint_corner_rms_px", bundle.rms_px),
+            ("joint_variance_factor", bundle.variance_factor),
+            ("joint_corner_sigma_px", bundle.corner_sigma_px),
+            (
+                "joint_rival_pairs_flipped",
+                " ".join(f"tag36h11:{i}-tag36h11:{j}" for i, j in bundle.rival_pairs_flipped),
+            ),
+        ]
     elif report is not None:
         rows.append(("map_method", report.method))
     if tags is not None and "std_pos_m" in tags.columns:
         weak = tags.loc[poorly_constrained(tags), "tag_id"].astype(int)
-        rows += [("tag_std_pos_m_median", float(tags["std_pos_m"].median())),
-                 ("tag_std_pos_m_max", float(tags["std_pos_m"].max())),
-                 ("poorly_constrained_tags", " ".join(f"tag36h11:{t}" for t in weak))]
+        rows += [
+            ("tag_std_pos_m_median", float(tags["std_pos_m"].median())),
+            ("tag_std_pos_m_max", float(tags["std_pos_m"].max())),
+            ("poorly_constrained_tags", " ".join(f"tag36h11:{t}" for t in weak)),
+        ]
     survey = report.survey if report is not None else None
     if survey is not None:  # the surveyed world and its residuals at the known tags
-        rows += [("survey_source", survey.source), ("survey_model", survey.model),
-                 ("survey_tags", " ".join(f"tag36h11:{t}" for t in survey.tags)),
-                 ("survey_res_pos_rms_m", survey.res_pos_rms_m),
-                 ("survey_res_pos_max_m", survey.res_pos_max_m),
-                 ("survey_res_rot_rms_deg", "" if survey.res_rot_rms_deg is None
-                  else survey.res_rot_rms_deg)]
+        rows += [
+            ("survey_source", survey.source),
+            ("survey_model", survey.model),
+            ("survey_tags", " ".join(f"tag36h11:{t}" for t in survey.tags)),
+            ("survey_res_pos_rms_m", survey.res_pos_rms_m),
+            ("survey_res_pos_max_m", survey.res_pos_max_m),
+            (
+                "survey_res_rot_rms_deg",
+                "" if survey.res_rot_rms_deg is None else survey.res_rot_rms_deg,
+            ),
+        ]
     if graph is not None:
-        rows.append(("weak_links", " ".join(f"tag36h11:{w.tag_i}-tag36h11:{w.tag_j}"
-                                            f"({w.n_frames})" for w in graph.weak_links)))
+        rows.append(
+            (
+                "weak_links",
+                " ".join(
+                    f"tag36h11:{w.tag_i}-tag36h11:{w.tag_j}({w.n_frames})" for w in graph.weak_links
+                ),
+            )
+        )
     if traj is not None and "std_pos_m" in traj.columns and traj["std_pos_m"].notna().any():
-        rows += [("frame_std_pos_m_median", float(traj["std_pos_m"].median())),
-                 ("frame_std_pos_m_max", float(traj["std_pos_m"].max()))]
+        rows += [
+            ("frame_std_pos_m_median", float(traj["std_pos_m"].median())),
+            ("frame_std_pos_m_max", float(traj["std_pos_m"].max())),
+        ]
     if traj is not None and "shift_m" in traj.columns:
         rows += _evidence_rows(traj)
     return {"diagnostics.csv": ("metric_value_csv", rows)}
 
 
-def _recording_map_file(traj: pd.DataFrame | None, tags: pd.DataFrame | None,
-                        summary: Summary | None, report: Any, dataset: str
-                        ) -> ExportFiles | None:  # fmt: skip
+def _recording_map_file(
+    traj: pd.DataFrame | None,
+    tags: pd.DataFrame | None,
+    summary: Summary | None,
+    report: Any,
+    dataset: str,
+) -> ExportFiles | None:
     """``map.png`` of a recording (not a query, whose ``report`` draws its own): its tags and
     trajectory (or photos: camera views) seen from above, in the plane of ``report.plane``."""
     if traj is None or tags is None or len(traj) < 2 or summary is not None:
@@ -703,25 +866,55 @@ def _recording_map_file(traj: pd.DataFrame | None, tags: pd.DataFrame | None,
     plane_name = str(getattr(report, "plane", "auto"))
     P, R = poses(traj)
     plane = reference_plane(plane_name, P, R)
-    return {"map.png": ("recording_map_png", dict(
-        dataset=dataset, plane_name=plane_name, uv=plane.to_uv(P),
-        flip_v=bool(plane.n @ R[:, :, 1].mean(axis=0) > 0),
-        tags_uv=plane.to_uv(tags[["x_m", "y_m", "z_m"]].to_numpy()),
-        tag_ids=tags["tag_id"].astype(int).tolist(), weak_tags=poorly_constrained(tags),
-        tag_std_m=tags["std_pos_m"].to_numpy(np.float64) if "std_pos_m" in tags else None,
-        ref_heading_rad=plane.heading(R),
-    ))}
+    return {
+        "map.png": (
+            "recording_map_png",
+            dict(
+                dataset=dataset,
+                plane_name=plane_name,
+                uv=plane.to_uv(P),
+                flip_v=bool(plane.n @ R[:, :, 1].mean(axis=0) > 0),
+                tags_uv=plane.to_uv(tags[["x_m", "y_m", "z_m"]].to_numpy()),
+                tag_ids=tags["tag_id"].astype(int).tolist(),
+                weak_tags=poorly_constrained(tags),
+                tag_std_m=tags["std_pos_m"].to_numpy(np.float64) if "std_pos_m" in tags else None,
+                ref_heading_rad=plane.heading(R),
+            ),
+        )
+    }
 
 
 EXPORTS = (
-    Export("tag_map", ("tag_map.yaml", "tag_map.csv"),
-           {"tag_map": "optimize.tag_map", "report": "optimize.report"}, _tag_map_files),
-    Export("diagnostics", ("diagnostics.csv",),
-           {"frames": "extract.frames", "dets": "extract.detections",
-            "obs": "pnp.observations", "graph": "edges.graph", "edges": "edges.edges",
-            "tags": "optimize.tag_map", "report": "optimize.report",
-            "traj": "smooth.trajectory"}, _diagnostics_file),
-    Export("recording_map", ("map.png",),
-           {"traj": "smooth.trajectory", "tags": "optimize.tag_map",
-            "summary": "report.summary", "report": "params:report"}, _recording_map_file),
-)  # fmt: skip
+    Export(
+        "tag_map",
+        ("tag_map.yaml", "tag_map.csv"),
+        {"tag_map": "optimize.tag_map", "report": "optimize.report"},
+        _tag_map_files,
+    ),
+    Export(
+        "diagnostics",
+        ("diagnostics.csv",),
+        {
+            "frames": "extract.frames",
+            "dets": "extract.detections",
+            "obs": "pnp.observations",
+            "graph": "edges.graph",
+            "edges": "edges.edges",
+            "tags": "optimize.tag_map",
+            "report": "optimize.report",
+            "traj": "smooth.trajectory",
+        },
+        _diagnostics_file,
+    ),
+    Export(
+        "recording_map",
+        ("map.png",),
+        {
+            "traj": "smooth.trajectory",
+            "tags": "optimize.tag_map",
+            "summary": "report.summary",
+            "report": "params:report",
+        },
+        _recording_map_file,
+    ),
+)

@@ -78,7 +78,9 @@ class Params(StageParams):
 
 
 def run(
-    detections: pd.DataFrame, camera: CameraModel | None, extracted: pd.DataFrame,
+    detections: pd.DataFrame,
+    camera: CameraModel | None,
+    extracted: pd.DataFrame,
     params: Params,
 ) -> dict[str, pd.DataFrame]:
     """Poses of every detection plus the source's own observations; see the module docstring."""
@@ -105,8 +107,11 @@ def _solve_table(det: pd.DataFrame, camera: CameraModel, params: Params) -> pd.D
     T, err = solve_ippe(corners, sizes, camera)
     good = np.isfinite(err[:, 0])
     if not good.all():
-        log.warning("pnp: %d of %d detections gave no pose (degenerate corners)",
-                    int((~good).sum()), len(good))
+        log.warning(
+            "pnp: %d of %d detections gave no pose (degenerate corners)",
+            int((~good).sum()),
+            len(good),
+        )
     cols: dict[str, Any] = {
         "t_ns": det["t_ns"].to_numpy(np.int64),
         "frame_idx": det["frame_idx"].to_numpy(np.int32),

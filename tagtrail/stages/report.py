@@ -52,15 +52,35 @@ OUTPUTS = ("relocalization", "summary")
 SCOPE = "query"
 RELOC_COLS = columns("report.relocalization")
 RELOC_STATS = ("mean", "median", "p90", "p95", "max", "rmse")
-METRICS = (*(m for stat in RELOC_STATS for m in (
-    Metric(f"D.{stat}_m", "summary", ("distance_m", stat), "m", datasets="all",
-           default=3 if stat == "mean" else 0),
-    Metric(f"abs_phi.{stat}_deg", "summary", ("abs_heading_error_deg", stat), "deg",
-           datasets="all", default=4 if stat == "mean" else 0))),
+METRICS = (
+    *(
+        m
+        for stat in RELOC_STATS
+        for m in (
+            Metric(
+                f"D.{stat}_m",
+                "summary",
+                ("distance_m", stat),
+                "m",
+                datasets="all",
+                default=3 if stat == "mean" else 0,
+            ),
+            Metric(
+                f"abs_phi.{stat}_deg",
+                "summary",
+                ("abs_heading_error_deg", stat),
+                "deg",
+                datasets="all",
+                default=4 if stat == "mean" else 0,
+            ),
+        )
+    ),
     Metric("alignment.rms_m", "summary", ("alignment", "rms_m"), "m", datasets="all"),
-)  # fmt: skip
-METRICS_HELP = (f"D.STAT_m and abs_phi.STAT_deg (relocalization; STAT: {', '.join(RELOC_STATS)}),"
-                " alignment.rms_m")  # fmt: skip
+)
+METRICS_HELP = (
+    f"D.STAT_m and abs_phi.STAT_deg (relocalization; STAT: {', '.join(RELOC_STATS)}),"
+    " alignment.rms_m"
+)
 
 
 class Params(StageParams):
@@ -105,9 +125,15 @@ class Params(StageParams):
 
 def track_params(params: Params) -> TrackParams:
     """The tracker settings of the report's parameters (also the live node's)."""
-    return TrackParams(params.association, params.lookahead_m, params.search_back_m,
-                       params.search_ahead_m, params.reacquire_m, params.lost_m,
-                       params.curvature_window_m)  # fmt: skip
+    return TrackParams(
+        params.association,
+        params.lookahead_m,
+        params.search_back_m,
+        params.search_ahead_m,
+        params.reacquire_m,
+        params.lost_m,
+        params.curvature_window_m,
+    )
 
 
 def stats(x: ArrayLike) -> dict[str, float | None]:
@@ -125,8 +151,9 @@ def stats(x: ArrayLike) -> dict[str, float | None]:
     }
 
 
-def relocalization_frame(t_ns: ArrayLike, t0_ns: int, m: PathMatch,
-                         tracks: list[Track]) -> pd.DataFrame:  # fmt: skip
+def relocalization_frame(
+    t_ns: ArrayLike, t0_ns: int, m: PathMatch, tracks: list[Track]
+) -> pd.DataFrame:
     """SPEC relocalization columns (``t_ns`` int64, ``t_rel_s`` from ``t0_ns``, angles in deg),
     then the tracker's (``cross_track_m … lost``) from ``tracks`` (one per row)."""
     t = np.asarray(t_ns, dtype=np.int64)
@@ -155,8 +182,9 @@ def relocalization_frame(t_ns: ArrayLike, t0_ns: int, m: PathMatch,
     )
 
 
-def track_trajectory(path: ReferencePath, uv: ArrayLike, heading: ArrayLike,
-                     params: Params) -> tuple[PathMatch, list[Track]]:  # fmt: skip
+def track_trajectory(
+    path: ReferencePath, uv: ArrayLike, heading: ArrayLike, params: Params
+) -> tuple[PathMatch, list[Track]]:
     """Trajectory mode: every pose ``uv (M, 2)``, ``heading (M,)`` against the reference.
 
     ``nearest``: k* of the batch query (Eq. 3.12, as ever); ``progress``: the poses in time
@@ -166,15 +194,23 @@ def track_trajectory(path: ReferencePath, uv: ArrayLike, heading: ArrayLike,
     tracker = PathTracker(path, track_params(params))
     if params.association == "nearest":
         m = path.query_uv(uv, hq)
-        tracks = [tracker.track(u, v, h, k) for (u, v), h, k in
-                  zip(uv.tolist(), hq.tolist(), m.ref_idx.tolist(), strict=True)]  # fmt: skip
+        tracks = [
+            tracker.track(u, v, h, k)
+            for (u, v), h, k in zip(uv.tolist(), hq.tolist(), m.ref_idx.tolist(), strict=True)
+        ]
         return m, tracks
     tracks = [tracker.track(u, v, h) for (u, v), h in zip(uv.tolist(), hq.tolist(), strict=True)]
     k = np.array([tk.ref_idx for tk in tracks], dtype=np.int64)
     href = path.heading_rad[k]
-    m = PathMatch(k, np.array([tk.distance_m for tk in tracks], dtype=np.float64),
-                  np.array([tk.phi_rad for tk in tracks], dtype=np.float64), hq, href, uv,
-                  path.uv[k])  # fmt: skip
+    m = PathMatch(
+        k,
+        np.array([tk.distance_m for tk in tracks], dtype=np.float64),
+        np.array([tk.phi_rad for tk in tracks], dtype=np.float64),
+        hq,
+        href,
+        uv,
+        path.uv[k],
+    )
     return m, tracks
 
 
@@ -209,8 +245,11 @@ def run(
     if mode == "point":
         p, h, i = reduce_to_point(uv, heading)
         match = path.query_polyline(p[None], [h])
-        tracks = [PathTracker(path, track_params(params)).track_segment(
-            float(p[0]), float(p[1]), h, int(match.ref_idx[0]))]  # fmt: skip
+        tracks = [
+            PathTracker(path, track_params(params)).track_segment(
+                float(p[0]), float(p[1]), h, int(match.ref_idx[0])
+            )
+        ]
         t_rows = t_ns[[i]]
     else:
         match, tracks = track_trajectory(path, uv, heading, params)
@@ -234,21 +273,43 @@ def run(
 
 
 def _relocalization_files(
-    reloc: pd.DataFrame | None, summary: Summary | None, q_traj: pd.DataFrame | None,
-    ref_traj: pd.DataFrame | None, ref_tags: pd.DataFrame | None,
+    reloc: pd.DataFrame | None,
+    summary: Summary | None,
+    q_traj: pd.DataFrame | None,
+    ref_traj: pd.DataFrame | None,
+    ref_tags: pd.DataFrame | None,
 ) -> ExportFiles | None:
     """SPEC's ``relocalization.csv``, ``summary.json``, ``relocalization.png`` and ``map.png``
     of a query, against the reference's trajectory and tags."""
     if reloc is None or summary is None or q_traj is None or ref_traj is None:
         return None
     doc = json.loads(json.dumps(summary.model_dump(mode="json"), sort_keys=True))  # as stored
-    return {"relocalization.csv": ("relocalization", dict(
-        reloc=reloc, summary=doc, q_traj=q_traj, ref_traj=ref_traj, ref_tags=ref_tags,
-        plane_name=summary.plane))}
+    return {
+        "relocalization.csv": (
+            "relocalization",
+            dict(
+                reloc=reloc,
+                summary=doc,
+                q_traj=q_traj,
+                ref_traj=ref_traj,
+                ref_tags=ref_tags,
+                plane_name=summary.plane,
+            ),
+        )
+    }
 
 
-EXPORTS = (Export(
-    "relocalization", ("relocalization.csv", "summary.json", "relocalization.png", "map.png"),
-    {"reloc": "report.relocalization", "summary": "report.summary", "q_traj": "align.trajectory",
-     "ref_traj": "reference:smooth.trajectory", "ref_tags": "reference:optimize.tag_map"},
-    _relocalization_files),)
+EXPORTS = (
+    Export(
+        "relocalization",
+        ("relocalization.csv", "summary.json", "relocalization.png", "map.png"),
+        {
+            "reloc": "report.relocalization",
+            "summary": "report.summary",
+            "q_traj": "align.trajectory",
+            "ref_traj": "reference:smooth.trajectory",
+            "ref_tags": "reference:optimize.tag_map",
+        },
+        _relocalization_files,
+    ),
+)

@@ -59,15 +59,20 @@ OUTPUTS = ("trajectory",)
 SCOPE = "all"
 
 
-def run(trajectory: pd.DataFrame, params: Params, frames: pd.DataFrame | None = None
-        ) -> dict[str, Any]:
+def run(
+    trajectory: pd.DataFrame, params: Params, frames: pd.DataFrame | None = None
+) -> dict[str, Any]:
     """The smoothed trajectory: same rows (sorted by ``t_ns``) and columns as the input. Frames
     whose stamps are only an image folder's file order (``extract.frames.timed``) are not
     smoothed: nothing links them in time."""
     traj = trajectory.sort_values("t_ns", kind="stable").reset_index(drop=True)
     prior = "motion_prior" in traj.columns and bool(traj["motion_prior"].any())
-    if (params.method == "none" or (params.method == "auto" and prior) or len(traj) < 3
-            or not timed(frames)):
+    if (
+        params.method == "none"
+        or (params.method == "auto" and prior)
+        or len(traj) < 3
+        or not timed(frames)
+    ):
         return {"trajectory": traj}
     t_ns = traj["t_ns"].to_numpy(np.int64)
     t_s = (t_ns - t_ns[0]).astype(np.float64) * 1e-9
@@ -102,14 +107,22 @@ def _trajectory_files(trajectory: pd.DataFrame | None) -> ExportFiles | None:
         return None
     files: dict[str, tuple[str, Any] | None] = {
         "trajectory.csv": ("trajectory_csv", trajectory),
-        "trajectory.tum": ("trajectory_tum", trajectory)}
-    for name, cols, fmt in (("trajectory_std.csv", STD_COLS, "trajectory_std_csv"),
-                            ("trajectory_evidence.csv", EVIDENCE_COLS, "trajectory_evidence_csv")):
+        "trajectory.tum": ("trajectory_tum", trajectory),
+    }
+    for name, cols, fmt in (
+        ("trajectory_std.csv", STD_COLS, "trajectory_std_csv"),
+        ("trajectory_evidence.csv", EVIDENCE_COLS, "trajectory_evidence_csv"),
+    ):
         has = all(c in trajectory.columns for c in cols) and trajectory[cols[0]].notna().any()
         files[name] = (fmt, trajectory) if has else None
     return files
 
 
-EXPORTS = (Export("trajectories", ("trajectory.csv", "trajectory.tum", "trajectory_std.csv",
-                                   "trajectory_evidence.csv"),
-                  {"trajectory": "smooth.trajectory"}, _trajectory_files),)  # fmt: skip
+EXPORTS = (
+    Export(
+        "trajectories",
+        ("trajectory.csv", "trajectory.tum", "trajectory_std.csv", "trajectory_evidence.csv"),
+        {"trajectory": "smooth.trajectory"},
+        _trajectory_files,
+    ),
+)

@@ -78,8 +78,11 @@ log = logging.getLogger(__name__)
 TRAJ_COLS = columns("trajectory.trajectory")
 
 
-OLD_KEYS = {k: v.format(joint="optimize.joint") + "; trajectory takes the map's settings "
-            "(its map_report input)" for k, v in JOINT_OLD_KEYS.items()}
+OLD_KEYS = {
+    k: v.format(joint="optimize.joint") + "; trajectory takes the map's settings "
+    "(its map_report input)"
+    for k, v in JOINT_OLD_KEYS.items()
+}
 
 
 class Params(StageParams):
@@ -127,9 +130,13 @@ def _empty() -> pd.DataFrame:
     return _extra(out)
 
 
-def _extra(out: pd.DataFrame, std: np.ndarray | None = None, prior: bool = False,
-           evidence: dict[str, np.ndarray] | None = None, alone: np.ndarray | None = None
-           ) -> pd.DataFrame:
+def _extra(
+    out: pd.DataFrame,
+    std: np.ndarray | None = None,
+    prior: bool = False,
+    evidence: dict[str, np.ndarray] | None = None,
+    alone: np.ndarray | None = None,
+) -> pd.DataFrame:
     """The columns after the pose: std, ``motion_prior``, the evidence (NaN: unknown, without
     corners) and the frame's own pose ``alone (N, 7)`` (default: the pose itself)."""
     std = np.full((len(out), 2), np.nan) if std is None else std
@@ -142,18 +149,32 @@ def _extra(out: pd.DataFrame, std: np.ndarray | None = None, prior: bool = False
     return out
 
 
-def joint_trajectory(rows: pd.DataFrame, ids: np.ndarray, W_map: np.ndarray,
-                     camera: CameraModel, settings: JointSettings, is_timed: bool,
-                     fallback: tuple[bool, bool] | None, priors: bool = True) -> pd.DataFrame:
+def joint_trajectory(
+    rows: pd.DataFrame,
+    ids: np.ndarray,
+    W_map: np.ndarray,
+    camera: CameraModel,
+    settings: JointSettings,
+    is_timed: bool,
+    fallback: tuple[bool, bool] | None,
+    priors: bool = True,
+) -> pd.DataFrame:
     """The ``joint`` method on ``corner_rows`` of the mapped tags ``ids`` (map ``W_map``) under
     the map's ``settings``; ``fallback``: the map's ground-plane and drive decisions, for data
     too short or too still to decide on; ``priors`` False: each frame on its own corners."""
     k = np.searchsorted(ids, rows["tag_id"].to_numpy(np.int64))
     pb = corner_problem(
-        rows["frame_idx"].to_numpy(np.int64), rows["t_ns"].to_numpy(np.int64), k,
+        rows["frame_idx"].to_numpy(np.int64),
+        rows["t_ns"].to_numpy(np.int64),
+        k,
         rows[CORNER_COLS].to_numpy(np.float64).reshape(-1, 4, 2),
-        rows["size_m"].to_numpy(np.float64), both_solutions(rows), camera, settings, is_timed,
-        priors)
+        rows["size_m"].to_numpy(np.float64),
+        both_solutions(rows),
+        camera,
+        settings,
+        is_timed,
+        priors,
+    )
     ob, t_ns, prior = pb.ob, pb.t_ns, pb.motion
     solved = solve_on_corners(pb, W_map, np.zeros(len(ids), bool), settings, fallback=fallback)
     res, ground = solved.res, solved.ground
@@ -166,24 +187,36 @@ def joint_trajectory(rows: pd.DataFrame, ids: np.ndarray, W_map: np.ndarray,
     else:  # each frame on its own corners: it is its own evidence
         rms = frame_rms_px(res.res_px, ob.frame, len(t_ns))
         zero = np.zeros(len(t_ns))
-        evidence = dict(reproj_px=rms, alone_reproj_px=rms, shift_m=zero, shift_deg=zero,
-                        shift_sigma=zero)
+        evidence = dict(
+            reproj_px=rms, alone_reproj_px=rms, shift_m=zero, shift_deg=zero, shift_sigma=zero
+        )
         alone = None
     if not res.converged:
-        log.warning("trajectory: the joint solve stopped after %d iterations before "
-                    "converging", res.iters)
+        log.warning(
+            "trajectory: the joint solve stopped after %d iterations before converging", res.iters
+        )
     xyz, q = xyz_quat_from_T(inv(make_T(res.R_cam, res.t_cam)))
     out = pd.DataFrame({"t_ns": t_ns})
     out[POSE_COLS] = np.concatenate([xyz, q], axis=1)
     out["n_tags"] = np.bincount(ob.frame, minlength=len(t_ns)).astype(np.int32)
-    log.info("trajectory: %d frames solved together (%d tied to their neighbours by smooth "
-             "motion); tag corners fit to %.2f px RMS", len(t_ns), res.prior_terms,
-             float(np.sqrt(np.mean(res.res_px**2))))
+    log.info(
+        "trajectory: %d frames solved together (%d tied to their neighbours by smooth "
+        "motion); tag corners fit to %.2f px RMS",
+        len(t_ns),
+        res.prior_terms,
+        float(np.sqrt(np.mean(res.res_px**2))),
+    )
     return _extra(out, res.cam_std, prior is not None, evidence, alone)
 
 
-def _own_evidence(out: pd.DataFrame, frame_idx: np.ndarray, rows: pd.DataFrame,
-                  ids: np.ndarray, W_map: np.ndarray, camera: CameraModel | None) -> pd.DataFrame:
+def _own_evidence(
+    out: pd.DataFrame,
+    frame_idx: np.ndarray,
+    rows: pd.DataFrame,
+    ids: np.ndarray,
+    W_map: np.ndarray,
+    camera: CameraModel | None,
+) -> pd.DataFrame:
     """Frame-by-frame poses ``out`` (of frames ``frame_idx``, sorted) are their own evidence:
     their corner RMS (``reproj_px`` = ``alone_reproj_px``; NaN without corners), no shift."""
     rms = np.full(len(out), np.nan)
@@ -191,20 +224,34 @@ def _own_evidence(out: pd.DataFrame, frame_idx: np.ndarray, rows: pd.DataFrame,
     if len(rows) and camera is not None:
         k = np.searchsorted(ids, rows["tag_id"].to_numpy(np.int64))
         ob, _ = corner_observations(
-            rows["frame_idx"].to_numpy(np.int64), rows["t_ns"].to_numpy(np.int64), k,
+            rows["frame_idx"].to_numpy(np.int64),
+            rows["t_ns"].to_numpy(np.int64),
+            k,
             rows[CORNER_COLS].to_numpy(np.float64).reshape(-1, 4, 2),
-            rows["size_m"].to_numpy(np.float64), camera)
+            rows["size_m"].to_numpy(np.float64),
+            camera,
+        )
         frames, first = np.unique(rows["frame_idx"].to_numpy(np.int64), return_index=True)
         order = np.argsort(rows["t_ns"].to_numpy(np.int64)[first], kind="stable")
         where = np.searchsorted(frame_idx, frames[order])  # ob's frames are in time order
         pose = out[POSE_COLS].to_numpy(np.float64)[where]
         cam_T_world = inv(T_from_xyz_quat(pose[:, :3], pose[:, 3:]))
-        res = observation_rms_px(cam_T_world[:, :3, :3], cam_T_world[:, :3, 3], W_map[:, :3, :3],
-                                 W_map[:, :3, 3], ob, camera.focal_px)
+        res = observation_rms_px(
+            cam_T_world[:, :3, :3],
+            cam_T_world[:, :3, 3],
+            W_map[:, :3, :3],
+            W_map[:, :3, 3],
+            ob,
+            camera.focal_px,
+        )
         rms[where] = frame_rms_px(res, ob.frame, len(where))
     zero = np.zeros(len(out))
-    return _extra(out, evidence=dict(reproj_px=rms, alone_reproj_px=rms, shift_m=zero,
-                                     shift_deg=zero, shift_sigma=zero))
+    return _extra(
+        out,
+        evidence=dict(
+            reproj_px=rms, alone_reproj_px=rms, shift_m=zero, shift_deg=zero, shift_sigma=zero
+        ),
+    )
 
 
 def _at_map_scale(obs: pd.DataFrame, size: np.ndarray, ids: np.ndarray) -> pd.DataFrame:
@@ -238,22 +285,27 @@ def run(
 ) -> dict[str, Any]:
     """One ``world_T_cam`` per frame with a mapped tag: ``TRAJ_COLS``. ``map_report``: the
     map's ``optimize.report`` (its joint settings and decisions; None: the defaults)."""
-    settings = JointSettings() if map_report is None or map_report.joint is None \
-        else map_report.joint
+    settings = (
+        JointSettings() if map_report is None or map_report.joint is None else map_report.joint
+    )
     bundle = None if map_report is None else map_report.bundle
     decided = None if bundle is None else bundle.ground
-    fallback = None if decided is None else (
-        decided.applied, decided.drive is not None and decided.drive.applied)
+    fallback = (
+        None
+        if decided is None
+        else (decided.applied, decided.drive is not None and decided.drive.applied)
+    )
     if decided is not None and decided.note:  # a map that could not decide either
-        log.warning("trajectory: the map report decided no ground plane on its own data (%s); "
-                    "is it the map's? A query localized against the reference map wires "
-                    "trajectory.map_report: reference:optimize.report beside trajectory.tag_map",
-                    decided.note)
+        log.warning(
+            "trajectory: the map report decided no ground plane on its own data (%s); "
+            "is it the map's? A query localized against the reference map wires "
+            "trajectory.map_report: reference:optimize.report beside trajectory.tag_map",
+            decided.note,
+        )
         fallback = None
     is_timed = timed(frames)
     if not is_timed and settings.motion != "none":
-        log.info("trajectory: the stamps are the files' order, not capture times: no motion "
-                 "prior")
+        log.info("trajectory: the stamps are the files' order, not capture times: no motion prior")
     if tag_map is None or len(tag_map) == 0:
         raise DataError("trajectory: the tag map is empty (did optimize map any tag?)")
     ids = tag_map["tag_id"].to_numpy(np.int64)
@@ -275,14 +327,19 @@ def run(
     if has_pix and params.method in ("auto", "joint"):
         assert camera is not None
         if len(rows):
-            parts.append(joint_trajectory(rows, ids, W_map, camera, settings, is_timed,
-                                          fallback, params.priors == "map"))
+            parts.append(
+                joint_trajectory(
+                    rows, ids, W_map, camera, settings, is_timed, fallback, params.priors == "map"
+                )
+            )
             # frames without usable corners fall back to the frame-by-frame fusion
             obs = obs[~obs["frame_idx"].isin(rows["frame_idx"].unique())]
             if obs.empty:
                 return {"trajectory": parts[0]}
-            log.info("trajectory: %d frames without usable corners fused frame by frame",
-                     obs["frame_idx"].nunique())
+            log.info(
+                "trajectory: %d frames without usable corners fused frame by frame",
+                obs["frame_idx"].nunique(),
+            )
     elif params.method == "joint":
         log.warning("trajectory: method joint needs detections and a camera; using lsq")
     frame = obs["frame_idx"].to_numpy(np.int64)
@@ -307,9 +364,17 @@ def run(
     both = both_solutions(obs)
     pick = map_branches(frame, W_map[k][:, :3, :3], both[:, :, :3, :3])
     res = frame_poses(
-        W_map[k], both[np.arange(len(obs)), pick], group, len(uframe), corners_px=px,
-        size_m=size, camera=camera, method="lsq" if params.method == "joint" else params.method,
-        loss=params.loss, f_scale=params.f_scale, rot_weight_m=params.rot_weight_m,
+        W_map[k],
+        both[np.arange(len(obs)), pick],
+        group,
+        len(uframe),
+        corners_px=px,
+        size_m=size,
+        camera=camera,
+        method="lsq" if params.method == "joint" else params.method,
+        loss=params.loss,
+        f_scale=params.f_scale,
+        rot_weight_m=params.rot_weight_m,
         ransac_px=params.ransac_px,
     )
     if res.method == "pnp":
@@ -319,17 +384,27 @@ def run(
     out = pd.DataFrame({"t_ns": t_ns})
     out[POSE_COLS] = np.concatenate([xyz, q], axis=1)
     out["n_tags"] = res.n_tags.astype(np.int32)
-    out = pd.concat([*parts, _own_evidence(out, uframe, rows, ids, W_map, camera)],
-                    ignore_index=True)
+    out = pd.concat(
+        [*parts, _own_evidence(out, uframe, rows, ids, W_map, camera)], ignore_index=True
+    )
     return {"trajectory": out.sort_values("t_ns", kind="stable").reset_index(drop=True)}
 
 
 def _raw_trajectory_file(trajectory: pd.DataFrame | None) -> ExportFiles | None:
     """``trajectory_raw.csv``: each frame on its own corners, before any temporal step (the
     motion prior or the smoother)."""
-    return None if trajectory is None else {
-        "trajectory_raw.csv": ("trajectory_csv", per_frame(trajectory))}
+    return (
+        None
+        if trajectory is None
+        else {"trajectory_raw.csv": ("trajectory_csv", per_frame(trajectory))}
+    )
 
 
-EXPORTS = (Export("trajectory_raw", ("trajectory_raw.csv",),
-                  {"trajectory": "trajectory.trajectory"}, _raw_trajectory_file),)
+EXPORTS = (
+    Export(
+        "trajectory_raw",
+        ("trajectory_raw.csv",),
+        {"trajectory": "trajectory.trajectory"},
+        _raw_trajectory_file,
+    ),
+)

@@ -47,7 +47,7 @@ from tagtrail.io.layouts import atomic_write_text
 MAGIC = b"\x89MCAP0\r\n"
 # DataEnd (op 0x0F, crc 0 = not computed) + Footer (op 0x02: summary_start 0, summary offset 0,
 # crc 0) + magic: the end of an MCAP with no summary section.
-TAIL = (b"\x0f" + struct.pack("<QI", 4, 0) + b"\x02" + struct.pack("<QQQI", 20, 0, 0, 0) + MAGIC)
+TAIL = b"\x0f" + struct.pack("<QI", 4, 0) + b"\x02" + struct.pack("<QQQI", 20, 0, 0, 0) + MAGIC
 STORAGES = {"mcap": StoragePlugin.MCAP, "sqlite3": StoragePlugin.SQLITE3}
 RESERVE = ".tagtrail-reserve"  # space held back for a full disk's clean-up (module docstring)
 RESERVE_BYTES = 16 * 1024
@@ -63,8 +63,9 @@ class TopicCount:
     count: int
 
 
-def metadata_text(storage: str, file_name: str, topics: Sequence[TopicCount], t_min: int,
-                  t_max: int) -> str:  # fmt: skip
+def metadata_text(
+    storage: str, file_name: str, topics: Sequence[TopicCount], t_min: int, t_max: int
+) -> str:
     """``metadata.yaml`` as rosbags' ``Writer.close()`` writes it (rosbag2 version 9)."""
     n = sum(t.count for t in topics)
     start = t_min if n else 0
@@ -77,13 +78,28 @@ def metadata_text(storage: str, file_name: str, topics: Sequence[TopicCount], t_
         "starting_time": {"nanoseconds_since_epoch": start},
         "message_count": n,
         "topics_with_message_count": [
-            {"topic_metadata": {"name": t.topic, "type": t.msgtype, "serialization_format": "cdr",
-                                "offered_qos_profiles": [], "type_description_hash": t.digest},
-             "message_count": t.count} for t in topics],  # fmt: skip
+            {
+                "topic_metadata": {
+                    "name": t.topic,
+                    "type": t.msgtype,
+                    "serialization_format": "cdr",
+                    "offered_qos_profiles": [],
+                    "type_description_hash": t.digest,
+                },
+                "message_count": t.count,
+            }
+            for t in topics
+        ],
         "compression_format": "",
         "compression_mode": "",
-        "files": [{"path": file_name, "starting_time": {"nanoseconds_since_epoch": start},
-                   "duration": {"nanoseconds": duration}, "message_count": n}],
+        "files": [
+            {
+                "path": file_name,
+                "starting_time": {"nanoseconds_since_epoch": start},
+                "duration": {"nanoseconds": duration},
+                "message_count": n,
+            }
+        ],
         "custom_data": None,
         "ros_distro": "rosbags",
     }
@@ -94,8 +110,10 @@ def _check_storage(storage: Any, kind: str) -> None:
     need = ("bio", "chunks", "chunk", "close_chunk") if kind == "mcap" else ("conn",)
     missing = [a for a in need if not hasattr(storage, a)]
     if missing:
-        raise StorageError(f"this rosbags version's {kind} writer has no {', '.join(missing)}; "
-                           "tagtrail stream record needs rosbags >= 0.10.4 as pinned")
+        raise StorageError(
+            f"this rosbags version's {kind} writer has no {', '.join(missing)}; "
+            "tagtrail stream record needs rosbags >= 0.10.4 as pinned"
+        )
 
 
 class CrashSafeWriter:
@@ -110,9 +128,11 @@ class CrashSafeWriter:
         self.kind = storage
         self.flush_s = flush_s
         if self.out.exists():
-            raise SourceError(f"{self.out} exists already; record into a new folder (or "
-                              f"`tagtrail stream record --recover {self.out}` to finish a "
-                              "recording that was killed)")  # fmt: skip
+            raise SourceError(
+                f"{self.out} exists already; record into a new folder (or "
+                f"`tagtrail stream record --recover {self.out}` to finish a "
+                "recording that was killed)"
+            )
         self.writer = Writer(self.out, version=9, storage_plugin=STORAGES[storage])
         self.file = self.out / f"{self.out.name}.{'mcap' if storage == 'mcap' else 'db3'}"
         self.conns: dict[str, Any] = {}
@@ -174,7 +194,8 @@ class CrashSafeWriter:
         conn = self.conns.get(topic)
         if conn is None:
             conn = self.conns[topic] = self.writer.add_connection(
-                topic, msgtype, typestore=msgs.typestore())
+                topic, msgtype, typestore=msgs.typestore()
+            )
             self.counts[topic] = 0
         st: Any = self.writer.storage
         self.writer.write(conn, t_ns, cdr)  # MCAP: the file sits at the provisional end
@@ -218,15 +239,16 @@ class CrashSafeWriter:
         self._write_metadata()
         self._dirty = False
 
-
     def topic_counts(self) -> list[TopicCount]:
-        return [TopicCount(c.topic, c.msgtype, c.digest, self.counts[t])
-                for t, c in self.conns.items()]  # fmt: skip
+        return [
+            TopicCount(c.topic, c.msgtype, c.digest, self.counts[t]) for t, c in self.conns.items()
+        ]
 
     def _write_metadata(self) -> None:
-        atomic_write_text(self.out / "metadata.yaml",
-                          metadata_text(self.kind, self.file.name, self.topic_counts(),
-                                        self.t_min, self.t_max))  # fmt: skip
+        atomic_write_text(
+            self.out / "metadata.yaml",
+            metadata_text(self.kind, self.file.name, self.topic_counts(), self.t_min, self.t_max),
+        )
         self._meta_at = self._good_at
         self._meta_counts = dict(self.counts)
 
@@ -274,8 +296,10 @@ class CrashSafeWriter:
         topics, t_min, t_max = _count_sqlite(self.file)
         self.kept = {t.topic: t.count for t in topics if t.count}
         if self.kept != {t: n for t, n in self._meta_counts.items() if n}:
-            atomic_write_text(self.out / "metadata.yaml",
-                              metadata_text(self.kind, self.file.name, topics, t_min, t_max))
+            atomic_write_text(
+                self.out / "metadata.yaml",
+                metadata_text(self.kind, self.file.name, topics, t_min, t_max),
+            )
 
 
 def _records(f: Any, size: int) -> Iterator[tuple[int, int, int]]:
@@ -300,8 +324,9 @@ def recover(out: Path) -> str:
     out = Path(out)
     files = sorted(out.glob("*.mcap")) + sorted(out.glob("*.db3"))
     if len(files) != 1:
-        raise SourceError(f"{out}: not a recording of tagtrail stream record (no single .mcap or "
-                          ".db3 file in it)")  # fmt: skip
+        raise SourceError(
+            f"{out}: not a recording of tagtrail stream record (no single .mcap or .db3 file in it)"
+        )
     path = files[0]
     (out / RESERVE).unlink(missing_ok=True)
     try:
@@ -311,8 +336,9 @@ def recover(out: Path) -> str:
         else:
             topics, t_min, t_max = _count_sqlite(path)
             kind, cut = "sqlite3", ""
-        atomic_write_text(out / "metadata.yaml",
-                          metadata_text(kind, path.name, topics, t_min, t_max))  # fmt: skip
+        atomic_write_text(
+            out / "metadata.yaml", metadata_text(kind, path.name, topics, t_min, t_max)
+        )
     except OSError as err:
         raise storage_error(err, "recover") or SourceError(f"{path}: {err}") from err
     n = sum(t.count for t in topics)
@@ -371,7 +397,8 @@ def _count_sqlite(path: Path) -> tuple[list[TopicCount], int, int]:
             rows = con.execute(
                 "SELECT t.name, t.type, t.type_description_hash, COUNT(m.id), MIN(m.timestamp), "
                 "MAX(m.timestamp) FROM topics t LEFT JOIN messages m ON m.topic_id = t.id "
-                "GROUP BY t.id ORDER BY t.id").fetchall()  # fmt: skip
+                "GROUP BY t.id ORDER BY t.id"
+            ).fetchall()
         finally:
             con.close()
     except sqlite3.DatabaseError as err:

@@ -59,6 +59,7 @@ def _number(kind: type, low: float, strict: bool = False) -> Callable[[str], Any
         if not math.isfinite(value) or value < low or (strict and value == low):
             raise argparse.ArgumentTypeError(f"must be {must} {bound}, got {text!r}")
         return value
+
     return parse
 
 
@@ -77,44 +78,85 @@ def tcp_port(text: str) -> int:
 
 def _foxglove(p: argparse.ArgumentParser) -> None:
     g = p.add_argument_group("foxglove")
-    g.add_argument("--foxglove", type=tcp_port, nargs="?", const=8765, default=None,
-                   metavar="PORT",
-                   help="also serve the outputs on a Foxglove WebSocket (foxglove-sdk; default "
-                   "port 8765; pip install 'tagtrail[foxglove]'; docs/FOXGLOVE.md)")
-    g.add_argument("--foxglove-host", default="127.0.0.1", metavar="HOST",
-                   help="address the Foxglove server binds (default: %(default)s, this machine "
-                   "only; 0.0.0.0: every interface)")
+    g.add_argument(
+        "--foxglove",
+        type=tcp_port,
+        nargs="?",
+        const=8765,
+        default=None,
+        metavar="PORT",
+        help="also serve the outputs on a Foxglove WebSocket (foxglove-sdk; default "
+        "port 8765; pip install 'tagtrail[foxglove]'; docs/FOXGLOVE.md)",
+    )
+    g.add_argument(
+        "--foxglove-host",
+        default="127.0.0.1",
+        metavar="HOST",
+        help="address the Foxglove server binds (default: %(default)s, this machine "
+        "only; 0.0.0.0: every interface)",
+    )
 
 
 def _pipeline(p: argparse.ArgumentParser, what: str) -> None:
     g = p.add_argument_group("parameters")
-    g.add_argument("--pipeline", type=Path, default=None, metavar="FILE",
-                   help=f"take {what} from this pipeline file (default: ./pipeline.yaml if there "
-                   "is one, else the stages' defaults); flags below override it")
-    g.add_argument("--dataset", default=None, metavar="NAME",
-                   help="whose parameters (its `params:` applied; default: the reference)")
+    g.add_argument(
+        "--pipeline",
+        type=Path,
+        default=None,
+        metavar="FILE",
+        help=f"take {what} from this pipeline file (default: ./pipeline.yaml if there "
+        "is one, else the stages' defaults); flags below override it",
+    )
+    g.add_argument(
+        "--dataset",
+        default=None,
+        metavar="NAME",
+        help="whose parameters (its `params:` applied; default: the reference)",
+    )
 
 
 def _profile(p: argparse.ArgumentParser, what: str) -> None:
     from tagtrail.schemas.profiles import PROFILES
 
-    p.add_argument("--profile", choices=list(PROFILES), default=None,
-                   help=f"{what} of a profile (tagtrail init --list-profiles); flags override it")
+    p.add_argument(
+        "--profile",
+        choices=list(PROFILES),
+        default=None,
+        help=f"{what} of a profile (tagtrail init --list-profiles); flags override it",
+    )
 
 
 def _common(p: argparse.ArgumentParser, count_help: str, express: bool) -> None:
     add_session_arguments(p)
     g = p.add_argument_group("run")
-    g.add_argument("--duration", type=NON_NEGATIVE, default=None, metavar="S",
-                   help="stop after S seconds (default: run until SIGINT/SIGTERM)")
+    g.add_argument(
+        "--duration",
+        type=NON_NEGATIVE,
+        default=None,
+        metavar="S",
+        help="stop after S seconds (default: run until SIGINT/SIGTERM)",
+    )
     g.add_argument("--count", type=COUNT, default=None, metavar="N", help=count_help)
-    g.add_argument("--congestion", choices=["block", "drop"], default="block",
-                   help="when the network is congested: block (reliable, default) or drop")
-    g.add_argument("--express", action=argparse.BooleanOptionalAction, default=express,
-                   help="send every sample at once, no batching (default: "
-                   f"{'on: lowest latency for a controller' if express else 'off'})")
-    g.add_argument("--stats-period", type=NON_NEGATIVE, default=10.0, metavar="S",
-                   help="log a stats line every S seconds (0: never; default 10)")
+    g.add_argument(
+        "--congestion",
+        choices=["block", "drop"],
+        default="block",
+        help="when the network is congested: block (reliable, default) or drop",
+    )
+    g.add_argument(
+        "--express",
+        action=argparse.BooleanOptionalAction,
+        default=express,
+        help="send every sample at once, no batching (default: "
+        f"{'on: lowest latency for a controller' if express else 'off'})",
+    )
+    g.add_argument(
+        "--stats-period",
+        type=NON_NEGATIVE,
+        default=10.0,
+        metavar="S",
+        help="log a stats line every S seconds (0: never; default 10)",
+    )
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> argparse.ArgumentParser:
@@ -124,88 +166,178 @@ def add_arguments(parser: argparse.ArgumentParser) -> argparse.ArgumentParser:
     sub = parser.add_subparsers(dest="stream_command", metavar="COMMAND")
     fmt = argparse.RawDescriptionHelpFormatter
 
-    p = sub.add_parser("relocalize", help="live D and phi of incoming poses", epilog=EXAMPLES,
-                       formatter_class=fmt, description="Subscribe to live poses, publish D, "
-                       "phi, poses, the reference path and RViz markers (SPEC Streaming).")
-    p.add_argument("--reference", type=Path, required=True,
-                   help="reference trajectory (folder or file, tagtrail's or the original layout)")
-    p.add_argument("--alignment", type=Path, default=None,
-                   help="summary.json of `tagtrail relocalize`, an align-stage alignment JSON, "
-                   "or JSON with a 4x4 'ref_A_query' (default: poses are in the reference frame)")
-    p.add_argument("--pose-key", default=None, help="input key (default: the profile's, else "
-                   "tag_only_pose)")
-    p.add_argument("--pose-type", choices=list(POSE_TYPES), default="pose_stamped",
-                   help="input message type (default: %(default)s)")
-    p.add_argument("--prefix", default="relocalization", help="output key prefix (default: "
-                   "%(default)s)")
-    p.add_argument("--plane", choices=list(PLANES), default=None,
-                   help="plane of D and phi (default: the alignment file's, else the pipeline's "
-                   "report.plane)")
-    p.add_argument("--association", choices=["progress", "nearest"], default=None,
-                   help="progress = the nearest sample near the previous match (no jumps where "
-                   "the path crosses itself), nearest = the paper's Eq. 3.12 (default: the "
-                   "pipeline's report.association, else progress)")
+    p = sub.add_parser(
+        "relocalize",
+        help="live D and phi of incoming poses",
+        epilog=EXAMPLES,
+        formatter_class=fmt,
+        description="Subscribe to live poses, publish D, "
+        "phi, poses, the reference path and RViz markers (SPEC Streaming).",
+    )
+    p.add_argument(
+        "--reference",
+        type=Path,
+        required=True,
+        help="reference trajectory (folder or file, tagtrail's or the original layout)",
+    )
+    p.add_argument(
+        "--alignment",
+        type=Path,
+        default=None,
+        help="summary.json of `tagtrail relocalize`, an align-stage alignment JSON, "
+        "or JSON with a 4x4 'ref_A_query' (default: poses are in the reference frame)",
+    )
+    p.add_argument(
+        "--pose-key", default=None, help="input key (default: the profile's, else tag_only_pose)"
+    )
+    p.add_argument(
+        "--pose-type",
+        choices=list(POSE_TYPES),
+        default="pose_stamped",
+        help="input message type (default: %(default)s)",
+    )
+    p.add_argument(
+        "--prefix", default="relocalization", help="output key prefix (default: %(default)s)"
+    )
+    p.add_argument(
+        "--plane",
+        choices=list(PLANES),
+        default=None,
+        help="plane of D and phi (default: the alignment file's, else the pipeline's report.plane)",
+    )
+    p.add_argument(
+        "--association",
+        choices=["progress", "nearest"],
+        default=None,
+        help="progress = the nearest sample near the previous match (no jumps where "
+        "the path crosses itself), nearest = the paper's Eq. 3.12 (default: the "
+        "pipeline's report.association, else progress)",
+    )
     p.add_argument("--frame-id", default="map", help="frame of the outputs (default: map)")
-    p.add_argument("--path-period", type=NON_NEGATIVE, default=1.0, metavar="S",
-                   help="republish the reference path every S seconds (0: once; default 1)")
-    p.add_argument("--path-max-points", type=COUNT, default=10_000, metavar="N",
-                   help="decimate the published path to N poses (0: all; default 10000)")
+    p.add_argument(
+        "--path-period",
+        type=NON_NEGATIVE,
+        default=1.0,
+        metavar="S",
+        help="republish the reference path every S seconds (0: once; default 1)",
+    )
+    p.add_argument(
+        "--path-max-points",
+        type=COUNT,
+        default=10_000,
+        metavar="N",
+        help="decimate the published path to N poses (0: all; default 10000)",
+    )
     _pipeline(p, "report's plane")
     _profile(p, "the pose key and report's plane (without a pipeline file)")
     _common(p, "stop after N input messages", express=True)
     _foxglove(p)
 
-    p = sub.add_parser("replay", help="publish a trajectory's poses (or bag topics)",
-                       epilog=EXAMPLES, formatter_class=fmt,
-                       description="Publish the poses of a trajectory file or a bag's pose topic "
-                       "as CDR PoseStamped, at the recorded rate.")
+    p = sub.add_parser(
+        "replay",
+        help="publish a trajectory's poses (or bag topics)",
+        epilog=EXAMPLES,
+        formatter_class=fmt,
+        description="Publish the poses of a trajectory file or a bag's pose topic "
+        "as CDR PoseStamped, at the recorded rate.",
+    )
     p.add_argument("source", type=Path, help="trajectory CSV/TUM/folder, or a bag")
-    p.add_argument("--rate", type=NON_NEGATIVE, default=1.0,
-                   help="speed factor, >= 0 (0: as fast as possible; default 1)")
+    p.add_argument(
+        "--rate",
+        type=NON_NEGATIVE,
+        default=1.0,
+        help="speed factor, >= 0 (0: as fast as possible; default 1)",
+    )
     p.add_argument("--key", default="tag_only_pose", help="output key (default: %(default)s)")
     p.add_argument("--topic", default=None, help="the bag's pose topic (default: the only one)")
-    p.add_argument("--topics", nargs="+", default=None, metavar="TOPIC",
-                   help="publish these bag topics unchanged, key = topic without '/'")
+    p.add_argument(
+        "--topics",
+        nargs="+",
+        default=None,
+        metavar="TOPIC",
+        help="publish these bag topics unchanged, key = topic without '/'",
+    )
     _profile(p, "--topics: the recorded topics")
-    p.add_argument("--frame-id", default=None, help="frame of the poses (default: the bag's, "
-                   "map for trajectory files)")
-    p.add_argument("--wait", type=NON_NEGATIVE, default=10.0, metavar="S",
-                   help="wait up to S seconds for a subscriber on every key (default 10); "
-                   "if a key has none by then: exit 2, nothing published")
-    p.add_argument("--publish-anyway", action="store_true",
-                   help="publish even if a key has no subscriber after --wait (a warning)")
+    p.add_argument(
+        "--frame-id",
+        default=None,
+        help="frame of the poses (default: the bag's, map for trajectory files)",
+    )
+    p.add_argument(
+        "--wait",
+        type=NON_NEGATIVE,
+        default=10.0,
+        metavar="S",
+        help="wait up to S seconds for a subscriber on every key (default 10); "
+        "if a key has none by then: exit 2, nothing published",
+    )
+    p.add_argument(
+        "--publish-anyway",
+        action="store_true",
+        help="publish even if a key has no subscriber after --wait (a warning)",
+    )
     _common(p, "publish at most N messages", express=False)
 
-    p = sub.add_parser("localize", help="live world_T_cam from detections or images",
-                       epilog=EXAMPLES, formatter_class=fmt,
-                       description="Camera pose from apriltag detections (or compressed images) "
-                       "and the tag map, published as PoseStamped.")
+    p = sub.add_parser(
+        "localize",
+        help="live world_T_cam from detections or images",
+        epilog=EXAMPLES,
+        formatter_class=fmt,
+        description="Camera pose from apriltag detections (or compressed images) "
+        "and the tag map, published as PoseStamped.",
+    )
     p.add_argument("--map", type=Path, required=True, help="tag_map.yaml / tag_map.csv / folder")
-    p.add_argument("--detections-key", default=None, help="default: the profile's, else "
-                   "detections")
-    p.add_argument("--camera-info-key", default=None, help="default: the profile's, else "
-                   "camera_info")
-    p.add_argument("--image-key", default=None,
-                   help="detect tags in images on this key instead of using detections "
-                   "(default: the profile's, else none)")
-    p.add_argument("--image-type", choices=["compressed", "raw"], default=None,
-                   help="default: the profile's, else compressed")
-    p.add_argument("--pose-key", default=None, help="output key (default: the profile's, else "
-                   "tag_only_pose)")
+    p.add_argument("--detections-key", default=None, help="default: the profile's, else detections")
+    p.add_argument(
+        "--camera-info-key", default=None, help="default: the profile's, else camera_info"
+    )
+    p.add_argument(
+        "--image-key",
+        default=None,
+        help="detect tags in images on this key instead of using detections "
+        "(default: the profile's, else none)",
+    )
+    p.add_argument(
+        "--image-type",
+        choices=["compressed", "raw"],
+        default=None,
+        help="default: the profile's, else compressed",
+    )
+    p.add_argument(
+        "--pose-key", default=None, help="output key (default: the profile's, else tag_only_pose)"
+    )
     p.add_argument("--frame-id", default="map", help="frame of the poses (default: map)")
     _pipeline(p, "extract's detector and filters, pnp's tag sizes and trajectory's method")
     _profile(p, "the keys and stage parameters (without a pipeline file)")
     g = p.add_argument_group("overrides")
-    g.add_argument("--tag-size", type=POSITIVE, default=None, metavar="M",
-                   help="edge (m) of tags whose size neither the map nor pnp.tag_sizes gives "
-                   "(default: pnp.tag_size)")
-    g.add_argument("--method", choices=["auto", "avg", "lsq", "pnp"], default=None,
-                   help="per-frame method (default: trajectory.method)")
-    g.add_argument("--min-decision-margin", type=NON_NEGATIVE, default=None, metavar="M",
-                   help="drop detections with a lower decision margin (default: "
-                   "extract.min_decision_margin)")
-    g.add_argument("--max-hamming", type=COUNT, default=None, metavar="N",
-                   help="drop detections with more corrected bits (default: extract.max_hamming)")
+    g.add_argument(
+        "--tag-size",
+        type=POSITIVE,
+        default=None,
+        metavar="M",
+        help="edge (m) of tags whose size neither the map nor pnp.tag_sizes gives "
+        "(default: pnp.tag_size)",
+    )
+    g.add_argument(
+        "--method",
+        choices=["auto", "avg", "lsq", "pnp"],
+        default=None,
+        help="per-frame method (default: trajectory.method)",
+    )
+    g.add_argument(
+        "--min-decision-margin",
+        type=NON_NEGATIVE,
+        default=None,
+        metavar="M",
+        help="drop detections with a lower decision margin (default: extract.min_decision_margin)",
+    )
+    g.add_argument(
+        "--max-hamming",
+        type=COUNT,
+        default=None,
+        metavar="N",
+        help="drop detections with more corrected bits (default: extract.max_hamming)",
+    )
     _common(p, "stop after N input messages", express=True)
     _foxglove(p)
     _record_arguments(sub, fmt)
@@ -215,105 +347,212 @@ def add_arguments(parser: argparse.ArgumentParser) -> argparse.ArgumentParser:
 
 
 def _follow_arguments(sub: Any, fmt: type[argparse.HelpFormatter]) -> None:
-    p = sub.add_parser("follow", help="drive along the reference: Twist on cmd_vel",
-                       epilog=EXAMPLES, formatter_class=fmt,
-                       description="A reference path follower (Stanley "
-                       "or pure pursuit; docs/FOLLOW.md) on relocalize's state JSON, publishing "
-                       "geometry_msgs/msg/Twist within the robot's limits; a zero Twist when "
-                       "the pose is stale, lost, bad or at the path's end.")
-    p.add_argument("--state-key", default="relocalization/state",
-                   help="relocalize's state JSON (default: %(default)s)")
+    p = sub.add_parser(
+        "follow",
+        help="drive along the reference: Twist on cmd_vel",
+        epilog=EXAMPLES,
+        formatter_class=fmt,
+        description="A reference path follower (Stanley "
+        "or pure pursuit; docs/FOLLOW.md) on relocalize's state JSON, publishing "
+        "geometry_msgs/msg/Twist within the robot's limits; a zero Twist when "
+        "the pose is stale, lost, bad or at the path's end.",
+    )
+    p.add_argument(
+        "--state-key",
+        default="relocalization/state",
+        help="relocalize's state JSON (default: %(default)s)",
+    )
     p.add_argument("--cmd-key", default=None, help="output key (default: cmd_vel)")
-    p.add_argument("--profile", choices=["limo"], default=None,
-                   help="the robot's limits and key (limo: 1 m/s, R_min 0.4 m, wheelbase 0.2 m)")
-    p.add_argument("--law", choices=["stanley", "pure_pursuit"], default=None,
-                   help="control law (default: stanley)")
-    p.add_argument("--speed", type=POSITIVE, default=0.3, metavar="M/S",
-                   help="cruise speed (default 0.3; capped by the profile's)")
+    p.add_argument(
+        "--profile",
+        choices=["limo"],
+        default=None,
+        help="the robot's limits and key (limo: 1 m/s, R_min 0.4 m, wheelbase 0.2 m)",
+    )
+    p.add_argument(
+        "--law",
+        choices=["stanley", "pure_pursuit"],
+        default=None,
+        help="control law (default: stanley)",
+    )
+    p.add_argument(
+        "--speed",
+        type=POSITIVE,
+        default=0.3,
+        metavar="M/S",
+        help="cruise speed (default 0.3; capped by the profile's)",
+    )
     g = p.add_argument_group("path's end (one of)")
-    g.add_argument("--reference", type=Path, default=None,
-                   help="the reference relocalize follows: its length is where to stop")
-    g.add_argument("--plane", choices=list(PLANES), default=None,
-                   help="--reference's plane (default: the profile's report.plane, else auto)")
-    g.add_argument("--path-length", type=POSITIVE, default=None, metavar="M",
-                   help="stop when progress_m reaches M (minus --end-tolerance)")
-    g.add_argument("--end-tolerance", type=NON_NEGATIVE, default=0.05, metavar="M",
-                   help="stop this short of the end (default 0.05)")
+    g.add_argument(
+        "--reference",
+        type=Path,
+        default=None,
+        help="the reference relocalize follows: its length is where to stop",
+    )
+    g.add_argument(
+        "--plane",
+        choices=list(PLANES),
+        default=None,
+        help="--reference's plane (default: the profile's report.plane, else auto)",
+    )
+    g.add_argument(
+        "--path-length",
+        type=POSITIVE,
+        default=None,
+        metavar="M",
+        help="stop when progress_m reaches M (minus --end-tolerance)",
+    )
+    g.add_argument(
+        "--end-tolerance",
+        type=NON_NEGATIVE,
+        default=0.05,
+        metavar="M",
+        help="stop this short of the end (default 0.05)",
+    )
     g = p.add_argument_group("limits and gains (default: the profile's)")
     for flag, name, what in (
-        ("--max-speed", "max_speed_mps", "m/s"), ("--min-turn-radius", "min_turn_radius_m", "m"),
+        ("--max-speed", "max_speed_mps", "m/s"),
+        ("--min-turn-radius", "min_turn_radius_m", "m"),
         ("--max-accel", "max_accel_mps2", "m/s^2"),
         ("--max-ang-accel", "max_ang_accel_rps2", "rad/s^2"),
         ("--max-lat-accel", "max_lat_accel_mps2", "m/s^2: v <= sqrt(a/|kappa|)"),
         ("--max-yaw-rate", "max_yaw_rate_rps", "rad/s"),
-        ("--k", "k", "Stanley's cross-track gain, 1/s"), ("--k-soft", "k_soft", "m/s"),
-        ("--wheelbase", "wheelbase_m", "m"), ("--lookahead", "lookahead_m", "pure pursuit, m"),
-        ("--camera-forward", "camera_forward_m", "m: the pose's point ahead of the turning "
-         "centre"),
-    ):  # fmt: skip
+        ("--k", "k", "Stanley's cross-track gain, 1/s"),
+        ("--k-soft", "k_soft", "m/s"),
+        ("--wheelbase", "wheelbase_m", "m"),
+        ("--lookahead", "lookahead_m", "pure pursuit, m"),
+        ("--camera-forward", "camera_forward_m", "m: the pose's point ahead of the turning centre"),
+    ):
         g.add_argument(flag, dest=name, type=NON_NEGATIVE, default=None, metavar="X", help=what)
     g = p.add_argument_group("safety")
-    g.add_argument("--timeout", type=POSITIVE, default=0.5, metavar="S",
-                   help="stop when the last good pose is older than S (default 0.5)")
-    g.add_argument("--max-jump", type=NON_NEGATIVE, default=0.1, metavar="M",
-                   help="drop a pose whose cross-track jumps more than M (+ v_max*dt) from the "
-                   "last good one (a bad pose; 0: never; default 0.1)")
-    g.add_argument("--no-stamp-check", action="store_true",
-                   help="judge a pose's age by its arrival only (clocks not synchronised)")
-    g.add_argument("--plane-normal", choices=["down", "up"], default="down",
-                   help="where the plane's n points (default: down, as tagtrail's xz/auto "
-                   "planes: left about n is the robot's right)")
+    g.add_argument(
+        "--timeout",
+        type=POSITIVE,
+        default=0.5,
+        metavar="S",
+        help="stop when the last good pose is older than S (default 0.5)",
+    )
+    g.add_argument(
+        "--max-jump",
+        type=NON_NEGATIVE,
+        default=0.1,
+        metavar="M",
+        help="drop a pose whose cross-track jumps more than M (+ v_max*dt) from the "
+        "last good one (a bad pose; 0: never; default 0.1)",
+    )
+    g.add_argument(
+        "--no-stamp-check",
+        action="store_true",
+        help="judge a pose's age by its arrival only (clocks not synchronised)",
+    )
+    g.add_argument(
+        "--plane-normal",
+        choices=["down", "up"],
+        default="down",
+        help="where the plane's n points (default: down, as tagtrail's xz/auto "
+        "planes: left about n is the robot's right)",
+    )
     _common(p, "stop after N input messages", express=True)
 
 
 def _echo_arguments(sub: Any, fmt: type[argparse.HelpFormatter]) -> None:
-    p = sub.add_parser("echo", help="print the messages of a key (e.g. relocalization/state)",
-                       epilog=ECHO_EXAMPLES,
-                       formatter_class=fmt, description="Print each sample of a key: JSON "
-                       "(the state key) as it is, CDR as its size.")
+    p = sub.add_parser(
+        "echo",
+        help="print the messages of a key (e.g. relocalization/state)",
+        epilog=ECHO_EXAMPLES,
+        formatter_class=fmt,
+        description="Print each sample of a key: JSON (the state key) as it is, CDR as its size.",
+    )
     p.add_argument("key", help="zenoh key, e.g. relocalization/state")
     p.add_argument("--count", type=COUNT, default=None, metavar="N", help="stop after N")
-    p.add_argument("--wait", type=POSITIVE, default=30.0, metavar="S",
-                   help="error if nothing arrives within S seconds (default 30)")
+    p.add_argument(
+        "--wait",
+        type=POSITIVE,
+        default=30.0,
+        metavar="S",
+        help="error if nothing arrives within S seconds (default 30)",
+    )
     add_session_arguments(p)
 
 
 def _record_arguments(sub: Any, fmt: type[argparse.HelpFormatter]) -> None:
-    p = sub.add_parser("record", help="record zenoh-bridge-ros2dds topics into a rosbag2",
-                       epilog=EXAMPLES, formatter_class=fmt,
-                       description="Subscribe to ROS topics forwarded over zenoh (key = topic "
-                       "without '/', CDR) and write them unchanged into a rosbag2 that ROS 2 and "
-                       "tagtrail read; log time = receive time. Kept readable while it grows: "
-                       "after kill -9 run --recover OUT.")
+    p = sub.add_parser(
+        "record",
+        help="record zenoh-bridge-ros2dds topics into a rosbag2",
+        epilog=EXAMPLES,
+        formatter_class=fmt,
+        description="Subscribe to ROS topics forwarded over zenoh (key = topic "
+        "without '/', CDR) and write them unchanged into a rosbag2 that ROS 2 and "
+        "tagtrail read; log time = receive time. Kept readable while it grows: "
+        "after kill -9 run --recover OUT.",
+    )
     p.add_argument("out", type=Path, metavar="OUT", help="the bag folder to create")
-    p.add_argument("--topic", action="append", default=[], metavar="NAME[:TYPE]",
-                   help="a topic to record, e.g. /camera_info:sensor_msgs/msg/CameraInfo "
-                   "(repeatable; type optional when the profile or the bridge gives it)")
+    p.add_argument(
+        "--topic",
+        action="append",
+        default=[],
+        metavar="NAME[:TYPE]",
+        help="a topic to record, e.g. /camera_info:sensor_msgs/msg/CameraInfo "
+        "(repeatable; type optional when the profile or the bridge gives it)",
+    )
     _profile(p, "the topics to record")
-    p.add_argument("--storage", choices=["mcap", "sqlite3"], default="mcap",
-                   help="bag storage (default: %(default)s)")
-    p.add_argument("--max-size", default=None, metavar="SIZE",
-                   help="stop when the messages written reach SIZE (500M, 2G)")
-    p.add_argument("--wait", type=NON_NEGATIVE, default=10.0, metavar="S",
-                   help="stop with an error if a topic has no message after S seconds "
-                   "(0: wait for ever; default 10)")
-    p.add_argument("--flush-period", type=POSITIVE, default=1.0, metavar="S",
-                   help="make the bag readable on disk every S seconds (default 1): at most "
-                   "that much is lost to a kill -9 or a power cut")
-    p.add_argument("--recover", action="store_true",
-                   help="do not record: finish the bag OUT left by a killed recorder")
+    p.add_argument(
+        "--storage",
+        choices=["mcap", "sqlite3"],
+        default="mcap",
+        help="bag storage (default: %(default)s)",
+    )
+    p.add_argument(
+        "--max-size",
+        default=None,
+        metavar="SIZE",
+        help="stop when the messages written reach SIZE (500M, 2G)",
+    )
+    p.add_argument(
+        "--wait",
+        type=NON_NEGATIVE,
+        default=10.0,
+        metavar="S",
+        help="stop with an error if a topic has no message after S seconds "
+        "(0: wait for ever; default 10)",
+    )
+    p.add_argument(
+        "--flush-period",
+        type=POSITIVE,
+        default=1.0,
+        metavar="S",
+        help="make the bag readable on disk every S seconds (default 1): at most "
+        "that much is lost to a kill -9 or a power cut",
+    )
+    p.add_argument(
+        "--recover",
+        action="store_true",
+        help="do not record: finish the bag OUT left by a killed recorder",
+    )
     add_session_arguments(p)
     g = p.add_argument_group("run")
-    g.add_argument("--duration", type=NON_NEGATIVE, default=None, metavar="S",
-                   help="stop after S seconds (default: run until SIGINT/SIGTERM)")
-    g.add_argument("--stats-period", type=NON_NEGATIVE, default=2.0, metavar="S",
-                   help="print the live line (rates, drops) every S seconds (0: never; "
-                   "default 2)")
+    g.add_argument(
+        "--duration",
+        type=NON_NEGATIVE,
+        default=None,
+        metavar="S",
+        help="stop after S seconds (default: run until SIGINT/SIGTERM)",
+    )
+    g.add_argument(
+        "--stats-period",
+        type=NON_NEGATIVE,
+        default=2.0,
+        metavar="S",
+        help="print the live line (rates, drops) every S seconds (0: never; default 2)",
+    )
 
 
 def build_parser() -> argparse.ArgumentParser:
-    return add_arguments(argparse.ArgumentParser(prog="tagtrail stream",
-                                                 description="Live nodes over eclipse-zenoh."))
+    return add_arguments(
+        argparse.ArgumentParser(
+            prog="tagtrail stream", description="Live nodes over eclipse-zenoh."
+        )
+    )
 
 
 def main(args: argparse.Namespace | Sequence[str] | None = None) -> int:
@@ -325,13 +564,24 @@ def main(args: argparse.Namespace | Sequence[str] | None = None) -> int:
     if cmd is None:
         build_parser().print_help()
         return 2
-    run = {"relocalize": _relocalize, "replay": _replay, "localize": _localize,
-           "record": _record, "echo": _echo, "follow": _follow}[cmd]
+    run = {
+        "relocalize": _relocalize,
+        "replay": _replay,
+        "localize": _localize,
+        "record": _record,
+        "echo": _echo,
+        "follow": _follow,
+    }[cmd]
     return run_command(lambda: run(with_profile(ns)))
 
 
-_BUILTIN_KEYS = {"pose_key": "tag_only_pose", "detections_key": "detections",
-                 "camera_info_key": "camera_info", "image_key": None, "image_type": "compressed"}
+_BUILTIN_KEYS = {
+    "pose_key": "tag_only_pose",
+    "detections_key": "detections",
+    "camera_info_key": "camera_info",
+    "image_key": None,
+    "image_type": "compressed",
+}
 
 
 def with_profile(ns: argparse.Namespace) -> argparse.Namespace:
@@ -345,8 +595,7 @@ def with_profile(ns: argparse.Namespace) -> argparse.Namespace:
         if hasattr(out, name) and getattr(out, name) is None:
             live = getattr(profile.live, name) if profile is not None else None
             setattr(out, name, live if live is not None else default)
-    if (profile is not None and getattr(out, "stream_command", None) == "replay"
-            and not out.topics):
+    if profile is not None and getattr(out, "stream_command", None) == "replay" and not out.topics:
         src = Path(out.source)
         if src.suffix in (".mcap", ".db3", ".bag") or (src / "metadata.yaml").is_file():
             out.topics = [t for t, _ in profile.record]
@@ -370,8 +619,7 @@ def _relocalize(ns: argparse.Namespace) -> int:
 
     ref = read_trajectory(ns.reference)
     # the alignment file's plane wins over the pipeline's: its planar transform acts in that plane
-    report = stage_params(["report"], ns.pipeline, ns.dataset,
-                          profile=ns.profile)["report"]  # fmt: skip
+    report = stage_params(["report"], ns.pipeline, ns.dataset, profile=ns.profile)["report"]
     assert isinstance(report, report_stage.Params)
     if ns.association:
         report = report.model_copy(update={"association": ns.association})
@@ -380,8 +628,16 @@ def _relocalize(ns: argparse.Namespace) -> int:
     if ns.alignment is not None:
         A, R, file_plane = load_alignment(ns.alignment, ref, plane)
         alignment, plane = (A, R), ns.plane or file_plane or plane
-    reloc = Relocalizer(ref, plane, alignment, ns.frame_id, ns.prefix, ns.pose_type,
-                        ns.path_max_points, report_stage.track_params(report))  # fmt: skip
+    reloc = Relocalizer(
+        ref,
+        plane,
+        alignment,
+        ns.frame_id,
+        ns.prefix,
+        ns.pose_type,
+        ns.path_max_points,
+        report_stage.track_params(report),
+    )
     fox = foxglove_server(ns, "relocalize", {reloc.key[k]: t for k, t in OUTPUT_TYPES.items()})
     session = None
     try:
@@ -393,11 +649,20 @@ def _relocalize(ns: argparse.Namespace) -> int:
         close_all(session, [])
         raise
     with stop_on_signals() as stop:
-        summary = serve(reloc, session, ns.pose_key, congestion=ns.congestion,
-                        express=ns.express, path_period_s=ns.path_period,
-                        duration_s=ns.duration, count=ns.count,
-                        stats_period_s=ns.stats_period, stop=stop, foxglove=fox,
-                        wire=wire)  # fmt: skip
+        summary = serve(
+            reloc,
+            session,
+            ns.pose_key,
+            congestion=ns.congestion,
+            express=ns.express,
+            path_period_s=ns.path_period,
+            duration_s=ns.duration,
+            count=ns.count,
+            stats_period_s=ns.stats_period,
+            stop=stop,
+            foxglove=fox,
+            wire=wire,
+        )
     if not summary["shutdown_clean"]:
         leave_now(0)  # a zenoh callback thread blocked in a put would hold the exit for 5 s
     return 0
@@ -417,9 +682,18 @@ def _replay(ns: argparse.Namespace) -> int:
     try:
         wire = _wire(ns, session, "replay")
         with stop_on_signals() as stop:
-            done = replay(session, messages, rate=ns.rate, count=ns.count, wait_s=ns.wait,
-                          publish_anyway=ns.publish_anyway, congestion=ns.congestion,
-                          express=ns.express, stop=stop, wire=wire)  # fmt: skip
+            done = replay(
+                session,
+                messages,
+                rate=ns.rate,
+                count=ns.count,
+                wait_s=ns.wait,
+                publish_anyway=ns.publish_anyway,
+                congestion=ns.congestion,
+                express=ns.express,
+                stop=stop,
+                wire=wire,
+            )
     finally:
         if wire is not None:
             wire.close()
@@ -436,18 +710,26 @@ def localize_params(ns: argparse.Namespace) -> Any:
     from tagtrail.stream.localize import Params
     from tagtrail.stream.params import override, stage_params
 
-    got = stage_params(["extract", "pnp", "trajectory"], ns.pipeline, ns.dataset,
-                       profile=getattr(ns, "profile", None))  # fmt: skip
+    got = stage_params(
+        ["extract", "pnp", "trajectory"],
+        ns.pipeline,
+        ns.dataset,
+        profile=getattr(ns, "profile", None),
+    )
     ex, pn, tr = got["extract"], got["pnp"], got["trajectory"]
     assert isinstance(ex, extract.Params) and isinstance(pn, pnp.Params)
     assert isinstance(tr, trajectory.Params)
     return Params(
-        extract=override(ex, {
-            "min_decision_margin": ("--min-decision-margin", ns.min_decision_margin),
-            "max_hamming": ("--max-hamming", ns.max_hamming)}),
+        extract=override(
+            ex,
+            {
+                "min_decision_margin": ("--min-decision-margin", ns.min_decision_margin),
+                "max_hamming": ("--max-hamming", ns.max_hamming),
+            },
+        ),
         pnp=override(pn, {"tag_size": ("--tag-size", ns.tag_size)}),
         trajectory=override(tr, {"method": ("--method", ns.method)}),
-    )  # fmt: skip
+    )
 
 
 def _localize(ns: argparse.Namespace) -> int:
@@ -473,18 +755,25 @@ def _localize(ns: argparse.Namespace) -> int:
         close_all(session, [])
         raise
     node = Node(session, stats, ns.congestion, ns.express, wire)
-    node.types.update({ns.pose_key: msgs.POSE_STAMPED, ns.camera_info_key: msgs.CAMERA_INFO,
-                       ns.detections_key: msgs.DETECTIONS})  # fmt: skip
+    node.types.update(
+        {
+            ns.pose_key: msgs.POSE_STAMPED,
+            ns.camera_info_key: msgs.CAMERA_INFO,
+            ns.detections_key: msgs.DETECTIONS,
+        }
+    )
     if ns.image_key:
-        node.types[ns.image_key] = (msgs.COMPRESSED_IMAGE if ns.image_type == "compressed"
-                                    else msgs.IMAGE)  # fmt: skip
+        node.types[ns.image_key] = (
+            msgs.COMPRESSED_IMAGE if ns.image_type == "compressed" else msgs.IMAGE
+        )
     node.count = ns.count
     try:
         node.publisher(ns.pose_key)
         node.subscribe(ns.camera_info_key, loc.on_camera_info)
         if ns.image_key:
-            node.subscribe(ns.image_key, teed(fox, lambda b: loc.on_image(b, ns.image_type)),
-                           latest_only=True)  # fmt: skip
+            node.subscribe(
+                ns.image_key, teed(fox, lambda b: loc.on_image(b, ns.image_type)), latest_only=True
+            )
         else:
             node.subscribe(ns.detections_key, teed(fox, loc.on_detections))
     except BaseException:
@@ -507,16 +796,36 @@ def _follow(ns: argparse.Namespace) -> int:
     from tagtrail.stream.session import stop_on_signals
     from tagtrail.stream.stats import Stats
 
-    names = ("max_speed_mps", "min_turn_radius_m", "max_accel_mps2", "max_ang_accel_rps2",
-             "max_lat_accel_mps2", "max_yaw_rate_rps", "k", "k_soft", "wheelbase_m",
-             "lookahead_m", "camera_forward_m", "law")  # fmt: skip
+    names = (
+        "max_speed_mps",
+        "min_turn_radius_m",
+        "max_accel_mps2",
+        "max_ang_accel_rps2",
+        "max_lat_accel_mps2",
+        "max_yaw_rate_rps",
+        "k",
+        "k_soft",
+        "wheelbase_m",
+        "lookahead_m",
+        "camera_forward_m",
+        "law",
+    )
     over = {n: getattr(ns, n) for n in names} | {"cmd_key": ns.cmd_key}
     limits, gains, cmd_key = with_profile(Limits(), Gains(), ns.profile, over)
     length = ns.path_length
     if ns.reference is not None and length is None:
         length = _path_length(ns)
-    fol = Follower(limits, gains, ns.speed, length, ns.end_tolerance, ns.timeout,
-                   not ns.no_stamp_check, ns.plane_normal == "down", ns.max_jump)  # fmt: skip
+    fol = Follower(
+        limits,
+        gains,
+        ns.speed,
+        length,
+        ns.end_tolerance,
+        ns.timeout,
+        not ns.no_stamp_check,
+        ns.plane_normal == "down",
+        ns.max_jump,
+    )
     session = open_session(config_from_args(ns, "connect"))
     try:
         wire = _wire(ns, session, "follow")
@@ -563,8 +872,10 @@ def _record(ns: argparse.Namespace) -> int:
     profile = get_profile(ns.profile)
     max_size = parse_size(ns.max_size) if ns.max_size else None
     if ns.out.exists():
-        raise SourceError(f"{ns.out} exists already; record into a new folder (or --recover "
-                          f"{ns.out} to finish a recording that was killed)")  # fmt: skip
+        raise SourceError(
+            f"{ns.out} exists already; record into a new folder (or --recover "
+            f"{ns.out} to finish a recording that was killed)"
+        )
     session = open_session(config_from_args(ns, "connect"))
     wire = None
     try:
@@ -611,8 +922,11 @@ def _echo(ns: argparse.Namespace) -> int:
                         raise SourceError(f"no message on {ns.key} after {ns.wait:g} s") from None
                     continue
                 n += 1
-                text = data.decode("utf-8", "replace") if data[:1] in (b"{", b"[") else (
-                    f"<{len(data)} bytes of CDR>")
+                text = (
+                    data.decode("utf-8", "replace")
+                    if data[:1] in (b"{", b"[")
+                    else (f"<{len(data)} bytes of CDR>")
+                )
                 print(f"{ns.key}: {text}", flush=True)
     finally:
         wire.close()

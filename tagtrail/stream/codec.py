@@ -93,8 +93,9 @@ def pose(xyz: Sequence[float], q_xyzw: Sequence[float]) -> Any:
     )
 
 
-def pose_stamped(sec: int, nanosec: int, frame_id: str, xyz: Sequence[float],
-                 q_xyzw: Sequence[float]) -> Any:  # fmt: skip
+def pose_stamped(
+    sec: int, nanosec: int, frame_id: str, xyz: Sequence[float], q_xyzw: Sequence[float]
+) -> Any:
     return types()[POSE_STAMPED](header(sec, nanosec, frame_id), pose(xyz, q_xyzw))
 
 
@@ -155,10 +156,21 @@ class PoseStampedEncoder:
         self._s = struct.Struct(f"<4siII{len(raw)}s{pad}x7d")
         self._raw = raw
 
-    def __call__(self, sec: int, nanosec: int, x: float, y: float, z: float,
-                 qx: float, qy: float, qz: float, qw: float) -> bytes:  # fmt: skip
-        return self._s.pack(CDR_LE, sec, nanosec, len(self._raw), self._raw,
-                            x, y, z, qx, qy, qz, qw)  # fmt: skip
+    def __call__(
+        self,
+        sec: int,
+        nanosec: int,
+        x: float,
+        y: float,
+        z: float,
+        qx: float,
+        qy: float,
+        qz: float,
+        qw: float,
+    ) -> bytes:
+        return self._s.pack(
+            CDR_LE, sec, nanosec, len(self._raw), self._raw, x, y, z, qx, qy, qz, qw
+        )
 
 
 # --- templates -------------------------------------------------------------------------------
@@ -223,8 +235,10 @@ class Template:
             consts.append(payload[pos:])
         nc = len(consts)
         var = {"sec": nc, "nsec": nc + 1, "text": nc + 2 + n_doubles}
-        idx = [x if kind == "const" else var[x] if isinstance(x, str) else nc + 2 + x
-               for kind, x in order]  # fmt: skip
+        idx = [
+            x if kind == "const" else var[x] if isinstance(x, str) else nc + 2 + x
+            for kind, x in order
+        ]
         self._consts = tuple(consts)
         self._struct = struct.Struct(fmt)
         self._get = operator.itemgetter(*idx)
@@ -248,13 +262,17 @@ def stamp_sentinel() -> tuple[int, int]:
     return _STAMP_SENTINEL
 
 
-def pose_list(positions: np.ndarray, quats: np.ndarray, sec: int, nanosec: int,
-              frame_id: str) -> list[Any]:  # fmt: skip
+def pose_list(
+    positions: np.ndarray, quats: np.ndarray, sec: int, nanosec: int, frame_id: str
+) -> list[Any]:
     """PoseStamped messages of ``positions (N, 3)`` (m) and ``quats (N, 4)`` (xyzw)."""
     T = types()
     H, Tm = T["std_msgs/msg/Header"], T["builtin_interfaces/msg/Time"]
-    P, Pt, Q = T["geometry_msgs/msg/Pose"], T["geometry_msgs/msg/Point"], T[
-        "geometry_msgs/msg/Quaternion"]  # fmt: skip
+    P, Pt, Q = (
+        T["geometry_msgs/msg/Pose"],
+        T["geometry_msgs/msg/Point"],
+        T["geometry_msgs/msg/Quaternion"],
+    )
     PS = T[POSE_STAMPED]
     return [
         PS(H(Tm(sec, nanosec), frame_id), P(Pt(*p), Q(*q)))
@@ -262,9 +280,11 @@ def pose_list(positions: np.ndarray, quats: np.ndarray, sec: int, nanosec: int,
     ]
 
 
-def encode_path(positions: np.ndarray, quats: np.ndarray, sec: int, nanosec: int,
-                frame_id: str) -> bytes:  # fmt: skip
+def encode_path(
+    positions: np.ndarray, quats: np.ndarray, sec: int, nanosec: int, frame_id: str
+) -> bytes:
     """``nav_msgs/msg/Path`` of ``positions (N, 3)`` and ``quats (N, 4)`` (built once)."""
-    path = types()[PATH](header(sec, nanosec, frame_id),
-                         pose_list(positions, quats, sec, nanosec, frame_id))  # fmt: skip
+    path = types()[PATH](
+        header(sec, nanosec, frame_id), pose_list(positions, quats, sec, nanosec, frame_id)
+    )
     return serialize(path, PATH)

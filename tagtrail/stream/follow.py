@@ -94,10 +94,19 @@ class Gains:
 
 # The LIMO (NOTES "The LIMO"): 1 m/s, Ackermann R_min 0.4 m, wheelbase 0.2 m; key cmd_vel.
 PROFILES: dict[str, tuple[Limits, Gains, str]] = {
-    "limo": (Limits(max_speed_mps=1.0, min_turn_radius_m=0.4, max_accel_mps2=1.0,
-                    max_ang_accel_rps2=4.0, max_lat_accel_mps2=0.5, max_yaw_rate_rps=2.5),
-             Gains(wheelbase_m=0.2, camera_forward_m=0.084), "cmd_vel"),
-}  # fmt: skip
+    "limo": (
+        Limits(
+            max_speed_mps=1.0,
+            min_turn_radius_m=0.4,
+            max_accel_mps2=1.0,
+            max_ang_accel_rps2=4.0,
+            max_lat_accel_mps2=0.5,
+            max_yaw_rate_rps=2.5,
+        ),
+        Gains(wheelbase_m=0.2, camera_forward_m=0.084),
+        "cmd_vel",
+    ),
+}
 
 
 def control(e: float, phi: float, kappa: float, v: float, g: Gains) -> float:
@@ -123,11 +132,20 @@ class Command:
 class Follower:
     """The node's state: last command, limits, and the per-state step (bytes in → Twist out)."""
 
-    def __init__(self, limits: Limits, gains: Gains, speed_mps: float,
-                 path_length_m: float | None = None, end_tolerance_m: float = 0.05,
-                 timeout_s: float = 0.5, stamp_check: bool = True, normal_down: bool = True,
-                 max_jump_m: float = 0.1, clock: Callable[[], float] = time.monotonic,
-                 wall_ns: Callable[[], int] = time.time_ns) -> None:  # fmt: skip
+    def __init__(
+        self,
+        limits: Limits,
+        gains: Gains,
+        speed_mps: float,
+        path_length_m: float | None = None,
+        end_tolerance_m: float = 0.05,
+        timeout_s: float = 0.5,
+        stamp_check: bool = True,
+        normal_down: bool = True,
+        max_jump_m: float = 0.1,
+        clock: Callable[[], float] = time.monotonic,
+        wall_ns: Callable[[], int] = time.time_ns,
+    ) -> None:
         self.limits, self.gains = limits, gains
         self.speed = min(speed_mps, limits.max_speed_mps)
         self.length = path_length_m
@@ -190,7 +208,8 @@ class Follower:
         if self.max_jump > 0 and self.t_last_good is not None and math.isfinite(self.last_e):
             dt = now - self.t_last_good
             if dt <= self.timeout_s and abs(e - self.last_e) > (
-                    self.max_jump + self.limits.max_speed_mps * dt):  # fmt: skip
+                self.max_jump + self.limits.max_speed_mps * dt
+            ):
                 raise DropError("jump", f"cross-track {self.last_e:.3f} -> {e:.3f} m")
         self.last_e = e
 
@@ -200,18 +219,23 @@ class Follower:
         if abs(kappa) > 1e-9:
             v_ref = min(v_ref, math.sqrt(lim.max_lat_accel_mps2 / abs(kappa)))
         if self.length is not None:
-            v_ref = min(v_ref, math.sqrt(2 * lim.max_accel_mps2 * max(
-                self.length - self.end_tol - s["progress_m"], 0.0)))  # fmt: skip
+            v_ref = min(
+                v_ref,
+                math.sqrt(
+                    2 * lim.max_accel_mps2 * max(self.length - self.end_tol - s["progress_m"], 0.0)
+                ),
+            )
         dt = 0.1 if self.t_last_cmd is None else min(now - self.t_last_cmd, 0.1)
         prev = self.last
         v = max(0.0, min(v_ref, prev.v + lim.max_accel_mps2 * dt, lim.max_speed_mps))
         v = max(v, prev.v - lim.max_accel_mps2 * dt)
-        w = self.sign * control(s["cross_track_m"], s["heading_error_rad"], kappa, v,
-                                self.gains)  # fmt: skip
+        w = self.sign * control(s["cross_track_m"], s["heading_error_rad"], kappa, v, self.gains)
         bound = lim.yaw_rate_bound(v)
         w = max(-bound, min(bound, w))
-        w = max(prev.omega - lim.max_ang_accel_rps2 * dt,
-                min(prev.omega + lim.max_ang_accel_rps2 * dt, w))
+        w = max(
+            prev.omega - lim.max_ang_accel_rps2 * dt,
+            min(prev.omega + lim.max_ang_accel_rps2 * dt, w),
+        )
         w = max(-bound, min(bound, w))  # the radius wins over the angular acceleration
         return self._set(now, Command(v, w, False, "drive"))
 
@@ -227,8 +251,9 @@ class Follower:
         ``period_s`` (give or take a loop), the zero Twist is out within ``timeout_s``."""
         now = self.clock()
         with self.lock:
-            stale = (self.t_last_good is None
-                     or now - self.t_last_good > self.timeout_s - 2 * period_s)  # fmt: skip
+            stale = (
+                self.t_last_good is None or now - self.t_last_good > self.timeout_s - 2 * period_s
+            )
             if stale:
                 return self._stop(now, "timeout")
         return None
@@ -250,8 +275,9 @@ def decode_twist(data: bytes) -> tuple[float, float]:
     return vals[0], vals[5]
 
 
-def with_profile(limits: Limits, gains: Gains, profile: str | None,
-                 overrides: dict[str, Any]) -> tuple[Limits, Gains, str]:  # fmt: skip
+def with_profile(
+    limits: Limits, gains: Gains, profile: str | None, overrides: dict[str, Any]
+) -> tuple[Limits, Gains, str]:
     """Limits, gains and key of ``profile`` (built-in defaults for None) with ``overrides``
     (field name → value, None: not given) applied."""
     key = "cmd_vel"
@@ -276,9 +302,15 @@ class FollowerNode(Node):
         return super().close(wait_s)
 
 
-def serve(fol: Follower, node: FollowerNode, state_key: str, cmd_key: str,
-          duration_s: float | None, stats_period_s: float,
-          stop: threading.Event) -> dict[str, Any]:  # fmt: skip
+def serve(
+    fol: Follower,
+    node: FollowerNode,
+    state_key: str,
+    cmd_key: str,
+    duration_s: float | None,
+    stats_period_s: float,
+    stop: threading.Event,
+) -> dict[str, Any]:
     """Run the follower on ``node`` until stopped: a zero Twist first, one per state, zeros
     every 50 ms while no good state is fresh, a zero Twist last."""
     node.types.update({state_key: "json", cmd_key: TWIST})

@@ -30,12 +30,22 @@ DEFAULT_PORT = 8765
 FOXGLOVE_MISSING = "--foxglove needs the foxglove-sdk package: pip install 'tagtrail[foxglove]'"
 JSON_TYPE = "json"  # a key whose payload is JSON text, not CDR
 STATE_SCHEMA = {
-    "type": "object", "title": "tagtrail relocalization state",
-    "properties": {k: {"type": t} for k, t in (
-        ("stamp_sec", "integer"), ("stamp_nanosec", "integer"), ("distance_m", "number"),
-        ("heading_error_deg", "number"), ("heading_error_rad", "number"),
-        ("nearest_ref_idx", "integer"), ("u", "number"), ("v", "number"))},
-}  # fmt: skip
+    "type": "object",
+    "title": "tagtrail relocalization state",
+    "properties": {
+        k: {"type": t}
+        for k, t in (
+            ("stamp_sec", "integer"),
+            ("stamp_nanosec", "integer"),
+            ("distance_m", "number"),
+            ("heading_error_deg", "number"),
+            ("heading_error_rad", "number"),
+            ("nearest_ref_idx", "integer"),
+            ("u", "number"),
+            ("v", "number"),
+        )
+    },
+}
 
 
 def load_sdk() -> Any:
@@ -60,8 +70,13 @@ class FoxgloveServer:
     (:attr:`port` says which).
     """
 
-    def __init__(self, types: dict[str, str], port: int = DEFAULT_PORT, host: str = "127.0.0.1",
-                 name: str = "tagtrail") -> None:  # fmt: skip
+    def __init__(
+        self,
+        types: dict[str, str],
+        port: int = DEFAULT_PORT,
+        host: str = "127.0.0.1",
+        name: str = "tagtrail",
+    ) -> None:
         fg = load_sdk()
         self._fg = fg
         self._ctx = fg.Context()
@@ -72,15 +87,20 @@ class FoxgloveServer:
                 ch = fg.Channel(topic, schema=STATE_SCHEMA, context=self._ctx)
             else:
                 sname, data = ros2_schema(typename)
-                ch = fg.Channel(topic, schema=fg.Schema(name=sname, encoding="ros2msg", data=data),
-                                message_encoding="cdr", context=self._ctx)  # fmt: skip
+                ch = fg.Channel(
+                    topic,
+                    schema=fg.Schema(name=sname, encoding="ros2msg", data=data),
+                    message_encoding="cdr",
+                    context=self._ctx,
+                )
             self._channels[key] = ch
         self._latched: dict[str, list[bytes]] = {}  # channel topic → payloads
         self._lock = threading.Lock()
         listener = _listener(importlib.import_module("foxglove.websocket"), self._on_subscribe)
         try:
-            self.server = fg.start_server(name=name, host=host, port=port, context=self._ctx,
-                                          server_listener=listener)  # fmt: skip
+            self.server = fg.start_server(
+                name=name, host=host, port=port, context=self._ctx, server_listener=listener
+            )
         except Exception as err:  # the SDK raises its own (Rust) error types
             why = one_line(err)
             raise SessionError(f"--foxglove: cannot serve on {host}:{port}: {why}") from err
@@ -140,8 +160,9 @@ def _listener(ws: Any, on_subscribe: Callable[[str], None]) -> Any:
     return Listener()
 
 
-def foxglove_server(ns: argparse.Namespace, node: str,
-                    types: dict[str, str]) -> FoxgloveServer | None:  # fmt: skip
+def foxglove_server(
+    ns: argparse.Namespace, node: str, types: dict[str, str]
+) -> FoxgloveServer | None:
     """The server ``--foxglove [PORT]`` / ``--foxglove-host`` ask for (None without the flag), a
     channel per key of ``types`` (key → ROS 2 type or :data:`JSON_TYPE`); its URL is printed as
     ``<node>: foxglove ws://HOST:PORT``."""

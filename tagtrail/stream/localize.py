@@ -96,10 +96,14 @@ class Localizer:
         self.ids = ids[order]
         vals = tag_map[POSE_COLS].to_numpy(np.float64)[order]
         self.world_T_tag = T_from_xyz_quat(vals[:, :3], vals[:, 3:])
-        size = (tag_map["size_m"].to_numpy(np.float64)[order] if "size_m" in tag_map.columns
-                else np.full(len(ids), np.nan))  # fmt: skip
-        self.size_m = np.where(np.isfinite(size) & (size > 0), size,
-                               self.params.pnp.sizes(self.ids))  # fmt: skip
+        size = (
+            tag_map["size_m"].to_numpy(np.float64)[order]
+            if "size_m" in tag_map.columns
+            else np.full(len(ids), np.nan)
+        )
+        self.size_m = np.where(
+            np.isfinite(size) & (size > 0), size, self.params.pnp.sizes(self.ids)
+        )
         self.detector = self.params.extract.detector()
         self.msg_detector = self.params.extract.detector("detections")  # recorded detections
         self.camera: CameraModel | None = None
@@ -109,11 +113,13 @@ class Localizer:
         method = self.params.trajectory.method
         self.method: Literal["auto", "avg", "lsq", "pnp"] = "auto" if method == "joint" else method
         if method == "joint":
-            log.warning("localize: trajectory.method is joint, which holds a recording's frames "
-                        "together in time; a live node answers each frame at once, so it poses "
-                        "frames by auto (one RANSAC PnP over the corners of >= 2 mapped tags, "
-                        "else the fusion of the per-tag poses). Set trajectory.method: auto for "
-                        "the live node to silence this")
+            log.warning(
+                "localize: trajectory.method is joint, which holds a recording's frames "
+                "together in time; a live node answers each frame at once, so it poses "
+                "frames by auto (one RANSAC PnP over the corners of >= 2 mapped tags, "
+                "else the fusion of the per-tag poses). Set trajectory.method: auto for "
+                "the live node to silence this"
+            )
 
     def frame_pose(self, corners_px: F64, tag_ids: NDArray[np.integer]) -> tuple[F64 | None, int]:
         """``world_T_cam (4, 4)`` of one frame and the number of mapped tags used (None, 0 if
@@ -137,10 +143,18 @@ class Localizer:
         corners = np.where(twice[sel, None, None], np.nan, px[sel])
         p = self.params.trajectory
         res = frame_poses(
-            self.world_T_tag[k[good]], cam_T_tag[good, 0], np.zeros(len(sel), np.int64), 1,
-            corners_px=corners, size_m=self.size_m[k[good]], camera=self.camera,
-            method=self.method, loss=p.loss, f_scale=p.f_scale,
-            rot_weight_m=p.rot_weight_m, ransac_px=p.ransac_px,
+            self.world_T_tag[k[good]],
+            cam_T_tag[good, 0],
+            np.zeros(len(sel), np.int64),
+            1,
+            corners_px=corners,
+            size_m=self.size_m[k[good]],
+            camera=self.camera,
+            method=self.method,
+            loss=p.loss,
+            f_scale=p.f_scale,
+            rot_weight_m=p.rot_weight_m,
+            ransac_px=p.ransac_px,
         )
         return res.world_T_cam[0], int(res.n_tags[0])
 
@@ -203,11 +217,15 @@ class Localizer:
         ``width``/``height``) or that exceeds :data:`MAX_IMAGE_SIDE` (whatever CameraInfo says)."""
         cam = self.camera
         if cam is not None and (width, height) != (cam.width, cam.height):
-            raise DropError("image_size", f"a {width}x{height} image from a {cam.width}x"
-                            f"{cam.height} camera (CameraInfo)")  # fmt: skip
+            raise DropError(
+                "image_size",
+                f"a {width}x{height} image from a {cam.width}x{cam.height} camera (CameraInfo)",
+            )
         if not (0 < width <= MAX_IMAGE_SIDE and 0 < height <= MAX_IMAGE_SIDE):
-            raise DropError("image_too_large" if width > 0 and height > 0 else "bad_image",
-                            f"a {width}x{height} image (at most {MAX_IMAGE_SIDE} px a side)")
+            raise DropError(
+                "image_too_large" if width > 0 and height > 0 else "bad_image",
+                f"a {width}x{height} image (at most {MAX_IMAGE_SIDE} px a side)",
+            )
 
     def _decode(self, data: bytes, msgtype: str) -> Any:
         if self.camera is None:
@@ -230,10 +248,12 @@ class Localizer:
         if T is None or not np.isfinite(T).all():
             raise DropError("no_pose", "no mapped tag in the frame")
         xyz, q = xyz_quat_from_T(T)
-        return [(self.pose_key, self._enc(int(stamp.sec), int(stamp.nanosec), *xyz.tolist(),
-                                          *q.tolist()))]  # fmt: skip
-
-
+        return [
+            (
+                self.pose_key,
+                self._enc(int(stamp.sec), int(stamp.nanosec), *xyz.tolist(), *q.tolist()),
+            )
+        ]
 
 
 def cv2_threads() -> None:

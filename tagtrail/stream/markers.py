@@ -21,8 +21,12 @@ NS_PATH, NS_NEAREST, NS_ERROR, NS_TEXT = "reference_path", "nearest", "error", "
 TEXT_FORMAT = "D {:7.3f} m  phi {:+7.2f} deg"
 TEXT_LEN = len(TEXT_FORMAT.format(0.0, 0.0))
 TEXT_LIFT_M = 0.25  # text drawn this far above the pose
-_GREEN, _RED, _ORANGE, _WHITE = (0.1, 0.8, 0.2, 1.0), (0.9, 0.1, 0.1, 1.0), (1.0, 0.6, 0.0, 1.0), (
-    1.0, 1.0, 1.0, 1.0)  # fmt: skip
+_GREEN, _RED, _ORANGE, _WHITE = (
+    (0.1, 0.8, 0.2, 1.0),
+    (0.9, 0.1, 0.1, 1.0),
+    (1.0, 0.6, 0.0, 1.0),
+    (1.0, 1.0, 1.0, 1.0),
+)
 
 
 def marker(
@@ -70,12 +74,22 @@ def marker_array(markers: list[Any]) -> bytes:
     return codec.serialize(codec.types()[codec.MARKER_ARRAY](markers), codec.MARKER_ARRAY)
 
 
-def path_markers(positions: np.ndarray, frame_id: str, sec: int = 0, nanosec: int = 0,
-                 width_m: float = 0.02) -> bytes:  # fmt: skip
+def path_markers(
+    positions: np.ndarray, frame_id: str, sec: int = 0, nanosec: int = 0, width_m: float = 0.02
+) -> bytes:
     """The reference path as one LINE_STRIP through ``positions (N, 3)`` (m)."""
     LINE_STRIP = codec.types()["visualization_msgs/msg/Marker"].LINE_STRIP
-    m = marker(NS_PATH, 0, LINE_STRIP, frame_id, sec, nanosec, scale=(width_m, 0.0, 0.0),
-               color=_GREEN, points=np.asarray(positions, dtype=np.float64).tolist())  # fmt: skip
+    m = marker(
+        NS_PATH,
+        0,
+        LINE_STRIP,
+        frame_id,
+        sec,
+        nanosec,
+        scale=(width_m, 0.0, 0.0),
+        color=_GREEN,
+        points=np.asarray(positions, dtype=np.float64).tolist(),
+    )
     return marker_array([m])
 
 
@@ -94,22 +108,67 @@ class PoseMarkers:
     def _build(self, sec: int, nanosec: int, d: Sequence[float], text: str) -> bytes:
         M = codec.types()["visualization_msgs/msg/Marker"]
         f = self.frame_id
-        return marker_array([
-            marker(NS_NEAREST, 0, M.SPHERE, f, sec, nanosec, position=d[0:3],
-                   scale=(0.08, 0.08, 0.08), color=_RED),
-            marker(NS_ERROR, 0, M.LINE_LIST, f, sec, nanosec, scale=(0.015, 0.0, 0.0),
-                   color=_ORANGE, points=[d[3:6], d[6:9]]),
-            marker(NS_TEXT, 0, M.TEXT_VIEW_FACING, f, sec, nanosec, position=d[9:12],
-                   scale=(0.0, 0.0, 0.12), color=_WHITE, text=text),
-        ])  # fmt: skip
+        return marker_array(
+            [
+                marker(
+                    NS_NEAREST,
+                    0,
+                    M.SPHERE,
+                    f,
+                    sec,
+                    nanosec,
+                    position=d[0:3],
+                    scale=(0.08, 0.08, 0.08),
+                    color=_RED,
+                ),
+                marker(
+                    NS_ERROR,
+                    0,
+                    M.LINE_LIST,
+                    f,
+                    sec,
+                    nanosec,
+                    scale=(0.015, 0.0, 0.0),
+                    color=_ORANGE,
+                    points=[d[3:6], d[6:9]],
+                ),
+                marker(
+                    NS_TEXT,
+                    0,
+                    M.TEXT_VIEW_FACING,
+                    f,
+                    sec,
+                    nanosec,
+                    position=d[9:12],
+                    scale=(0.0, 0.0, 0.12),
+                    color=_WHITE,
+                    text=text,
+                ),
+            ]
+        )
 
-    def __call__(self, sec: int, nanosec: int, current: Sequence[float],
-                 nearest: Sequence[float], distance_m: float, phi_deg: float) -> bytes:  # fmt: skip
+    def __call__(
+        self,
+        sec: int,
+        nanosec: int,
+        current: Sequence[float],
+        nearest: Sequence[float],
+        distance_m: float,
+        phi_deg: float,
+    ) -> bytes:
         """MarkerArray bytes for one pose: ``current``/``nearest`` world positions (m)."""
         ux, uy, uz = self.up
         cx, cy, cz = current
-        d = (*nearest, cx, cy, cz, *nearest, cx + TEXT_LIFT_M * ux, cy + TEXT_LIFT_M * uy,
-             cz + TEXT_LIFT_M * uz)  # fmt: skip
+        d = (
+            *nearest,
+            cx,
+            cy,
+            cz,
+            *nearest,
+            cx + TEXT_LIFT_M * ux,
+            cy + TEXT_LIFT_M * uy,
+            cz + TEXT_LIFT_M * uz,
+        )
         text = TEXT_FORMAT.format(distance_m, phi_deg)
         raw = text.encode()
         if len(raw) == TEXT_LEN:

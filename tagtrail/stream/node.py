@@ -59,8 +59,14 @@ def peak_rss_mb() -> float | None:
 class Node:
     """Publishers, subscribers, queryables and periodic tasks of one live node (see module doc)."""
 
-    def __init__(self, session: zenoh.Session, stats: Stats, congestion: str = "block",
-                 express: bool = False, wire: Wire | None = None) -> None:  # fmt: skip
+    def __init__(
+        self,
+        session: zenoh.Session,
+        stats: Stats,
+        congestion: str = "block",
+        express: bool = False,
+        wire: Wire | None = None,
+    ) -> None:
         self.session = session
         self.stats = stats
         self.wire = wire if wire is not None else Wire(session)
@@ -85,10 +91,12 @@ class Node:
             # a periodic republish may be dropped (the next one follows); it must never block
             cc = zenoh.CongestionControl.DROP if background else self._cc
             pub = self.wire.declare_publisher(
-                key, self.types.get(key), congestion_control=cc,
+                key,
+                self.types.get(key),
+                congestion_control=cc,
                 express=self._express and not background,
                 priority=zenoh.Priority.DATA_LOW if background else zenoh.Priority.DATA,
-            )  # fmt: skip
+            )
             self._entities.append(pub)
             pubs[key] = pub
         return pubs[key]
@@ -101,8 +109,9 @@ class Node:
             pub = pubs.get(key) or self.publisher(key, background)
             pub.put(payload)
 
-    def subscribe(self, key: str, handler: Handler, latest_only: bool = False,
-                  msgtype: str | None = None) -> None:  # fmt: skip
+    def subscribe(
+        self, key: str, handler: Handler, latest_only: bool = False, msgtype: str | None = None
+    ) -> None:
         """Handle every sample of ``key`` (of ``msgtype``, default ``types[key]``) with
         ``handler`` and publish its outputs.
 
@@ -180,8 +189,12 @@ class Node:
         if period_s > 0:
             self._periodic.append([period_s, fn, time.monotonic() + period_s])
 
-    def run(self, duration_s: float | None = None, stats_period_s: float = 10.0,
-            stop: threading.Event | None = None) -> dict[str, Any]:  # fmt: skip
+    def run(
+        self,
+        duration_s: float | None = None,
+        stats_period_s: float = 10.0,
+        stop: threading.Event | None = None,
+    ) -> dict[str, Any]:
         """Serve until ``stop``/``self.stop`` is set or ``duration_s`` passes; then close.
 
         Returns the stats summary (also printed on stdout as one ``stats {json}`` line) with
@@ -209,9 +222,13 @@ class Node:
         finally:
             t_close = time.monotonic()
             self.close()
-        summary = {**self.stats.summary(), **self.wire.summary(),
-                   "shutdown_s": round(time.monotonic() - t_close, 3),
-                   "shutdown_clean": self.clean, "peak_rss_mb": peak_rss_mb()}  # fmt: skip
+        summary = {
+            **self.stats.summary(),
+            **self.wire.summary(),
+            "shutdown_s": round(time.monotonic() - t_close, 3),
+            "shutdown_clean": self.clean,
+            "peak_rss_mb": peak_rss_mb(),
+        }
         print("stats " + json.dumps(summary), flush=True)
         return summary
 

@@ -27,7 +27,9 @@ P = TypeVar("P", bound=StageParams)
 
 
 def stage_params(
-    stages: Sequence[str], pipeline: Path | None = None, dataset: str | None = None,
+    stages: Sequence[str],
+    pipeline: Path | None = None,
+    dataset: str | None = None,
     profile: str | None = None,
 ) -> dict[str, StageParams]:
     """``{stage: params}`` for ``stages`` from ``pipeline`` (module docstring); without a
@@ -40,8 +42,10 @@ def stage_params(
         pipeline = DEFAULT_PIPELINE
     if pipeline is None:
         if dataset is not None:
-            raise SpecError(f"--dataset {dataset}: there is no pipeline file (no "
-                            f"{DEFAULT_PIPELINE} here); name one with --pipeline FILE")
+            raise SpecError(
+                f"--dataset {dataset}: there is no pipeline file (no "
+                f"{DEFAULT_PIPELINE} here); name one with --pipeline FILE"
+            )
         prof = get_profile(profile)
         given = prof.stages if prof is not None else {}
         return {s: REGISTRY[s].Params(**given.get(s, {})) for s in stages}
@@ -50,9 +54,11 @@ def stage_params(
     pipe = load_pipeline(Path(pipeline), REGISTRY, check_sources=False)
     name = pipe.reference if dataset is None else dataset
     if name not in pipe.datasets:
-        raise SpecError(f"--dataset {name}: {pipeline} has no such dataset"
-                        f"{did_you_mean(name, pipe.datasets)} (datasets: "
-                        f"{', '.join(pipe.datasets)})")  # fmt: skip
+        raise SpecError(
+            f"--dataset {name}: {pipeline} has no such dataset"
+            f"{did_you_mean(name, pipe.datasets)} (datasets: "
+            f"{', '.join(pipe.datasets)})"
+        )
     log.info("parameters of dataset %s from %s", name, pipeline)
     return {s: pipe.params_for(s, name) for s in stages}
 

@@ -79,8 +79,10 @@ def parse_topic(text: str) -> tuple[str, str | None]:
     name, _, typ = text.partition(":")
     name = "/" + name.strip().strip("/")
     if name == "/" or not re.fullmatch(r"/[A-Za-z0-9_/~{}]+", name):
-        raise SpecError(f"--topic {text!r}: not a ROS topic name (write NAME[:TYPE], e.g. "
-                        "/camera_info:sensor_msgs/msg/CameraInfo)")  # fmt: skip
+        raise SpecError(
+            f"--topic {text!r}: not a ROS topic name (write NAME[:TYPE], e.g. "
+            "/camera_info:sensor_msgs/msg/CameraInfo)"
+        )
     return name, normalize_type(typ) if typ.strip() else None
 
 
@@ -106,15 +108,19 @@ def discover(session: Any, timeout_s: float = 2.0) -> dict[str, str]:
             try:
                 found[topic] = normalize_type(parts[i + 2].replace("§", "/"))
             except SpecError:
-                log.warning("record: %s has type %s, unknown here; not recorded", topic,
-                            parts[i + 2].replace("§", "/"))  # fmt: skip
+                log.warning(
+                    "record: %s has type %s, unknown here; not recorded",
+                    topic,
+                    parts[i + 2].replace("§", "/"),
+                )
         if found:
             break
     return {t: m for t, m in sorted(found.items()) if t not in SKIP_TOPICS}
 
 
-def resolve_topics(given: list[str], profile: Profile | None,
-                   discovered: dict[str, str] | None) -> list[TopicSpec]:  # fmt: skip
+def resolve_topics(
+    given: list[str], profile: Profile | None, discovered: dict[str, str] | None
+) -> list[TopicSpec]:
     """The topics to record: ``--topic`` names (a missing type from the profile or the bridge),
     else the profile's, else every discovered one. A type given that differs from the one the
     bridge announces is an error (the payloads would not decode)."""
@@ -125,14 +131,18 @@ def resolve_topics(given: list[str], profile: Profile | None,
         name, typ = parse_topic(text)
         typ = typ or known.get(name) or bridge.get(name)
         if typ is None:
-            raise SpecError(f"--topic {name}: give its type (NAME:TYPE, e.g. "
-                            f"{name}:sensor_msgs/msg/Image); no profile or bridge names it")
+            raise SpecError(
+                f"--topic {name}: give its type (NAME:TYPE, e.g. "
+                f"{name}:sensor_msgs/msg/Image); no profile or bridge names it"
+            )
         specs[name] = typ
     if not given:
         specs = dict(profile.record) if profile else dict(bridge)
     if not specs:
-        raise SpecError("nothing to record: give --topic NAME:TYPE (repeatable) or --profile "
-                        "NAME; no zenoh-bridge-ros2dds announced topics on the admin space")
+        raise SpecError(
+            "nothing to record: give --topic NAME:TYPE (repeatable) or --profile "
+            "NAME; no zenoh-bridge-ros2dds announced topics on the admin space"
+        )
     for name, typ in specs.items():
         if name in bridge and bridge[name] != typ:
             raise SpecError(f"{name}: the bridge publishes it as {bridge[name]}, not {typ}")
@@ -174,9 +184,17 @@ class Recorded:
 class Recorder:
     """Subscribe to ``topics`` on ``session`` and write them into ``writer`` (module docstring)."""
 
-    def __init__(self, session: Any, topics: list[TopicSpec], writer: CrashSafeWriter, *,
-                 wait_s: float = 10.0, max_size: int | None = None,
-                 max_queue_mb: float = 1024.0, wire: Any = None) -> None:  # fmt: skip
+    def __init__(
+        self,
+        session: Any,
+        topics: list[TopicSpec],
+        writer: CrashSafeWriter,
+        *,
+        wait_s: float = 10.0,
+        max_size: int | None = None,
+        max_queue_mb: float = 1024.0,
+        wire: Any = None,
+    ) -> None:
         from tagtrail.stream.wire import Wire
 
         self.session = session
@@ -224,12 +242,16 @@ class Recorder:
             msg = deserialize(data, mt)
             size = len(serialize(msg, mt))
         except CodecError as err:
-            raise SourceError(f"key {topic.spec.key}: the messages are not {mt} ({err}); give "
-                              f"its type with --topic {topic.spec.topic}:TYPE") from err
+            raise SourceError(
+                f"key {topic.spec.key}: the messages are not {mt} ({err}); give "
+                f"its type with --topic {topic.spec.topic}:TYPE"
+            ) from err
         if abs(size - len(data)) > 3:  # decoded, but not the whole payload: another type
-            raise SourceError(f"key {topic.spec.key}: the messages are not {mt} ({len(data)} "
-                              f"bytes, a {mt} of those fields is {size}); give its type with "
-                              f"--topic {topic.spec.topic}:TYPE")  # fmt: skip
+            raise SourceError(
+                f"key {topic.spec.key}: the messages are not {mt} ({len(data)} "
+                f"bytes, a {mt} of those fields is {size}); give its type with "
+                f"--topic {topic.spec.topic}:TYPE"
+            )
         fields = msgs.typestore().fielddefs[mt][1]
         if fields and fields[0][0] == "header":
             topic.stamp_at = 4
@@ -301,8 +323,12 @@ class Recorder:
         why = ", ".join(f"{k} {v}" for k, v in sorted(self.dropped.items()))
         return " | ".join(parts) + f" | dropped {drops}" + (f" ({why})" if why else "")
 
-    def run(self, duration_s: float | None = None, stats_period_s: float = 2.0,
-            stop: threading.Event | None = None) -> Recorded:  # fmt: skip
+    def run(
+        self,
+        duration_s: float | None = None,
+        stats_period_s: float = 2.0,
+        stop: threading.Event | None = None,
+    ) -> Recorded:
         """Record until ``stop`` (SIGINT/SIGTERM), ``duration_s``, ``--max-size`` or a failure;
         then close the bag. A failure is raised (one line) after the bag is closed."""
         stop = stop or threading.Event()
@@ -311,11 +337,13 @@ class Recorder:
         t0 = time.monotonic()
         try:
             for t in self.topics.values():
-                self._subs.append(self.wire.declare_subscriber(t.spec.topic, t.spec.msgtype,
-                                                               self._callback(t)))
+                self._subs.append(
+                    self.wire.declare_subscriber(t.spec.topic, t.spec.msgtype, self._callback(t))
+                )
             names = ", ".join(f"{t.spec.topic} ({t.spec.msgtype})" for t in self.topics.values())
-            print(f"record: recording {names} into {self.writer.out} ({self.writer.kind})",
-                  flush=True)  # fmt: skip
+            print(
+                f"record: recording {names} into {self.writer.out} ({self.writer.kind})", flush=True
+            )
             t_line = t_last = time.monotonic()
             while not stop.is_set() and not self.stopped.is_set():
                 now = time.monotonic()
@@ -327,7 +355,8 @@ class Recorder:
                     self.failure = SourceError(
                         f"no message on {', '.join(t.spec.key for t in silent)} after "
                         f"{self.wait_s:g} s: is it published, and forwarded by the bridge? "
-                        "(--wait 0 waits for ever)")  # fmt: skip
+                        "(--wait 0 waits for ever)"
+                    )
                     break
                 if stats_period_s > 0 and now - t_line >= stats_period_s:
                     print(self.line(now - t0, now - t_last), flush=True)
@@ -339,11 +368,18 @@ class Recorder:
             self._finish(writer)
         seconds = time.monotonic() - t0
         kept = self.writer.kept  # a full disk: what the bag holds, not what was handed to it
-        done = Recorded({t.spec.topic: t.count if kept is None else kept.get(t.spec.topic, 0)
-                         for t in self.topics.values()},
-                        dict(self.dropped), self.reason or "failed", seconds, self.writer.size,
-                        {t.spec.topic: t.order.out_of_order for t in self.topics.values()},
-                        {t.spec.topic: t.order.outliers for t in self.topics.values()})
+        done = Recorded(
+            {
+                t.spec.topic: t.count if kept is None else kept.get(t.spec.topic, 0)
+                for t in self.topics.values()
+            },
+            dict(self.dropped),
+            self.reason or "failed",
+            seconds,
+            self.writer.size,
+            {t.spec.topic: t.order.out_of_order for t in self.topics.values()},
+            {t.spec.topic: t.order.outliers for t in self.topics.values()},
+        )
         if self.failure is not None:
             raise self._one_line(self.failure, done) from self.failure
         return done
@@ -366,8 +402,10 @@ class Recorder:
             return err  # no bag was made (the folder is not left behind)
         kept = f"recorded until then kept in {self.writer.out} ({_counts(done.counts)})"
         if is_full_disk(err):
-            return StorageError(f"cannot write {self.writer.file}: No space left on device; "
-                                f"{kept} (up to its last flush)")  # fmt: skip
+            return StorageError(
+                f"cannot write {self.writer.file}: No space left on device; "
+                f"{kept} (up to its last flush)"
+            )
         if isinstance(err, TagtrailError):
             return type(err)(f"{err}; {kept}")
         if isinstance(err, OSError):
@@ -381,11 +419,16 @@ def _counts(counts: dict[str, int]) -> str:
 
 def summary_line(done: Recorded, writer: CrashSafeWriter) -> str:
     """The last line; header stamps out of order or lone outliers (kept as sent) are named."""
-    stamps = "".join(f", {what} {_counts({t: n for t, n in per.items() if n})}"
-                     for what, per in (("stamps out of order:", done.out_of_order),
-                                       ("stamp outliers:", done.stamp_outliers))
-                     if any(per.values()))  # fmt: skip
-    return (f"record: {done.reason}: {sum(done.counts.values())} messages in {done.seconds:.1f} "
-            f"s ({_counts(done.counts)}), {done.size_bytes / 1e6:.1f} MB into {writer.out}, "
-            f"dropped {sum(done.dropped.values())}{stamps}")
-
+    stamps = "".join(
+        f", {what} {_counts({t: n for t, n in per.items() if n})}"
+        for what, per in (
+            ("stamps out of order:", done.out_of_order),
+            ("stamp outliers:", done.stamp_outliers),
+        )
+        if any(per.values())
+    )
+    return (
+        f"record: {done.reason}: {sum(done.counts.values())} messages in {done.seconds:.1f} "
+        f"s ({_counts(done.counts)}), {done.size_bytes / 1e6:.1f} MB into {writer.out}, "
+        f"dropped {sum(done.dropped.values())}{stamps}"
+    )

@@ -46,18 +46,33 @@ from tagtrail.stream.markers import PoseMarkers, path_markers
 from tagtrail.stream.stats import DropError, Stats
 
 F64 = np.ndarray
-OUTPUTS = ("distance_m", "heading_error_deg", "state", "current_pose", "nearest_pose", "markers",
-           "cross_track_m", "progress_m", "curvature_1pm", "lookahead_pose")
+OUTPUTS = (
+    "distance_m",
+    "heading_error_deg",
+    "state",
+    "current_pose",
+    "nearest_pose",
+    "markers",
+    "cross_track_m",
+    "progress_m",
+    "curvature_1pm",
+    "lookahead_pose",
+)
 REFERENCE_PATH = "reference_path"
 # each output's ROS 2 type (SPEC Streaming); "json": the state document
 OUTPUT_TYPES = {
-    "distance_m": "std_msgs/msg/Float64", "heading_error_deg": "std_msgs/msg/Float64",
-    "state": "json", "current_pose": "geometry_msgs/msg/PoseStamped",
+    "distance_m": "std_msgs/msg/Float64",
+    "heading_error_deg": "std_msgs/msg/Float64",
+    "state": "json",
+    "current_pose": "geometry_msgs/msg/PoseStamped",
     "nearest_pose": "geometry_msgs/msg/PoseStamped",
-    "markers": "visualization_msgs/msg/MarkerArray", REFERENCE_PATH: "nav_msgs/msg/Path",
-    "cross_track_m": "std_msgs/msg/Float64", "progress_m": "std_msgs/msg/Float64",
-    "curvature_1pm": "std_msgs/msg/Float64", "lookahead_pose": "geometry_msgs/msg/PoseStamped",
-}  # fmt: skip
+    "markers": "visualization_msgs/msg/MarkerArray",
+    REFERENCE_PATH: "nav_msgs/msg/Path",
+    "cross_track_m": "std_msgs/msg/Float64",
+    "progress_m": "std_msgs/msg/Float64",
+    "curvature_1pm": "std_msgs/msg/Float64",
+    "lookahead_pose": "geometry_msgs/msg/PoseStamped",
+}
 
 
 class Outputs(NamedTuple):
@@ -151,16 +166,23 @@ class Relocalizer:
     use every sample; ``track``: association and tracker settings (default: the report stage's).
     """
 
-    def __init__(self, ref_traj: pd.DataFrame, plane: str | None = None,
-                 alignment: tuple[F64, F64] | None = None, frame_id: str = "map",
-                 prefix: str = "relocalization", pose_type: str = "pose_stamped",
-                 path_max_points: int = 10_000, track: TrackParams | None = None,
-                 ) -> None:  # fmt: skip
+    def __init__(
+        self,
+        ref_traj: pd.DataFrame,
+        plane: str | None = None,
+        alignment: tuple[F64, F64] | None = None,
+        frame_id: str = "map",
+        prefix: str = "relocalization",
+        pose_type: str = "pose_stamped",
+        path_max_points: int = 10_000,
+        track: TrackParams | None = None,
+    ) -> None:
         P, R = poses(ref_traj)
         plane = report_stage.Params().plane if plane is None else plane
         self.path = ReferencePath(P, reference_plane(plane, *poses(ref_traj)))
-        self.tracker = PathTracker(self.path, track or report_stage.track_params(
-            report_stage.Params()))  # fmt: skip
+        self.tracker = PathTracker(
+            self.path, track or report_stage.track_params(report_stage.Params())
+        )
         self.pose_type = pose_type
         self.key = {k: f"{prefix}/{k}" for k in (*OUTPUTS, REFERENCE_PATH)}
         self._ref7 = ref_traj[["x_m", "y_m", "z_m", "qx", "qy", "qz", "qw"]].to_numpy(np.float64)
@@ -197,8 +219,11 @@ class Relocalizer:
         x, y, z = p.x, p.y, p.z
         if self._A is not None:
             (a, b, c, tx), (d, e, f, ty), (g, h, i, tz) = self._A
-            x, y, z = (a * x + b * y + c * z + tx, d * x + e * y + f * z + ty,
-                       g * x + h * y + i * z + tz)  # fmt: skip
+            x, y, z = (
+                a * x + b * y + c * z + tx,
+                d * x + e * y + f * z + ty,
+                g * x + h * y + i * z + tz,
+            )
             q = _quat_mul(self._q_al, q)
         u, v, hq = self.path.planar_point(x, y, z, *_optical_axis(*q))
         if not math.isfinite(u * u + v * v):  # finite but huge coordinates
@@ -211,10 +236,27 @@ class Relocalizer:
         a, b = self._ref7[j], self._ref7[j + 1]
         la = (*(a[:3] + t * (b[:3] - a[:3])).tolist(), *(b if t > 0.5 else a)[3:].tolist())
         ref_u, ref_v = self.path.uv[k].tolist()
-        return Outputs(p.sec, p.nanosec, m.distance_m, m.phi_rad, math.degrees(m.phi_rad), k,
-                       u, v, ref_u, ref_v, (x, y, z, *q), tuple(self._ref7[k].tolist()),
-                       m.cross_track_m, m.progress_m, m.curvature_1pm, m.lookahead_u,
-                       m.lookahead_v, m.lost, la)  # fmt: skip
+        return Outputs(
+            p.sec,
+            p.nanosec,
+            m.distance_m,
+            m.phi_rad,
+            math.degrees(m.phi_rad),
+            k,
+            u,
+            v,
+            ref_u,
+            ref_v,
+            (x, y, z, *q),
+            tuple(self._ref7[k].tolist()),
+            m.cross_track_m,
+            m.progress_m,
+            m.curvature_1pm,
+            m.lookahead_u,
+            m.lookahead_v,
+            m.lost,
+            la,
+        )
 
     def encode(self, o: Outputs) -> list[tuple[str, bytes]]:
         """The CDR/JSON payloads of one result, keyed, in publication order."""
@@ -226,19 +268,26 @@ class Relocalizer:
         yield key["distance_m"], codec.encode_float64(o.distance_m)
         yield key["heading_error_deg"], codec.encode_float64(o.heading_error_deg)
         # = json.dumps of the SPEC state dict (floats are finite; json uses float.__repr__)
-        yield key["state"], (
-            f'{{"stamp_sec": {o.sec}, "stamp_nanosec": {o.nanosec}, "distance_m": '
-            f'{o.distance_m!r}, "heading_error_deg": {o.heading_error_deg!r}, '
-            f'"heading_error_rad": {o.heading_error_rad!r}, "nearest_ref_idx": '
-            f'{o.nearest_ref_idx}, "u": {o.u!r}, "v": {o.v!r}, "cross_track_m": '
-            f'{o.cross_track_m!r}, "progress_m": {o.progress_m!r}, "curvature_1pm": '
-            f'{o.curvature_1pm!r}, "lookahead_u": {o.lookahead_u!r}, "lookahead_v": '
-            f'{o.lookahead_v!r}, "lost": {"true" if o.lost else "false"}}}'
-        ).encode()
+        yield (
+            key["state"],
+            (
+                f'{{"stamp_sec": {o.sec}, "stamp_nanosec": {o.nanosec}, "distance_m": '
+                f'{o.distance_m!r}, "heading_error_deg": {o.heading_error_deg!r}, '
+                f'"heading_error_rad": {o.heading_error_rad!r}, "nearest_ref_idx": '
+                f'{o.nearest_ref_idx}, "u": {o.u!r}, "v": {o.v!r}, "cross_track_m": '
+                f'{o.cross_track_m!r}, "progress_m": {o.progress_m!r}, "curvature_1pm": '
+                f'{o.curvature_1pm!r}, "lookahead_u": {o.lookahead_u!r}, "lookahead_v": '
+                f'{o.lookahead_v!r}, "lost": {"true" if o.lost else "false"}}}'
+            ).encode(),
+        )
         yield key["current_pose"], enc(o.sec, o.nanosec, *o.current)
         yield key["nearest_pose"], enc(o.sec, o.nanosec, *o.nearest)
-        yield key["markers"], self._markers(o.sec, o.nanosec, o.current[:3], o.nearest[:3],
-                                            o.distance_m, o.heading_error_deg)  # fmt: skip
+        yield (
+            key["markers"],
+            self._markers(
+                o.sec, o.nanosec, o.current[:3], o.nearest[:3], o.distance_m, o.heading_error_deg
+            ),
+        )
         yield key["cross_track_m"], codec.encode_float64(o.cross_track_m)
         yield key["progress_m"], codec.encode_float64(o.progress_m)
         yield key["curvature_1pm"], codec.encode_float64(o.curvature_1pm)
@@ -261,8 +310,10 @@ class Relocalizer:
 
     def reference_outputs(self) -> list[tuple[str, bytes]]:
         """The reference path and its marker, for start-up and periodic republishing."""
-        return [(self.key[REFERENCE_PATH], self.path_cdr), (self.key["markers"],
-                                                            self.path_markers_cdr)]  # fmt: skip
+        return [
+            (self.key[REFERENCE_PATH], self.path_cdr),
+            (self.key["markers"], self.path_markers_cdr),
+        ]
 
 
 def serve(
@@ -328,4 +379,3 @@ def serve(
     finally:
         if foxglove is not None:
             foxglove.close()
-

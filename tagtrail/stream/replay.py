@@ -72,13 +72,17 @@ def load_poses(source: Path, topic: str | None = None, frame_id: str | None = No
         traj = read_trajectory(source)
         if len(traj) == 0:
             raise SourceError(f"{source}: no poses to replay (only a header)")
-        return Poses(traj["t_ns"].to_numpy(np.int64), traj[POSE_COLS].to_numpy(np.float64),
-                     [frame_id or "map"] * len(traj))  # fmt: skip
+        return Poses(
+            traj["t_ns"].to_numpy(np.int64),
+            traj[POSE_COLS].to_numpy(np.float64),
+            [frame_id or "map"] * len(traj),
+        )
     t, vals, frames = _read_bag(source, topic)
     if frame_id is not None:
         frames = [frame_id] * len(frames)
-    return Poses(np.asarray(t, dtype=np.int64), np.asarray(vals, dtype=np.float64).reshape(-1, 7),
-                 frames)  # fmt: skip
+    return Poses(
+        np.asarray(t, dtype=np.int64), np.asarray(vals, dtype=np.float64).reshape(-1, 7), frames
+    )
 
 
 def _read_bag(path: Path, topic: str | None) -> tuple[list[int], list[list[float]], list[str]]:
@@ -90,8 +94,10 @@ def _read_bag(path: Path, topic: str | None) -> tuple[list[int], list[list[float
         if topic is None:
             cands = sorted(t for t, m in types.items() if m in POSE_MSGTYPES)
             if len(cands) != 1:
-                raise SourceError(f"{bag}: {'several' if cands else 'no'} pose topics; name one "
-                                  f"with --topic (topics: {listing})")  # fmt: skip
+                raise SourceError(
+                    f"{bag}: {'several' if cands else 'no'} pose topics; name one "
+                    f"with --topic (topics: {listing})"
+                )
             topic = cands[0]
         if types.get(topic) not in POSE_MSGTYPES:
             raise SourceError(f"{bag}: topic {topic} is not a pose topic (topics: {listing})")
@@ -103,8 +109,17 @@ def _read_bag(path: Path, topic: str | None) -> tuple[list[int], list[list[float
             st = msg.header.stamp
             stamp = int(st.sec) * 1_000_000_000 + int(st.nanosec)
             t_ns.append(stamp or int(t_recv))
-            vals.append([p.position.x, p.position.y, p.position.z, p.orientation.x,
-                         p.orientation.y, p.orientation.z, p.orientation.w])  # fmt: skip
+            vals.append(
+                [
+                    p.position.x,
+                    p.position.y,
+                    p.position.z,
+                    p.orientation.x,
+                    p.orientation.y,
+                    p.orientation.z,
+                    p.orientation.w,
+                ]
+            )
             frames.append(str(msg.header.frame_id))
     except SourceError:
         raise
@@ -133,8 +148,9 @@ def pose_messages(poses: Poses, key: str) -> Messages:
     encoders: dict[str, codec.PoseStampedEncoder] = {}
     sec, nsec = np.divmod(poses.t_ns, 1_000_000_000)
     out = []
-    for s, n, v, f in zip(sec.tolist(), nsec.tolist(), poses.values.tolist(), poses.frames,
-                          strict=True):  # fmt: skip
+    for s, n, v, f in zip(
+        sec.tolist(), nsec.tolist(), poses.values.tolist(), poses.frames, strict=True
+    ):
         enc = encoders.get(f) or encoders.setdefault(f, codec.PoseStampedEncoder(f))
         out.append(enc(s, n, *v))
     return Messages(poses.t_ns, [key] * len(out), out, {key: msgs.POSE_STAMPED})
@@ -148,8 +164,10 @@ def bag_messages(source: Path, topics: list[str]) -> Messages:
         have = {c.topic for c in reader.connections}
         missing = [t for t in topics if t not in have]
         if missing:
-            raise SourceError(f"{bag}: no topic {', '.join(missing)} (topics: "
-                              f"{', '.join(sorted(have)) or 'none'})")  # fmt: skip
+            raise SourceError(
+                f"{bag}: no topic {', '.join(missing)} (topics: "
+                f"{', '.join(sorted(have)) or 'none'})"
+            )
         conns = [c for c in reader.connections if c.topic in topics]
         ros1 = bag.suffix == ".bag"
         t_ns, keys, data = [], [], []
@@ -178,10 +196,15 @@ def schedule_s(t_ns: NDArray[np.int64], rate: float) -> NDArray[np.float64]:
     lone = lone_outliers(t)
     if lone.any():
         k = np.flatnonzero(lone)
-        log.warning("replay: %d lone stamp outlier(s), e.g. message %d at %d.%09d s between "
-                    "stamps %s s: sent without a pause", len(k), k[0], t[k[0]] // 10**9,
-                    t[k[0]] % 10**9, " and ".join(f"{t[j] / 1e9:.3f}" for j in (k[0] - 1,
-                    k[0] + 1) if 0 <= j < len(t)))  # fmt: skip
+        log.warning(
+            "replay: %d lone stamp outlier(s), e.g. message %d at %d.%09d s between "
+            "stamps %s s: sent without a pause",
+            len(k),
+            k[0],
+            t[k[0]] // 10**9,
+            t[k[0]] % 10**9,
+            " and ".join(f"{t[j] / 1e9:.3f}" for j in (k[0] - 1, k[0] + 1) if 0 <= j < len(t)),
+        )
         keep = np.where(lone, -1, np.arange(len(t)))
         src = np.maximum.accumulate(keep)  # the last stamp before that is not an outlier
         src[src < 0] = np.flatnonzero(~lone)[0] if (~lone).any() else 0
@@ -204,10 +227,19 @@ class Replayed:
     clean: bool = True
 
 
-def replay(session: Any, messages: Messages, *, rate: float = 1.0, count: int | None = None,
-           wait_s: float = 10.0, publish_anyway: bool = False, congestion: str = "block",
-           express: bool = False, stop: threading.Event | None = None,
-           wire: Any = None) -> Replayed:  # fmt: skip
+def replay(
+    session: Any,
+    messages: Messages,
+    *,
+    rate: float = 1.0,
+    count: int | None = None,
+    wait_s: float = 10.0,
+    publish_anyway: bool = False,
+    congestion: str = "block",
+    express: bool = False,
+    stop: threading.Event | None = None,
+    wire: Any = None,
+) -> Replayed:
     """Publish ``messages`` at ``rate`` (see :func:`schedule_s`).
 
     First waits up to ``wait_s`` for a subscriber on every key; raises :class:`NoSubscriber`
@@ -224,9 +256,12 @@ def replay(session: Any, messages: Messages, *, rate: float = 1.0, count: int | 
     n = len(messages.payloads) if count is None else min(count, len(messages.payloads))
     when = schedule_s(messages.t_ns[:n], rate).tolist()
     wire = wire if wire is not None else Wire(session)
-    pubs = {k: wire.declare_publisher(k, messages.types.get(k),
-                                      congestion_control=CONGESTION[congestion], express=express)
-            for k in dict.fromkeys(messages.keys[:n])}  # fmt: skip
+    pubs = {
+        k: wire.declare_publisher(
+            k, messages.types.get(k), congestion_control=CONGESTION[congestion], express=express
+        )
+        for k in dict.fromkeys(messages.keys[:n])
+    }
     sent = 0
     failed: list[BaseException] = []
     done = threading.Event()
@@ -249,15 +284,19 @@ def replay(session: Any, messages: Messages, *, rate: float = 1.0, count: int | 
     clean = True
     try:
         deadline = time.monotonic() + wait_s
-        alone = [k for k, pub in pubs.items()
-                 if not wait_matching(pub, max(deadline - time.monotonic(), 0.0), stop)]
+        alone = [
+            k
+            for k, pub in pubs.items()
+            if not wait_matching(pub, max(deadline - time.monotonic(), 0.0), stop)
+        ]
         if stop.is_set():
             return Replayed(0)
         if alone:
             what = f"no subscriber on {', '.join(alone)} after {wait_s:g} s"
             if not publish_anyway:
-                raise NoSubscriber(f"replay: {what}; nothing published (--publish-anyway to "
-                                   "publish regardless)")  # fmt: skip
+                raise NoSubscriber(
+                    f"replay: {what}; nothing published (--publish-anyway to publish regardless)"
+                )
             log.warning("replay: %s; publishing anyway", what)
         t0 = time.perf_counter()
         threading.Thread(target=publish, name="replay", daemon=True).start()
@@ -268,8 +307,11 @@ def replay(session: Any, messages: Messages, *, rate: float = 1.0, count: int | 
         if failed:
             raise failed[0]
         dt = time.perf_counter() - t0
-        print(f"replay: published {sent} messages on {', '.join(pubs)} in {dt:.2f} s "
-              f"({sent / max(dt, 1e-9):.0f}/s)", flush=True)  # fmt: skip
+        print(
+            f"replay: published {sent} messages on {', '.join(pubs)} in {dt:.2f} s "
+            f"({sent / max(dt, 1e-9):.0f}/s)",
+            flush=True,
+        )
         if clean:
             time.sleep(0.05)  # let the last samples leave before the session closes
     finally:

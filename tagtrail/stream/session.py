@@ -67,8 +67,9 @@ def make_config(
     cfg = zenoh.Config()
     cfg.insert_json5("mode", json.dumps(mode))
     cfg.insert_json5("scouting/multicast/enabled", json.dumps(bool(scouting)))
-    cfg.insert_json5("scouting/gossip/enabled",
-                     json.dumps(bool(scouting if gossip is None else gossip)))
+    cfg.insert_json5(
+        "scouting/gossip/enabled", json.dumps(bool(scouting if gossip is None else gossip))
+    )
     if mode == "peer":
         cfg.insert_json5("listen/endpoints", json.dumps([endpoint(e) for e in listen]))
     cfg.insert_json5("connect/endpoints", json.dumps([endpoint(e) for e in connect]))
@@ -79,12 +80,25 @@ def add_session_arguments(parser: argparse.ArgumentParser) -> None:
     """``--mode``, ``--listen``, ``--connect``, ``--scouting`` (shared by every stream command)."""
     g = parser.add_argument_group("zenoh session")
     g.add_argument("--mode", choices=MODES, default="peer", help="zenoh mode (default: peer)")
-    g.add_argument("--listen", action="append", default=[], metavar="ENDPOINT",
-                   help="endpoint to listen on, e.g. tcp/127.0.0.1:7447 (repeatable)")
-    g.add_argument("--connect", action="append", default=[], metavar="ENDPOINT",
-                   help="endpoint to connect to, e.g. tcp/192.168.1.10:7447 (repeatable)")
-    g.add_argument("--scouting", action="store_true",
-                   help="enable multicast/gossip scouting (off by default: explicit endpoints)")
+    g.add_argument(
+        "--listen",
+        action="append",
+        default=[],
+        metavar="ENDPOINT",
+        help="endpoint to listen on, e.g. tcp/127.0.0.1:7447 (repeatable)",
+    )
+    g.add_argument(
+        "--connect",
+        action="append",
+        default=[],
+        metavar="ENDPOINT",
+        help="endpoint to connect to, e.g. tcp/192.168.1.10:7447 (repeatable)",
+    )
+    g.add_argument(
+        "--scouting",
+        action="store_true",
+        help="enable multicast/gossip scouting (off by default: explicit endpoints)",
+    )
     add_wire_arguments(parser)
 
 
@@ -93,14 +107,27 @@ def add_wire_arguments(parser: argparse.ArgumentParser) -> None:
     from tagtrail.stream.wire import DISTROS, WIRES
 
     g = parser.add_argument_group("wire")
-    g.add_argument("--wire", choices=WIRES, default="bridge",
-                   help="bridge: zenoh-bridge-ros2dds keys (default); rmw_zenoh: the keys, "
-                   "attachments and liveliness tokens of ROS 2's rmw_zenoh_cpp (no bridge)")
-    g.add_argument("--ros-distro", choices=DISTROS, default=None,
-                   help="rmw_zenoh: the robot's ROS 2 distro, which sets the type hashes in "
-                   "the keys (default: $ROS_DISTRO, else humble)")
-    g.add_argument("--domain-id", type=_domain_id, default=None, metavar="N",
-                   help="rmw_zenoh: ROS_DOMAIN_ID of the robot (default: $ROS_DOMAIN_ID, else 0)")
+    g.add_argument(
+        "--wire",
+        choices=WIRES,
+        default="bridge",
+        help="bridge: zenoh-bridge-ros2dds keys (default); rmw_zenoh: the keys, "
+        "attachments and liveliness tokens of ROS 2's rmw_zenoh_cpp (no bridge)",
+    )
+    g.add_argument(
+        "--ros-distro",
+        choices=DISTROS,
+        default=None,
+        help="rmw_zenoh: the robot's ROS 2 distro, which sets the type hashes in "
+        "the keys (default: $ROS_DISTRO, else humble)",
+    )
+    g.add_argument(
+        "--domain-id",
+        type=_domain_id,
+        default=None,
+        metavar="N",
+        help="rmw_zenoh: ROS_DOMAIN_ID of the robot (default: $ROS_DOMAIN_ID, else 0)",
+    )
 
 
 def _domain_id(text: str) -> int:
@@ -118,8 +145,13 @@ def config_from_args(ns: argparse.Namespace, default_role: str) -> zenoh.Config:
         # machine, listens on the loopback and learns the other peers by gossip from the router
         from tagtrail.stream.wire import RMW_ROUTER
 
-        return make_config(ns.mode, ["tcp/localhost:0"] if ns.mode == "peer" else [],
-                           [RMW_ROUTER], ns.scouting, gossip=True)  # fmt: skip
+        return make_config(
+            ns.mode,
+            ["tcp/localhost:0"] if ns.mode == "peer" else [],
+            [RMW_ROUTER],
+            ns.scouting,
+            gossip=True,
+        )
     if not listen and not connect and not ns.scouting:
         (listen if default_role == "listen" and ns.mode == "peer" else connect).append(
             DEFAULT_ENDPOINT
@@ -136,8 +168,9 @@ def open_session(cfg: zenoh.Config) -> zenoh.Session:
         raise SessionError(f"cannot open the zenoh session ({ends}): {err}") from err
 
 
-def close_all(session: zenoh.Session | None, entities: Sequence[Any],
-              timeout_s: float = 0.5) -> bool:  # fmt: skip
+def close_all(
+    session: zenoh.Session | None, entities: Sequence[Any], timeout_s: float = 0.5
+) -> bool:
     """Undeclare publishers/subscribers/queryables (never raising), then close the session,
     waiting at most ``timeout_s`` for it. True if the session is closed (or there is none).
 
@@ -163,8 +196,9 @@ def close_all(session: zenoh.Session | None, entities: Sequence[Any],
     worker.start()
     worker.join(timeout_s)
     if worker.is_alive():
-        log.warning("zenoh session still closing after %.1f s (a congested link); not waiting",
-                    timeout_s)  # fmt: skip
+        log.warning(
+            "zenoh session still closing after %.1f s (a congested link); not waiting", timeout_s
+        )
         return False
     return True
 

@@ -127,8 +127,13 @@ class Stats:
         now = time.monotonic()
         if now - self._last_log.get(reason, -1e18) >= self._log_every:
             n = self._since.pop(reason)
-            log.warning("%s: dropped %d message(s) (%s)%s", self.name, n, reason,
-                        f": {detail}" if detail else "")  # fmt: skip
+            log.warning(
+                "%s: dropped %d message(s) (%s)%s",
+                self.name,
+                n,
+                reason,
+                f": {detail}" if detail else "",
+            )
             self._last_log[reason] = now
 
     def done(self, t_recv_ns: int) -> None:
@@ -142,17 +147,22 @@ class Stats:
         rate = (self.processed - self._n_last) / max(now - self._t_last, 1e-9)
         self._t_last, self._n_last = now, self.processed
         lat = np.asarray(self.proc_ns, dtype=np.float64) / 1e3
-        p = (f"proc p50 {np.percentile(lat, 50):.0f} us p99 {np.percentile(lat, 99):.0f} us"
-             if lat.size else "proc -")  # fmt: skip
+        p = (
+            f"proc p50 {np.percentile(lat, 50):.0f} us p99 {np.percentile(lat, 99):.0f} us"
+            if lat.size
+            else "proc -"
+        )
         if self.age_ns:
             age = np.asarray(self.age_ns, dtype=np.float64) / 1e6
             p += f", age p50 {np.percentile(age, 50):.1f} ms p99 {np.percentile(age, 99):.1f} ms"
         drops = sum(self.dropped.values())
         why = ", ".join(f"{k} {v}" for k, v in sorted(self.dropped.items()))
         why = f" ({why})" if why else ""
-        return (f"{self.name}: {rate:.1f} msg/s, {p}, received {self.received}, processed "
-                f"{self.processed}, dropped {drops}{why}, out of order {self.out_of_order}"
-                + (f", stamp outliers {self.order.outliers}" if self.order.outliers else ""))
+        return (
+            f"{self.name}: {rate:.1f} msg/s, {p}, received {self.received}, processed "
+            f"{self.processed}, dropped {drops}{why}, out of order {self.out_of_order}"
+            + (f", stamp outliers {self.order.outliers}" if self.order.outliers else "")
+        )
 
     def summary(self) -> dict[str, object]:
         """Machine-readable totals (printed as JSON by the nodes when they stop)."""

@@ -86,8 +86,10 @@ def qos_string(qos: QoS) -> str:
     def f(value: int, default: int) -> str:
         return "" if value == default else str(value)
 
-    return (f"{f(qos.reliability, d.reliability)}:{f(qos.durability, d.durability)}:"
-            f"{f(qos.history, d.history)},{f(qos.depth, d.depth)}:,:,:,,")  # fmt: skip
+    return (
+        f"{f(qos.reliability, d.reliability)}:{f(qos.durability, d.durability)}:"
+        f"{f(qos.history, d.history)},{f(qos.depth, d.depth)}:,:,:,,"
+    )
 
 
 def dds_type(msgtype: str) -> str:
@@ -119,8 +121,9 @@ def _typestore(distro: str) -> Any:
 
     from tagtrail.io.msgs import APRILTAG_MSGS, ISAAC_MSGS
 
-    store = get_typestore({"jazzy": Stores.ROS2_JAZZY, "kilted": Stores.ROS2_KILTED,
-                           "rolling": Stores.LATEST}[distro])  # fmt: skip
+    store = get_typestore(
+        {"jazzy": Stores.ROS2_JAZZY, "kilted": Stores.ROS2_KILTED, "rolling": Stores.LATEST}[distro]
+    )
     types: dict[str, Any] = {}
     for name, text in {**APRILTAG_MSGS, **ISAAC_MSGS}.items():
         types.update(get_types_from_msg(text, name))
@@ -191,13 +194,21 @@ def parse_token(key: str) -> Endpoint | None:
     parts = key.split("/")
     if len(parts) not in (9, 13) or parts[0] != ADMIN_SPACE or not parts[1].isdigit():
         return None
-    ep = Endpoint(domain_id=int(parts[1]), zid=parts[2], nid=parts[3], eid=parts[4],
-                  kind=parts[5], enclave=demangle(parts[6]), namespace=demangle(parts[7]),
-                  node=demangle(parts[8]))  # fmt: skip
+    ep = Endpoint(
+        domain_id=int(parts[1]),
+        zid=parts[2],
+        nid=parts[3],
+        eid=parts[4],
+        kind=parts[5],
+        enclave=demangle(parts[6]),
+        namespace=demangle(parts[7]),
+        node=demangle(parts[8]),
+    )
     if len(parts) == 9:
         return ep
-    return replace(ep, topic=demangle(parts[9]), dds_type=parts[10], type_hash=parts[11],
-                   qos=parts[12])  # fmt: skip
+    return replace(
+        ep, topic=demangle(parts[9]), dds_type=parts[10], type_hash=parts[11], qos=parts[12]
+    )
 
 
 class Wire:
@@ -259,8 +270,9 @@ class RmwPublisher:
 
     def put(self, payload: bytes | zenoh.ZBytes) -> None:
         with self._lock:  # sequence numbers leave in order
-            self.publisher.put(payload, attachment=attachment(next(self._seq), time.time_ns(),
-                                                              self.gid))  # fmt: skip
+            self.publisher.put(
+                payload, attachment=attachment(next(self._seq), time.time_ns(), self.gid)
+            )
 
     def undeclare(self) -> None:
         try:
@@ -289,8 +301,7 @@ class RmwZenohWire(Wire):
 
     name = "rmw_zenoh"
 
-    def __init__(self, session: zenoh.Session, distro: str = "humble",
-                 domain_id: int = 0) -> None:  # fmt: skip
+    def __init__(self, session: zenoh.Session, distro: str = "humble", domain_id: int = 0) -> None:
         super().__init__(session)
         self.distro = check_distro(distro)
         if domain_id < 0:
@@ -309,17 +320,27 @@ class RmwZenohWire(Wire):
             return name if msgtype == JSON else f"{self.domain_id}/{name}/*/*"
         return f"{self.domain_id}/{name}/{dds_type(msgtype)}/{type_hash(msgtype, self.distro)}"
 
-    def token(self, kind: str, eid: int | None = None, topic: str | None = None,
-              msgtype: str | None = None, qos: QoS = DEFAULT_QOS) -> str:  # fmt: skip
+    def token(
+        self,
+        kind: str,
+        eid: int | None = None,
+        topic: str | None = None,
+        msgtype: str | None = None,
+        qos: QoS = DEFAULT_QOS,
+    ) -> str:
         """The liveliness token of this node (``NN``) or of one of its endpoints."""
         node = self.node or "tagtrail"
-        head = (f"{ADMIN_SPACE}/{self.domain_id}/{self.zid}/0/{0 if eid is None else eid}/{kind}/"
-                f"%/%/{mangle(node)}")  # fmt: skip
+        head = (
+            f"{ADMIN_SPACE}/{self.domain_id}/{self.zid}/0/{0 if eid is None else eid}/{kind}/"
+            f"%/%/{mangle(node)}"
+        )
         if topic is None or msgtype is None:
             return head
         name = "/" + topic.strip("/")
-        return (f"{head}/{mangle(name)}/{dds_type(msgtype)}/{type_hash(msgtype, self.distro)}/"
-                f"{qos_string(qos)}")  # fmt: skip
+        return (
+            f"{head}/{mangle(name)}/{dds_type(msgtype)}/{type_hash(msgtype, self.distro)}/"
+            f"{qos_string(qos)}"
+        )
 
     def declare_node(self, name: str) -> None:
         if self._node_token is None:
@@ -357,7 +378,8 @@ class RmwZenohWire(Wire):
             bare = self.session.declare_subscriber(self.key(topic, JSON), callback)
             return _Entity(sub, bare)
         token = self.session.liveliness().declare_token(
-            self.token("MS", next(self._ids), topic, msgtype))
+            self.token("MS", next(self._ids), topic, msgtype)
+        )
         return _Entity(sub, token)
 
     def _check(self, att: zenoh.ZBytes | None) -> None:
@@ -382,8 +404,9 @@ class RmwZenohWire(Wire):
 
         found: dict[str, str] = {}
         try:
-            replies = self.session.liveliness().get(f"{ADMIN_SPACE}/{self.domain_id}/**",
-                                                    timeout=timeout_s)  # fmt: skip
+            replies = self.session.liveliness().get(
+                f"{ADMIN_SPACE}/{self.domain_id}/**", timeout=timeout_s
+            )
         except zenoh.ZError as err:
             log.debug("liveliness get: %s", err)
             return found
@@ -397,8 +420,9 @@ class RmwZenohWire(Wire):
             try:
                 found[ep.topic] = normalize_type(ros_type(ep.dds_type))
             except (ValueError, SpecError):
-                log.warning("record: %s has type %s, unknown here; not recorded", ep.topic,
-                            ep.dds_type)  # fmt: skip
+                log.warning(
+                    "record: %s has type %s, unknown here; not recorded", ep.topic, ep.dds_type
+                )
         return dict(sorted(found.items()))
 
     def close(self) -> None:
@@ -410,14 +434,19 @@ class RmwZenohWire(Wire):
             self._node_token = None
 
     def summary(self) -> dict[str, Any]:
-        return {"wire": self.name, "ros_distro": self.distro, "domain_id": self.domain_id,
-                "without_attachment": self.counts["without_attachment"],
-                "bad_attachment": self.counts["bad_attachment"],
-                "sequence_gaps": self.counts["sequence_gaps"]}  # fmt: skip
+        return {
+            "wire": self.name,
+            "ros_distro": self.distro,
+            "domain_id": self.domain_id,
+            "without_attachment": self.counts["without_attachment"],
+            "bad_attachment": self.counts["bad_attachment"],
+            "sequence_gaps": self.counts["sequence_gaps"],
+        }
 
 
-def make_wire(name: str, session: zenoh.Session, distro: str = "humble",
-              domain_id: int = 0) -> Wire:  # fmt: skip
+def make_wire(
+    name: str, session: zenoh.Session, distro: str = "humble", domain_id: int = 0
+) -> Wire:
     """The wire called ``name`` (:data:`WIRES`) on ``session``."""
     if name == "bridge":
         return Wire(session)
@@ -428,9 +457,12 @@ def make_wire(name: str, session: zenoh.Session, distro: str = "humble",
 
 def wire_from_args(ns: Any, session: zenoh.Session, node: str) -> Wire:
     """The wire of a command's ``--wire/--ros-distro/--domain-id``, its node announced."""
-    wire = make_wire(getattr(ns, "wire", "bridge"), session,
-                     getattr(ns, "ros_distro", None) or default_distro(),
-                     default_domain() if getattr(ns, "domain_id", None) is None else ns.domain_id)
+    wire = make_wire(
+        getattr(ns, "wire", "bridge"),
+        session,
+        getattr(ns, "ros_distro", None) or default_distro(),
+        default_domain() if getattr(ns, "domain_id", None) is None else ns.domain_id,
+    )
     wire.declare_node(node)
     return wire
 

@@ -70,8 +70,13 @@ _DETECTORS: dict[tuple[object, ...], GuardedDetector] = {}
 def get_detector(cfg: DetectorConfig) -> GuardedDetector:
     """A detector for ``cfg``'s detector settings (not its output filters or re-fit), created
     once and kept for the life of the process."""
-    key = (cfg.quad_decimate, cfg.quad_sigma, cfg.refine_edges, cfg.decode_sharpening,
-           cfg.max_hamming)
+    key = (
+        cfg.quad_decimate,
+        cfg.quad_sigma,
+        cfg.refine_edges,
+        cfg.decode_sharpening,
+        cfg.max_hamming,
+    )
     det = _DETECTORS.get(key)
     if det is None:
         det = _DETECTORS[key] = GuardedDetector(cfg)
@@ -156,8 +161,10 @@ def _detect_raw(
     dets = guarded_detect(get_detector(cfg), img, cfg.quad_decimate)
     ints = np.array([(d.tag_id, d.hamming) for d in dets], dtype=np.int32).reshape(-1, 2)
     floats = np.array(
-        [(d.decision_margin, *(np.asarray(d.corners).reshape(8) - C_LIBRARY_PIXEL_OFFSET))
-         for d in dets],
+        [
+            (d.decision_margin, *(np.asarray(d.corners).reshape(8) - C_LIBRARY_PIXEL_OFFSET))
+            for d in dets
+        ],
         dtype=np.float64,
     ).reshape(-1, 9)
     return ints, floats
@@ -196,10 +203,12 @@ def tag_like_blobs(img: NDArray[np.uint8]) -> NDArray[np.float64]:
     """Dark blobs of the gray image ``img`` (H, W) that may be small tags (see above): (k, 4)
     bounding boxes ``x, y, w, h`` in full-resolution px."""
     h, w = img.shape
-    small = cv2.resize(img, (round(w * SEARCH_SCALE), round(h * SEARCH_SCALE)),
-                       interpolation=SEARCH_INTERP)
-    mask = cv2.adaptiveThreshold(small, 255, cv2.ADAPTIVE_THRESH_MEAN_C, cv2.THRESH_BINARY_INV,
-                                 SEARCH_BLOCK, SEARCH_C)
+    small = cv2.resize(
+        img, (round(w * SEARCH_SCALE), round(h * SEARCH_SCALE)), interpolation=SEARCH_INTERP
+    )
+    mask = cv2.adaptiveThreshold(
+        small, 255, cv2.ADAPTIVE_THRESH_MEAN_C, cv2.THRESH_BINARY_INV, SEARCH_BLOCK, SEARCH_C
+    )
     contours, hier = cv2.findContours(mask, cv2.RETR_CCOMP, cv2.CHAIN_APPROX_SIMPLE)
     if not contours:
         return np.zeros((0, 4))
@@ -213,15 +222,22 @@ def tag_like_blobs(img: NDArray[np.uint8]) -> NDArray[np.float64]:
     lo, hi = np.minimum.reduceat(pts, starts), np.maximum.reduceat(pts, starts)
     size = (hi - lo + 1) / SEARCH_SCALE
     short, long = size.min(axis=1), size.max(axis=1)
-    blob = np.flatnonzero((parent < 0) & (SMALL_MIN_PX <= short) & (short <= SMALL_MAX_PX)
-                          & (long <= SMALL_MAX_LONG_PX) & (long <= SMALL_MAX_ASPECT * short))
+    blob = np.flatnonzero(
+        (parent < 0)
+        & (SMALL_MIN_PX <= short)
+        & (short <= SMALL_MAX_PX)
+        & (long <= SMALL_MAX_LONG_PX)
+        & (long <= SMALL_MAX_ASPECT * short)
+    )
     hole = np.flatnonzero(np.isin(parent, blob))
     area = np.zeros(len(contours))
     for k in np.concatenate([blob, hole]):
         area[k] = cv2.contourArea(contours[k])
     holes = np.bincount(parent[hole], weights=area[hole], minlength=len(contours))
-    keep = blob[(holes[blob] >= SMALL_MIN_HOLES * area[blob])
-                & (area[blob] >= SMALL_MIN_FILL * np.prod(hi[blob] - lo[blob], axis=1))]
+    keep = blob[
+        (holes[blob] >= SMALL_MIN_HOLES * area[blob])
+        & (area[blob] >= SMALL_MIN_FILL * np.prod(hi[blob] - lo[blob], axis=1))
+    ]
     return np.column_stack([lo[keep] / SEARCH_SCALE, size[keep]])
 
 
@@ -243,9 +259,13 @@ def small_tag_candidates(
         # the smallest first: the likeliest to be missed
         size = max(bw, bh)
         m = CROP_MARGIN * size
-        if any(x0 + CROP_INSIDE_PX < x - m and y0 + CROP_INSIDE_PX < y - m
-               and x + bw + m < x1 - 1 - CROP_INSIDE_PX and y + bh + m < y1 - 1 - CROP_INSIDE_PX
-               for x0, y0, x1, y1 in crops):
+        if any(
+            x0 + CROP_INSIDE_PX < x - m
+            and y0 + CROP_INSIDE_PX < y - m
+            and x + bw + m < x1 - 1 - CROP_INSIDE_PX
+            and y + bh + m < y1 - 1 - CROP_INSIDE_PX
+            for x0, y0, x1, y1 in crops
+        ):
             continue  # already inside a crop
         m += CROP_MARGIN_PX
         x0, y0 = (max(0, int(v - m)) // CROP_ALIGN_PX * CROP_ALIGN_PX for v in (x, y))
@@ -273,9 +293,12 @@ def redetect_small(
             corners = corners + (x0, y0)
             lo, hi = corners.min(axis=0), corners.max(axis=0)
             # cut by the crop (not by the image): the whole tag is in another crop or nowhere
-            if ((x0 > 0 and lo[0] < x0 + CROP_INSIDE_PX) or (y0 > 0 and lo[1] < y0 + CROP_INSIDE_PX)
-                    or (x1 < w and hi[0] > x1 - 1 - CROP_INSIDE_PX)
-                    or (y1 < h and hi[1] > y1 - 1 - CROP_INSIDE_PX)):
+            if (
+                (x0 > 0 and lo[0] < x0 + CROP_INSIDE_PX)
+                or (y0 > 0 and lo[1] < y0 + CROP_INSIDE_PX)
+                or (x1 < w and hi[0] > x1 - 1 - CROP_INSIDE_PX)
+                or (y1 < h and hi[1] > y1 - 1 - CROP_INSIDE_PX)
+            ):
                 continue
             centre = corners.mean(axis=0)
             size = float(np.max(hi - lo))
@@ -284,8 +307,10 @@ def redetect_small(
             centres.append(centre)
             ints.append((d.tag_id, d.hamming))
             floats.append((d.decision_margin, *corners.reshape(8)))
-    return (np.array(ints, dtype=np.int32).reshape(-1, 2),
-            np.array(floats, dtype=np.float64).reshape(-1, 9))
+    return (
+        np.array(ints, dtype=np.int32).reshape(-1, 2),
+        np.array(floats, dtype=np.float64).reshape(-1, 9),
+    )
 
 
 @functools.cache
@@ -323,8 +348,9 @@ def detect_chunk(
         try:
             img = raw.decode()
         except SourceError as err:
-            raise SourceError(f"frame {idx} (stamp {t_ns // 10**9}.{t_ns % 10**9:09d} s): "
-                              f"{err}") from err
+            raise SourceError(
+                f"frame {idx} (stamp {t_ns // 10**9}.{t_ns % 10**9:09d} s): {err}"
+            ) from err
         i, f, drops = _detect_filtered(img, cfg)
         for name, n in drops.items():
             dropped[name] = dropped.get(name, 0) + n

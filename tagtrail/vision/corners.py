@@ -100,8 +100,11 @@ def truncated(corners: F64, width: int, height: int) -> NDArray[np.bool_]:
             continue
         H = cv2.getPerspectiveTransform(_UNIT, quad.astype(np.float32))
         zone = cv2.perspectiveTransform((_UNIT * QUIET_SCALE)[None], H)[0]
-        out[k] = bool((zone < -0.5).any() or (zone[:, 0] > width - 0.5).any()
-                      or (zone[:, 1] > height - 0.5).any())
+        out[k] = bool(
+            (zone < -0.5).any()
+            or (zone[:, 0] > width - 0.5).any()
+            or (zone[:, 1] > height - 0.5).any()
+        )
     return out
 
 
@@ -124,8 +127,9 @@ def refine_many(
     ``grays[i]``) by one camera. All edges of all tags are fitted at once (per-edge sums by one
     ``reduceat``): numpy's per-call overhead is paid once a batch, not once a tag."""
     sizes = [len(np.asarray(c).reshape(-1, 4, 2)) for c in corners]
-    c = np.concatenate([np.asarray(x, dtype=np.float64).reshape(-1, 4, 2) for x in corners]
-                       + [np.zeros((0, 4, 2))])
+    c = np.concatenate(
+        [np.asarray(x, dtype=np.float64).reshape(-1, 4, 2) for x in corners] + [np.zeros((0, 4, 2))]
+    )
     out = c.copy()
     side = np.linalg.norm(np.roll(c, -1, axis=1) - c, axis=2).min(axis=1)
     with np.errstate(invalid="ignore"):
@@ -152,7 +156,12 @@ def refine_many(
 
 
 def _fit(
-    edge: NDArray[np.intp], px: F64, g: F64, c: F64, half: F64, camera: CameraModel | None,
+    edge: NDArray[np.intp],
+    px: F64,
+    g: F64,
+    c: F64,
+    half: F64,
+    camera: CameraModel | None,
     iterations: int = _ITERATIONS,
 ) -> tuple[F64, NDArray[np.bool_]]:
     """Fit the ``4m`` edges of ``m`` quads ``c``; returns corners ``(m, 4, 2)`` and which are
@@ -205,16 +214,27 @@ def _fit(
     det = n0[..., 0] * n[..., 1] - n0[..., 1] * n[..., 0]
     ok = good.reshape(m, 4).all(axis=1) & (np.abs(det) > 1e-6).all(axis=1)
     det[~ok] = 1.0
-    out_u = np.stack([(r0 * n[..., 1] - rho * n0[..., 1]) / det,
-                      (n0[..., 0] * rho - n[..., 0] * r0) / det], axis=-1) + centre
+    out_u = (
+        np.stack(
+            [(r0 * n[..., 1] - rho * n0[..., 1]) / det, (n0[..., 0] * rho - n[..., 0] * r0) / det],
+            axis=-1,
+        )
+        + centre
+    )
     out = _to_distorted(out_u.reshape(-1, 2), camera).reshape(m, 4, 2)
     ok &= np.isfinite(out).all(axis=(1, 2))
     ok &= np.linalg.norm(out - c, axis=2).max(axis=1) <= MAX_SHIFT_PX
     return out, ok
 
 
-def _model_fit(grays: list[NDArray[np.uint8]], frame: NDArray[np.intp], quads: F64, start: F64,
-               half: F64, camera: CameraModel | None) -> F64:
+def _model_fit(
+    grays: list[NDArray[np.uint8]],
+    frame: NDArray[np.intp],
+    quads: F64,
+    start: F64,
+    half: F64,
+    camera: CameraModel | None,
+) -> F64:
     """Corners ``(m, 4, 2)`` of the tags ``quads`` (raw pixels; ``grays[frame[j]]``: tag j's image;
     ``start``: the detector's corners, for ``MAX_SHIFT_PX``; ``half``: the band) re-fitted by
     :func:`_fit` once the gradient of each edge's neighbouring edges — the border's inner edge
@@ -233,16 +253,29 @@ def _model_fit(grays: list[NDArray[np.uint8]], frame: NDArray[np.intp], quads: F
         for tags in groups:
             rows = (4 * tags[:, None] + np.arange(4)).ravel()
             gray = grays[frame[tags[0]]]
-            e_rel, xs, ys = _edge_pixels(gray.shape, out[tags], end[rows], band[rows] + 1.0, 0.0,
-                                         _MODEL_STEPS)
-            parts.append((rows[e_rel], np.stack([xs, ys], axis=1).astype(np.float64),
-                          gray[ys, xs].astype(np.float64)))
+            e_rel, xs, ys = _edge_pixels(
+                gray.shape, out[tags], end[rows], band[rows] + 1.0, 0.0, _MODEL_STEPS
+            )
+            parts.append(
+                (
+                    rows[e_rel],
+                    np.stack([xs, ys], axis=1).astype(np.float64),
+                    gray[ys, xs].astype(np.float64),
+                )
+            )
             e_rel, px, g = _border_pixels(gray, out[tags], half[tags], _MODEL_GRADIENT_STEPS)
             grads.append((rows[e_rel], px, g))
         edge, px, val = (np.concatenate(x) for x in zip(*parts, strict=True))
         order = np.argsort(edge, kind="stable")
-        params, good = _profile_fit(edge[order], _undistorted_grid(px[order], camera), val[order],
-                                    geo, band, sigma, _MODEL_ITERATIONS[min(k, 1)])
+        params, good = _profile_fit(
+            edge[order],
+            _undistorted_grid(px[order], camera),
+            val[order],
+            geo,
+            band,
+            sigma,
+            _MODEL_ITERATIONS[min(k, 1)],
+        )
         sigma = np.where(good, params[:, -1], sigma)
         edge, px, g = (np.concatenate(x) for x in zip(*grads, strict=True))
         order = np.argsort(edge, kind="stable")
@@ -278,8 +311,10 @@ def _intersect(n: F64, rho: F64) -> F64:
     n0, r0 = np.roll(n, 1, axis=1), np.roll(rho, 1, axis=1)
     det = n0[..., 0] * n[..., 1] - n0[..., 1] * n[..., 0]
     det = np.where(np.abs(det) > 1e-6, det, np.nan)
-    return np.stack([(r0 * n[..., 1] - rho * n0[..., 1]) / det,
-                     (n0[..., 0] * rho - n[..., 0] * r0) / det], axis=-1)
+    return np.stack(
+        [(r0 * n[..., 1] - rho * n0[..., 1]) / det, (n0[..., 0] * rho - n[..., 0] * r0) / det],
+        axis=-1,
+    )
 
 
 def _edge_geometry(uc: F64) -> dict[str, F64]:
@@ -328,8 +363,13 @@ def _homographies(uc: F64) -> F64:
     x, y = (np.broadcast_to(_UNIT[:, i].astype(np.float64), (m, 4)) for i in (0, 1))
     u, v = uc[..., 0], uc[..., 1]
     z, o = np.zeros((m, 4)), np.ones((m, 4))
-    A = np.concatenate([np.stack([x, y, o, z, z, z, -u * x, -u * y], axis=-1),
-                        np.stack([z, z, z, x, y, o, -v * x, -v * y], axis=-1)], axis=1)
+    A = np.concatenate(
+        [
+            np.stack([x, y, o, z, z, z, -u * x, -u * y], axis=-1),
+            np.stack([z, z, z, x, y, o, -v * x, -v * y], axis=-1),
+        ],
+        axis=1,
+    )
     rhs = np.concatenate([u, v], axis=1)
     with np.errstate(all="ignore"):
         h = np.linalg.solve(A + 0.0, rhs[..., None])[..., 0] if m else np.zeros((0, 8))
@@ -343,8 +383,15 @@ def _apply(H: F64, p: F64) -> F64:
     return out
 
 
-def _profile_fit(edge: NDArray[np.intp], u: F64, val: F64, geo: dict[str, F64], band: F64,
-                 sigma0: F64, iterations: int) -> tuple[F64, NDArray[np.bool_]]:
+def _profile_fit(
+    edge: NDArray[np.intp],
+    u: F64,
+    val: F64,
+    geo: dict[str, F64],
+    band: F64,
+    sigma0: F64,
+    iterations: int,
+) -> tuple[F64, NDArray[np.bool_]]:
     """Levenberg–Marquardt fit of each edge's intensity profile about its current line
     (samples ``val`` at undistorted ``u`` ``(n, 2)``, grouped by ``edge``): the grey levels of
     the border (ink), the quiet zone, what lies beyond it and the six data cells, and a common
@@ -376,8 +423,12 @@ def _profile_fit(edge: NDArray[np.intp], u: F64, val: F64, geo: dict[str, F64], 
         model = q[:, 0] + q[:, 1] * F[:, 0] + q[:, 2] * F[:, 1] + F[:, 2] * data
         if not jacobian:
             return model, None
-        dsig = (q[:, 1] * g_sig[:, 0] + q[:, 2] * g_sig[:, 1] + g_sig[:, 2] * data
-                + F[:, 2] * np.einsum("ij,ij->i", gb_sig[:, :-1] - gb_sig[:, 1:], lv))
+        dsig = (
+            q[:, 1] * g_sig[:, 0]
+            + q[:, 2] * g_sig[:, 1]
+            + g_sig[:, 2] * data
+            + F[:, 2] * np.einsum("ij,ij->i", gb_sig[:, :-1] - gb_sig[:, 1:], lv)
+        )
         J = np.column_stack([np.ones_like(d), F[:, 0], F[:, 1], F[:, 2:3] * b, dsig])
         return model, J
 
@@ -416,13 +467,18 @@ def _profile_fit(edge: NDArray[np.intp], u: F64, val: F64, geo: dict[str, F64], 
         current = np.where(better, c, current)
         lam = np.where(better, lam / 3, lam * 4)
     sigma = params[:, -1]
-    good = ((count >= _MIN_SUPPORT) & np.isfinite(current) & np.isfinite(params).all(axis=1)
-            & (sigma > _MODEL_SIGMA_PX[0]) & (sigma < _MODEL_SIGMA_PX[1]) & (params[:, 1] > 0))
+    good = (
+        (count >= _MIN_SUPPORT)
+        & np.isfinite(current)
+        & np.isfinite(params).all(axis=1)
+        & (sigma > _MODEL_SIGMA_PX[0])
+        & (sigma < _MODEL_SIGMA_PX[1])
+        & (params[:, 1] > 0)
+    )
     return params, good
 
 
-def _normal(J: F64, r: F64, starts: NDArray[np.intp], count: NDArray[np.intp]
-            ) -> tuple[F64, F64]:
+def _normal(J: F64, r: F64, starts: NDArray[np.intp], count: NDArray[np.intp]) -> tuple[F64, F64]:
     """Per-edge ``JᵀJ`` ``(E, k, k)`` and ``Jᵀr`` ``(E, k)`` of samples grouped by edge
     (``starts``, ``count``), in blocks of edges (bounded memory)."""
     ne, k = len(count), J.shape[1]
@@ -492,7 +548,11 @@ def _border_pixels(
 
 
 def _edge_pixels(
-    shape: tuple[int, ...], quads: F64, end: F64, reach: F64, at: float,
+    shape: tuple[int, ...],
+    quads: F64,
+    end: F64,
+    reach: F64,
+    at: float,
     max_steps: int = _MAX_STEPS,
 ) -> tuple[NDArray[np.intp], NDArray[np.intp], NDArray[np.intp]]:
     """Pixels ``(x, y)`` whose point ``(x + at, y + at)`` lies within ``reach`` (E,) px of the
@@ -519,8 +579,10 @@ def _edge_pixels(
     # regular strides would alias with the edge's slope and sample few sub-pixel phases
     jitter = (i * 0.6180339887498949) % 1.0
     along = lo[:, None] + np.floor((i + jitter) * span[:, None] / steps[:, None])  # (E, S)
-    centre = a[rows, 1 - major][:, None] + (along - a_major[:, None]) * (
-        d[rows, 1 - major] / d_major)[:, None]
+    centre = (
+        a[rows, 1 - major][:, None]
+        + (along - a_major[:, None]) * (d[rows, 1 - major] / d_major)[:, None]
+    )
     cos = np.abs(d_major) / length  # >= 1/√2: the edge is within 45° of its axis
     r = int(np.ceil((reach / cos).max())) + 1
     across = np.floor(centre)[:, :, None] + np.arange(-r, r + 1)  # (E, S, 2r+1)
@@ -532,9 +594,16 @@ def _edge_pixels(
     off = np.abs(px_ * u[:, 1, None, None] - py_ * u[:, 0, None, None])
     hh = end[:, None, None]
     last = 2 if at else 1
-    keep = ((i < steps[:, None])[:, :, None] & (off <= reach[:, None, None]) & (t > hh)
-            & (t < length[:, None, None] - hh)
-            & (xs >= 0) & (xs <= w - last) & (ys >= 0) & (ys <= h - last))
+    keep = (
+        (i < steps[:, None])[:, :, None]
+        & (off <= reach[:, None, None])
+        & (t > hh)
+        & (t < length[:, None, None] - hh)
+        & (xs >= 0)
+        & (xs <= w - last)
+        & (ys >= 0)
+        & (ys <= h - last)
+    )
     edge = np.broadcast_to(rows[:, None, None], keep.shape)[keep]
     return edge, xs[keep].astype(np.intp), ys[keep].astype(np.intp)
 
@@ -580,8 +649,9 @@ def _grid(camera: CameraModel) -> F64:
 
 
 def _k_pixels(xy: F64, K: F64) -> F64:
-    return np.stack([K[0, 0] * xy[:, 0] + K[0, 1] * xy[:, 1] + K[0, 2],
-                     K[1, 1] * xy[:, 1] + K[1, 2]], axis=1)
+    return np.stack(
+        [K[0, 0] * xy[:, 0] + K[0, 1] * xy[:, 1] + K[0, 2], K[1, 1] * xy[:, 1] + K[1, 2]], axis=1
+    )
 
 
 def _to_distorted(u: F64, camera: CameraModel | None) -> F64:

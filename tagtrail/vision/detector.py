@@ -57,7 +57,9 @@ FILTERS = ("family", "max_hamming", "min_decision_margin", "tag_ids", "keep_trun
 
 
 def filter_detections(
-    dets: list[TagDetection], cfg: DetectorConfig, dropped: Counter[str],
+    dets: list[TagDetection],
+    cfg: DetectorConfig,
+    dropped: Counter[str],
     image_size: tuple[int, int] | None = None,
 ) -> Iterator[TagDetection]:
     """The image path's filters, applied to detection messages; counts what each drops in
@@ -80,8 +82,11 @@ def filter_detections(
             dropped["min_decision_margin"] += 1
         elif cfg.tag_ids is not None and d.tag_id not in cfg.tag_ids:
             dropped["tag_ids"] += 1
-        elif (image_size is not None and not cfg.keep_truncated
-              and truncated(d.corners, *image_size)[0]):
+        elif (
+            image_size is not None
+            and not cfg.keep_truncated
+            and truncated(d.corners, *image_size)[0]
+        ):
             dropped["keep_truncated"] += 1
         else:
             yield d
@@ -91,18 +96,26 @@ def _setting(name: str, cfg: DetectorConfig, dropped: Counter[str]) -> tuple[str
     """(the filter as set, the change that keeps what it drops) for messages."""
     if name == "family":
         fams = sorted(k.split("=", 1)[1] for k in dropped if k.startswith("family="))
-        return (f"the family filter (tagtrail reads {FAMILY}; found {', '.join(fams)})",
-                f"record {FAMILY} tags or choose another detections topic")
+        return (
+            f"the family filter (tagtrail reads {FAMILY}; found {', '.join(fams)})",
+            f"record {FAMILY} tags or choose another detections topic",
+        )
     if name == "max_hamming":
-        worst = max((int(k.split("=")[1]) for k in dropped if k.startswith("hamming=")),
-                    default=cfg.max_hamming + 1)
+        worst = max(
+            (int(k.split("=")[1]) for k in dropped if k.startswith("hamming=")),
+            default=cfg.max_hamming + 1,
+        )
         return f"max_hamming {cfg.max_hamming}", f"set extract.max_hamming: {min(worst, 3)}"
     if name == "min_decision_margin":
-        return (f"min_decision_margin {cfg.min_decision_margin:g}",
-                "set extract.min_decision_margin: 0")
+        return (
+            f"min_decision_margin {cfg.min_decision_margin:g}",
+            "set extract.min_decision_margin: 0",
+        )
     if name == "tag_ids":
-        return (f"tag_ids {list(cfg.tag_ids or ())}",
-                "set extract.tag_ids: null (all) or list the ids recorded")
+        return (
+            f"tag_ids {list(cfg.tag_ids or ())}",
+            "set extract.tag_ids: null (all) or list the ids recorded",
+        )
     return "keep_truncated false", "set extract.keep_truncated: true"
 
 
@@ -121,11 +134,15 @@ def explain_drops(
             what, change = _setting(name, cfg, dropped)
             most.append(f"{what} drops {n} of {n_total} detections; {change}")
     unapplied = []
-    for name, active in (("max_hamming", True), ("min_decision_margin",
-                                                  cfg.min_decision_margin > 0)):
+    for name, active in (
+        ("max_hamming", True),
+        ("min_decision_margin", cfg.min_decision_margin > 0),
+    ):
         n = dropped.get(f"unapplied:{name}", 0)
         if n and active:
             field = name.split("_", 1)[1]
-            unapplied.append(f"{name} is not applied to {n} detections: the source carries no "
-                             f"{field.replace('_', ' ')}")
+            unapplied.append(
+                f"{name} is not applied to {n} detections: the source carries no "
+                f"{field.replace('_', ' ')}"
+            )
     return most, unapplied

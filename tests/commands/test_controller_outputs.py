@@ -28,8 +28,11 @@ T0_NS = 1_760_000_000_000_000_000
 HUMBLE = get_typestore(Stores.ROS2_HUMBLE)
 PREFIX = "ctl_test"
 FLOAT_KEYS = ("distance_m", "heading_error_deg", "cross_track_m", "progress_m", "curvature_1pm")
-TABLE_4_3 = {"query_pontobranco": (0.2998, -31.38), "query_metric_8": (0.4284, -10.34),
-             "query_quadrad_2": (0.3567, -1.63)}  # fmt: skip
+TABLE_4_3 = {
+    "query_pontobranco": (0.2998, -31.38),
+    "query_metric_8": (0.4284, -10.34),
+    "query_quadrad_2": (0.3567, -1.63),
+}
 
 
 def lemniscate_frame(t: np.ndarray, left_m: float = 0.0, dt_ns: int = 50_000_000) -> pd.DataFrame:
@@ -53,22 +56,40 @@ def lemniscate_frame(t: np.ndarray, left_m: float = 0.0, dt_ns: int = 50_000_000
 @pytest.fixture(scope="module")
 def folders(tmp_path_factory: pytest.TempPathFactory) -> Path:
     root = tmp_path_factory.mktemp("figure_eight")
-    write_trajectory_csv(root / "reference" / "trajectory.csv",
-                         lemniscate_frame(np.linspace(0.0, 2 * np.pi, 2000)))  # fmt: skip
-    write_trajectory_csv(root / "query" / "trajectory.csv",
-                         lemniscate_frame(np.linspace(0.01, 2 * np.pi - 0.01, 600), 0.04))
+    write_trajectory_csv(
+        root / "reference" / "trajectory.csv", lemniscate_frame(np.linspace(0.0, 2 * np.pi, 2000))
+    )
+    write_trajectory_csv(
+        root / "query" / "trajectory.csv",
+        lemniscate_frame(np.linspace(0.01, 2 * np.pi - 0.01, 600), 0.04),
+    )
     return root
 
 
 def cli(folders: Path, out: Path, *extra: str) -> pd.DataFrame:
-    assert tagtrail_main(["relocalize", str(folders / "reference"), str(folders / "query"),
-                          "-o", str(out), "--mode", "trajectory", "--plane", "xy",
-                          *extra]) == 0  # fmt: skip
+    assert (
+        tagtrail_main(
+            [
+                "relocalize",
+                str(folders / "reference"),
+                str(folders / "query"),
+                "-o",
+                str(out),
+                "--mode",
+                "trajectory",
+                "--plane",
+                "xy",
+                *extra,
+            ]
+        )
+        == 0
+    )
     return read_relocalization_csv(out / "relocalization.csv")
 
 
-def test_cli_progress_on_the_figure_eight(folders: Path, tmp_path: Path,
-                                          capsys: pytest.CaptureFixture[str]) -> None:  # fmt: skip
+def test_cli_progress_on_the_figure_eight(
+    folders: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
     rel = cli(folders, tmp_path / "p")  # progress: the default
     printed = capsys.readouterr().out
     assert "progress association" in printed and "centred difference" in printed
@@ -100,16 +121,42 @@ def test_live_node_gives_the_cli_numbers(folders: Path, tmp_path: Path, associat
     n = len(offline)
     port = free_port()
     keys = [*FLOAT_KEYS, "state", "lookahead_pose"]
-    node_args = ["relocalize", "--reference", folders / "reference", "--plane", "xy",
-                 "--association", association, "--prefix", PREFIX, "--listen", loopback(port),
-                 "--path-period", "0.5", "--duration", "60", "--stats-period", "0"]
+    node_args = [
+        "relocalize",
+        "--reference",
+        folders / "reference",
+        "--plane",
+        "xy",
+        "--association",
+        association,
+        "--prefix",
+        PREFIX,
+        "--listen",
+        loopback(port),
+        "--path-period",
+        "0.5",
+        "--duration",
+        "60",
+        "--stats-period",
+        "0",
+    ]
     with running([str(a) for a in node_args]) as (node,):
         node.wait_for("relocalize: ready")
         sub = Collector(port, [f"{PREFIX}/{k}" for k in (*keys, "reference_path")])
         try:
             sub.wait(f"{PREFIX}/reference_path", 1, timeout=15)  # our subscriptions are known
-            with running(["replay", folders / "query" / "trajectory.csv", "--rate", "0",
-                          "--connect", loopback(port), "--wait", "10"]) as (rep,):  # fmt: skip
+            with running(
+                [
+                    "replay",
+                    folders / "query" / "trajectory.csv",
+                    "--rate",
+                    "0",
+                    "--connect",
+                    loopback(port),
+                    "--wait",
+                    "10",
+                ]
+            ) as (rep,):
                 assert rep.p.wait(30) == 0, rep.output
             got = {k: sub.wait(f"{PREFIX}/{k}", n) for k in keys}
         finally:
@@ -129,10 +176,14 @@ def test_live_node_gives_the_cli_numbers(folders: Path, tmp_path: Path, associat
     assert [s["nearest_ref_idx"] for s in states] == row["nearest_ref_idx"].tolist()
     la = [HUMBLE.deserialize_cdr(b, "geometry_msgs/msg/PoseStamped") for b in got["lookahead_pose"]]
     assert [(m.header.stamp.sec, m.header.stamp.nanosec) for m in la] == [
-        (s["stamp_sec"], s["stamp_nanosec"]) for s in states]
+        (s["stamp_sec"], s["stamp_nanosec"]) for s in states
+    ]
     # plane xy: (u, v) = (x, y); the pose lies on the reference at the lookahead point
-    np.testing.assert_allclose([[m.pose.position.x, m.pose.position.y] for m in la],
-                               row[["lookahead_u", "lookahead_v"]], atol=1e-9)  # fmt: skip
+    np.testing.assert_allclose(
+        [[m.pose.position.x, m.pose.position.y] for m in la],
+        row[["lookahead_u", "lookahead_v"]],
+        atol=1e-9,
+    )
     np.testing.assert_allclose([m.pose.position.z for m in la], 0.15, atol=1e-12)
     if association == "progress":
         assert max(abs(s["heading_error_deg"]) for s in states) <= 1.0
@@ -148,16 +199,24 @@ def test_table_4_3_with_either_association(realdata: Path, tmp_path: Path, query
     rows = []
     for association in ("nearest", "progress"):
         out = tmp_path / association
-        summary = relocalize(limo / "reference_three_letric", limo / query, out, mode="point",
-                             align="tags", plane="xz", association=association)  # fmt: skip
+        summary = relocalize(
+            limo / "reference_three_letric",
+            limo / query,
+            out,
+            mode="point",
+            align="tags",
+            plane="xz",
+            association=association,
+        )
         assert summary["association"] == "polyline" and summary["ref_heading"] == "segment"
         rows.append((out / "relocalization.csv").read_text())
         rel = read_relocalization_csv(out / "relocalization.csv")
         assert abs(rel["distance_m"].iloc[0] - D_pub) <= 0.002
         assert abs(rel["heading_error_deg"].iloc[0] - phi_pub) <= 0.2
         # in point mode |cross-track| is D (the nearest point of the polyline)
-        assert abs(rel["cross_track_m"].iloc[0]) == pytest.approx(rel["distance_m"].iloc[0],
-                                                                  abs=1e-12)  # fmt: skip
+        assert abs(rel["cross_track_m"].iloc[0]) == pytest.approx(
+            rel["distance_m"].iloc[0], abs=1e-12
+        )
     assert rows[0] == rows[1]
 
 
@@ -167,8 +226,15 @@ def test_trajectory_mode_nearest_is_eq_3_12(realdata: Path, tmp_path: Path) -> N
     from tagtrail.io.layouts import read_trajectory
 
     limo = realdata / "limo_seed_runs"
-    relocalize(limo / "reference_three_letric", limo / "query_metric_8", tmp_path,
-               mode="trajectory", align="tags", plane="xz", association="nearest")  # fmt: skip
+    relocalize(
+        limo / "reference_three_letric",
+        limo / "query_metric_8",
+        tmp_path,
+        mode="trajectory",
+        align="tags",
+        plane="xz",
+        association="nearest",
+    )
     rel = read_relocalization_csv(tmp_path / "relocalization.csv")
     ref = read_trajectory(limo / "reference_three_letric")[["x_m", "z_m"]].to_numpy()
     q = rel[["query_u", "query_v"]].to_numpy()

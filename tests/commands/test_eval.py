@@ -25,8 +25,7 @@ from tagtrail.sim import simulate
 from tagtrail.stages import REGISTRY
 from tests.cli_helpers import one_error_line
 
-ERROR_METRICS = ["trajectory", "trajectory_raw", "tags", "gauge_free.trajectory",
-                 "gauge_free.tags"]  # fmt: skip
+ERROR_METRICS = ["trajectory", "trajectory_raw", "tags", "gauge_free.trajectory", "gauge_free.tags"]
 Capsys = pytest.CaptureFixture[str]
 PIPELINE = """datasets:
   reference: {source: bags/reference}
@@ -69,13 +68,16 @@ def eval_json(project: Path, capsys: Capsys, *argv: str) -> dict[str, Any]:
 
 
 def positions(tags: pd.DataFrame) -> dict[int, np.ndarray]:
-    return {int(t): p for t, p in
-            zip(tags["tag_id"], tags[["x_m", "y_m", "z_m"]].to_numpy(), strict=True)}  # fmt: skip
+    return {
+        int(t): p
+        for t, p in zip(tags["tag_id"], tags[["x_m", "y_m", "z_m"]].to_numpy(), strict=True)
+    }
 
 
 def write_distances(path: Path, rows: list[tuple[str, str, float]]) -> Path:
-    path.write_text("source_tag,target_tag,measured_m\n"
-                    + "".join(f"{a},{b},{m!r}\n" for a, b, m in rows))  # fmt: skip
+    path.write_text(
+        "source_tag,target_tag,measured_m\n" + "".join(f"{a},{b},{m!r}\n" for a, b, m in rows)
+    )
     return path
 
 
@@ -85,8 +87,10 @@ def tape_from_ground_truth(project: Path, tmp_path: Path) -> tuple[Path, dict[in
     gt = positions(read_tag_map(project / "bags" / "reference" / "ground_truth")[0])
     pairs = [("tag36h11:0", "2"), ("0", "tag36h11:3"), ("5", "9"), ("1", "14")]
     ids = [(int(a.split(":")[-1]), int(b.split(":")[-1])) for a, b in pairs]
-    rows = [(a, b, float(np.linalg.norm(gt[i] - gt[j])))
-            for (a, b), (i, j) in zip(pairs, ids, strict=True)]  # fmt: skip
+    rows = [
+        (a, b, float(np.linalg.norm(gt[i] - gt[j])))
+        for (a, b), (i, j) in zip(pairs, ids, strict=True)
+    ]
     rows += [("0", "999", 1.5), ("998", "999", 2.0)]
     return write_distances(tmp_path / "tape.csv", rows), gt
 
@@ -114,8 +118,11 @@ def test_errors_are_the_exported_evaluation_and_match_ground_truth(
     est, anchor = read_tag_map(project / "outputs" / "reference")
     gt = read_tag_map(gt_dir)[0].set_index("tag_id")
     assert anchor is not None and anchor == doc["evaluation"]["anchor_id"]
-    a_T_gt = inv(T_from_xyz_quat(gt.loc[[anchor], POSE_COLS[:3]].to_numpy(),
-                                 gt.loc[[anchor], POSE_COLS[3:]].to_numpy())[0])  # fmt: skip
+    a_T_gt = inv(
+        T_from_xyz_quat(
+            gt.loc[[anchor], POSE_COLS[:3]].to_numpy(), gt.loc[[anchor], POSE_COLS[3:]].to_numpy()
+        )[0]
+    )
     others = est[est["tag_id"] != anchor].set_index("tag_id")
     p_gt = (a_T_gt[:3, :3] @ gt.loc[others.index, POSE_COLS[:3]].to_numpy().T).T + a_T_gt[:3, 3]
     err = np.linalg.norm(others[POSE_COLS[:3]].to_numpy() - p_gt, axis=1)
@@ -131,7 +138,7 @@ def test_errors_text_table(project: Path, capsys: Capsys) -> None:
     rows = {r["metric"]: r for r in eval_json(project, capsys)["errors"]}
     lines = out.splitlines()
     head = next(i for i, line in enumerate(lines) if line.startswith("metric "))
-    table = lines[head: head + 1 + len(ERROR_METRICS)]
+    table = lines[head : head + 1 + len(ERROR_METRICS)]
     assert len({len(line) for line in table}) == 1, "columns are not aligned"
     for line, metric in zip(table[1:], ERROR_METRICS, strict=True):
         r = rows[metric]
@@ -152,7 +159,13 @@ def test_distances_table_against_ground_truth(
     est = positions(read_tag_map(project / "outputs" / "reference" / "tag_map.csv")[0])
     ok = [p for p in dist["pairs"] if not p["missing"]]
     assert [(p["source_tag"], p["target_tag"]) for p in dist["pairs"]] == [
-        (0, 2), (0, 3), (5, 9), (1, 14), (0, 999), (998, 999)]
+        (0, 2),
+        (0, 3),
+        (5, 9),
+        (1, 14),
+        (0, 999),
+        (998, 999),
+    ]
     errors = []
     for p in ok:
         a, b = p["source_tag"], p["target_tag"]
@@ -169,16 +182,23 @@ def test_distances_table_against_ground_truth(
     assert all(p["estimated_m"] is p["abs_error_m"] is None for p in missing)
     assert (dist["n"], dist["n_missing"]) == (4, 2)
     assert dist["abs_error_m"] == pytest.approx(
-        {"mean": np.mean(errors), "max": max(errors), "min": min(errors)}, abs=1e-12)
+        {"mean": np.mean(errors), "max": max(errors), "min": min(errors)}, abs=1e-12
+    )
 
     rc, out, err = run_eval(project, capsys, "--distances", str(tape))
     assert rc == 0 and "Table A.1" in out and "Tables 4.1/4.2" in out
-    text = out[out.index("Tag distances"):].splitlines()
+    text = out[out.index("Tag distances") :].splitlines()
     assert text[2].split()[:4] == ["source", "tag", "target", "tag"]
     row = next(line for line in text if line.startswith("5 "))
     p = ok[2]
-    assert row.split() == ["5", "9", f"{p['estimated_m']:.3f}", f"{p['measured_m']:.3f}",
-                           f"{p['abs_error_m']:.3f}", f"{p['rel_error_pct']:.1f}"]
+    assert row.split() == [
+        "5",
+        "9",
+        f"{p['estimated_m']:.3f}",
+        f"{p['measured_m']:.3f}",
+        f"{p['abs_error_m']:.3f}",
+        f"{p['rel_error_pct']:.1f}",
+    ]
     assert any(line.startswith("998 ") and "missing: tag 998 and tag 999" in line for line in text)
     mean = next(line for line in text if line.startswith("Mean "))
     assert mean.split()[4] == f"{dist['abs_error_m']['mean']:.3f}"
@@ -202,9 +222,15 @@ def test_csv_export_has_both_tables(project: Path, capsys: Capsys, tmp_path: Pat
     assert len(pairs) == len(doc["distances"]["pairs"])
     for (_, r), j in zip(pairs.iterrows(), doc["distances"]["pairs"], strict=True):
         assert (r["source_tag"], r["target_tag"], r["status"]) == (
-            j["source_tag"], j["target_tag"], j["status"])
-        assert (pd.isna(r["estimated_m"]) if j["estimated_m"] is None
-                else r["estimated_m"] == pytest.approx(j["estimated_m"], rel=1e-15))
+            j["source_tag"],
+            j["target_tag"],
+            j["status"],
+        )
+        assert (
+            pd.isna(r["estimated_m"])
+            if j["estimated_m"] is None
+            else r["estimated_m"] == pytest.approx(j["estimated_m"], rel=1e-15)
+        )
     stats = dist[dist["metric"] != "pair"].set_index("metric")["abs_error_m"]
     assert stats.to_dict() == pytest.approx(doc["distances"]["abs_error_m"], rel=1e-15)
 
@@ -219,20 +245,26 @@ def test_another_dataset(project: Path, capsys: Capsys) -> None:
 
 BAD_CSV = [
     ("source_tag,target_tag,dist\n0,2,1.0\n", "missing column measured_m"),
-    ("source_tag,target_tag,measured_m\n0,2,1.0\n0,3,abc\n",
-     "data row 2 (line 3), column measured_m: 'abc' is not a number"),
-    ("source_tag,target_tag,measured_m\n0,tag36h11:x,1.0\n",
-     "data row 1 (line 2), column target_tag: 'tag36h11:x' is not a tag id"),
+    (
+        "source_tag,target_tag,measured_m\n0,2,1.0\n0,3,abc\n",
+        "data row 2 (line 3), column measured_m: 'abc' is not a number",
+    ),
+    (
+        "source_tag,target_tag,measured_m\n0,tag36h11:x,1.0\n",
+        "data row 1 (line 2), column target_tag: 'tag36h11:x' is not a tag id",
+    ),
     ("source_tag,target_tag,measured_m\n0,2.5,1.0\n", "data row 1 (line 2), column target_tag"),
-    ("source_tag,target_tag,measured_m\n0,2,1\n\n,2,1.0\n",
-     "data row 2 (line 4), column source_tag: empty cell is not a tag id"),
+    (
+        "source_tag,target_tag,measured_m\n0,2,1\n\n,2,1.0\n",
+        "data row 2 (line 4), column source_tag: empty cell is not a tag id",
+    ),
     ("source_tag,target_tag,measured_m\n0,2,-0.5\n", "column measured_m: '-0.5' is not a positive"),
     ("source_tag,target_tag,measured_m\n0,2,nan\n", "column measured_m: 'nan' is not a positive"),
     ("source_tag,target_tag,measured_m\n0,2\n", "data row 1 (line 2), column measured_m: missing"),
     ("source_tag,target_tag,measured_m\n3,3,1.0\n", "column target_tag: tag 3 is also the source"),
     ("source_tag,target_tag,measured_m\n", "no tag pairs"),
     ("", "empty file"),
-]  # fmt: skip
+]
 
 
 @pytest.mark.parametrize("text, message", BAD_CSV)
@@ -249,11 +281,16 @@ def test_bad_distances_csv_is_one_line(
 
 def test_distances_csv_with_a_bom_extra_columns_and_blank_lines(tmp_path: Path) -> None:
     f = tmp_path / "tape.csv"
-    f.write_text('\ufeffnote, measured_m ,source_tag,target_tag\n"wall, left",1.38,16,tag36h11:2\n'
-                 "\n,0.48, 16 ,14\n", encoding="utf-8")  # fmt: skip
+    f.write_text(
+        '\ufeffnote, measured_m ,source_tag,target_tag\n"wall, left",1.38,16,tag36h11:2\n'
+        "\n,0.48, 16 ,14\n",
+        encoding="utf-8",
+    )
     pairs = eval_cmd.read_distances(f)
-    assert [(p.source_tag, p.target_tag, p.measured_m) for p in pairs] == [(16, 2, 1.38),
-                                                                            (16, 14, 0.48)]
+    assert [(p.source_tag, p.target_tag, p.measured_m) for p in pairs] == [
+        (16, 2, 1.38),
+        (16, 14, 0.48),
+    ]
 
 
 def test_missing_distances_file(project: Path, capsys: Capsys, tmp_path: Path) -> None:
@@ -265,8 +302,11 @@ def test_missing_distances_file(project: Path, capsys: Capsys, tmp_path: Path) -
 def unrun(project: Path, tmp_path_factory: pytest.TempPathFactory) -> Path:
     """A pipeline over the same recording (and a copy of it without ground truth), never run."""
     root = tmp_path_factory.mktemp("unrun")
-    shutil.copytree(project / "bags" / "reference", root / "plain",
-                    ignore=shutil.ignore_patterns("ground_truth"))  # fmt: skip
+    shutil.copytree(
+        project / "bags" / "reference",
+        root / "plain",
+        ignore=shutil.ignore_patterns("ground_truth"),
+    )
     (root / "pipeline.yaml").write_text(
         f"datasets:\n  reference: {{source: {project / 'bags' / 'reference'}}}\n"
         "  plain: {source: plain}\nstages:\n  pnp: {tag_size: 0.16}\n"
@@ -278,13 +318,16 @@ def test_not_run_yet_is_one_line(unrun: Path, capsys: Capsys, tmp_path: Path) ->
     pipeline = unrun / "pipeline.yaml"
     rc, out, err = run_eval(unrun, capsys)
     assert rc == 2 and out == ""
-    assert error_line(err) == (f"error: eval [reference] is not up to date: run "
-                                      f"`tagtrail run eval -p {pipeline}` first")  # fmt: skip
+    assert error_line(err) == (
+        f"error: eval [reference] is not up to date: run `tagtrail run eval -p {pipeline}` first"
+    )
     tape = write_distances(tmp_path / "tape.csv", [("0", "2", 2.0)])
     rc, _, err = run_eval(unrun, capsys, "--dataset", "plain", "--distances", str(tape))
     assert rc == 2
-    assert error_line(err) == (f"error: optimize [plain] is not up to date: run "
-                                      f"`tagtrail run optimize -p {pipeline}` first")  # fmt: skip
+    assert error_line(err) == (
+        f"error: optimize [plain] is not up to date: run "
+        f"`tagtrail run optimize -p {pipeline}` first"
+    )
     assert not (unrun / "artifacts" / "objects").exists()  # eval computes nothing
 
 
@@ -310,8 +353,14 @@ def test_through_the_tagtrail_command(
 ) -> None:
     """The registration line for cli.OPTIONAL (added here if cli.py does not have it yet)."""
     if not any(name == "eval" for name, *_ in tagtrail.cli.OPTIONAL):
-        monkeypatch.setattr(tagtrail.cli, "OPTIONAL", (*tagtrail.cli.OPTIONAL, (
-            "eval", "tagtrail.commands.eval", "the paper's evaluation tables from a run")))
+        monkeypatch.setattr(
+            tagtrail.cli,
+            "OPTIONAL",
+            (
+                *tagtrail.cli.OPTIONAL,
+                ("eval", "tagtrail.commands.eval", "the paper's evaluation tables from a run"),
+            ),
+        )
     capsys.readouterr()
     assert tagtrail.cli.main(["eval", "-p", str(project / "pipeline.yaml"), "--json"]) == 0
     assert [r["metric"] for r in json.loads(capsys.readouterr().out)["errors"]] == ERROR_METRICS
@@ -339,14 +388,22 @@ def test_photonvision_table_a1_from_the_official_layout(
     each connected group of tags is mapped in turn (``-S edges.anchor_id``, which ``eval`` takes
     too) and every pair of the layout's 16 tags is reported, estimated or missing."""
     root = realdata / "photonvision_frc2024_field"
-    layout = {t["ID"]: np.array([t["pose"]["translation"][k] for k in "xyz"])
-              for t in json.loads((root / "2024-crescendo.json").read_text())["tags"]}
-    tape = write_distances(tmp_path / "layout.csv", [
-        (f"tag36h11:{a}", str(b), float(np.linalg.norm(layout[a] - layout[b])))
-        for a, b in itertools.combinations(sorted(layout), 2)])  # fmt: skip
+    layout = {
+        t["ID"]: np.array([t["pose"]["translation"][k] for k in "xyz"])
+        for t in json.loads((root / "2024-crescendo.json").read_text())["tags"]
+    }
+    tape = write_distances(
+        tmp_path / "layout.csv",
+        [
+            (f"tag36h11:{a}", str(b), float(np.linalg.norm(layout[a] - layout[b])))
+            for a, b in itertools.combinations(sorted(layout), 2)
+        ],
+    )
     pipeline = tmp_path / "pipeline.yaml"
-    pipeline.write_text(f"datasets:\n  reference: {{source: {root / 'images'}}}\n"
-                        "stages:\n  pnp: {tag_size: 0.1651}\n")  # fmt: skip
+    pipeline.write_text(
+        f"datasets:\n  reference: {{source: {root / 'images'}}}\n"
+        "stages:\n  pnp: {tag_size: 0.1651}\n"
+    )
     rel: dict[tuple[int, int], float] = {}
     pending: list[int | None] = [None]
     seen: set[int] = set()
@@ -373,8 +430,10 @@ def test_photonvision_table_a1_from_the_official_layout(
             pending = list(dropped_tags(pipeline, overrides))
         pending = [t for t in pending if t not in seen]
     print("\n" + "\n".join(shown))
-    print(f"pairs mapped together: {sorted(rel)}; relative error median "
-          f"{np.median(list(rel.values())):.2f} %, max {max(rel.values()):.2f} %")
+    print(
+        f"pairs mapped together: {sorted(rel)}; relative error median "
+        f"{np.median(list(rel.values())):.2f} %, max {max(rel.values()):.2f} %"
+    )
     assert {(3, 4), (7, 8), (9, 10)} <= set(rel)
     # as tests/test_realdata_maps.py: single photos 1-6 m from the tags, a calibration of another
     # unit of the same camera model -> distances within a few percent of the official layout

@@ -39,8 +39,11 @@ PIPELINE = """datasets:
 stages:
   pnp: {tag_size: 0.16}
 """
-STATIC = {"/tag_map": "visualization_msgs/msg/MarkerArray", "/tf_static": "tf2_msgs/msg/TFMessage",
-          "/reference_path": "nav_msgs/msg/Path"}  # fmt: skip
+STATIC = {
+    "/tag_map": "visualization_msgs/msg/MarkerArray",
+    "/tf_static": "tf2_msgs/msg/TFMessage",
+    "/reference_path": "nav_msgs/msg/Path",
+}
 
 
 @pytest.fixture(scope="module")
@@ -54,12 +57,16 @@ def project(tmp_path_factory: pytest.TempPathFactory) -> Path:
 
 
 def export(project: Path, out: Path, *argv: str) -> int:
-    return tagtrail.cli.main(["export-mcap", "-p", str(project / "pipeline.yaml"), "-o", str(out),
-                              *argv])  # fmt: skip
+    return tagtrail.cli.main(
+        ["export-mcap", "-p", str(project / "pipeline.yaml"), "-o", str(out), *argv]
+    )
 
 
-def read_mcap(path: Path) -> tuple[Any, dict[str, tuple[str, str, str]], dict[str, list[Any]],
-                                   dict[str, list[tuple[int, bytes]]]]:  # fmt: skip
+def read_mcap(
+    path: Path,
+) -> tuple[
+    Any, dict[str, tuple[str, str, str]], dict[str, list[Any]], dict[str, list[tuple[int, bytes]]]
+]:
     """Header, topic → (schema name, schema encoding, message encoding), decoded messages and
     (log time, raw bytes) per topic."""
     decoded: dict[str, list[Any]] = {}
@@ -69,11 +76,18 @@ def read_mcap(path: Path) -> tuple[Any, dict[str, tuple[str, str, str]], dict[st
         header = reader.get_header()
         summary = reader.get_summary()
         assert summary is not None
-        channels = {c.topic: (summary.schemas[c.schema_id].name,
-                              summary.schemas[c.schema_id].encoding, c.message_encoding)
-                    for c in summary.channels.values()}  # fmt: skip
-        counts = {summary.channels[cid].topic: n
-                  for cid, n in summary.statistics.channel_message_counts.items()}  # fmt: skip
+        channels = {
+            c.topic: (
+                summary.schemas[c.schema_id].name,
+                summary.schemas[c.schema_id].encoding,
+                c.message_encoding,
+            )
+            for c in summary.channels.values()
+        }
+        counts = {
+            summary.channels[cid].topic: n
+            for cid, n in summary.statistics.channel_message_counts.items()
+        }
         for _, ch, msg, dec in reader.iter_decoded_messages(log_time_order=True):
             decoded.setdefault(ch.topic, []).append(dec)
             raw.setdefault(ch.topic, []).append((msg.log_time, msg.data))
@@ -105,10 +119,13 @@ def test_reference_export(project: Path, tmp_path: Path, capsys: Capsys) -> None
     printed = capsys.readouterr().out
     header, channels, msgs, raw = read_mcap(out)
     assert header.profile == "ros2"
-    expected = {**STATIC, "/tf": "tf2_msgs/msg/TFMessage",
-                "/detections/annotations": "foxglove_msgs/msg/ImageAnnotations",
-                "/detections": "apriltag_msgs/msg/AprilTagDetectionArray",
-                "/camera_info": "sensor_msgs/msg/CameraInfo"}  # fmt: skip
+    expected = {
+        **STATIC,
+        "/tf": "tf2_msgs/msg/TFMessage",
+        "/detections/annotations": "foxglove_msgs/msg/ImageAnnotations",
+        "/detections": "apriltag_msgs/msg/AprilTagDetectionArray",
+        "/camera_info": "sensor_msgs/msg/CameraInfo",
+    }
     assert channels == {t: (m, "ros2msg", "cdr") for t, m in expected.items()}
     assert f"wrote {out} [reference]: " in printed
 
@@ -121,12 +138,25 @@ def test_reference_export(project: Path, tmp_path: Path, capsys: Capsys) -> None
     assert [t for t, _ in raw["/tf"]] == traj["t_ns"].tolist()
     tf = [m.transforms[0] for m in msgs["/tf"]]
     assert {(x.header.frame_id, x.child_frame_id) for x in tf} == {
-        ("map", "camera_color_optical_frame")}  # the source's camera frame
-    got = np.array([[x.transform.translation.x, x.transform.translation.y,
-                     x.transform.translation.z, x.transform.rotation.x, x.transform.rotation.y,
-                     x.transform.rotation.z, x.transform.rotation.w] for x in tf])  # fmt: skip
-    np.testing.assert_allclose(got, traj[["x_m", "y_m", "z_m", "qx", "qy", "qz", "qw"]],
-                               rtol=0, atol=1e-12)  # fmt: skip
+        ("map", "camera_color_optical_frame")
+    }  # the source's camera frame
+    got = np.array(
+        [
+            [
+                x.transform.translation.x,
+                x.transform.translation.y,
+                x.transform.translation.z,
+                x.transform.rotation.x,
+                x.transform.rotation.y,
+                x.transform.rotation.z,
+                x.transform.rotation.w,
+            ]
+            for x in tf
+        ]
+    )
+    np.testing.assert_allclose(
+        got, traj[["x_m", "y_m", "z_m", "qx", "qy", "qz", "qw"]], rtol=0, atol=1e-12
+    )
     # the map: one square + one id per tag of tag_map.csv, the anchor orange; 3σ spheres
     tags, anchor = read_tag_map(project / "outputs" / "reference" / "tag_map.yaml")
     (arr,) = msgs["/tag_map"]
@@ -136,8 +166,11 @@ def test_reference_export(project: Path, tmp_path: Path, capsys: Capsys) -> None
     for _, row in tags.iterrows():
         p = squares[int(row["tag_id"])].pose.position
         np.testing.assert_allclose([p.x, p.y, p.z], row[["x_m", "y_m", "z_m"]], atol=1e-12)
-    orange = {i for i, m in squares.items()  # ColorRGBA is float32
-              if (m.color.r, m.color.g) == (1.0, np.float32(0.55))}
+    orange = {
+        i
+        for i, m in squares.items()  # ColorRGBA is float32
+        if (m.color.r, m.color.g) == (1.0, np.float32(0.55))
+    }
     assert orange == {anchor}
     texts = {m.id: m.text for m in arr.markers if m.ns == "tag_ids"}
     assert texts[anchor] == f"tag36h11:{anchor} (anchor)" and len(texts) == len(tags)
@@ -148,7 +181,8 @@ def test_reference_export(project: Path, tmp_path: Path, capsys: Capsys) -> None
         assert d == pytest.approx(6 * std[i], rel=1e-12)
     (tfs,) = msgs["/tf_static"]
     assert sorted(x.child_frame_id for x in tfs.transforms) == sorted(
-        f"tag36h11:{i}" for i in tags["tag_id"])
+        f"tag36h11:{i}" for i in tags["tag_id"]
+    )
     (path,) = msgs["/reference_path"]
     assert len(path.poses) == len(traj) and path.header.frame_id == "map"
     # annotations: one per frame with detections; outlines = corners (+0.5 px: Foxglove's origin
@@ -158,9 +192,12 @@ def test_reference_export(project: Path, tmp_path: Path, capsys: Capsys) -> None
     first = msgs["/detections/annotations"][0]
     d0 = dets[dets["t_ns"] == dets["t_ns"].min()]
     assert [t.text for t in first.texts] == [str(i) for i in d0["tag_id"]]
-    np.testing.assert_allclose([[q.x, q.y] for q in first.points[0].points],
-                               d0.iloc[0][[f"c{i}{a}" for i in range(4) for a in "xy"]]
-                               .to_numpy(float).reshape(4, 2) + 0.5, atol=1e-12)  # fmt: skip
+    np.testing.assert_allclose(
+        [[q.x, q.y] for q in first.points[0].points],
+        d0.iloc[0][[f"c{i}{a}" for i in range(4) for a in "xy"]].to_numpy(float).reshape(4, 2)
+        + 0.5,
+        atol=1e-12,
+    )
     assert first.points[0].type == 2  # LINE_LOOP
     # every log time in order: static messages first, at the run's first stamp
     times = sorted(t for v in raw.values() for t, _ in v)
@@ -198,16 +235,20 @@ def test_query_export_has_paths_and_d_phi(project: Path, tmp_path: Path) -> None
     assert channels["/query_path"] == ("nav_msgs/msg/Path", "ros2msg", "cdr")
     reloc = pd.read_csv(project / "outputs" / "query_1" / "relocalization.csv")
     t_ns = (reloc["stamp_sec"] * 10**9 + reloc["stamp_nanosec"]).tolist()
-    for topic, col in (("/relocalization/distance_m", "distance_m"),
-                       ("/relocalization/heading_error_deg", "heading_error_deg")):
+    for topic, col in (
+        ("/relocalization/distance_m", "distance_m"),
+        ("/relocalization/heading_error_deg", "heading_error_deg"),
+    ):
         assert channels[topic] == ("std_msgs/msg/Float64", "ros2msg", "cdr")
         assert [t for t, _ in raw[topic]] == t_ns
         np.testing.assert_allclose([m.data for m in msgs[topic]], reloc[col], rtol=0, atol=1e-12)
     aligned = artifact(project, "align", "query_1", "trajectory")
     (qpath,) = msgs["/query_path"]
-    np.testing.assert_allclose([[p.pose.position.x, p.pose.position.y, p.pose.position.z]
-                                for p in qpath.poses], aligned[["x_m", "y_m", "z_m"]],
-                               atol=1e-12)  # fmt: skip
+    np.testing.assert_allclose(
+        [[p.pose.position.x, p.pose.position.y, p.pose.position.z] for p in qpath.poses],
+        aligned[["x_m", "y_m", "z_m"]],
+        atol=1e-12,
+    )
     assert len(msgs["/tf"]) == len(aligned)
     ref = read_trajectory(project / "outputs" / "reference")
     assert len(msgs["/reference_path"][0].poses) == len(ref)
@@ -217,7 +258,8 @@ def test_query_export_has_paths_and_d_phi(project: Path, tmp_path: Path) -> None
 def test_image_bag_copies_images(tmp_path: Path) -> None:
     simulate("room", tmp_path / "bags", frames=12, query_frames=3, detections=False)
     (tmp_path / "pipeline.yaml").write_text(
-        "datasets:\n  reference: {source: bags/reference}\nstages:\n  pnp: {tag_size: 0.16}\n")
+        "datasets:\n  reference: {source: bags/reference}\nstages:\n  pnp: {tag_size: 0.16}\n"
+    )
     assert tagtrail.cli.main(["run", "-p", str(tmp_path / "pipeline.yaml")]) == 0
     out = tmp_path / "run.mcap"
     assert export(tmp_path, out) == 0
@@ -238,8 +280,9 @@ def test_image_bag_copies_images(tmp_path: Path) -> None:
     assert "/camera/color/image_raw" not in channels2 and "/detections/annotations" in channels2
 
 
-def test_errors_are_one_line_and_leave_nothing(project: Path, tmp_path: Path,
-                                               capsys: Capsys) -> None:  # fmt: skip
+def test_errors_are_one_line_and_leave_nothing(
+    project: Path, tmp_path: Path, capsys: Capsys
+) -> None:
     capsys.readouterr()
     assert export(project, tmp_path / "x.mcap", "--dataset", "qurey_1") == 2
     assert "unknown dataset 'qurey_1'" in one_error_line(capsys)
@@ -280,28 +323,46 @@ def test_image_folder_as_compressed_images(tmp_path: Path) -> None:
             elif conn.msgtype == "sensor_msgs/msg/Image":
                 img = np.asarray(msg.data, np.uint8).reshape(msg.height, msg.width, -1)
                 name = f"frame_{len(stamps):03d}.png"
-                cv2.imwrite(str(folder / name), cv2.cvtColor(img, cv2.COLOR_RGB2BGR)
-                            if img.shape[2] == 3 else img)  # fmt: skip
+                cv2.imwrite(
+                    str(folder / name),
+                    cv2.cvtColor(img, cv2.COLOR_RGB2BGR) if img.shape[2] == 3 else img,
+                )
                 stamps.append((name, t_ns))
     finally:
         reader.close()
     assert info is not None and len(stamps) == 8
-    (folder / "stamps.csv").write_text("file,stamp_sec,stamp_nanosec\n" + "".join(
-        f"{n},{t // 10**9},{t % 10**9}\n" for n, t in stamps))  # fmt: skip
+    (folder / "stamps.csv").write_text(
+        "file,stamp_sec,stamp_nanosec\n"
+        + "".join(f"{n},{t // 10**9},{t % 10**9}\n" for n, t in stamps)
+    )
     mat = {"rows": 3, "cols": 3, "data": [float(v) for v in info.k]}
-    (folder / "camera.yaml").write_text(yaml.safe_dump({
-        "image_width": int(info.width), "image_height": int(info.height),
-        "camera_matrix": mat, "distortion_model": str(info.distortion_model),
-        "distortion_coefficients": {"rows": 1, "cols": len(info.d),
-                                    "data": [float(v) for v in info.d]}}))  # fmt: skip
+    (folder / "camera.yaml").write_text(
+        yaml.safe_dump(
+            {
+                "image_width": int(info.width),
+                "image_height": int(info.height),
+                "camera_matrix": mat,
+                "distortion_model": str(info.distortion_model),
+                "distortion_coefficients": {
+                    "rows": 1,
+                    "cols": len(info.d),
+                    "data": [float(v) for v in info.d],
+                },
+            }
+        )
+    )
     (tmp_path / "pipeline.yaml").write_text(
-        "datasets:\n  reference: {source: images}\nstages:\n  pnp: {tag_size: 0.16}\n")
+        "datasets:\n  reference: {source: images}\nstages:\n  pnp: {tag_size: 0.16}\n"
+    )
     assert tagtrail.cli.main(["run", "-p", str(tmp_path / "pipeline.yaml")]) == 0
     out = tmp_path / "folder.mcap"
     assert export(tmp_path, out) == 0
     _, channels, msgs, raw = read_mcap(out)
-    assert channels["/camera/image/compressed"] == ("sensor_msgs/msg/CompressedImage", "ros2msg",
-                                                     "cdr")  # fmt: skip
+    assert channels["/camera/image/compressed"] == (
+        "sensor_msgs/msg/CompressedImage",
+        "ros2msg",
+        "cdr",
+    )
     imgs = msgs["/camera/image/compressed"]
     assert [m.format for m in imgs] == ["png"] * 8
     assert [bytes(m.data) for m in imgs] == [(folder / n).read_bytes() for n, _ in stamps]

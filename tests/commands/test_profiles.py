@@ -35,39 +35,91 @@ def test_every_profile_is_valid_and_matches_what_it_names() -> None:
         assert dict(p.record).keys() >= set(p.topics.values())
         assert p.live.camera_info_key == p.topics["camera_info"].lstrip("/")
     # the simulator writes what the profiles say
-    assert PROFILES["limo"].topics == {"detections": bagwrite.DETECTIONS_TOPIC,
-                                       "camera_info": bagwrite.DETECTIONS_INFO_TOPIC}
+    assert PROFILES["limo"].topics == {
+        "detections": bagwrite.DETECTIONS_TOPIC,
+        "camera_info": bagwrite.DETECTIONS_INFO_TOPIC,
+    }
     assert PROFILES["limo-images"].topics["image"] == bagwrite.IMAGE_TOPIC
-    assert PROFILES["sim"].topics == {"image": bagwrite.COMPRESSED_TOPIC,
-                                      "camera_info": bagwrite.INFO_TOPIC}
+    assert PROFILES["sim"].topics == {
+        "image": bagwrite.COMPRESSED_TOPIC,
+        "camera_info": bagwrite.INFO_TOPIC,
+    }
     assert PROFILES["sim"].stages["pnp"]["tag_size"] == SimOptions().tag_size_m
 
 
-def test_init_writes_the_profile_into_the_file(bags: Path, tmp_path: Path,
-                                               capsys: pytest.CaptureFixture[str]) -> None:
+def test_init_writes_the_profile_into_the_file(
+    bags: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
     out = tmp_path / "pipeline.yaml"
-    assert main(["init", "--profile", "limo", "--reference", str(bags / "det" / "reference"),
-                 "--query", str(bags / "det" / "query_1"), "--tag-size", "0.16",
-                 "-o", str(out)]) == 0
+    assert (
+        main(
+            [
+                "init",
+                "--profile",
+                "limo",
+                "--reference",
+                str(bags / "det" / "reference"),
+                "--query",
+                str(bags / "det" / "query_1"),
+                "--tag-size",
+                "0.16",
+                "-o",
+                str(out),
+            ]
+        )
+        == 0
+    )
     text = out.read_text()
     assert "# Profile limo:" in text
     doc = yaml.safe_load(text)
-    assert doc["datasets"]["reference"]["topics"] == {"detections": "/detections",
-                                                      "camera_info": "/camera_info"}
+    assert doc["datasets"]["reference"]["topics"] == {
+        "detections": "/detections",
+        "camera_info": "/camera_info",
+    }
     assert doc["datasets"]["query"]["topics"] == doc["datasets"]["reference"]["topics"]
     assert doc["stages"] == {"pnp": {"tag_size": 0.16}, "report": {"plane": "xz"}}
     pipe = load_pipeline(out, REGISTRY)
     assert pipe.params_for("report", "reference").plane == "xz"
     # overridable: a flag over the profile, and the file is an ordinary one to edit
-    assert main(["init", "--profile", "sim", "--reference", str(bags / "jpeg" / "reference"),
-                 "--tag-size", "0.2", "-o", str(out), "--force"]) == 0
+    assert (
+        main(
+            [
+                "init",
+                "--profile",
+                "sim",
+                "--reference",
+                str(bags / "jpeg" / "reference"),
+                "--tag-size",
+                "0.2",
+                "-o",
+                str(out),
+                "--force",
+            ]
+        )
+        == 0
+    )
     doc = yaml.safe_load(out.read_text())
     assert doc["stages"]["pnp"]["tag_size"] == 0.2
     assert doc["datasets"]["reference"]["topics"]["image"] == bagwrite.COMPRESSED_TOPIC
     capsys.readouterr()
     # a profile whose topics the recording lacks: one line naming topic and profile
-    assert main(["init", "--profile", "limo", "--reference", str(bags / "jpeg" / "reference"),
-                 "--tag-size", "0.16", "-o", str(out), "--force"]) == 2
+    assert (
+        main(
+            [
+                "init",
+                "--profile",
+                "limo",
+                "--reference",
+                str(bags / "jpeg" / "reference"),
+                "--tag-size",
+                "0.16",
+                "-o",
+                str(out),
+                "--force",
+            ]
+        )
+        == 2
+    )
     line = one_error_line(capsys)
     assert "/detections" in line and "--profile limo" in line
 
@@ -87,14 +139,25 @@ def test_live_nodes_take_the_profile(tmp_path: Path, monkeypatch: pytest.MonkeyP
     parse = stream_cli.build_parser().parse_args
     ns = stream_cli.with_profile(parse(["localize", "--map", "m", "--profile", "limo-images"]))
     assert (ns.image_key, ns.image_type, ns.camera_info_key, ns.pose_key) == (
-        "camera/color/image_raw", "raw", "camera/color/camera_info", "tag_only_pose")
-    ns = stream_cli.with_profile(parse(["localize", "--map", "m", "--profile", "limo",
-                                        "--camera-info-key", "cam/info"]))
-    assert (ns.image_key, ns.detections_key, ns.camera_info_key) == (None, "detections",
-                                                                     "cam/info")  # flag wins
+        "camera/color/image_raw",
+        "raw",
+        "camera/color/camera_info",
+        "tag_only_pose",
+    )
+    ns = stream_cli.with_profile(
+        parse(["localize", "--map", "m", "--profile", "limo", "--camera-info-key", "cam/info"])
+    )
+    assert (ns.image_key, ns.detections_key, ns.camera_info_key) == (
+        None,
+        "detections",
+        "cam/info",
+    )  # flag wins
     ns = stream_cli.with_profile(parse(["localize", "--map", "m"]))  # no profile: as before
     assert (ns.detections_key, ns.camera_info_key, ns.image_type) == (
-        "detections", "camera_info", "compressed")
+        "detections",
+        "camera_info",
+        "compressed",
+    )
     assert stage_params(["report"], profile="limo")["report"].plane == "xz"
     assert stage_params(["report"])["report"].plane == "auto"
     bag = tmp_path / "bag"

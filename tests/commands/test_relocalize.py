@@ -32,8 +32,10 @@ TABLE_4_3 = {  # query folder: (case, D [m], phi [deg]) as published
     "query_quadrad_2": (3, 0.3567, -1.63),
 }
 COMMON_TAGS = {"query_pontobranco": 4, "query_metric_8": 3, "query_quadrad_2": 4}
-HEADER = ("stamp_sec,stamp_nanosec,t_rel_s,nearest_ref_idx,distance_m,heading_error_deg,"
-          "query_heading_deg,ref_heading_deg,query_u,query_v,ref_u,ref_v")  # fmt: skip
+HEADER = (
+    "stamp_sec,stamp_nanosec,t_rel_s,nearest_ref_idx,distance_m,heading_error_deg,"
+    "query_heading_deg,ref_heading_deg,query_u,query_v,ref_u,ref_v"
+)
 FILES = ("relocalization.csv", "summary.json", "relocalization.png", "map.png")
 
 
@@ -51,8 +53,15 @@ def result(out: Path) -> tuple[float, float, dict]:
 @pytest.mark.parametrize("query", sorted(TABLE_4_3))
 def test_limo_reproduces_table_4_3(limo: Path, query: str, tmp_path: Path) -> None:
     _, D_pub, phi_pub = TABLE_4_3[query]
-    summary = relocalize(limo / "reference_three_letric", limo / query, tmp_path, mode="point",
-                         align="tags", align_model="similarity", plane="xz")  # fmt: skip
+    summary = relocalize(
+        limo / "reference_three_letric",
+        limo / query,
+        tmp_path,
+        mode="point",
+        align="tags",
+        align_model="similarity",
+        plane="xz",
+    )
     D, phi, written = result(tmp_path)
     assert written == summary and summary["mode"] == "point" and summary["n"] == 1
     assert abs(D - D_pub) <= 0.002, (query, D, D_pub)
@@ -79,22 +88,46 @@ def test_limo_auto_plane_is_xz(limo: Path) -> None:
 
 
 def test_cli_writes_spec_files(limo: Path, tmp_path: Path, capsys: pytest.CaptureFixture) -> None:
-    args = [str(limo / "reference_three_letric"), str(limo / "query_metric_8"), "--mode", "point",
-            "--plane", "xz", "--align", "tags", "--align-model", "similarity"]  # fmt: skip
+    args = [
+        str(limo / "reference_three_letric"),
+        str(limo / "query_metric_8"),
+        "--mode",
+        "point",
+        "--plane",
+        "xz",
+        "--align",
+        "tags",
+        "--align-model",
+        "similarity",
+    ]
     assert main([*args, "-o", str(tmp_path / "a")]) == 0
     printed = capsys.readouterr().out
     assert "D   = 0.428" in printed and "phi = -10.3" in printed and "similarity on 3/3" in printed
     for name in FILES:
         assert str(tmp_path / "a" / name) in printed
     # the seed's columns and keys first, in their order (the tracker's follow)
-    assert (tmp_path / "a" / "relocalization.csv").read_text().splitlines()[0].startswith(
-        HEADER + ",")
+    assert (
+        (tmp_path / "a" / "relocalization.csv").read_text().splitlines()[0].startswith(HEADER + ",")
+    )
     summary = json.loads((tmp_path / "a" / "summary.json").read_text())
-    assert list(summary)[:6] == ["mode", "plane", "n", "distance_m", "abs_heading_error_deg",
-                                 "alignment"]  # fmt: skip
+    assert list(summary)[:6] == [
+        "mode",
+        "plane",
+        "n",
+        "distance_m",
+        "abs_heading_error_deg",
+        "alignment",
+    ]
     assert list(summary["distance_m"]) == ["mean", "median", "p90", "p95", "max", "rmse"]
-    assert list(summary["alignment"]) == ["model", "scale", "rotation_deg", "translation",
-                                          "inliers", "common_tags", "rms_m"]  # fmt: skip
+    assert list(summary["alignment"]) == [
+        "model",
+        "scale",
+        "rotation_deg",
+        "translation",
+        "inliers",
+        "common_tags",
+        "rms_m",
+    ]
     assert main([*args, "-o", str(tmp_path / "b")]) == 0  # byte-reproducible, PNGs included
     for name in FILES:
         a, b = (tmp_path / "a" / name).read_bytes(), (tmp_path / "b" / name).read_bytes()
@@ -126,8 +159,9 @@ def test_uses_the_stage_functions(
 def test_accepts_trajectory_files_and_tagtrail_layouts(limo: Path, tmp_path: Path) -> None:
     ref, qry = limo / "reference_three_letric", limo / "query_quadrad_2"
     base = relocalize(ref, qry, tmp_path / "orig", plane="xz")
-    by_file = relocalize(ref / "trajetoria_camera.csv", qry / "trajetoria_camera.csv",
-                         tmp_path / "files", plane="xz")  # fmt: skip
+    by_file = relocalize(
+        ref / "trajetoria_camera.csv", qry / "trajetoria_camera.csv", tmp_path / "files", plane="xz"
+    )
     assert by_file == base
     for src in (ref, qry):  # tagtrail's own names: trajectory.csv + tag_map.yaml/.csv
         tags, anchor = read_tag_map(src)
@@ -190,9 +224,12 @@ def test_files_round_trip(limo: Path, tmp_path: Path) -> None:
     from tagtrail.io.reloc_files import read_relocalization_csv, write_summary_json
 
     ref, qry = limo / "reference_three_letric", limo / "query_quadrad_2"
-    out = report_stage.run(read_trajectory(qry), read_trajectory(ref),
-                           align_stage.alignment_block("none", None, 0, 2),
-                           report_stage.Params(mode="trajectory"))  # fmt: skip
+    out = report_stage.run(
+        read_trajectory(qry),
+        read_trajectory(ref),
+        align_stage.alignment_block("none", None, 0, 2),
+        report_stage.Params(mode="trajectory"),
+    )
     relocalize(ref, qry, tmp_path, mode="trajectory", align="none")
     back = read_relocalization_csv(tmp_path / "relocalization.csv")
     pd.testing.assert_frame_equal(back, out["relocalization"], check_exact=True)
@@ -208,9 +245,18 @@ def write_run(folder: Path, shift: float = 0.0) -> Path:
     folder.mkdir()
     n = 20
     t = np.arange(n)
-    traj = pd.DataFrame({"t_ns": 1_700_000_000_000_000_000 + t * 100_000_000,
-                         "x_m": 0.1 * t + shift, "y_m": 0.0, "z_m": 1.0 + 0.02 * t,
-                         "qx": 0.0, "qy": 0.0, "qz": 0.0, "qw": 1.0})  # fmt: skip
+    traj = pd.DataFrame(
+        {
+            "t_ns": 1_700_000_000_000_000_000 + t * 100_000_000,
+            "x_m": 0.1 * t + shift,
+            "y_m": 0.0,
+            "z_m": 1.0 + 0.02 * t,
+            "qx": 0.0,
+            "qy": 0.0,
+            "qz": 0.0,
+            "qw": 1.0,
+        }
+    )
     write_trajectory_csv(folder / "trajetoria_camera.csv", traj)
     (folder / "mapa_tags.csv").write_text(
         "tag,x,y,z,qx,qy,qz,qw,n_obs\n"
@@ -250,29 +296,43 @@ def test_synthetic_runs_relocalize(tmp_path: Path) -> None:  # the files the cas
 
 TRAJ = "trajetoria_camera.csv"
 BAD_TRAJECTORIES = {
-    "text cell": (lambda f: edit_cell(f, 3, "x", "abc"),
-                  "data row 3, column x: 'abc' is not a number"),
+    "text cell": (
+        lambda f: edit_cell(f, 3, "x", "abc"),
+        "data row 3, column x: 'abc' is not a number",
+    ),
     "empty cell": (lambda f: edit_cell(f, 5, "qw", ""), "data row 5, column qw: empty cell"),
     "nan": (lambda f: edit_cell(f, 2, "y", "nan"), "data row 2, column y: empty cell (or NaN)"),
     "inf": (lambda f: edit_cell(f, 4, "z", "inf"), "data row 4, column z: 'inf' is not finite"),
     "-inf": (lambda f: edit_cell(f, 1, "x", "-inf"), "data row 1, column x: '-inf' is not finite"),
-    "text stamp": (lambda f: edit_cell(f, 7, "stamp_sec", "soon"),
-                   "data row 7, column stamp_sec: 'soon' is not a number"),
-    "fractional stamp": (lambda f: edit_cell(f, 2, "stamp_nanosec", "1.5"),
-                         "data row 2, column stamp_nanosec: '1.5' is not an integer"),
-    "nanosec range": (lambda f: edit_cell(f, 2, "stamp_nanosec", "1000000000"),
-                      "data row 2, column stamp_nanosec: '1000000000' is not an integer in"),
+    "text stamp": (
+        lambda f: edit_cell(f, 7, "stamp_sec", "soon"),
+        "data row 7, column stamp_sec: 'soon' is not a number",
+    ),
+    "fractional stamp": (
+        lambda f: edit_cell(f, 2, "stamp_nanosec", "1.5"),
+        "data row 2, column stamp_nanosec: '1.5' is not an integer",
+    ),
+    "nanosec range": (
+        lambda f: edit_cell(f, 2, "stamp_nanosec", "1000000000"),
+        "data row 2, column stamp_nanosec: '1000000000' is not an integer in",
+    ),
     "zero quaternion": (
         lambda f: [edit_cell(f, 6, c, "0") for c in ("qx", "qy", "qz", "qw")],
         "data row 6: quaternion (qx, qy, qz, qw) = (0.0, 0.0, 0.0, 0.0) has zero length",
     ),
-    "stamps go back": (lambda f: edit_cell(f, 9, "stamp_sec", "1699999999"),
-                       "data row 9: stamp 1699999999.800000000 s is earlier than the one before"),
-    "missing column": (lambda f: f.write_text(f.read_text().replace(",qw", ",w")),
-                       "not a trajectory CSV, missing columns qw"),
+    "stamps go back": (
+        lambda f: edit_cell(f, 9, "stamp_sec", "1699999999"),
+        "data row 9: stamp 1699999999.800000000 s is earlier than the one before",
+    ),
+    "missing column": (
+        lambda f: f.write_text(f.read_text().replace(",qw", ",w")),
+        "not a trajectory CSV, missing columns qw",
+    ),
     "empty file": (lambda f: f.write_text(""), "empty file (expected a trajectory CSV"),
-    "ragged row": (lambda f: f.write_text(f.read_text() + "1,2,3,4,5,6,7,8,9,10\n"),
-                   "cannot read trajectory CSV: Error tokenizing data"),
+    "ragged row": (
+        lambda f: f.write_text(f.read_text() + "1,2,3,4,5,6,7,8,9,10\n"),
+        "cannot read trajectory CSV: Error tokenizing data",
+    ),
 }
 
 
@@ -294,14 +354,22 @@ def test_equal_stamps_are_accepted(tmp_path: Path) -> None:
 
 BAD_TAG_CSV = {
     "text cell": (lambda f: edit_cell(f, 2, "z", "x"), "data row 2, column z: 'x' is not a number"),
-    "bad tag name": (lambda f: edit_cell(f, 3, "tag", "tagX"),
-                     "data row 3, column tag: 'tagX' is not a tag name"),
-    "zero quaternion": (lambda f: [edit_cell(f, 1, c, "0.0") for c in ("qx", "qy", "qz", "qw")],
-                        "data row 1: quaternion"),
-    "duplicate tag": (lambda f: edit_cell(f, 3, "tag", "tag36h11:1"),
-                      "tag tag36h11:1 is listed twice (data row 2 and data row 3)"),
-    "missing column": (lambda f: f.write_text(f.read_text().replace(",qx,", ",q,")),
-                       "not a tag map CSV, missing columns qx"),
+    "bad tag name": (
+        lambda f: edit_cell(f, 3, "tag", "tagX"),
+        "data row 3, column tag: 'tagX' is not a tag name",
+    ),
+    "zero quaternion": (
+        lambda f: [edit_cell(f, 1, c, "0.0") for c in ("qx", "qy", "qz", "qw")],
+        "data row 1: quaternion",
+    ),
+    "duplicate tag": (
+        lambda f: edit_cell(f, 3, "tag", "tag36h11:1"),
+        "tag tag36h11:1 is listed twice (data row 2 and data row 3)",
+    ),
+    "missing column": (
+        lambda f: f.write_text(f.read_text().replace(",qx,", ",q,")),
+        "not a tag map CSV, missing columns qx",
+    ),
     "n_obs": (lambda f: edit_cell(f, 1, "n_obs", "many"), "data row 1, column n_obs: 'many'"),
 }
 
@@ -319,19 +387,31 @@ GOOD_TAG = "  position: {x: 1.0, y: 0.0, z: 0.0}\n  orientation: {x: 0.0, y: 0.0
 BAD_TAG_YAML = {
     "not YAML": ("tags: {tag36h11:0: [\n", "not valid YAML (tag map): line 2, column 1:"),
     "no tags": ("world_frame: map\n", "not a tag map YAML (needs a 'tags:' mapping"),
-    "no orientation": ("tags:\n tag36h11:0:\n  position: {x: 1, y: 0, z: 0}\n",
-                       "tag tag36h11:0: missing 'orientation:' mapping"),
-    "missing key": ("tags:\n tag36h11:0:\n" + GOOD_TAG.replace(", z: 0.0}", "}", 1),
-                    "tag tag36h11:0: position.z is missing"),
-    "text value": ("tags:\n tag36h11:0:\n" + GOOD_TAG.replace("x: 1.0", "x: one"),
-                   "tag tag36h11:0: position.x is 'one', not a finite number"),
-    "nan value": ("tags:\n tag36h11:0:\n" + GOOD_TAG.replace("x: 1.0", "x: .nan"),
-                  "tag tag36h11:0: position.x is nan, not a finite number"),
-    "zero quaternion": ("tags:\n tag36h11:0:\n" + GOOD_TAG.replace("w: 1.0", "w: 0"),
-                        "tag tag36h11:0: quaternion (qx, qy, qz, qw) = (0.0, 0.0, 0.0, 0.0)"),
+    "no orientation": (
+        "tags:\n tag36h11:0:\n  position: {x: 1, y: 0, z: 0}\n",
+        "tag tag36h11:0: missing 'orientation:' mapping",
+    ),
+    "missing key": (
+        "tags:\n tag36h11:0:\n" + GOOD_TAG.replace(", z: 0.0}", "}", 1),
+        "tag tag36h11:0: position.z is missing",
+    ),
+    "text value": (
+        "tags:\n tag36h11:0:\n" + GOOD_TAG.replace("x: 1.0", "x: one"),
+        "tag tag36h11:0: position.x is 'one', not a finite number",
+    ),
+    "nan value": (
+        "tags:\n tag36h11:0:\n" + GOOD_TAG.replace("x: 1.0", "x: .nan"),
+        "tag tag36h11:0: position.x is nan, not a finite number",
+    ),
+    "zero quaternion": (
+        "tags:\n tag36h11:0:\n" + GOOD_TAG.replace("w: 1.0", "w: 0"),
+        "tag tag36h11:0: quaternion (qx, qy, qz, qw) = (0.0, 0.0, 0.0, 0.0)",
+    ),
     "bad name": ("tags:\n tagX:\n" + GOOD_TAG, "tags: key 'tagX' is not a tag name"),
-    "bad anchor": ("anchor_tag: zero\ntags:\n tag36h11:0:\n" + GOOD_TAG,
-                   "anchor_tag 'zero' is not a tag name"),
+    "bad anchor": (
+        "anchor_tag: zero\ntags:\n tag36h11:0:\n" + GOOD_TAG,
+        "anchor_tag 'zero' is not a tag name",
+    ),
 }
 
 
@@ -361,5 +441,7 @@ def test_data_errors_name_the_datasets(tmp_path: Path, capsys) -> None:
         edit_cell(ref / TRAJ, row, "x", "0.5")
         edit_cell(ref / TRAJ, row, "z", "1.0")
     line = cli_error(capsys, str(ref), str(qry), "-o", str(tmp_path / "o"))
-    assert line == (f"error: reference {ref}, query {qry}: the reference trajectory needs at "
-                    "least 2 distinct planar positions")  # fmt: skip
+    assert line == (
+        f"error: reference {ref}, query {qry}: the reference trajectory needs at "
+        "least 2 distinct planar positions"
+    )

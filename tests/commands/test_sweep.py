@@ -68,8 +68,14 @@ def cli(project: Path, *argv: str, fault: str | None = None) -> subprocess.Compl
     env = {k: v for k, v in os.environ.items() if k != "TAGTRAIL_FAULT"}
     if fault:
         env["TAGTRAIL_FAULT"] = fault
-    return subprocess.run([sys.executable, "-m", "tagtrail.cli", *argv], cwd=project, env=env,
-                          capture_output=True, text=True, timeout=300)  # fmt: skip
+    return subprocess.run(
+        [sys.executable, "-m", "tagtrail.cli", *argv],
+        cwd=project,
+        env=env,
+        capture_output=True,
+        text=True,
+        timeout=300,
+    )
 
 
 def run_log(project: Path, name: str = NAME) -> list[dict[str, Any]]:
@@ -79,9 +85,14 @@ def run_log(project: Path, name: str = NAME) -> list[dict[str, Any]]:
 
 def ran(log: list[dict[str, Any]], stage: str | None = None) -> dict[int, list[str]]:
     """Point → the nodes (``stage [dataset]``) it ran, in this invocation."""
-    return {p["point"]: [f"{n['stage']} [{n['dataset']}]" for n in p["nodes"]
-                         if n["status"] == "ran" and stage in (None, n["stage"])]
-            for p in log}  # fmt: skip
+    return {
+        p["point"]: [
+            f"{n['stage']} [{n['dataset']}]"
+            for n in p["nodes"]
+            if n["status"] == "ran" and stage in (None, n["stage"])
+        ]
+        for p in log
+    }
 
 
 def table(project: Path, name: str = NAME) -> list[dict[str, str]]:
@@ -129,9 +140,13 @@ def test_sweep_csv_has_a_row_per_point_with_metrics_and_keys(swept: tuple[Path, 
     grid = [(loss, fs) for loss in ("linear", "soft_l1", "huber") for fs in ("0.05", "0.1", "0.2")]
     assert [(r["optimize.loss"], r["optimize.f_scale"]) for r in rows] == grid
     assert [r["point"] for r in rows] == [str(i) for i in range(1, 10)]
-    metrics = [FIRST, "tags.rmse_m[reference]", "map.rms_t_m[reference]",
-               *(f"D.mean_m[{d}]" for d in DATASETS[1:]),
-               *(f"abs_phi.mean_deg[{d}]" for d in DATASETS[1:])]  # fmt: skip
+    metrics = [
+        FIRST,
+        "tags.rmse_m[reference]",
+        "map.rms_t_m[reference]",
+        *(f"D.mean_m[{d}]" for d in DATASETS[1:]),
+        *(f"abs_phi.mean_deg[{d}]" for d in DATASETS[1:]),
+    ]
     for r in rows:
         assert r["status"] == "ok"
         for m in metrics:
@@ -157,8 +172,11 @@ def test_sweep_csv_has_a_row_per_point_with_metrics_and_keys(swept: tuple[Path, 
         assert marked == [] and f"best: none: points {', '.join(lowest)} give the same" in out
     # Progress: points done / total with an ETA once a point has been timed.
     assert "sweep: point 1/9 (optimize.loss=linear optimize.f_scale=0.05)\n" in err
-    assert re.search(r"sweep: point 9/9 \(optimize\.loss=huber optimize\.f_scale=0\.2\) … "
-                     r"ETA [0-9.]+ s", err)  # fmt: skip
+    assert re.search(
+        r"sweep: point 9/9 \(optimize\.loss=huber optimize\.f_scale=0\.2\) … "
+        r"ETA [0-9.]+ s",
+        err,
+    )
     png = project / "sweeps" / NAME / "sweep.png"
     assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n" and png.stat().st_size > 10_000
     assert not [p for p in (project / "sweeps").rglob("*") if TEMP.match(p.name)]
@@ -191,18 +209,50 @@ def test_show_opens_a_points_artifacts(swept: tuple[Path, str, str], capsys: Cap
     out = capsys.readouterr().out
     assert out.startswith(f"sweep {NAME}, point 4: optimize.loss=soft_l1 optimize.f_scale=0.05\n")
     assert f"artifact {row['key.optimize[reference]'][:12]}" in out
-    assert tagtrail.cli.main(["show", "optimize", "-p", pipe, "--point", "4", "--sweep", NAME,
-                              "--dataset", "query_1", "--output", "report"]) == 0  # fmt: skip
+    assert (
+        tagtrail.cli.main(
+            [
+                "show",
+                "optimize",
+                "-p",
+                pipe,
+                "--point",
+                "4",
+                "--sweep",
+                NAME,
+                "--dataset",
+                "query_1",
+                "--output",
+                "report",
+            ]
+        )
+        == 0
+    )
     assert f"artifact {row['key.optimize[query_1]'][:12]}" in capsys.readouterr().out
     # the same -S as the point opens the same artifact
-    assert tagtrail.cli.main(["show", "optimize", "-p", pipe, "-S", "optimize.loss=soft_l1",
-                              "-S", "optimize.f_scale=0.05"]) == 0  # fmt: skip
+    assert (
+        tagtrail.cli.main(
+            [
+                "show",
+                "optimize",
+                "-p",
+                pipe,
+                "-S",
+                "optimize.loss=soft_l1",
+                "-S",
+                "optimize.f_scale=0.05",
+            ]
+        )
+        == 0
+    )
     assert f"artifact {row['key.optimize[reference]'][:12]}" in capsys.readouterr().out
 
 
 @pytest.mark.slow
-@pytest.mark.skipif(importlib.util.find_spec("distributed") is None,
-                    reason="dask.distributed not installed (pip install -e '.[test]')")
+@pytest.mark.skipif(
+    importlib.util.find_spec("distributed") is None,
+    reason="dask.distributed not installed (pip install -e '.[test]')",
+)
 def test_a_sweep_on_a_2_worker_dask_cluster_matches_the_local_one(
     swept: tuple[Path, str, str], data: Path, tmp_path: Path, capsys: Capsys
 ) -> None:
@@ -210,16 +260,29 @@ def test_a_sweep_on_a_2_worker_dask_cluster_matches_the_local_one(
     the local sweep's points (nothing cached in the fresh project)."""
     project, _, _ = swept
     fresh = new_project(tmp_path / "dask", data)
-    rc, _, err = sweep(fresh, capsys, "-S", "optimize.loss=soft_l1", "-S",
-                       "optimize.f_scale=0.05,0.1", "--dataset", "reference",
-                       "--executor", "dask", "-j", "2")  # fmt: skip
+    rc, _, err = sweep(
+        fresh,
+        capsys,
+        "-S",
+        "optimize.loss=soft_l1",
+        "-S",
+        "optimize.f_scale=0.05,0.1",
+        "--dataset",
+        "reference",
+        "--executor",
+        "dask",
+        "-j",
+        "2",
+    )
     assert rc == 0, err
     assert err.count("dask: a local cluster of 2 worker processes, dashboard") == 1
     (folder,) = (fresh / "sweeps").iterdir()
     rows = read_table(folder / "sweep.csv")
     local = {(r["optimize.loss"], r["optimize.f_scale"]): r for r in table(project)}
     assert [(r["optimize.loss"], r["optimize.f_scale"]) for r in rows] == [
-        ("soft_l1", "0.05"), ("soft_l1", "0.1")]
+        ("soft_l1", "0.05"),
+        ("soft_l1", "0.1"),
+    ]
     for r in rows:
         ref = local[(r["optimize.loss"], r["optimize.f_scale"])]
         shared = [c for c in r if c.startswith("key.") or c == FIRST]
@@ -227,17 +290,27 @@ def test_a_sweep_on_a_2_worker_dask_cluster_matches_the_local_one(
         assert float(r["time_s.extract"]) > 0
 
 
-def test_a_sweep_scheduler_needs_the_dask_executor(swept: tuple[Path, str, str],
-                                                   capsys: Capsys) -> None:  # fmt: skip
+def test_a_sweep_scheduler_needs_the_dask_executor(
+    swept: tuple[Path, str, str], capsys: Capsys
+) -> None:
     project, _, _ = swept
-    rc, _, err = sweep(project, capsys, "-S", "optimize.f_scale=0.1", "--executor", "local",
-                       "--scheduler", "tcp://127.0.0.1:1")  # fmt: skip
+    rc, _, err = sweep(
+        project,
+        capsys,
+        "-S",
+        "optimize.f_scale=0.1",
+        "--executor",
+        "local",
+        "--scheduler",
+        "tcp://127.0.0.1:1",
+    )
     assert rc == 2
     assert err.strip().splitlines() == ["error: --scheduler needs --executor dask"]
 
 
-def test_rerun_of_a_finished_sweep_runs_nothing(swept: tuple[Path, str, str], capsys: Capsys,
-                                                tmp_path: Path) -> None:  # fmt: skip
+def test_rerun_of_a_finished_sweep_runs_nothing(
+    swept: tuple[Path, str, str], capsys: Capsys, tmp_path: Path
+) -> None:
     project, _, _ = swept
     before = table(project)
     rc, _, err = sweep(project, capsys, *GRID)
@@ -248,9 +321,7 @@ def test_rerun_of_a_finished_sweep_runs_nothing(swept: tuple[Path, str, str], ca
 
 
 @pytest.mark.slow
-def test_a_killed_sweep_resumes_without_redoing_finished_points(
-    data: Path, tmp_path: Path
-) -> None:
+def test_a_killed_sweep_resumes_without_redoing_finished_points(data: Path, tmp_path: Path) -> None:
     project = new_project(tmp_path / "killed", data)
     # Killed between points: after point 3's row was written.
     killed = cli(project, "sweep", *GRID, fault="kill@sweep:point-3")
@@ -277,51 +348,93 @@ def test_a_killed_sweep_resumes_without_redoing_finished_points(
     assert not any(n.startswith(("extract", "pnp", "edges")) for p in log for n in log[p])
     final = table(project)
     assert len(final) == 9 and all(r["status"] == "ok" and r[FIRST] for r in final)
-    assert [r["key.optimize[reference]"] for r in final[:3]] == \
-        [r["key.optimize[reference]"] for r in rows]
+    assert [r["key.optimize[reference]"] for r in final[:3]] == [
+        r["key.optimize[reference]"] for r in rows
+    ]
     assert len(list((project / "artifacts" / "objects" / "extract").iterdir())) == len(DATASETS)
     tmp = project / "artifacts" / "tmp"
     assert not (tmp.is_dir() and list(tmp.iterdir()))
 
 
-def test_chosen_metrics_datasets_and_points_file(swept: tuple[Path, str, str], capsys: Capsys,
-                                                 tmp_path: Path) -> None:  # fmt: skip
+def test_chosen_metrics_datasets_and_points_file(
+    swept: tuple[Path, str, str], capsys: Capsys, tmp_path: Path
+) -> None:
     project, _, _ = swept
-    rc, out, err = sweep(project, capsys, "-S", "optimize.loss=linear,huber",
-                         "-S", "optimize.f_scale=0.1", "--metric", "D.mean_m",
-                         "--metric", "map.rms_px", "--metric", "gauge_free.tags.max_deg",
-                         "--dataset", "query_1", "--name", "picked")  # fmt: skip
+    rc, out, err = sweep(
+        project,
+        capsys,
+        "-S",
+        "optimize.loss=linear,huber",
+        "-S",
+        "optimize.f_scale=0.1",
+        "--metric",
+        "D.mean_m",
+        "--metric",
+        "map.rms_px",
+        "--metric",
+        "gauge_free.tags.max_deg",
+        "--dataset",
+        "query_1",
+        "--name",
+        "picked",
+    )
     assert rc == 0, err
     rows = table(project, "picked")
     cols = list(rows[0])
     assert [c for c in cols if "[" in c and not c.startswith("key.")] == [
-        "D.mean_m[query_1]", "map.rms_px[query_1]", "gauge_free.tags.max_deg[query_1]"]
+        "D.mean_m[query_1]",
+        "map.rms_px[query_1]",
+        "gauge_free.tags.max_deg[query_1]",
+    ]
     assert [r["map.rms_px[query_1]"] for r in rows] == ["", ""]  # 5 frames: no joint solve
     assert all(r["ran"] == "0" for r in rows)  # both points were in the 3×3 grid
     assert not any(c.endswith("[query_2]") for c in cols)  # query_2 neither ran nor was read
     assert "best (lowest D.mean_m): point" in out
     # An explicit list (YAML) crossed with a one-valued -S; a mapping value is one value.
     points = tmp_path / "points.yaml"
-    points.write_text("- {optimize.f_scale: 0.1, pnp.tag_sizes: {1: 0.16}}\n"
-                      "- {optimize.f_scale: 0.2}\n")  # fmt: skip
-    rc, out, err = sweep(project, capsys, "--points", str(points), "-S", "optimize.loss=huber",
-                         "--metric", "tags.rmse_m")  # fmt: skip
+    points.write_text(
+        "- {optimize.f_scale: 0.1, pnp.tag_sizes: {1: 0.16}}\n- {optimize.f_scale: 0.2}\n"
+    )
+    rc, out, err = sweep(
+        project,
+        capsys,
+        "--points",
+        str(points),
+        "-S",
+        "optimize.loss=huber",
+        "--metric",
+        "tags.rmse_m",
+    )
     assert rc == 0, err
     rows = table(project, "points")
-    assert [(r["optimize.f_scale"], r["pnp.tag_sizes"], r["optimize.loss"]) for r in rows] == \
-        [("0.1", "{1: 0.16}", "huber"), ("0.2", "", "huber")]
+    assert [(r["optimize.f_scale"], r["pnp.tag_sizes"], r["optimize.loss"]) for r in rows] == [
+        ("0.1", "{1: 0.16}", "huber"),
+        ("0.2", "", "huber"),
+    ]
     definition = json.loads((project / "sweeps" / "points" / "sweep.json").read_text())
     assert definition["points"][0]["overrides"] == [
-        "optimize.f_scale=0.1", "pnp.tag_sizes={1: 0.16}", "optimize.loss=huber"]
+        "optimize.f_scale=0.1",
+        "pnp.tag_sizes={1: 0.16}",
+        "optimize.loss=huber",
+    ]
     assert rows[1]["ran"] == "0"  # (huber, 0.2) was in the grid
     assert rows[0]["key.extract[reference]"] == table(project)[0]["key.extract[reference]"]
 
 
-def test_a_point_that_fails_on_its_data_is_a_failed_row(swept: tuple[Path, str, str],
-                                                        capsys: Capsys) -> None:  # fmt: skip
+def test_a_point_that_fails_on_its_data_is_a_failed_row(
+    swept: tuple[Path, str, str], capsys: Capsys
+) -> None:
     project, _, _ = swept
-    rc, out, err = sweep(project, capsys, "-S", "extract.min_decision_margin=100000,20",
-                         "--metric", "map.rms_t_m", "--dataset", "reference")  # fmt: skip
+    rc, out, err = sweep(
+        project,
+        capsys,
+        "-S",
+        "extract.min_decision_margin=100000,20",
+        "--metric",
+        "map.rms_t_m",
+        "--dataset",
+        "reference",
+    )
     assert rc == 1, err
     failed, good = table(project, "extract.min_decision_margin")
     assert failed["status"].startswith("failed: extract [reference]: ")
@@ -341,8 +454,10 @@ def test_value_lists_keep_yaml_flow_values_whole() -> None:
     assert split_values("'a,b',\"c,\\\"d\",it's") == ["'a,b'", '"c,\\"d"', "it's"]
     assert split_values("[a, 'b,]c'], d") == ["[a, 'b,]c']", "d"]
     points = make_points(["pnp.tag_sizes={1: 0.1, 2: 0.2},{1: 0.15}", "optimize.f_scale=1e-2"])
-    assert [p.label for p in points] == ["pnp.tag_sizes={1: 0.1, 2: 0.2} optimize.f_scale=1e-2",
-                                         "pnp.tag_sizes={1: 0.15} optimize.f_scale=1e-2"]
+    assert [p.label for p in points] == [
+        "pnp.tag_sizes={1: 0.1, 2: 0.2} optimize.f_scale=1e-2",
+        "pnp.tag_sizes={1: 0.15} optimize.f_scale=1e-2",
+    ]
     for value in ("huber", 0.05, {1: 0.1}, [1, 2], True, None, "1e-3", "a, b"):
         assert make_points([], [{"x.y": yaml_text(value)}])[0].values["x.y"] == yaml_text(value)
         from tagtrail.runner.spec import parse_override
@@ -350,26 +465,37 @@ def test_value_lists_keep_yaml_flow_values_whole() -> None:
         assert parse_override(f"x.y={yaml_text(value)}")[2] == value
 
 
-@pytest.mark.parametrize(("argv", "message"), [
-    (["-S", "optimize.f_scal=0.05,0.1"], "unknown key 'f_scal' — did you mean 'f_scale'?"),
-    (["-S", "optimize.loss=linear,huber,bogus"], "sweep point 3/3 (optimize.loss=bogus): "),
-    (["-S", "optimize.loss=linear", "--metric", "trajectory.rmse"],
-     "unknown metric 'trajectory.rmse' — did you mean 'trajectory.rmse_m'? (metrics: BLOCK."),
-    (["-S", "optimize.loss="], "no values (expected optimize.loss=v1,v2,…)"),
-    (["-S", "optimize.loss=linear,,huber"], "an empty value in the list"),
-    (["-S", "optimize.loss=linear,linear"], "value 'linear' given twice"),
-    (["-S", "optimize.loss=linear", "-S", "optimize.loss=huber"], "-S optimize.loss given twice"),
-    ([], "nothing to sweep: give -S stage.param=v1,v2,… or --points FILE"),
-    (["-S", "optimize.loss=linear", "--dataset", "query_9"], "--dataset query_9: unknown"),
-    (["-S", "optimize.loss=linear", "--metric", "D.mean_m", "--dataset", "reference"],
-     "metric D.mean_m: no dataset of the sweep has it (report [reference] does not run: runs "
-     "on query datasets only)"),
-    (["--points", "nope.csv"], "--points nope.csv: no such file"),
-    (["-S", "optimize.loss=linear", "--name", "../x"], "sweep name '../x' is not allowed"),
-    (["-S", "optimize=1,2"], "bad parameter 'optimize' (expected stage.param)"),
-])  # fmt: skip
-def test_bad_input_is_one_error_line(swept: tuple[Path, str, str], capsys: Capsys,
-                                     argv: list[str], message: str) -> None:  # fmt: skip
+@pytest.mark.parametrize(
+    ("argv", "message"),
+    [
+        (["-S", "optimize.f_scal=0.05,0.1"], "unknown key 'f_scal' — did you mean 'f_scale'?"),
+        (["-S", "optimize.loss=linear,huber,bogus"], "sweep point 3/3 (optimize.loss=bogus): "),
+        (
+            ["-S", "optimize.loss=linear", "--metric", "trajectory.rmse"],
+            "unknown metric 'trajectory.rmse' — did you mean 'trajectory.rmse_m'? (metrics: BLOCK.",
+        ),
+        (["-S", "optimize.loss="], "no values (expected optimize.loss=v1,v2,…)"),
+        (["-S", "optimize.loss=linear,,huber"], "an empty value in the list"),
+        (["-S", "optimize.loss=linear,linear"], "value 'linear' given twice"),
+        (
+            ["-S", "optimize.loss=linear", "-S", "optimize.loss=huber"],
+            "-S optimize.loss given twice",
+        ),
+        ([], "nothing to sweep: give -S stage.param=v1,v2,… or --points FILE"),
+        (["-S", "optimize.loss=linear", "--dataset", "query_9"], "--dataset query_9: unknown"),
+        (
+            ["-S", "optimize.loss=linear", "--metric", "D.mean_m", "--dataset", "reference"],
+            "metric D.mean_m: no dataset of the sweep has it (report [reference] does not run: "
+            "runs on query datasets only)",
+        ),
+        (["--points", "nope.csv"], "--points nope.csv: no such file"),
+        (["-S", "optimize.loss=linear", "--name", "../x"], "sweep name '../x' is not allowed"),
+        (["-S", "optimize=1,2"], "bad parameter 'optimize' (expected stage.param)"),
+    ],
+)
+def test_bad_input_is_one_error_line(
+    swept: tuple[Path, str, str], capsys: Capsys, argv: list[str], message: str
+) -> None:
     project, _, _ = swept
     sweeps = sorted(p.name for p in (project / "sweeps").iterdir())
     capsys.readouterr()
@@ -378,17 +504,20 @@ def test_bad_input_is_one_error_line(swept: tuple[Path, str, str], capsys: Capsy
     assert sorted(p.name for p in (project / "sweeps").iterdir()) == sweeps  # nothing written
 
 
-@pytest.mark.parametrize(("argv", "message"), [
-    (["--point", "10", "--sweep", NAME], f"sweep {NAME} has points 1..9, not 10"),
-    (["--point", "1", "--sweep", "optimize.loss"], "no sweep 'optimize.loss' in"),
-    (["--sweep", NAME], "give --point too"),
-])  # fmt: skip
-def test_show_point_errors(swept: tuple[Path, str, str], capsys: Capsys, argv: list[str],
-                           message: str) -> None:  # fmt: skip
+@pytest.mark.parametrize(
+    ("argv", "message"),
+    [
+        (["--point", "10", "--sweep", NAME], f"sweep {NAME} has points 1..9, not 10"),
+        (["--point", "1", "--sweep", "optimize.loss"], "no sweep 'optimize.loss' in"),
+        (["--sweep", NAME], "give --point too"),
+    ],
+)
+def test_show_point_errors(
+    swept: tuple[Path, str, str], capsys: Capsys, argv: list[str], message: str
+) -> None:
     project, _, _ = swept
     capsys.readouterr()
-    assert tagtrail.cli.main(["show", "optimize", "-p", str(project / "pipeline.yaml"),
-                              *argv]) == 2  # fmt: skip
+    assert tagtrail.cli.main(["show", "optimize", "-p", str(project / "pipeline.yaml"), *argv]) == 2
     assert message in one_error_line(capsys)
 
 
@@ -398,8 +527,10 @@ def test_points_csv_file_errors(tmp_path: Path) -> None:
 
     f = tmp_path / "p.csv"
     f.write_text("optimize.loss,optimize.f_scale\nhuber,0.1\n\nlinear,\n")
-    assert read_points(f) == [{"optimize.loss": "huber", "optimize.f_scale": "0.1"},
-                              {"optimize.loss": "linear"}]
+    assert read_points(f) == [
+        {"optimize.loss": "huber", "optimize.f_scale": "0.1"},
+        {"optimize.loss": "linear"},
+    ]
     f.write_text("optimize.loss\n")
     with pytest.raises(SpecError, match="no points"):
         read_points(f)

@@ -14,7 +14,9 @@ FOCAL_PX = 500.0
 
 
 def corner_problem(
-    noise_px: float = 0.0, seed: int = 0, n_frames: int = 180,
+    noise_px: float = 0.0,
+    seed: int = 0,
+    n_frames: int = 180,
 ) -> tuple[CornerObservations, np.ndarray, np.ndarray, int, np.ndarray]:
     """The ring scene's corners as normalised image coordinates (+ Gaussian noise in px), its
     tags and cameras (``cam_T_world``) in the anchor's frame, the anchor and frame stamps (s)."""
@@ -27,15 +29,23 @@ def corner_problem(
     frames, f = np.unique(scene.frame, return_inverse=True)
     a_T_w = inv(scene.world_T_tag[0])  # anchor (tag 0) frame = world of the problem
     t_s = (scene.t_ns[frames] - scene.t_ns[0]) * 1e-9
-    return (CornerObservations(f, scene.tag.astype(np.int64), pts_tag, uv),
-            a_T_w @ scene.world_T_tag, inv(a_T_w @ scene.world_T_cam[frames]), 0, t_s)
+    return (
+        CornerObservations(f, scene.tag.astype(np.int64), pts_tag, uv),
+        a_T_w @ scene.world_T_tag,
+        inv(a_T_w @ scene.world_T_cam[frames]),
+        0,
+        t_s,
+    )
 
 
-def perturbed(T: np.ndarray, seed: int, rot: float, trans: float, keep: int | None = None
-              ) -> np.ndarray:
+def perturbed(
+    T: np.ndarray, seed: int, rot: float, trans: float, keep: int | None = None
+) -> np.ndarray:
     rng = np.random.default_rng(seed)
-    out = make_T(R_from_rotvec(rng.normal(scale=rot, size=(len(T), 3))) @ T[:, :3, :3],
-                 T[:, :3, 3] + rng.normal(scale=trans, size=(len(T), 3)))
+    out = make_T(
+        R_from_rotvec(rng.normal(scale=rot, size=(len(T), 3))) @ T[:, :3, :3],
+        T[:, :3, 3] + rng.normal(scale=trans, size=(len(T), 3)),
+    )
     if keep is not None:
         out[keep] = T[keep]
     return out

@@ -118,8 +118,9 @@ def test_lost_and_reacquired() -> None:
     """A pose far from the path is lost; a pose that jumps to another part of the path
     re-acquires there (flagged lost once), then follows it again."""
     s = np.linspace(0.0, 10.0, 1001)
-    path = ReferencePath(np.column_stack([s, np.zeros_like(s), np.zeros_like(s)]),
-                         resolve_plane("xy"))  # fmt: skip
+    path = ReferencePath(
+        np.column_stack([s, np.zeros_like(s), np.zeros_like(s)]), resolve_plane("xy")
+    )
     tr = PathTracker(path, TrackParams(lost_m=0.5, reacquire_m=0.25))
     assert not tr.track(1.0, 0.1, 0.0).lost
     far = tr.track(1.1, 0.9, 0.0)

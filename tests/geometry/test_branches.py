@@ -93,8 +93,10 @@ def test_the_map_picks_each_observations_solution_in_its_frame() -> None:
     rng = np.random.default_rng(1)
     n_tags = 8
     ang = np.linspace(0.0, 2 * np.pi, n_tags, endpoint=False)
-    W = [make_T(R_from_rotvec([0.0, a + np.pi / 2, 0.0]), [3 * np.cos(a), 0.0, 3 * np.sin(a)])
-         for a in ang]
+    W = [
+        make_T(R_from_rotvec([0.0, a + np.pi / 2, 0.0]), [3 * np.cos(a), 0.0, 3 * np.sin(a)])
+        for a in ang
+    ]
     frame, tag, both, wrong = [], [], [], []
     for f in range(50):
         c = np.array([rng.uniform(-1, 1), rng.uniform(-0.2, 0.2), rng.uniform(-1, 1)])
@@ -110,8 +112,9 @@ def test_the_map_picks_each_observations_solution_in_its_frame() -> None:
             wrong.append(bad)
     frame_, tag_, wrong_ = np.array(frame), np.array(tag), np.array(wrong)
     S = np.array(both)[:, :, :3, :3]
-    W_map = np.array([w[:3, :3] @ R_from_rotvec(rng.normal(scale=np.radians(1.0), size=3))
-                      for w in W])
+    W_map = np.array(
+        [w[:3, :3] @ R_from_rotvec(rng.normal(scale=np.radians(1.0), size=3)) for w in W]
+    )
     missing = np.zeros(len(frame_), bool)
     missing[::7] = True  # a source that gave one pose: its only solution is the one it has
     S[missing & ~wrong_, 1] = np.nan

@@ -26,14 +26,29 @@ from tagtrail.geometry.se3 import R_from_rotvec, inv, make_T
 from tests.geometry.problems import FOCAL_PX, corner_problem, perturbed
 
 
-def solve(ob: CornerObservations, W: np.ndarray, C: np.ndarray, anchor: int,  # type: ignore[no-untyped-def]
-          prior: MotionPrior | None = None, covariance: bool = False, **kw: object):
+def solve(
+    ob: CornerObservations,
+    W: np.ndarray,
+    C: np.ndarray,
+    anchor: int,  # type: ignore[no-untyped-def]
+    prior: MotionPrior | None = None,
+    covariance: bool = False,
+    **kw: object,
+):
     """The joint solve of the map (all but the anchor free) from ``W``, ``C``; ``kw``: the
     :class:`Corners` settings."""
     free = np.arange(len(W)) != anchor
-    return solve_joint(W[:, :3, :3], W[:, :3, 3], C[:, :3, :3], C[:, :3, 3], ob, free,
-                       Corners(FOCAL_PX, **kw), [] if prior is None else [prior],  # type: ignore[arg-type]
-                       covariance=covariance)
+    return solve_joint(
+        W[:, :3, :3],
+        W[:, :3, 3],
+        C[:, :3, :3],
+        C[:, :3, 3],
+        ob,
+        free,
+        Corners(FOCAL_PX, **kw),
+        [] if prior is None else [prior],  # type: ignore[arg-type]
+        covariance=covariance,
+    )
 
 
 def test_same_frame_pairs_are_all_ordered_pairs_within_each_frame() -> None:
@@ -59,8 +74,9 @@ def test_motion_prior_jacobian_matches_finite_differences() -> None:
             d = np.zeros((n, 6))
             d[f, c] = eps
             num = (pr.residuals(*left_update(R, t, d))[0] - m) / eps
-            ana = sum(np.where(((pr.k - 1 + i) == f)[:, None], J[:, i, :, c], 0.0)
-                      for i in range(3))
+            ana = sum(
+                np.where(((pr.k - 1 + i) == f)[:, None], J[:, i, :, c], 0.0) for i in range(3)
+            )
             np.testing.assert_allclose(num, ana, atol=2e-5)
 
 
@@ -69,8 +85,7 @@ def test_motion_prior_is_zero_on_constant_velocity_motion() -> None:
     w, v = np.array([0.1, -0.3, 0.2]), np.array([0.5, 0.0, -0.2])
     world_T_cam = make_T(R_from_rotvec(t_s[:, None] * w), t_s[:, None] * v)
     cam_T_world = inv(world_T_cam)
-    m, _ = MotionPrior(t_s, 1.0, 1.0, 1.0).residuals(cam_T_world[:, :3, :3],
-                                                      cam_T_world[:, :3, 3])
+    m, _ = MotionPrior(t_s, 1.0, 1.0, 1.0).residuals(cam_T_world[:, :3, :3], cam_T_world[:, :3, 3])
     # constant body rate and constant world velocity of the centre: no acceleration
     assert np.abs(m[:, :3]).max() < 1e-12 and np.abs(m[:, 3:]).max() < 1e-9
 
@@ -90,9 +105,16 @@ def test_exact_poses_recovered_from_a_perturbed_start() -> None:
 def test_fixed_map_solves_the_cameras_only() -> None:
     ob, W, C, _, t_s = corner_problem()
     C0 = perturbed(C, 2, 0.02, 0.03)
-    res = solve_joint(W[:, :3, :3], W[:, :3, 3], C0[:, :3, :3], C0[:, :3, 3], ob,
-                      np.zeros(len(W), bool), Corners(FOCAL_PX),
-                      [MotionPrior(t_s, 1.0, 1.0, 1.0)])
+    res = solve_joint(
+        W[:, :3, :3],
+        W[:, :3, 3],
+        C0[:, :3, :3],
+        C0[:, :3, 3],
+        ob,
+        np.zeros(len(W), bool),
+        Corners(FOCAL_PX),
+        [MotionPrior(t_s, 1.0, 1.0, 1.0)],
+    )
     assert np.array_equal(res.t_tag, W[:, :3, 3])
     # the ring's constant-rate path is nearly constant velocity: the prior barely moves it
     assert np.abs(res.t_cam - C[:, :3, 3]).max() < 1e-3
@@ -108,8 +130,11 @@ def test_noise_and_an_outlier_detection() -> None:
     ob_bad = CornerObservations(ob.frame, ob.tag, ob.pts_tag, uv)
     W0 = perturbed(W, 4, 0.01, 0.02, keep=anchor)
     t = {}
-    for name, obs, loss in (("clean", ob, "huber"), ("huber", ob_bad, "huber"),
-                            ("linear", ob_bad, "linear")):
+    for name, obs, loss in (
+        ("clean", ob, "huber"),
+        ("huber", ob_bad, "huber"),
+        ("linear", ob_bad, "linear"),
+    ):
         res = solve(obs, W0, C, anchor, loss=loss, f_scale_px=1.0)
         assert res.converged
         t[name] = res.t_tag
@@ -126,8 +151,16 @@ def test_standard_deviations_match_the_scatter_over_noise_draws() -> None:
     errs_t, errs_c, std_t, std_c = [], [], [], []
     for seed in range(24):
         ob, W, C, anchor, t_s = corner_problem(noise_px=sigma, seed=10 + seed, n_frames=120)
-        res = solve(ob, W, C, anchor, sigma_px=sigma, loss="linear", covariance=True,
-                    prior=MotionPrior(t_s, 1.0, 1.0, 1.0))
+        res = solve(
+            ob,
+            W,
+            C,
+            anchor,
+            sigma_px=sigma,
+            loss="linear",
+            covariance=True,
+            prior=MotionPrior(t_s, 1.0, 1.0, 1.0),
+        )
         errs_t.append(res.t_tag - W[:, :3, 3])
         centre = -np.einsum("fji,fj->fi", res.R_cam, res.t_cam)
         centre_true = -np.einsum("fji,fj->fi", C[:, :3, :3], C[:, :3, 3])
@@ -164,8 +197,9 @@ def test_single_tag_stretch_is_held_by_its_neighbours() -> None:
     up to metres off (the flip), the joint solve without the prior still ~14 cm on average; with
     the motion prior the stretch stays within the sparse-scene bounds (mean <= 2.5 cm, max <=
     10 cm) on every noise draw."""
-    cam = CameraModel(640, 480, np.array([[FOCAL_PX, 0, 320], [0, FOCAL_PX, 240], [0, 0, 1]]),
-                      [], "none")
+    cam = CameraModel(
+        640, 480, np.array([[FOCAL_PX, 0, 320], [0, FOCAL_PX, 240], [0, 0, 1]]), [], "none"
+    )
     n = 120
     t_s = np.arange(n) / 30.0
     W = make_T(np.repeat(np.eye(3)[None], 2, 0), np.array([[0, 0, 0], [0.9, 0.1, 0.0]]))
@@ -182,17 +216,27 @@ def test_single_tag_stretch_is_held_by_its_neighbours() -> None:
     prior = MotionPrior(t_s, 0.3, np.radians(30.0), 0.5)
     for seed in range(3):
         uv = p[..., :2] / p[..., 2:] + np.random.default_rng(seed).normal(
-            scale=0.3 / FOCAL_PX, size=p[..., :2].shape)
-        sol, _ = solve_ippe(uv * FOCAL_PX + np.array([320.0, 240.0]), np.full(len(frame), 0.16),
-                            cam)
+            scale=0.3 / FOCAL_PX, size=p[..., :2].shape
+        )
+        sol, _ = solve_ippe(
+            uv * FOCAL_PX + np.array([320.0, 240.0]), np.full(len(frame), 0.16), cam
+        )
         ob = CornerObservations(frame, tag, pts, uv)
         per_frame = np.linalg.norm((W[tag] @ inv(sol[:, 0]))[:, :3, 3] - centre[frame], axis=1)
         assert per_frame.max() > 1.0
         start, _, _ = initial_cameras(W[tag], sol, ob, t_s, px_per_unit=FOCAL_PX, max_gap_s=0.5)
         err = {}
         for name, pr in (("none", None), ("prior", prior)):
-            res = solve_joint(W[:, :3, :3], W[:, :3, 3], start[:, :3, :3], start[:, :3, 3], ob,
-                              np.zeros(2, bool), Corners(FOCAL_PX, 0.3), [] if pr is None else [pr])
+            res = solve_joint(
+                W[:, :3, :3],
+                W[:, :3, 3],
+                start[:, :3, :3],
+                start[:, :3, 3],
+                ob,
+                np.zeros(2, bool),
+                Corners(FOCAL_PX, 0.3),
+                [] if pr is None else [pr],
+            )
             c = -np.einsum("fji,fj->fi", res.R_cam, res.t_cam)
             err[name] = np.linalg.norm(c - centre, axis=1)
         assert err["prior"].mean() <= 0.025 and err["prior"].max() <= 0.10
@@ -204,12 +248,14 @@ def test_tags_never_seen_together_are_linked_through_the_trajectory() -> None:
     ``link_tags`` places tag 1 from the camera path extrapolated across the hand-over, and the
     joint solve with the motion prior puts it within 3 cm of the truth (per-frame IPPE alone
     cannot place it at all). A hand-over after a gap longer than ``max_gap_s`` links nothing."""
-    cam = CameraModel(640, 480, np.array([[FOCAL_PX, 0, 320], [0, FOCAL_PX, 240], [0, 0, 1]]),
-                      [], "none")
+    cam = CameraModel(
+        640, 480, np.array([[FOCAL_PX, 0, 320], [0, FOCAL_PX, 240], [0, 0, 1]]), [], "none"
+    )
     n = 120
     t_s = np.arange(n) / 30.0
-    W = make_T(R_from_rotvec(np.array([[0, 0, 0], [0, 0.3, 0]])), np.array([[0, 0, 0],
-                                                                              [1.2, 0.1, 0.1]]))
+    W = make_T(
+        R_from_rotvec(np.array([[0, 0, 0], [0, 0.3, 0]])), np.array([[0, 0, 0], [1.2, 0.1, 0.1]])
+    )
     R_wc = R_from_rotvec(np.stack([np.zeros(n), np.full(n, np.pi), np.zeros(n)], 1))
     centre = np.stack([np.linspace(-0.3, 1.5, n), np.zeros(n), np.full(n, 1.5)], 1)
     world_T_cam = make_T(R_wc, centre)
@@ -217,31 +263,42 @@ def test_tags_never_seen_together_are_linked_through_the_trajectory() -> None:
     cam_T_tag = inv(world_T_cam) @ W[tag]
     pts = tag_corners(np.full(n, 0.16))
     p = np.einsum("oij,okj->oki", cam_T_tag[:, :3, :3], pts) + cam_T_tag[:, None, :3, 3]
-    uv = p[..., :2] / p[..., 2:] + np.random.default_rng(2).normal(scale=0.2 / FOCAL_PX,
-                                                                    size=p[..., :2].shape)
+    uv = p[..., :2] / p[..., 2:] + np.random.default_rng(2).normal(
+        scale=0.2 / FOCAL_PX, size=p[..., :2].shape
+    )
     sol, _ = solve_ippe(uv * FOCAL_PX + np.array([320.0, 240.0]), np.full(n, 0.16), cam)
     ob = CornerObservations(np.arange(n), tag, pts, uv)
     start = W.copy()
     start[1] = np.nan
     for gap, linked in ((0.0, True), (1.0, False)):
         ts = t_s + np.where(np.arange(n) >= 60, gap, 0.0)
-        Wl, known = link_tags(start, np.array([True, False]), sol, ob, ts,
-                              px_per_unit=FOCAL_PX, max_gap_s=0.5)
+        Wl, known = link_tags(
+            start, np.array([True, False]), sol, ob, ts, px_per_unit=FOCAL_PX, max_gap_s=0.5
+        )
         assert bool(known[1]) is linked
-    Wl, known = link_tags(start, np.array([True, False]), sol, ob, t_s, px_per_unit=FOCAL_PX,
-                          max_gap_s=0.5)
+    Wl, known = link_tags(
+        start, np.array([True, False]), sol, ob, t_s, px_per_unit=FOCAL_PX, max_gap_s=0.5
+    )
     C0, _, _ = initial_cameras(Wl[tag], sol, ob, t_s, px_per_unit=FOCAL_PX, max_gap_s=0.5)
-    res = solve_joint(Wl[:, :3, :3], Wl[:, :3, 3], C0[:, :3, :3], C0[:, :3, 3], ob,
-                      np.array([False, True]), Corners(FOCAL_PX, 0.2),
-                      [MotionPrior(t_s, 0.1, np.radians(30.0), 0.5)])
+    res = solve_joint(
+        Wl[:, :3, :3],
+        Wl[:, :3, 3],
+        C0[:, :3, :3],
+        C0[:, :3, 3],
+        ob,
+        np.array([False, True]),
+        Corners(FOCAL_PX, 0.2),
+        [MotionPrior(t_s, 0.1, np.radians(30.0), 0.5)],
+    )
     assert np.linalg.norm(res.t_tag[1] - W[1, :3, 3]) < 0.03
 
 
 def test_corner_noise_is_estimated_from_the_residuals() -> None:
     """Started from a corner noise 4x too large, ``estimate_noise`` finds the 0.5 px it is."""
     ob, W, C, anchor, t_s = corner_problem(noise_px=0.5, seed=7, n_frames=120)
-    res = solve(ob, W, C, anchor, sigma_px=2.0, estimate_noise=True,
-                prior=MotionPrior(t_s, 1.0, 1.0, 1.0))
+    res = solve(
+        ob, W, C, anchor, sigma_px=2.0, estimate_noise=True, prior=MotionPrior(t_s, 1.0, 1.0, 1.0)
+    )
     given = solve(ob, W, C, anchor, sigma_px=2.0, prior=MotionPrior(t_s, 1.0, 1.0, 1.0))
     assert given.sigma_px == 2.0 and abs(res.sigma_px - 0.5) < 0.05
 
@@ -252,8 +309,16 @@ def test_frame_evidence_measures_a_move_in_the_frames_own_standard_deviations() 
     as nothing; the displaced frames' corner RMS grows, the per-frame solution's does not."""
     ob, W, C, _, _ = corner_problem(noise_px=0.3, n_frames=60)
     fixed = np.zeros(len(W), bool)
-    alone = solve_joint(W[:, :3, :3], W[:, :3, 3], C[:, :3, :3], C[:, :3, 3], ob, fixed,
-                        Corners(FOCAL_PX, 0.3), covariance=True)
+    alone = solve_joint(
+        W[:, :3, :3],
+        W[:, :3, 3],
+        C[:, :3, :3],
+        C[:, :3, 3],
+        ob,
+        fixed,
+        Corners(FOCAL_PX, 0.3),
+        covariance=True,
+    )
     assert alone.cam_cov is not None
     moved, k_sigma = np.arange(0, 60, 7), 8.0
     rng = np.random.default_rng(3)
@@ -263,14 +328,22 @@ def test_frame_evidence_measures_a_move_in_the_frames_own_standard_deviations() 
         L = np.linalg.cholesky(alone.cam_cov[f])
         d[f] = k_sigma * (L @ u) / np.linalg.norm(u)
     Rc, tc = left_update(alone.R_cam, alone.t_cam, d)
-    res = dataclasses.replace(alone, R_cam=Rc, t_cam=tc, res_px=solve_joint(
-        W[:, :3, :3], W[:, :3, 3], Rc, tc, ob, fixed, Corners(FOCAL_PX, 0.3),
-        max_iter=0).res_px)
+    res = dataclasses.replace(
+        alone,
+        R_cam=Rc,
+        t_cam=tc,
+        res_px=solve_joint(
+            W[:, :3, :3], W[:, :3, 3], Rc, tc, ob, fixed, Corners(FOCAL_PX, 0.3), max_iter=0
+        ).res_px,
+    )
     ev = frame_evidence(res, ob, Corners(FOCAL_PX, 0.3, "huber", 1.0))
     rest = np.setdiff1d(np.arange(60), moved)
     np.testing.assert_allclose(ev.shift_sigma[moved], k_sigma, rtol=0.1)
     assert (ev.shift_sigma[moved] > SHIFT_SIGMA_BOUND).all()
     assert ev.shift_sigma[rest].max() < 0.05 and ev.shift_m[rest].max() < 1e-5
     assert (ev.reproj_px[moved] > ev.alone_reproj_px[moved]).all()
-    np.testing.assert_allclose(ev.alone_reproj_px, np.sqrt(
-        np.bincount(ob.frame, alone.res_px**2) / np.bincount(ob.frame)), rtol=1e-3)
+    np.testing.assert_allclose(
+        ev.alone_reproj_px,
+        np.sqrt(np.bincount(ob.frame, alone.res_px**2) / np.bincount(ob.frame)),
+        rtol=1e-3,
+    )

@@ -45,8 +45,9 @@ def test_project_matches_opencv(model: str) -> None:
     p = points_cam().reshape(-1, 3)
     Km = np.array(K).reshape(3, 3)
     if model == "equidistant":
-        ref, _ = cv2.fisheye.projectPoints(p[None], np.zeros(3), np.zeros(3), Km,
-                                           np.array(MODELS[model]))
+        ref, _ = cv2.fisheye.projectPoints(
+            p[None], np.zeros(3), np.zeros(3), Km, np.array(MODELS[model])
+        )
     else:
         ref, _ = cv2.projectPoints(p, np.zeros(3), np.zeros(3), Km, np.array(MODELS[model]))
     np.testing.assert_allclose(cam.project(p), ref.reshape(-1, 2), atol=1e-9)
@@ -61,8 +62,7 @@ def test_scaled_maps_pixels_about_the_image_corner(model: str) -> None:
     np.testing.assert_array_equal(big.D, cam.D)
     p = points_cam()
     # The image's outer corner (-0.5, -0.5) stays put; pixel sizes scale by 2 and 1.5.
-    np.testing.assert_allclose(big.project(p) + 0.5, (cam.project(p) + 0.5) * [2.0, 1.5],
-                               atol=1e-9)
+    np.testing.assert_allclose(big.project(p) + 0.5, (cam.project(p) + 0.5) * [2.0, 1.5], atol=1e-9)
     assert big.scaled(640, 480).same_as(cam)
     with pytest.raises(SourceError, match="0x480"):
         cam.scaled(0, 480)
@@ -124,20 +124,32 @@ distortion_coefficients:
   data: [0.1, -0.2, 0.001, 0.002, 0.05]
 """
 BAD_CAMERAS = {  # edit of GOOD_CAMERA → what the one error line must say after the file name
-    "missing K": (lambda t: t.replace("camera_matrix:", "camera_matrixx:"),
-                  "not a camera_info YAML: no camera_matrix; a camera_info YAML needs"),
-    "K too short": (lambda t: t.replace(", 0.0, 0.0, 1.0]", "]"),
-                    "camera_matrix.data has 6 numbers, needs 9"),
-    "K not numeric": (lambda t: t.replace("505.0", "abc"),
-                      "camera_matrix.data[4] is 'abc', not a number"),
-    "D not numeric": (lambda t: t.replace("-0.2", "x"),
-                      "distortion_coefficients.data[1] is 'x', not a number"),
+    "missing K": (
+        lambda t: t.replace("camera_matrix:", "camera_matrixx:"),
+        "not a camera_info YAML: no camera_matrix; a camera_info YAML needs",
+    ),
+    "K too short": (
+        lambda t: t.replace(", 0.0, 0.0, 1.0]", "]"),
+        "camera_matrix.data has 6 numbers, needs 9",
+    ),
+    "K not numeric": (
+        lambda t: t.replace("505.0", "abc"),
+        "camera_matrix.data[4] is 'abc', not a number",
+    ),
+    "D not numeric": (
+        lambda t: t.replace("-0.2", "x"),
+        "distortion_coefficients.data[1] is 'x', not a number",
+    ),
     "width": (lambda t: t.replace("640", "wide"), "image_width is 'wide', not a positive integer"),
-    "fx zero": (lambda t: t.replace("500.0", "0.0"),
-                "camera matrix K is not a calibration: fx = 0, fy = 505 (both must be > 0)"),
+    "fx zero": (
+        lambda t: t.replace("500.0", "0.0"),
+        "camera matrix K is not a calibration: fx = 0, fy = 505 (both must be > 0)",
+    ),
     "K infinite": (lambda t: t.replace("500.0", ".inf"), "camera matrix K has non-finite values"),
-    "not YAML": (lambda t: t.replace("data: [500.0,", "data: [500.0,: ,"),
-                 "not valid YAML (camera file): line 6, column 16: expected the node content"),
+    "not YAML": (
+        lambda t: t.replace("data: [500.0,", "data: [500.0,: ,"),
+        "not valid YAML (camera file): line 6, column 16: expected the node content",
+    ),
     "not a mapping": (lambda t: "- 1\n- 2\n", "not a camera_info YAML (it holds list"),
     "empty": (lambda t: "", "empty file; a camera_info YAML needs"),
     "model": (lambda t: t.replace("plumb_bob", "kannala"), "unsupported distortion model"),
@@ -165,8 +177,20 @@ def test_bad_camera_yaml_is_one_line(tmp_path: Path, capsys, case: str) -> None:
     with pytest.raises(SourceError) as info:  # one line at the source, not only once folded
         read_camera_file(folder / "camera.yaml")
     assert "\n" not in str(info.value)
-    assert main(["init", "--reference", str(folder), "--tag-size", "0.16",
-                 "-o", str(tmp_path / "p.yaml")]) == 2
+    assert (
+        main(
+            [
+                "init",
+                "--reference",
+                str(folder),
+                "--tag-size",
+                "0.16",
+                "-o",
+                str(tmp_path / "p.yaml"),
+            ]
+        )
+        == 2
+    )
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1, err
     assert err[0].startswith(f"error: {folder / 'camera.yaml'}: ") and message in err[0], err[0]

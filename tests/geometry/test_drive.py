@@ -40,8 +40,13 @@ def _d(a: np.ndarray) -> np.ndarray:
     return np.stack([-np.sin(a), np.zeros_like(a), -np.cos(a)], axis=1)
 
 
-def drive_cameras(n: int = 300, lever_m: float = 0.084, yaw_deg: float = 10.0,
-                  crab_mps: float = 0.0, fps: float = 30.0) -> tuple[np.ndarray, np.ndarray]:
+def drive_cameras(
+    n: int = 300,
+    lever_m: float = 0.084,
+    yaw_deg: float = 10.0,
+    crab_mps: float = 0.0,
+    fps: float = 30.0,
+) -> tuple[np.ndarray, np.ndarray]:
     """``cam_T_world (n, 4, 4)`` and stamps (s) of a camera on a robot driving a weaving path at
     0.3 m/s on a tilted floor: mounted ``lever_m`` ahead of the point between the wheels, turned
     ``yaw_deg`` to the left of the robot's heading and pitched down 12 deg; ``crab_mps``: the
@@ -117,8 +122,9 @@ def wall_tags(C: np.ndarray, spacing_m: float = 0.5, offset_m: float = 1.0) -> n
     return np.stack(poses)
 
 
-def corners(C: np.ndarray, W: np.ndarray, noise_px: float, seed: int = 0,
-            half_fov_deg: float = 40.0) -> CornerObservations:
+def corners(
+    C: np.ndarray, W: np.ndarray, noise_px: float, seed: int = 0, half_fov_deg: float = 40.0
+) -> CornerObservations:
     """The tags ``W`` each camera ``C`` (cam_T_world) sees within its field of view and 70 deg
     of incidence, as normalised coordinates with Gaussian noise (px at ``FOCAL_PX``)."""
     pts = tag_corners(np.full(len(W), 0.16))
@@ -135,20 +141,31 @@ def corners(C: np.ndarray, W: np.ndarray, noise_px: float, seed: int = 0,
     return CornerObservations(f.astype(np.int64), t.astype(np.int64), pts[t], uv)
 
 
-def grounded_and_driven(C: np.ndarray, t_s: np.ndarray, W: np.ndarray, ob: CornerObservations,
-                        drive_mode: str = "auto"):  # type: ignore[no-untyped-def]
+def grounded_and_driven(
+    C: np.ndarray, t_s: np.ndarray, W: np.ndarray, ob: CornerObservations, drive_mode: str = "auto"
+):  # type: ignore[no-untyped-def]
     """The joint solve from the truth with the ground prior, then ``solve_grounded`` with the
     drive prior (``drive_mode``): the grounded solution, the final one and the report block."""
     free = np.arange(len(W)) != 0
     motion = MotionPrior(t_s, 0.1, 1.0, 0.5)
 
     def solve(priors=()):  # type: ignore[no-untyped-def]
-        return solve_joint(W[:, :3, :3], W[:, :3, 3], C[:, :3, :3], C[:, :3, 3], ob, free,
-                           Corners(FOCAL_PX), [motion, *priors], covariance=True)
+        return solve_joint(
+            W[:, :3, :3],
+            W[:, :3, 3],
+            C[:, :3, :3],
+            C[:, :3, 3],
+            ob,
+            free,
+            Corners(FOCAL_PX),
+            [motion, *priors],
+            covariance=True,
+        )
 
     grounded, _ = solve_grounded(solve(), lambda r, priors: solve(priors), GROUND, "plane")
-    out, block = solve_grounded(solve(), lambda r, priors: solve(priors), GROUND, "plane", DRIVE,
-                                drive_mode, motion)
+    out, block = solve_grounded(
+        solve(), lambda r, priors: solve(priors), GROUND, "plane", DRIVE, drive_mode, motion
+    )
     return grounded, out, block.drive
 
 

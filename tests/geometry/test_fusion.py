@@ -41,8 +41,9 @@ def test_fusion_exact_and_robust_to_one_bad_tag() -> None:
     est = np.repeat(truth, 5, axis=0)
     for fuse in (fuse_mean, fuse_robust):
         assert np.allclose(fuse(est, group, 3), truth, atol=1e-12)
-    noisy = est @ make_T(R_from_rotvec(rng.normal(scale=0.005, size=(15, 3))),
-                         rng.normal(scale=0.01, size=(15, 3)))
+    noisy = est @ make_T(
+        R_from_rotvec(rng.normal(scale=0.005, size=(15, 3))), rng.normal(scale=0.01, size=(15, 3))
+    )
     flip = make_T(Rotation.from_euler("x", 40, degrees=True).as_matrix(), [0.5, 0, 0])
     noisy[0] = noisy[0] @ flip
     dt_mean, _ = pose_error(fuse_mean(noisy, group, 3)[0], truth[0])
@@ -94,10 +95,12 @@ def test_multi_tag_pnp_rejects_a_wrong_tag() -> None:
 def corridor(tmp_path_factory: pytest.TempPathFactory) -> Path:
     """A pipeline on a simulated corridor (1-3 tags a frame, noisy corners)."""
     root = tmp_path_factory.mktemp("fp")
-    rec = simulate("corridor", root, frames=90, detections=True, corner_noise_px=0.8,
-                   seed=5)["corridor"]  # fmt: skip
-    (root / "pipeline.yaml").write_text(f"reference: corridor\ndatasets:\n  corridor:\n"
-                                        f"    source: {rec}\n")  # fmt: skip
+    rec = simulate("corridor", root, frames=90, detections=True, corner_noise_px=0.8, seed=5)[
+        "corridor"
+    ]
+    (root / "pipeline.yaml").write_text(
+        f"reference: corridor\ndatasets:\n  corridor:\n    source: {rec}\n"
+    )
     return root / "pipeline.yaml"
 
 
@@ -120,8 +123,17 @@ def test_trajectory_stage_poses_single_tag_frames_by_fusion_and_the_rest_by_pnp(
 
 def test_frame_poses_frame_without_observations_is_nan() -> None:
     T = make_T(np.eye(3), [[1.0, 2.0, 3.0]])
-    res = frame_poses(T, np.eye(4)[None], np.array([1]), 2, method="lsq", loss="soft_l1",
-                      f_scale=0.1, rot_weight_m=1.0, ransac_px=3.0)  # fmt: skip
+    res = frame_poses(
+        T,
+        np.eye(4)[None],
+        np.array([1]),
+        2,
+        method="lsq",
+        loss="soft_l1",
+        f_scale=0.1,
+        rot_weight_m=1.0,
+        ransac_px=3.0,
+    )
     assert res.n_tags.tolist() == [0, 1]
     assert np.isnan(res.world_T_cam[0]).all()
     assert np.allclose(res.world_T_cam[1], T[0], atol=1e-12)

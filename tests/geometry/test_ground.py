@@ -62,8 +62,10 @@ def test_planarity_tells_a_robot_from_a_hand_held_camera() -> None:
     robot = perturbed(C, 4, np.radians(0.5), 0.005)  # 5 mm / 0.5 deg off the plane
     assert planarity(robot[:, :3, :3], robot[:, :3, 3], cov, PRIOR)[1] < PLANAR_BOUND
     # a hand-held camera: +-10 cm up and down and +-5 deg of roll and pitch
-    hand = make_T(R_from_rotvec(rng.normal(scale=np.radians(5.0), size=(200, 3))) @ C[:, :3, :3],
-                  C[:, :3, 3] + rng.normal(scale=0.1, size=(200, 3)))
+    hand = make_T(
+        R_from_rotvec(rng.normal(scale=np.radians(5.0), size=(200, 3))) @ C[:, :3, :3],
+        C[:, :3, 3] + rng.normal(scale=0.1, size=(200, 3)),
+    )
     assert planarity(hand[:, :3, :3], hand[:, :3, 3], cov, PRIOR)[1] > 5 * PLANAR_BOUND
 
 
@@ -77,9 +79,17 @@ def test_ground_prior_holds_a_noisy_ring_in_its_plane() -> None:
     truth = fit_plane(C[:, :3, :3], C[:, :3, 3], PRIOR)
 
     def solve(priors=()):  # type: ignore[no-untyped-def]
-        return solve_joint(W[:, :3, :3], W[:, :3, 3], C[:, :3, :3], C[:, :3, 3], ob, free,
-                           Corners(FOCAL_PX), [MotionPrior(t_s, 0.3, 1.0, 1.0), *priors],
-                           covariance=True)
+        return solve_joint(
+            W[:, :3, :3],
+            W[:, :3, 3],
+            C[:, :3, :3],
+            C[:, :3, 3],
+            ob,
+            free,
+            Corners(FOCAL_PX),
+            [MotionPrior(t_s, 0.3, 1.0, 1.0), *priors],
+            covariance=True,
+        )
 
     free_res = solve()
     res, block = solve_grounded(free_res, lambda r, priors: solve(priors), PRIOR, "auto")
@@ -90,8 +100,11 @@ def test_ground_prior_holds_a_noisy_ring_in_its_plane() -> None:
         _, Rf, tf = umeyama(r.t_tag, W[:, :3, 3], with_scale=False)
         cam = centres(r.R_cam, r.t_cam) @ Rf.T + tf - centres(C[:, :3, :3], C[:, :3, 3])
         tags = r.t_tag @ Rf.T + tf - W[:, :3, 3]
-        return (float(np.sqrt(np.mean((cam @ truth.n) ** 2))),
-                float(np.sqrt(np.mean(np.sum(tags**2, axis=1)))), Rf)
+        return (
+            float(np.sqrt(np.mean((cam @ truth.n) ** 2))),
+            float(np.sqrt(np.mean(np.sum(tags**2, axis=1)))),
+            Rf,
+        )
 
     h0, tags0, _ = errors(free_res)
     h1, tags1, Rf = errors(res)
@@ -104,17 +117,33 @@ def test_auto_leaves_a_hand_held_path_alone() -> None:
     ob, W, C, anchor, t_s = corner_problem(noise_px=0.3, seed=6)
     rng = np.random.default_rng(7)
     # lift the cameras +-15 cm and tip them +-6 deg: the corners come from those poses
-    C2 = make_T(R_from_rotvec(rng.normal(scale=np.radians(6.0), size=(len(C), 3))) @ C[:, :3, :3],
-                C[:, :3, 3] + rng.normal(scale=0.15, size=(len(C), 3)))
+    C2 = make_T(
+        R_from_rotvec(rng.normal(scale=np.radians(6.0), size=(len(C), 3))) @ C[:, :3, :3],
+        C[:, :3, 3] + rng.normal(scale=0.15, size=(len(C), 3)),
+    )
     pts_w = np.einsum("oij,okj->oki", W[ob.tag, :3, :3], ob.pts_tag) + W[ob.tag, None, :3, 3]
     pc = np.einsum("oij,okj->oki", C2[ob.frame, :3, :3], pts_w) + C2[ob.frame, None, :3, 3]
     ok = (pc[..., 2] > 0.05).all(axis=1)
     uv = pc[..., :2] / pc[..., 2:]
     ob2 = type(ob)(ob.frame[ok], ob.tag[ok], ob.pts_tag[ok], uv[ok])
     free = np.arange(len(W)) != anchor
-    res = solve_joint(W[:, :3, :3], W[:, :3, 3], C2[:, :3, :3], C2[:, :3, 3], ob2, free,
-                      Corners(FOCAL_PX), covariance=True)
-    out, block = solve_grounded(res, lambda r, priors: solve_joint(
-        r.R_tag, r.t_tag, r.R_cam, r.t_cam, ob2, free, Corners(FOCAL_PX), priors), PRIOR, "auto")
+    res = solve_joint(
+        W[:, :3, :3],
+        W[:, :3, 3],
+        C2[:, :3, :3],
+        C2[:, :3, 3],
+        ob2,
+        free,
+        Corners(FOCAL_PX),
+        covariance=True,
+    )
+    out, block = solve_grounded(
+        res,
+        lambda r, priors: solve_joint(
+            r.R_tag, r.t_tag, r.R_cam, r.t_cam, ob2, free, Corners(FOCAL_PX), priors
+        ),
+        PRIOR,
+        "auto",
+    )
     assert not block.applied and block.planarity > 5 * PLANAR_BOUND
     assert out is res

@@ -26,20 +26,29 @@ GROUND = GroundPrior.of(0.01, 1.0)
 DRIVE = DrivePrior(0.01)
 
 
-def parked(n: int = 30, fps: float = 30.0, seed: int = 0
-           ) -> tuple[CornerObservations, np.ndarray, np.ndarray, np.ndarray]:
+def parked(
+    n: int = 30, fps: float = 30.0, seed: int = 0
+) -> tuple[CornerObservations, np.ndarray, np.ndarray, np.ndarray]:
     """A camera standing still 1.5 m before four 16 cm tags for ``n`` frames, corners with
     0.3 px of noise: the observations, ``world_T_tag``, ``cam_T_world`` and stamps (s)."""
-    W = make_T(np.repeat(np.eye(3)[None], 4, 0),
-               np.array([[-0.4, 0.0, 0.0], [0.4, 0.0, 0.0], [-0.4, 0.3, 0.0], [0.4, 0.3, 0.0]]))
-    C = np.repeat(inv(make_T(R_from_rotvec(np.array([[0.1, 0.05, 0.0]])),
-                             np.array([[0.0, 0.15, -1.5]])))[None, 0], n, 0)
+    W = make_T(
+        np.repeat(np.eye(3)[None], 4, 0),
+        np.array([[-0.4, 0.0, 0.0], [0.4, 0.0, 0.0], [-0.4, 0.3, 0.0], [0.4, 0.3, 0.0]]),
+    )
+    C = np.repeat(
+        inv(make_T(R_from_rotvec(np.array([[0.1, 0.05, 0.0]])), np.array([[0.0, 0.15, -1.5]])))[
+            None, 0
+        ],
+        n,
+        0,
+    )
     frame, tag = np.repeat(np.arange(n), 4), np.tile(np.arange(4), n)
     pts = tag_corners(np.full(len(frame), 0.16))
     pw = np.einsum("oij,okj->oki", W[tag, :3, :3], pts) + W[tag, None, :3, 3]
     pc = np.einsum("oij,okj->oki", C[frame, :3, :3], pw) + C[frame, None, :3, 3]
     uv = pc[..., :2] / pc[..., 2:] + np.random.default_rng(seed).normal(
-        scale=0.3 / FOCAL_PX, size=pc[..., :2].shape)
+        scale=0.3 / FOCAL_PX, size=pc[..., :2].shape
+    )
     return CornerObservations(frame, tag, pts, uv), W, C, np.arange(n) / fps
 
 
@@ -49,8 +58,17 @@ def decide(fallback: tuple[bool, bool] | None = None):  # type: ignore[no-untype
     fixed = np.zeros(len(W), bool)
 
     def solve(start: JointResult | None = None, priors=()):  # type: ignore[no-untyped-def]
-        return solve_joint(W[:, :3, :3], W[:, :3, 3], C[:, :3, :3], C[:, :3, 3], ob, fixed,
-                           Corners(FOCAL_PX, 0.3), [motion, *priors], covariance=True)
+        return solve_joint(
+            W[:, :3, :3],
+            W[:, :3, 3],
+            C[:, :3, :3],
+            C[:, :3, 3],
+            ob,
+            fixed,
+            Corners(FOCAL_PX, 0.3),
+            [motion, *priors],
+            covariance=True,
+        )
 
     res = solve()
     return res, *solve_grounded(res, solve, GROUND, "auto", DRIVE, "auto", motion, fallback)

@@ -37,4 +37,5 @@ def test_equals_brute_force(n: int) -> None:
             assert ix.query(q) == _brute(uv, q)
         d, k = ix.query(Q[:4])
         assert [(float(a), int(b)) for a, b in zip(d, k, strict=True)] == [
-            _brute(uv, q) for q in Q[:4]]
+            _brute(uv, q) for q in Q[:4]
+        ]

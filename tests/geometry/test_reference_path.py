@@ -102,8 +102,9 @@ def test_ends_of_the_path_use_one_sided_differences() -> None:
     path = ReferencePath(xz_points(uv), XZ)
     m = path.query(xz_points([(2.5, 1.2), (-0.4, 0.1)]), np.stack([cam_R(50.0), cam_R(-10.0)]))
     np.testing.assert_array_equal(m.ref_idx, [2, 0])
-    np.testing.assert_allclose(m.distance_m, [math.hypot(0.5, 0.2), math.hypot(0.4, 0.1)],
-                               atol=1e-9)  # fmt: skip
+    np.testing.assert_allclose(
+        m.distance_m, [math.hypot(0.5, 0.2), math.hypot(0.4, 0.1)], atol=1e-9
+    )
     np.testing.assert_allclose(np.degrees(m.phi_rad), [5.0, -10.0], atol=1e-9)
 
 
@@ -144,8 +145,9 @@ def test_point_mode_vertex_tie_goes_to_the_earlier_segment() -> None:
 def test_batch_single_and_polyline_chunks_agree() -> None:
     rng = np.random.default_rng(3)
     a = np.cumsum(rng.normal(0, 0.2, 300))
-    ref = xz_points(list(zip(np.cumsum(np.cos(a)) * 0.05, np.cumsum(np.sin(a)) * 0.05,
-                             strict=True)))  # fmt: skip
+    ref = xz_points(
+        list(zip(np.cumsum(np.cos(a)) * 0.05, np.cumsum(np.sin(a)) * 0.05, strict=True))
+    )
     path = ReferencePath(ref, XZ)
     P = ref[rng.integers(0, 300, 50)] + rng.normal(0, 0.3, (50, 3))
     R = np.stack([cam_R(h) for h in rng.uniform(-180, 180, 50)])

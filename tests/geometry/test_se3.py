@@ -25,8 +25,9 @@ def test_frames_cancel() -> None:
     world_T_cam = se3.compose(world_T_tag, se3.inv(cam_T_tag))
     p_tag = rng.normal(size=3)
     p_cam = se3.transform_points(cam_T_tag, p_tag)
-    assert np.allclose(se3.transform_points(world_T_cam, p_cam),
-                       se3.transform_points(world_T_tag, p_tag))
+    assert np.allclose(
+        se3.transform_points(world_T_cam, p_cam), se3.transform_points(world_T_tag, p_tag)
+    )
 
 
 def test_quaternion_and_rotvec_round_trips_match_loop() -> None:

@@ -34,6 +34,7 @@ def test_analytic_jacobian_matches_finite_differences() -> None:
 def test_too_short_passes_through() -> None:
     R = R_from_rotvec(np.zeros((2, 3)))
     p = np.zeros((2, 3))
-    R2, p2 = smooth_poses(np.array([0.0, 0.1]), R, p, pos_sigma_m=0.01, rot_sigma_rad=0.01,
-                          pos_acc=1.0, rot_acc=1.0)
+    R2, p2 = smooth_poses(
+        np.array([0.0, 0.1]), R, p, pos_sigma_m=0.01, rot_sigma_rad=0.01, pos_acc=1.0, rot_acc=1.0
+    )
     assert np.array_equal(R2, R) and np.array_equal(p2, p)

@@ -30,12 +30,14 @@ def _scene(seed: int = 3, n: int = 8) -> tuple[np.ndarray, np.ndarray]:
 
 def _known(ids: np.ndarray, T: np.ndarray, pick: list[int], full: bool) -> Survey:
     k = np.searchsorted(ids, pick)
-    return make_survey([(int(ids[j]), T[j, :3, 3], T[j, :3, :3] if full else None, 0.16)
-                        for j in k])
+    return make_survey(
+        [(int(ids[j]), T[j, :3, 3], T[j, :3, :3] if full else None, 0.16) for j in k]
+    )
 
 
-@pytest.mark.parametrize(("pick", "full"), [([12], True), ([10, 13, 16], False),
-                                            ([11, 14, 15, 17], True)])
+@pytest.mark.parametrize(
+    ("pick", "full"), [([12], True), ([10, 13, 16], False), ([11, 14, 15, 17], True)]
+)
 def test_a_moved_map_is_put_back_in_the_surveyed_world(pick: list[int], full: bool) -> None:
     ids, world_T_tag = _scene()
     map_T_world = make_T(R_from_rotvec([0.3, -1.2, 0.7]), [4.0, -2.0, 1.0])
@@ -83,8 +85,9 @@ def test_degenerate_surveys_say_what_is_missing() -> None:
         fit_survey(ids, line, _known(ids, line, [10, 11, 12], False))
     with pytest.raises(ValueError, match="a similarity needs 3 or more known tags"):
         fit_survey(ids, T, _known(ids, T, [12], True), similarity=True)
-    fit = fit_survey(ids, T, make_survey([(12, T[2, :3, 3], T[2, :3, :3], None),
-                                          (99, [0, 0, 0], None, None)]))
+    fit = fit_survey(
+        ids, T, make_survey([(12, T[2, :3, 3], T[2, :3, :3], None), (99, [0, 0, 0], None, None)])
+    )
     assert fit.missing == [99]
     with pytest.raises(ValueError, match="tag 3 is given twice"):
         make_survey([(3, [0, 0, 0], None, None), (3, [1, 0, 0], None, None)])
@@ -93,17 +96,39 @@ def test_degenerate_surveys_say_what_is_missing() -> None:
 def test_tagslam_known_poses_compose_body_and_tag() -> None:
     """TagSLAM tag poses are in their body's frame; rotations are rotation vectors; only static
     bodies with a pose count; sizes from the tag or the body's default_tag_size."""
-    doc = {"bodies": [
-        {"lab": {"is_static": True, "default_tag_size": 0.2,
-                 "pose": {"position": {"x": 1, "y": 0, "z": 1},
-                          "rotation": {"x": 0, "y": 0, "z": np.pi / 2}},
-                 "tags": [{"id": 2, "size": 0.16,
-                           "pose": {"position": {"x": 1, "y": 0, "z": 0},
-                                    "rotation": {"x": 0.3, "y": 0, "z": 0}}},
-                          {"id": 5, "pose": {"position": {"x": 0, "y": 0, "z": 0},
-                                             "rotation": {"x": 0, "y": 0, "z": 0}}},
-                          {"id": 6}]}},
-        {"rig": {"is_static": False, "type": "simple"}}]}
+    doc = {
+        "bodies": [
+            {
+                "lab": {
+                    "is_static": True,
+                    "default_tag_size": 0.2,
+                    "pose": {
+                        "position": {"x": 1, "y": 0, "z": 1},
+                        "rotation": {"x": 0, "y": 0, "z": np.pi / 2},
+                    },
+                    "tags": [
+                        {
+                            "id": 2,
+                            "size": 0.16,
+                            "pose": {
+                                "position": {"x": 1, "y": 0, "z": 0},
+                                "rotation": {"x": 0.3, "y": 0, "z": 0},
+                            },
+                        },
+                        {
+                            "id": 5,
+                            "pose": {
+                                "position": {"x": 0, "y": 0, "z": 0},
+                                "rotation": {"x": 0, "y": 0, "z": 0},
+                            },
+                        },
+                        {"id": 6},
+                    ],
+                }
+            },
+            {"rig": {"is_static": False, "type": "simple"}},
+        ]
+    }
     sv = from_tagslam(doc)
     assert sv.ids.tolist() == [2, 5] and sv.size.tolist() == [0.16, 0.2]
     assert np.allclose(sv.position, [[1, 1, 1], [1, 0, 1]])
@@ -117,11 +142,20 @@ def test_tagslam_sizes_of_every_body_and_the_default_bodys_default() -> None:
     """Sizes of tags with or without a pose, on static bodies or not (a rig's tags are seen too);
     the default is the ``default_body``'s ``default_tag_size`` only (another body's sizes its
     own tags); an id twice is refused."""
-    doc = {"default_body": "lab", "bodies": [
-        {"lab": {"is_static": True, "default_tag_size": 0.2,
-                 "tags": [{"id": 2, "size": 0.16}, {"id": 6}]}},
-        {"rig": {"is_static": False, "default_tag_size": 0.05, "tags": [{"id": 9}]}},
-        {"cart": {"is_static": False, "tags": [{"id": 11, "size": 0.3}, {"id": 12}]}}]}
+    doc = {
+        "default_body": "lab",
+        "bodies": [
+            {
+                "lab": {
+                    "is_static": True,
+                    "default_tag_size": 0.2,
+                    "tags": [{"id": 2, "size": 0.16}, {"id": 6}],
+                }
+            },
+            {"rig": {"is_static": False, "default_tag_size": 0.05, "tags": [{"id": 9}]}},
+            {"cart": {"is_static": False, "tags": [{"id": 11, "size": 0.3}, {"id": 12}]}},
+        ],
+    }
     fmt, sizes = parse_tag_sizes(doc)
     assert fmt == "tagslam" and sizes.default == 0.2
     assert sizes.per_id == {2: 0.16, 6: 0.2, 9: 0.05, 11: 0.3}  # 12: the default's
@@ -137,10 +171,18 @@ def test_wpilib_layout_tag_frame_is_turned_to_spec() -> None:
     """WPILib: the tag's +X points out of its face, Z up. A tag facing the field's -X (yaw
     180 deg) has SPEC z (out of the face) along -X, y (up) along +Z, x (right) along -Y."""
     q_wxyz = (0.0, 0.0, 0.0, 1.0)  # W, X, Y, Z: yaw 180 deg
-    doc = {"tags": [{"ID": 7, "pose": {"translation": {"x": 16.5, "y": 5.5, "z": 1.45},
-                                       "rotation": {"quaternion": dict(zip("WXYZ", q_wxyz,
-                                                                           strict=True))}}}],
-           "field": {"length": 16.54, "width": 8.21}}
+    doc = {
+        "tags": [
+            {
+                "ID": 7,
+                "pose": {
+                    "translation": {"x": 16.5, "y": 5.5, "z": 1.45},
+                    "rotation": {"quaternion": dict(zip("WXYZ", q_wxyz, strict=True))},
+                },
+            }
+        ],
+        "field": {"length": 16.54, "width": 8.21},
+    }
     sv = from_wpilib(doc)
     R = sv.R[0]
     assert np.allclose(R[:, 2], [-1, 0, 0]) and np.allclose(R[:, 1], [0, 0, 1])
@@ -153,10 +195,18 @@ def test_wpilib_layout_tag_frame_is_turned_to_spec() -> None:
 def test_tag_map_layout_and_inline_form() -> None:
     R = R_from_rotvec([0.1, 0.2, 0.3])
     q = quat_xyzw_from_R(R)
-    doc = {"world_frame": "map", "anchor_tag": "tag36h11:3", "tags": {
-        "tag36h11:3": {"position": {"x": 0, "y": 0, "z": 0},
-                       "orientation": dict(zip("xyzw", q.tolist(), strict=True)), "size": 0.1},
-        "tag36h11:8": {"position": {"x": 1, "y": 2, "z": 3}}}}
+    doc = {
+        "world_frame": "map",
+        "anchor_tag": "tag36h11:3",
+        "tags": {
+            "tag36h11:3": {
+                "position": {"x": 0, "y": 0, "z": 0},
+                "orientation": dict(zip("xyzw", q.tolist(), strict=True)),
+                "size": 0.1,
+            },
+            "tag36h11:8": {"position": {"x": 1, "y": 2, "z": 3}},
+        },
+    }
     fmt, sv = parse_survey(doc)
     assert fmt == "tag_map" and sv.ids.tolist() == [3, 8] and sv.full.tolist() == [True, False]
     assert geodesic_angle(sv.R[0], R) < 1e-9 and sv.size[0] == 0.1

@@ -43,7 +43,12 @@ def image_msg(img: np.ndarray, encoding: str, t_ns: int, step: int | None = None
     data[:, : row.shape[1]] = row
     big = int(img.dtype.byteorder == ">")
     return _ts().types[msgs.IMAGE](
-        header=header(t_ns), height=h, width=w, encoding=encoding, is_bigendian=big, step=step,
+        header=header(t_ns),
+        height=h,
+        width=w,
+        encoding=encoding,
+        is_bigendian=big,
+        step=step,
         data=data.reshape(-1),
     )
 
@@ -61,34 +66,53 @@ def camera_info_msg(cam: CameraModel, t_ns: int = T0_NS, ts: Any = None) -> Any:
     roi = ts.types["sensor_msgs/msg/RegionOfInterest"](
         x_offset=0, y_offset=0, height=0, width=0, do_rectify=False
     )
-    fields = {"d": np.asarray(cam.D, np.float64), "k": cam.K.reshape(-1).copy(),
-              "r": np.eye(3).reshape(-1), "p": P.reshape(-1)}
+    fields = {
+        "d": np.asarray(cam.D, np.float64),
+        "k": cam.K.reshape(-1).copy(),
+        "r": np.eye(3).reshape(-1),
+        "p": P.reshape(-1),
+    }
     if "D" in [f[0] for f in ts.fielddefs[msgs.CAMERA_INFO][1]]:  # ROS 1 spelling
         fields = {k.upper(): v for k, v in fields.items()}
     return ts.types[msgs.CAMERA_INFO](
-        header=header(t_ns, ts=ts), height=cam.height, width=cam.width,
-        distortion_model=cam.distortion_model, binning_x=0, binning_y=0, roi=roi, **fields,
+        header=header(t_ns, ts=ts),
+        height=cam.height,
+        width=cam.width,
+        distortion_model=cam.distortion_model,
+        binning_x=0,
+        binning_y=0,
+        roi=roi,
+        **fields,
     )
 
 
-def detections_msg(t_ns: int, dets: Sequence[tuple[int, int, float, np.ndarray]],
-                   family: str = "tag36h11") -> Any:
+def detections_msg(
+    t_ns: int, dets: Sequence[tuple[int, int, float, np.ndarray]], family: str = "tag36h11"
+) -> Any:
     """``AprilTagDetectionArray``; ``dets`` = (id, hamming, decision_margin, corners (4, 2))."""
     ts = _ts()
     Point = ts.types["apriltag_msgs/msg/Point"]
     items = []
     for tag_id, ham, margin, corners in dets:
         c = np.asarray(corners, np.float64)
-        items.append(ts.types["apriltag_msgs/msg/AprilTagDetection"](
-            family=family, id=tag_id, hamming=ham, goodness=0.0, decision_margin=margin,
-            centre=Point(x=float(c[:, 0].mean()), y=float(c[:, 1].mean())),
-            corners=[Point(x=float(x), y=float(y)) for x, y in c], homography=np.zeros(9),
-        ))
+        items.append(
+            ts.types["apriltag_msgs/msg/AprilTagDetection"](
+                family=family,
+                id=tag_id,
+                hamming=ham,
+                goodness=0.0,
+                decision_margin=margin,
+                centre=Point(x=float(c[:, 0].mean()), y=float(c[:, 1].mean())),
+                corners=[Point(x=float(x), y=float(y)) for x, y in c],
+                homography=np.zeros(9),
+            )
+        )
     return ts.types[msgs.DETECTIONS](header=header(t_ns), detections=items)
 
 
-def isaac_msg(t_ns: int, dets: Sequence[tuple[int, np.ndarray, np.ndarray]],
-              family: str = "tag36h11") -> Any:
+def isaac_msg(
+    t_ns: int, dets: Sequence[tuple[int, np.ndarray, np.ndarray]], family: str = "tag36h11"
+) -> Any:
     """``isaac_ros_apriltag_interfaces/AprilTagDetectionArray`` as the Isaac ROS node fills it:
     ``dets`` = (id, corners (4, 2) px, cam_T_tag (4, 4)); centre = the diagonals' crossing
     (here their mean), pose in a PoseWithCovarianceStamped with the image's header."""
@@ -101,23 +125,34 @@ def isaac_msg(t_ns: int, dets: Sequence[tuple[int, np.ndarray, np.ndarray]],
         c = np.asarray(corners, np.float64)
         q = quat_xyzw_from_R(cam_T_tag[:3, :3])
         pose = T["geometry_msgs/msg/Pose"](
-            position=T["geometry_msgs/msg/Point"](x=cam_T_tag[0, 3], y=cam_T_tag[1, 3],
-                                                  z=cam_T_tag[2, 3]),
-            orientation=T["geometry_msgs/msg/Quaternion"](x=q[0], y=q[1], z=q[2], w=q[3]))
-        items.append(T["isaac_ros_apriltag_interfaces/msg/AprilTagDetection"](
-            family=family, id=tag_id,
-            center=T["geometry_msgs/msg/Point"](x=c[:, 0].mean(), y=c[:, 1].mean(), z=0.0),
-            corners=[T["geometry_msgs/msg/Point"](x=float(x), y=float(y), z=0.0) for x, y in c],
-            pose=T["geometry_msgs/msg/PoseWithCovarianceStamped"](
-                header=header(t_ns),
-                pose=T["geometry_msgs/msg/PoseWithCovariance"](pose=pose,
-                                                               covariance=np.zeros(36))),
-        ))
+            position=T["geometry_msgs/msg/Point"](
+                x=cam_T_tag[0, 3], y=cam_T_tag[1, 3], z=cam_T_tag[2, 3]
+            ),
+            orientation=T["geometry_msgs/msg/Quaternion"](x=q[0], y=q[1], z=q[2], w=q[3]),
+        )
+        items.append(
+            T["isaac_ros_apriltag_interfaces/msg/AprilTagDetection"](
+                family=family,
+                id=tag_id,
+                center=T["geometry_msgs/msg/Point"](x=c[:, 0].mean(), y=c[:, 1].mean(), z=0.0),
+                corners=[T["geometry_msgs/msg/Point"](x=float(x), y=float(y), z=0.0) for x, y in c],
+                pose=T["geometry_msgs/msg/PoseWithCovarianceStamped"](
+                    header=header(t_ns),
+                    pose=T["geometry_msgs/msg/PoseWithCovariance"](
+                        pose=pose, covariance=np.zeros(36)
+                    ),
+                ),
+            )
+        )
     return T[msgs.ISAAC_DETECTIONS](header=header(t_ns), detections=items)
 
 
-def write_bag(path: Path, messages: Iterable[tuple[str, int, Any]], storage: str = "mcap",
-              topics: dict[str, str] | None = None) -> Path:
+def write_bag(
+    path: Path,
+    messages: Iterable[tuple[str, int, Any]],
+    storage: str = "mcap",
+    topics: dict[str, str] | None = None,
+) -> Path:
     """A rosbag2 (version 9) folder from ``(topic, receive t_ns, msg)``; ``topics`` declares
     topics (name → msgtype) up front, e.g. ones left without messages."""
     ts = _ts()
@@ -161,8 +196,13 @@ def write_ros1_bag(path: Path, frames: Sequence[np.ndarray], cam: CameraModel) -
         for k, img in enumerate(frames):
             t = T0_NS + k * 50_000_000
             msg = ts.types[msgs.IMAGE](
-                header=header(t, ts=ts), height=img.shape[0], width=img.shape[1], encoding="mono8",
-                is_bigendian=0, step=img.shape[1], data=img.reshape(-1),
+                header=header(t, ts=ts),
+                height=img.shape[0],
+                width=img.shape[1],
+                encoding="mono8",
+                is_bigendian=0,
+                step=img.shape[1],
+                data=img.reshape(-1),
             )
             w.write(ci, t, ts.serialize_ros1(camera_info_msg(cam, t, ts), msgs.CAMERA_INFO))
             w.write(im, t, ts.serialize_ros1(msg, msgs.IMAGE))
@@ -182,8 +222,9 @@ def isaac_bag(tmp_path: Path, cam: CameraModel, storage: str = "mcap") -> tuple[
         t = T0_NS + k * 33_333_333
         dets = []
         for tag_id, x in ((3, -0.15), (7, 0.2)):
-            cam_T_tag = make_T(R_from_rotvec([np.pi + 0.1 * k, 0.2, 0.0]),
-                               np.array([x + 0.02 * k, 0.05, 1.2]))
+            cam_T_tag = make_T(
+                R_from_rotvec([np.pi + 0.1 * k, 0.2, 0.0]), np.array([x + 0.02 * k, 0.05, 1.2])
+            )
             px = true_corners(cam, cam_T_tag, 0.16)
             truth.append(px)
             dets.append((tag_id, px + 0.5, cam_T_tag))

@@ -47,8 +47,13 @@ def test_tagslam_cameras_yaml(realdata: Path) -> None:
 
 def test_kalibr_camchain_names_a_camera(tmp_path: Path) -> None:
     f = tmp_path / "camchain.yaml"
-    f.write_text(KALIBR + KALIBR.replace("cam0", "cam1").replace("radtan", "equidistant")
-                 .replace("-0.0913426]", "]").replace("1506.9,", "700.0,"))
+    f.write_text(
+        KALIBR
+        + KALIBR.replace("cam0", "cam1")
+        .replace("radtan", "equidistant")
+        .replace("-0.0913426]", "]")
+        .replace("1506.9,", "700.0,")
+    )
     with pytest.raises(SourceError, match=r"2 cameras \(cam0, cam1\): name one as FILE#NAME"):
         read_camera_file(f)
     cam = read_camera_file(f"{f}#cam1")
@@ -67,9 +72,15 @@ def test_opencv_filestorage_yaml_and_json(tmp_path: Path) -> None:
     assert (cam.width, cam.height, cam.distortion_model) == (640, 480, "plumb_bob")
     assert cam.K[1, 1] == 505.0 and np.allclose(cam.D, [-0.1, 0.01, 0, 0, 0])
     j = tmp_path / "calib.json"
-    j.write_text(json.dumps({"camera_matrix": [[500, 0, 320], [0, 505, 240], [0, 0, 1]],
-                             "distortion_coefficients": [[-0.1, 0.01, 0, 0, 0]],
-                             "image_size": [640, 480]}))
+    j.write_text(
+        json.dumps(
+            {
+                "camera_matrix": [[500, 0, 320], [0, 505, 240], [0, 0, 1]],
+                "distortion_coefficients": [[-0.1, 0.01, 0, 0, 0]],
+                "image_size": [640, 480],
+            }
+        )
+    )
     cj = read_camera_file(j)
     assert np.array_equal(cj.K, cam.K) and np.array_equal(cj.D, cam.D)
     f.write_text(OPENCV.replace("image_width: 640\nimage_height: 480\n", ""))

@@ -134,11 +134,16 @@ def test_header_only_csv_is_an_empty_trajectory(tmp_path: Path) -> None:
 
 def test_observations_csv_bad_tag_cell_names_the_row(tmp_path: Path) -> None:
     f = tmp_path / "observations.csv"
-    f.write_text("stamp_sec,stamp_nanosec,tag,x,y,z,qx,qy,qz,qw\n"
-                 "2,0,tag36h11:5,0.1,0.2,1.0,0,0,0,1\n"
-                 "1,500,,0.0,0.0,2.0,1,0,0,0\n")  # fmt: skip
+    f.write_text(
+        "stamp_sec,stamp_nanosec,tag,x,y,z,qx,qy,qz,qw\n"
+        "2,0,tag36h11:5,0.1,0.2,1.0,0,0,0,1\n"
+        "1,500,,0.0,0.0,2.0,1,0,0,0\n"
+    )
     from tagtrail.io.sources import ObservationsSource
 
-    with pytest.raises(SourceError, match=r"observations.csv: data row 2, column tag: empty cell "
-                       r"is not a tag name"):  # fmt: skip
+    with pytest.raises(
+        SourceError,
+        match=r"observations.csv: data row 2, column tag: empty cell "
+        r"is not a tag name",
+    ):
         ObservationsSource(tmp_path)

@@ -26,8 +26,11 @@ def legend(fig) -> list[str]:
 
 def drawn_lines(fig) -> list[Line2D]:
     """Lines with a visible stroke (``linestyle`` not None) and at least 2 points."""
-    return [ln for ln in fig.axes[0].get_lines()
-            if ln.get_linestyle() not in ("None", "") and len(ln.get_xdata()) >= 2]  # fmt: skip
+    return [
+        ln
+        for ln in fig.axes[0].get_lines()
+        if ln.get_linestyle() not in ("None", "") and len(ln.get_xdata()) >= 2
+    ]
 
 
 EMPTY = pd.DataFrame({c: np.zeros(0) for c in columns("report.relocalization")})
@@ -56,8 +59,9 @@ def test_recording_map_lists_only_what_is_drawn() -> None:
 
 def test_photo_set_is_drawn_as_separate_camera_views() -> None:
     heading = np.linspace(-1, 1, len(PHOTOS))
-    fig = map_figure(PHOTOS, np.zeros((0, 2)), EMPTY, PHOTOS[:3] + 0.5, [7, 8, 9],
-                     ref_heading_rad=heading)  # fmt: skip
+    fig = map_figure(
+        PHOTOS, np.zeros((0, 2)), EMPTY, PHOTOS[:3] + 0.5, [7, 8, 9], ref_heading_rad=heading
+    )
     assert legend(fig) == ["camera views (15 photos; #: file order)", "tags"]
     assert drawn_lines(fig) == []  # no line joins the photos
     (quiver,) = [c for c in fig.axes[0].collections if isinstance(c, Quiver)]
@@ -74,9 +78,20 @@ def _point_row(q: np.ndarray, k: int, ref: np.ndarray, hq_deg: float) -> pd.Seri
     (du, dv), (qu, qv) = b - a, q - p
     side = float(np.sign(du * qv - dv * qu))
     d = float(np.linalg.norm(q - p))
-    return pd.Series({"nearest_ref_idx": k, "distance_m": d, "heading_error_deg": hq_deg - href,
-                      "query_heading_deg": hq_deg, "ref_heading_deg": href, "query_u": q[0],
-                      "query_v": q[1], "ref_u": p[0], "ref_v": p[1], "cross_track_m": side * d})
+    return pd.Series(
+        {
+            "nearest_ref_idx": k,
+            "distance_m": d,
+            "heading_error_deg": hq_deg - href,
+            "query_heading_deg": hq_deg,
+            "ref_heading_deg": href,
+            "query_u": q[0],
+            "query_v": q[1],
+            "ref_u": p[0],
+            "ref_v": p[1],
+            "cross_track_m": side * d,
+        }
+    )
 
 
 def test_point_mode_is_a_close_up_from_above() -> None:
@@ -87,8 +102,13 @@ def test_point_mode_is_a_close_up_from_above() -> None:
     row = _point_row(q, 15, ref, 20.0)
     fig = point_figure(row, ref, samples, np.radians(20.0 + rng.normal(0, 0.3, 40)))
     names = legend(fig)
-    for want in ("reference path", "nearest segment (samples 15, 16)", "query samples (n=40)",
-                 "parked pose (median position)", "nearest point of the reference"):
+    for want in (
+        "reference path",
+        "nearest segment (samples 15, 16)",
+        "query samples (n=40)",
+        "parked pose (median position)",
+        "nearest point of the reference",
+    ):
         assert want in names, names
     assert any(n.startswith(f"D = {row['distance_m']:.4f} m") for n in names)
     assert any(n.startswith("spread: p95 radius ") for n in names)
@@ -110,7 +130,8 @@ def test_map_follows_report_plane_and_a_change_redraws_it(
     that plane; back to the file's plane, the first picture again, byte for byte."""
     simulate("observations", tmp_path / "data", frames=40)
     (tmp_path / "pipeline.yaml").write_text(
-        "datasets:\n  reference:\n    source: data/observations\n")
+        "datasets:\n  reference:\n    source: data/observations\n"
+    )
     pipeline = str(tmp_path / "pipeline.yaml")
     png = tmp_path / "outputs" / "reference" / "map.png"
     assert main(["run", "-p", pipeline]) == 0

@@ -33,8 +33,14 @@ def cfg(source: Path, **topics: str) -> DatasetConfig:
     return DatasetConfig(source=source, topics=Topics(**topics))
 
 
-def image_bag(path: Path, files: list[Path], cam: CameraModel, storage: str = "mcap",
-              compressed: bool = False, extra: list | None = None) -> Path:
+def image_bag(
+    path: Path,
+    files: list[Path],
+    cam: CameraModel,
+    storage: str = "mcap",
+    compressed: bool = False,
+    extra: list | None = None,
+) -> Path:
     out: list = [("/camera/camera_info", T0, bags.camera_info_msg(cam))]
     for k, f in enumerate(files):
         t = T0 + k * DT
@@ -58,8 +64,11 @@ def test_image_bag_frames_stamps_camera(tmp_path: Path, upenn, storage, compress
     assert [f[0] for f in frames] == list(range(len(files)))
     assert [f[1] for f in frames] == [T0 + k * DT for k in range(len(files))]  # header stamps
     for (_, _, img), f in zip(frames, files, strict=True):
-        want = (cv2.imread(str(f), cv2.IMREAD_GRAYSCALE) if compressed
-                else cv2.cvtColor(cv2.imread(str(f)), cv2.COLOR_BGR2GRAY))
+        want = (
+            cv2.imread(str(f), cv2.IMREAD_GRAYSCALE)
+            if compressed
+            else cv2.cvtColor(cv2.imread(str(f)), cv2.COLOR_BGR2GRAY)
+        )
         np.testing.assert_array_equal(img, want)
     raw = next(src.iter_raw())[2]  # undecoded for workers
     assert isinstance(raw, RawImage) and raw.kind == ("compressed" if compressed else "raw")
@@ -97,18 +106,24 @@ def test_humble_sqlite3_detection_bag_without_definitions(tmp_path: Path, upenn)
 def test_zero_header_stamp_falls_back_to_receive_time(tmp_path: Path, upenn) -> None:
     files, cam = upenn
     gray = cv2.imread(str(files[0]), cv2.IMREAD_GRAYSCALE)
-    bag = bags.write_bag(tmp_path / "bag", [
-        ("/cam/camera_info", T0, bags.camera_info_msg(cam)),
-        ("/cam/image", T0 + 7, bags.image_msg(gray, "mono8", 0)),
-    ])
+    bag = bags.write_bag(
+        tmp_path / "bag",
+        [
+            ("/cam/camera_info", T0, bags.camera_info_msg(cam)),
+            ("/cam/image", T0 + 7, bags.image_msg(gray, "mono8", 0)),
+        ],
+    )
     assert [t for _, t, _ in open_source(cfg(bag)).iter_raw()] == [T0 + 7]
 
 
 @pytest.mark.parametrize("model", ["plumb_bob", "rational_polynomial", "equidistant"])
 def test_camera_info_distortion_models(tmp_path: Path, upenn, model: str) -> None:
     files, _ = upenn
-    D = {"plumb_bob": [0.1, -0.2, 1e-3, 2e-3, 0.05], "equidistant": [0.05, -0.01, 2e-3, -1e-3],
-         "rational_polynomial": [0.1, -0.2, 1e-3, 2e-3, 0.05, 0.01, -0.02, 0.01]}[model]
+    D = {
+        "plumb_bob": [0.1, -0.2, 1e-3, 2e-3, 0.05],
+        "equidistant": [0.05, -0.01, 2e-3, -1e-3],
+        "rational_polynomial": [0.1, -0.2, 1e-3, 2e-3, 0.05, 0.01, -0.02, 0.01],
+    }[model]
     cam = CameraModel(640, 480, [820.0, 0, 320, 0, 821.0, 240, 0, 0, 1], D, model)
     src = open_source(cfg(image_bag(tmp_path / "bag", files[:1], cam)))
     assert src.camera().distortion_model == model and src.camera().same_as(cam)
@@ -129,21 +144,27 @@ def test_topic_choice(tmp_path: Path, upenn) -> None:
     files, cam = upenn
     gray = cv2.imread(str(files[0]), cv2.IMREAD_GRAYSCALE)
     det = bags.detections_msg(T0, [(3, 0, 80.0, np.ones((4, 2)))])
-    bag = bags.write_bag(tmp_path / "bag", [
-        ("/left/camera_info", T0, bags.camera_info_msg(cam)),
-        ("/right/camera_info", T0, bags.camera_info_msg(cam)),
-        ("/left/image_raw", T0, bags.image_msg(gray, "mono8", T0)),
-        ("/right/image_raw", T0, bags.image_msg(gray, "mono8", T0)),
-        ("/detections", T0, det),
-    ])
+    bag = bags.write_bag(
+        tmp_path / "bag",
+        [
+            ("/left/camera_info", T0, bags.camera_info_msg(cam)),
+            ("/right/camera_info", T0, bags.camera_info_msg(cam)),
+            ("/left/image_raw", T0, bags.image_msg(gray, "mono8", T0)),
+            ("/right/image_raw", T0, bags.image_msg(gray, "mono8", T0)),
+            ("/detections", T0, det),
+        ],
+    )
     with pytest.raises(SourceError) as err:
         open_source(cfg(bag))
     msg = str(err.value)
     assert "several" in msg and "/left/image_raw (sensor_msgs/msg/Image, 1 msgs)" in msg
     assert "/right/image_raw" in msg and "`topics: {image: /left/image_raw}`" in msg
     src = open_source(cfg(bag, image="/right/image_raw"))  # camera_info from the same namespace
-    assert (src.kind, src.topic, src.camera_info_topic) == ("images", "/right/image_raw",
-                                                            "/right/camera_info")
+    assert (src.kind, src.topic, src.camera_info_topic) == (
+        "images",
+        "/right/image_raw",
+        "/right/camera_info",
+    )
     with pytest.raises(SourceError, match=r"several CameraInfo .* `topics: {camera_info: /left"):
         open_source(cfg(bag, detections="/detections"))  # no namespace to match
     src = open_source(cfg(bag, detections="/detections", camera_info="/left/camera_info"))
@@ -177,9 +198,11 @@ def test_image_folder_order_stamps_camera(tmp_path: Path, upenn) -> None:
     assert [Path(p.data).name for _, _, p in frames] == ["f1.png", "f2.jpg", "f10.JPG"]
     assert [t for _, t, _ in frames] == [0, 100_000_000, 200_000_000]  # 10 Hz from 0
     (folder / "stamps.csv").write_text(
-        "file,stamp_sec,stamp_nanosec\nf10.JPG,5,3\nf1.png,5,1\nf2.jpg,5,2\n")
-    assert [t for _, t, _ in open_source(cfg(folder)).iter_raw()] == [5 * 10**9 + k
-                                                                       for k in (1, 2, 3)]
+        "file,stamp_sec,stamp_nanosec\nf10.JPG,5,3\nf1.png,5,1\nf2.jpg,5,2\n"
+    )
+    assert [t for _, t, _ in open_source(cfg(folder)).iter_raw()] == [
+        5 * 10**9 + k for k in (1, 2, 3)
+    ]
     other = tmp_path / "other.yaml"
     other.write_text((folder / "camera.yaml").read_text().replace("823.8", "900.0"))
     src = open_source(DatasetConfig(source=folder, camera=other))  # `camera:` overrides
@@ -194,12 +217,23 @@ def test_observations_folder(tmp_path: Path) -> None:
         "stamp_sec,stamp_nanosec,tag,x,y,z,qx,qy,qz,qw\n"
         "2,0,tag36h11:5,0.1,0.2,1.0,0,0,0,1\n"
         "1,500,tag36h11:7,0.0,0.0,2.0,1,0,0,0\n"
-        "1,500,tag36h11:3,0.0,0.1,2.0,1,0,0,0\n")
+        "1,500,tag36h11:3,0.0,0.1,2.0,1,0,0,0\n"
+    )
     src = open_source(cfg(tmp_path))
     assert src.kind == "observations" and src.camera() is None and len(src) == 2
     obs = src.observations()
-    assert list(obs.columns) == ["t_ns", "frame_idx", "tag_id", "x_m", "y_m", "z_m",
-                                 "qx", "qy", "qz", "qw"]
+    assert list(obs.columns) == [
+        "t_ns",
+        "frame_idx",
+        "tag_id",
+        "x_m",
+        "y_m",
+        "z_m",
+        "qx",
+        "qy",
+        "qz",
+        "qw",
+    ]
     assert obs["tag_id"].tolist() == [3, 7, 5] and obs["frame_idx"].tolist() == [0, 0, 1]
     assert obs["t_ns"].tolist() == [10**9 + 500, 10**9 + 500, 2 * 10**9]
     assert [len(p) for _, _, p in src] == [2, 1]
@@ -219,10 +253,15 @@ def test_bad_sources(tmp_path: Path, upenn) -> None:
     with pytest.raises(SourceError, match="no image .* or detection .* topic; topics there: none"):
         open_source(cfg(bag))
     pose = msgs.typestore().types[msgs.POSE_STAMPED]
-    p = pose(header=bags.header(T0), pose=msgs.typestore().types["geometry_msgs/msg/Pose"](
-        position=msgs.typestore().types["geometry_msgs/msg/Point"](x=0.0, y=0.0, z=0.0),
-        orientation=msgs.typestore().types["geometry_msgs/msg/Quaternion"](
-            x=0.0, y=0.0, z=0.0, w=1.0)))
+    p = pose(
+        header=bags.header(T0),
+        pose=msgs.typestore().types["geometry_msgs/msg/Pose"](
+            position=msgs.typestore().types["geometry_msgs/msg/Point"](x=0.0, y=0.0, z=0.0),
+            orientation=msgs.typestore().types["geometry_msgs/msg/Quaternion"](
+                x=0.0, y=0.0, z=0.0, w=1.0
+            ),
+        ),
+    )
     bag = bags.write_bag(tmp_path / "poses", [("/pose", T0, p)])
     with pytest.raises(SourceError, match=r"topics there: /pose \(geometry_msgs/msg/PoseStamped"):
         open_source(cfg(bag))
@@ -284,8 +323,10 @@ def test_image_folder_without_stamps_is_not_timed(realdata: Path, tmp_path: Path
     for name in names:
         shutil.copy(frames / name, folder)
     assert not open_source(DatasetConfig(source=folder)).timed
-    (folder / "stamps.csv").write_text("file,stamp_sec,stamp_nanosec\n" + "".join(
-        f"{name},{100 + k},0\n" for k, name in enumerate(names)))
+    (folder / "stamps.csv").write_text(
+        "file,stamp_sec,stamp_nanosec\n"
+        + "".join(f"{name},{100 + k},0\n" for k, name in enumerate(names))
+    )
     assert open_source(DatasetConfig(source=folder)).timed
 
 
@@ -294,8 +335,15 @@ def test_isaac_ros_detections(tmp_path: Path, storage: str, caplog) -> None:
     """isaac_ros_apriltag's detections (its .msg registered in the typestore: a Humble bag
     carries no definitions): corners -0.5 px to OpenCV's, no hamming (-1) or margin (NaN), the
     family as the message names it; the declared convention is logged."""
-    cam = CameraModel.from_dict({"width": 640, "height": 480, "distortion_model": "plumb_bob",
-                                 "K": [500, 0, 320, 0, 500, 240, 0, 0, 1], "D": [0] * 5})
+    cam = CameraModel.from_dict(
+        {
+            "width": 640,
+            "height": 480,
+            "distortion_model": "plumb_bob",
+            "K": [500, 0, 320, 0, 500, 240, 0, 0, 1],
+            "D": [0] * 5,
+        }
+    )
     bag, truth = bags.isaac_bag(tmp_path, cam, storage)
     if storage == "sqlite3":
         bags.make_humble(bag)
@@ -312,14 +360,22 @@ def test_isaac_ros_detections(tmp_path: Path, storage: str, caplog) -> None:
 
 
 def test_isaac_ros_detections_warn_of_a_distorted_camera(tmp_path: Path, caplog) -> None:
-    cam = CameraModel.from_dict({"width": 640, "height": 480, "distortion_model": "plumb_bob",
-                                 "K": [500, 0, 320, 0, 500, 240, 0, 0, 1],
-                                 "D": [0.05, -0.02, 0, 0, 0]})
+    cam = CameraModel.from_dict(
+        {
+            "width": 640,
+            "height": 480,
+            "distortion_model": "plumb_bob",
+            "K": [500, 0, 320, 0, 500, 240, 0, 0, 1],
+            "D": [0.05, -0.02, 0, 0, 0],
+        }
+    )
     bag, _ = bags.isaac_bag(tmp_path, cam)
     with caplog.at_level(logging.WARNING, logger="tagtrail.sources"):
         open_source(DatasetConfig(source=bag))
-    assert "detects in the rectified image, but the camera (CameraInfo of /camera_info_rect) " \
-           "has lens distortion [0.05, -0.02, 0.0, 0.0, 0.0]" in caplog.text
+    assert (
+        "detects in the rectified image, but the camera (CameraInfo of /camera_info_rect) "
+        "has lens distortion [0.05, -0.02, 0.0, 0.0, 0.0]" in caplog.text
+    )
 
 
 def test_detection_types_declare_convention_and_quality_fields() -> None:
@@ -329,6 +385,9 @@ def test_detection_types_declare_convention_and_quality_fields() -> None:
     assert kinds[msgs.TAGSLAM_DETECTIONS].missing() == ["decision_margin"]
     assert kinds[msgs.ISAAC_DETECTIONS].missing() == ["hamming", "decision_margin"]
     tagslam = kinds[msgs.TAGSLAM_DETECTIONS]
-    assert (tagslam.pixel_offset("mit"), tagslam.pixel_offset(""),
-            tagslam.pixel_offset("umich")) == (0.0, 0.0, 0.5)
+    assert (
+        tagslam.pixel_offset("mit"),
+        tagslam.pixel_offset(""),
+        tagslam.pixel_offset("umich"),
+    ) == (0.0, 0.0, 0.5)
     assert kinds[msgs.DETECTIONS].pixel_offset("tag36h11") == 0.5

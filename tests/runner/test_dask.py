@@ -55,14 +55,20 @@ def project(folder: Path, data: Path) -> Path:
 
 def tagtrail(cwd: Path, *args: str, **env: str) -> subprocess.CompletedProcess[str]:
     """The CLI in a fresh interpreter (`main_entry`: single-threaded BLAS, as users run it)."""
-    return subprocess.run([sys.executable, "-m", "tagtrail.cli", *args], cwd=cwd,
-                          capture_output=True, text=True, timeout=600,
-                          env={**os.environ, **env})
+    return subprocess.run(
+        [sys.executable, "-m", "tagtrail.cli", *args],
+        cwd=cwd,
+        capture_output=True,
+        text=True,
+        timeout=600,
+        env={**os.environ, **env},
+    )
 
 
 def files(root: Path) -> dict[str, bytes]:
-    return {str(p.relative_to(root)): p.read_bytes() for p in sorted(root.rglob("*"))
-            if p.is_file()}
+    return {
+        str(p.relative_to(root)): p.read_bytes() for p in sorted(root.rglob("*")) if p.is_file()
+    }
 
 
 def entries(folder: Path) -> set[str]:
@@ -90,8 +96,13 @@ def cluster() -> Iterator[Any]:
     pytest.importorskip("distributed")
     from distributed import LocalCluster
 
-    with LocalCluster(n_workers=2, threads_per_worker=1, processes=True, host="127.0.0.1",
-                      dashboard_address="127.0.0.1:0") as c:
+    with LocalCluster(
+        n_workers=2,
+        threads_per_worker=1,
+        processes=True,
+        host="127.0.0.1",
+        dashboard_address="127.0.0.1:0",
+    ) as c:
         yield c
 
 
@@ -105,8 +116,9 @@ def test_a_2_worker_local_cluster_matches_the_local_executor_byte_for_byte(
     took = time.perf_counter() - t0
     assert res.returncode == 0, res.stderr
     first = res.stdout.splitlines()[0]
-    assert first.startswith("dask: a local cluster of 2 worker processes, dashboard http://"
-                            "127.0.0.1:"), first
+    assert first.startswith(
+        "dask: a local cluster of 2 worker processes, dashboard http://127.0.0.1:"
+    ), first
     assert "warning" not in res.stdout  # single-threaded BLAS in the workers
     assert files(b / "outputs") == files(local / "outputs")
     assert entries(b) == entries(local) and len(entries(b)) == 34
@@ -120,11 +132,18 @@ def test_a_worker_killed_mid_write_leaves_a_store_the_rerun_completes(
     tmp_path: Path, data: Path, local: Path, cluster: Any
 ) -> None:
     c = project(tmp_path / "c", data)
-    res = tagtrail(c, "run", "--executor", "dask", "-j", "2",
-                   TAGTRAIL_FAULT="kill@store:optimize",  # SIGKILL half-way into the entry
-                   # fail at the first death, and only the task that was running there
-                   DASK_DISTRIBUTED__SCHEDULER__ALLOWED_FAILURES="0",
-                   DASK_DISTRIBUTED__SCHEDULER__WORKER_SATURATION="1.0")
+    res = tagtrail(
+        c,
+        "run",
+        "--executor",
+        "dask",
+        "-j",
+        "2",
+        TAGTRAIL_FAULT="kill@store:optimize",  # SIGKILL half-way into the entry
+        # fail at the first death, and only the task that was running there
+        DASK_DISTRIBUTED__SCHEDULER__ALLOWED_FAILURES="0",
+        DASK_DISTRIBUTED__SCHEDULER__WORKER_SATURATION="1.0",
+    )
     assert res.returncode == 1, res.stderr
     (line,) = errors(res.stderr)
     assert line.startswith("error: stage optimize [") and "WorkerDied: the dask worker" in line
@@ -159,11 +178,14 @@ def test_a_worker_killed_by_a_signal_is_replaced_and_the_run_matches(
     d = project(tmp_path / "d", data)
     lines: list[str] = []
     with executors.dask_session(cluster.scheduler_address, echo=lines.append) as session:
-        runner = Runner(load_pipeline(d / "pipeline.yaml", REGISTRY), jobs=2,
-                        executor="dask", scheduler=cluster.scheduler_address)
+        runner = Runner(
+            load_pipeline(d / "pipeline.yaml", REGISTRY),
+            jobs=2,
+            executor="dask",
+            scheduler=cluster.scheduler_address,
+        )
         done, killed = threading.Event(), []
-        killer = threading.Thread(target=_kill_a_busy_worker,
-                                  args=(session.client, done, killed))
+        killer = threading.Thread(target=_kill_a_busy_worker, args=(session.client, done, killed))
         killer.start()
         try:
             states = runner.run()
@@ -188,9 +210,12 @@ def test_a_recordings_frame_chunks_are_tasks_of_the_cluster(
 
     f = project(tmp_path / "f", data)
     with Client(cluster.scheduler_address) as client, get_task_stream(client) as stream:
-        runner = Runner(load_pipeline(f / "pipeline.yaml", REGISTRY,
-                                      overrides=["extract.chunk_size=8"]),
-                        jobs=2, executor="dask", scheduler=cluster.scheduler_address)
+        runner = Runner(
+            load_pipeline(f / "pipeline.yaml", REGISTRY, overrides=["extract.chunk_size=8"]),
+            jobs=2,
+            executor="dask",
+            scheduler=cluster.scheduler_address,
+        )
         assert all(s.status == "ran" for s in runner.run())
     chunks = [t for t in stream.data if t["key"].startswith("detect-chunk-")]
     assert len(chunks) == -(-60 // 8) + 3  # reference: 60 frames; each query: 5
@@ -217,15 +242,21 @@ def test_toy_stages_loaded_from_files_run_on_the_workers(tmp_path: Path, cluster
     stages = copy_stages(tmp_path / "stages")
     pipes = [write_project(tmp_path / name) for name in ("local", "dask")]
     local = Runner(load_pipeline(pipes[0], load_registry(stages)), jobs=2)
-    remote = Runner(load_pipeline(pipes[1], load_registry(stages)), jobs=2, executor="dask",
-                    scheduler=cluster.scheduler_address)
+    remote = Runner(
+        load_pipeline(pipes[1], load_registry(stages)),
+        jobs=2,
+        executor="dask",
+        scheduler=cluster.scheduler_address,
+    )
     assert executed(local.run()) == ALL
     assert executed(remote.run()) == ALL
     assert entries(tmp_path / "local") == entries(tmp_path / "dask")
 
 
 def test_without_dask_the_command_says_what_to_install(
-    tmp_path: Path, data: Path, monkeypatch: pytest.MonkeyPatch,
+    tmp_path: Path,
+    data: Path,
+    monkeypatch: pytest.MonkeyPatch,
     capsys: pytest.CaptureFixture[str],
 ) -> None:
     f = project(tmp_path / "f", data)
@@ -233,7 +264,8 @@ def test_without_dask_the_command_says_what_to_install(
     code = main(["run", "-p", str(f / "pipeline.yaml"), "--executor", "dask"])
     assert code == 2
     assert one_error_line(capsys) == (
-        "error: --executor dask needs dask.distributed: pip install 'tagtrail[dask]'")
+        "error: --executor dask needs dask.distributed: pip install 'tagtrail[dask]'"
+    )
     assert not (f / "artifacts" / "objects").exists()
 
 
@@ -241,15 +273,26 @@ def test_a_scheduler_needs_the_dask_executor(
     tmp_path: Path, data: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:
     g = project(tmp_path / "g", data)
-    code = main(["run", "-p", str(g / "pipeline.yaml"), "--executor", "local",
-                 "--scheduler", "tcp://127.0.0.1:8786"])
+    code = main(
+        [
+            "run",
+            "-p",
+            str(g / "pipeline.yaml"),
+            "--executor",
+            "local",
+            "--scheduler",
+            "tcp://127.0.0.1:8786",
+        ]
+    )
     assert code == 2
     assert one_error_line(capsys) == "error: --scheduler needs --executor dask"
 
 
 @needs_dask
 def test_an_unreachable_scheduler_is_one_line(
-    tmp_path: Path, data: Path, capsys: pytest.CaptureFixture[str],
+    tmp_path: Path,
+    data: Path,
+    capsys: pytest.CaptureFixture[str],
     monkeypatch: pytest.MonkeyPatch,
 ) -> None:
     h = project(tmp_path / "h", data)

@@ -21,7 +21,7 @@ from tagtrail.runner.stage import stage_spec
 from tagtrail.stages import REGISTRY
 from tests.runner.toy import copy_stages, load_registry
 
-DECLARED = '''
+DECLARED = """
 
 from tagtrail.stages.base import Export, Metric
 
@@ -34,19 +34,22 @@ def _files(summary):
 
 
 EXPORTS = (Export("{export}", ("total.json",), {{"summary": "{ref}"}}, _files),)
-'''
+"""
 
 
-def project(tmp_path: Path, better: str = "higher", export: str = "totals",
-            ref: str = "total.summary") -> tuple[Path, dict]:
+def project(
+    tmp_path: Path, better: str = "higher", export: str = "totals", ref: str = "total.summary"
+) -> tuple[Path, dict]:
     stages = copy_stages(tmp_path / "stages")
     with open(stages / "total.py", "a") as f:
         f.write(DECLARED.format(better=better, export=export, ref=ref))
     root = tmp_path / "proj"
     root.mkdir()
     (root / "reference.csv").write_text("value\n1\n2\n3\n")
-    doc = {"datasets": {"reference": {"source": "reference.csv"}},
-           "stages": {"scale": {"factor": 2.0}}}
+    doc = {
+        "datasets": {"reference": {"source": "reference.csv"}},
+        "stages": {"scale": {"factor": 2.0}},
+    }
     (root / "pipeline.yaml").write_text(yaml.safe_dump(doc))
     return root / "pipeline.yaml", load_registry(stages)
 
@@ -61,8 +64,9 @@ def test_a_toy_stage_exports_its_declared_file(tmp_path: Path) -> None:
 
 
 @pytest.mark.parametrize(("better", "factor"), [("higher", "3"), ("lower", "1")])
-def test_the_first_metric_ranks_the_points_its_declared_way(tmp_path: Path, better: str,
-                                                           factor: str) -> None:
+def test_the_first_metric_ranks_the_points_its_declared_way(
+    tmp_path: Path, better: str, factor: str
+) -> None:
     pipe_file, reg = project(tmp_path, better=better)
     points = sw.make_points(["scale.factor=1,3,2"])
     sweep = sw.prepare(pipe_file, reg, points)
@@ -93,14 +97,29 @@ def test_bad_declarations_are_one_spec_error(tmp_path: Path) -> None:
 
 def test_the_stages_declare_every_metric_sweep_took() -> None:
     blocks = ("trajectory", "trajectory_raw", "tags", "gauge_free.trajectory", "gauge_free.tags")
-    names = [f"{b}.{s}_{u}" for b in blocks for s in ("mean", "median", "rmse", "p95", "max", "min")
-             for u in ("m", "deg")]  # fmt: skip
+    names = [
+        f"{b}.{s}_{u}"
+        for b in blocks
+        for s in ("mean", "median", "rmse", "p95", "max", "min")
+        for u in ("m", "deg")
+    ]
     for s in ("mean", "median", "p90", "p95", "max", "rmse"):
         names += [f"D.{s}_m", f"abs_phi.{s}_deg"]
-    names += ["alignment.rms_m", "map.rms_t_m", "map.rms_r_deg", "map.rms_px", "map.cost",
-              "map.nfev"]
+    names += [
+        "alignment.rms_m",
+        "map.rms_t_m",
+        "map.rms_r_deg",
+        "map.rms_px",
+        "map.cost",
+        "map.nfev",
+    ]
     pipe = SimpleNamespace(stages={n: stage_spec(n, m) for n, m in REGISTRY.items()})
     assert list(sw.declared_metrics(pipe)) == names  # type: ignore[arg-type]
-    assert sw.default_metrics(pipe) == ["trajectory.rmse_m", "tags.rmse_m", "D.mean_m",  # type: ignore[arg-type]
-                                        "abs_phi.mean_deg", "map.rms_t_m"]  # fmt: skip
+    assert sw.default_metrics(pipe) == [
+        "trajectory.rmse_m",
+        "tags.rmse_m",
+        "D.mean_m",  # type: ignore[arg-type]
+        "abs_phi.mean_deg",
+        "map.rms_t_m",
+    ]
     assert sw.metric_help(pipe).startswith("BLOCK.STAT_m and BLOCK.STAT_deg")  # type: ignore[arg-type]

@@ -80,8 +80,13 @@ def edit(path: Path, old: str, new: str) -> None:
 def test_closure_is_found_from_the_source(pkg) -> None:
     name, _ = pkg
     closure = code_closure(importlib.import_module(f"{name}.stage"))
-    assert set(closure) == {".", f"{name}.helpers", f"{name}.maths", "tagtrail.stages.base",
-                            "tagtrail.schemas.stage"}  # the contract, as stages import it
+    assert set(closure) == {
+        ".",
+        f"{name}.helpers",
+        f"{name}.maths",
+        "tagtrail.stages.base",
+        "tagtrail.schemas.stage",
+    }  # the contract, as stages import it
 
 
 def test_a_statement_two_imports_away_changes_it(pkg) -> None:
@@ -122,12 +127,15 @@ def test_status_names_the_module_that_changed(pkg, tmp_path: Path) -> None:
     assert state.status == "ran"
 
 
-@pytest.mark.parametrize("stage, modules", [
-    ("extract", {"tagtrail.vision.detector", "tagtrail.vision.corners", "tagtrail.pool"}),
-    ("report", {"tagtrail.geometry.se3", "tagtrail.geometry.reference_path"}),
-    ("align", {"tagtrail.geometry.registration", "tagtrail.geometry.reference_path"}),
-    ("optimize", {"tagtrail.geometry.posegraph", "tagtrail.geometry.se3"}),
-])
+@pytest.mark.parametrize(
+    "stage, modules",
+    [
+        ("extract", {"tagtrail.vision.detector", "tagtrail.vision.corners", "tagtrail.pool"}),
+        ("report", {"tagtrail.geometry.se3", "tagtrail.geometry.reference_path"}),
+        ("align", {"tagtrail.geometry.registration", "tagtrail.geometry.reference_path"}),
+        ("optimize", {"tagtrail.geometry.posegraph", "tagtrail.geometry.se3"}),
+    ],
+)
 def test_real_stages_cover_what_the_hand_lists_missed(stage: str, modules: set[str]) -> None:
     assert modules <= set(code_closure(REGISTRY[stage]))
 
@@ -135,5 +143,9 @@ def test_real_stages_cover_what_the_hand_lists_missed(stage: str, modules: set[s
 def test_exports_cover_the_helpers_they_call() -> None:
     from tagtrail.runner import export
 
-    assert {"tagtrail.io.reloc_files", "tagtrail.io.layouts", "tagtrail.geometry.reference_path",
-            "tagtrail.schemas.artifacts"} <= set(code_closure(export))
+    assert {
+        "tagtrail.io.reloc_files",
+        "tagtrail.io.layouts",
+        "tagtrail.geometry.reference_path",
+        "tagtrail.schemas.artifacts",
+    } <= set(code_closure(export))

@@ -18,9 +18,11 @@ from pathlib import Path
 from tagtrail.runner.inputs import reader_closure
 
 PACKAGE = Path(__file__).resolve().parents[2] / "tagtrail"
-OBSERVATIONS = ("stamp_sec,stamp_nanosec,tag,x,y,z,qx,qy,qz,qw\n"
-                "1,0,tag36h11:4,0.1,0.2,1.5,0,0,0,1\n1,0,tag36h11:2,0.0,0.1,2.0,1,0,0,0\n"
-                "2,0,tag36h11:4,0.1,0.2,1.4,0,0,0,1\n")  # fmt: skip
+OBSERVATIONS = (
+    "stamp_sec,stamp_nanosec,tag,x,y,z,qx,qy,qz,qw\n"
+    "1,0,tag36h11:4,0.1,0.2,1.5,0,0,0,1\n1,0,tag36h11:2,0.0,0.1,2.0,1,0,0,0\n"
+    "2,0,tag36h11:4,0.1,0.2,1.4,0,0,0,1\n"
+)
 
 
 def test_the_source_reader_covers_what_it_imports() -> None:
@@ -47,8 +49,11 @@ def test_a_reader_statement_reruns_extract_a_comment_does_not(tmp_path: Path) ->
     # comments and docstrings of the readers (io/layouts.py, io/sources.py): still up to date
     edit(layouts, "\ndef tag_name(", "\n# a comment on why\n\n\ndef tag_name(")
     layouts.write_text(layouts.read_text().replace('"""', '"""Reworded. ', 1))  # the docstring
-    edit(pkg / "tagtrail" / "io" / "sources.py", "\ndef open_source(",
-         "\n# a comment\ndef open_source(")
+    edit(
+        pkg / "tagtrail" / "io" / "sources.py",
+        "\ndef open_source(",
+        "\n# a comment\ndef open_source(",
+    )
     line = extract_line(tagtrail(pkg, project, "status"))
     assert "up to date" in line, line
 
@@ -58,8 +63,9 @@ def test_a_reader_statement_reruns_extract_a_comment_does_not(tmp_path: Path) ->
     assert "out of date" in line, line
     assert "(code changed: tagtrail.io.layouts (reads source))" in line, line
     ran = tagtrail(pkg, project, "run", "extract")
-    assert re.search(r"^extract \[reference\] +ran .*code changed: tagtrail\.io\.layouts", ran,
-                     re.M), ran  # fmt: skip
+    assert re.search(
+        r"^extract \[reference\] +ran .*code changed: tagtrail\.io\.layouts", ran, re.M
+    ), ran
 
 
 def tagtrail(pkg: Path, cwd: Path, *args: str, module: bool = True) -> str:

@@ -21,8 +21,9 @@ SLEEP = 0.4
 @pytest.fixture
 def make(tmp_path: Path):
     stages = copy_stages(tmp_path / "stages")
-    pipe_file = write_project(tmp_path / "proj", {"scale": {"factor": 2.0},
-                                                   "slow": {"seconds": SLEEP}})
+    pipe_file = write_project(
+        tmp_path / "proj", {"scale": {"factor": 2.0}, "slow": {"seconds": SLEEP}}
+    )
 
     def runner(*overrides: str, jobs: int = 1) -> Runner:
         return Runner(load_pipeline(pipe_file, load_registry(stages), overrides), jobs=jobs)
@@ -54,8 +55,9 @@ def test_show_without_the_runs_flags_shows_the_most_recent_artifact(make, capsys
     out = capsys.readouterr().out.splitlines()
     key = make("scale.factor=5").key_of("scale", "query")
     assert key is not None and out[0].startswith(f"scale [query]  artifact {key[:12]}")
-    assert out[1] == ("note: not up to date; showing the most recent artifact, made with "
-                      "-S scale.factor=5.0")
+    assert out[1] == (
+        "note: not up to date; showing the most recent artifact, made with -S scale.factor=5.0"
+    )
     assert show(make("scale.factor=5"), "scale", "query", None, None) == 0  # matching flags
     assert "note:" not in capsys.readouterr().out
 
@@ -73,6 +75,7 @@ def test_show_after_a_code_change_says_the_parameters_are_the_same(make, capsys)
     stage_file.write_text(code.replace("* params.factor", "* params.factor * 1.0"))
     capsys.readouterr()
     assert show(make(), "scale", "reference", None, None) == 0
-    assert ("made with the same parameters, before its code or inputs changed"
-            in capsys.readouterr().out)
-
+    assert (
+        "made with the same parameters, before its code or inputs changed"
+        in capsys.readouterr().out
+    )

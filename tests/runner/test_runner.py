@@ -113,9 +113,10 @@ def test_dry_run_and_plan_write_nothing(project) -> None:
 
 def test_ground_truth_and_scope_skips(project) -> None:
     r = project()
-    assert "runs on query datasets only" in r.graph.skipped[
-        next(n for n in r.graph.skipped if n.stage == "compare")
-    ]
+    assert (
+        "runs on query datasets only"
+        in r.graph.skipped[next(n for n in r.graph.skipped if n.stage == "compare")]
+    )
 
 
 def test_bad_specs_raise_spec_errors(project, tmp_path: Path) -> None:
@@ -132,7 +133,12 @@ def _cli(stages_dir: Path, cwd: Path, *args: str, **kw) -> subprocess.CompletedP
     env = {**os.environ, "PYTHONPATH": str(Path(__file__).resolve().parents[2])}
     return subprocess.run(
         [sys.executable, str(DRIVER), str(stages_dir), *args],
-        cwd=cwd, env=env, capture_output=True, text=True, timeout=120, **kw,
+        cwd=cwd,
+        env=env,
+        capture_output=True,
+        text=True,
+        timeout=120,
+        **kw,
     )
 
 
@@ -141,10 +147,14 @@ def _cli(stages_dir: Path, cwd: Path, *args: str, **kw) -> subprocess.CompletedP
     [
         (lambda t: t.replace("datasets:", "datasets: [oops"), "invalid YAML"),
         (lambda t: t + "  scale:\n    fctor: 1\n", None),
-        (lambda t: t.replace("factor: 2.0", "fctor: 2.0"),
-         "unknown key 'fctor' — did you mean 'factor'"),
-        (lambda t: t.replace("source: query.csv", "source: nowhere.csv"),
-         "nowhere.csv does not exist"),
+        (
+            lambda t: t.replace("factor: 2.0", "fctor: 2.0"),
+            "unknown key 'fctor' — did you mean 'factor'",
+        ),
+        (
+            lambda t: t.replace("source: query.csv", "source: nowhere.csv"),
+            "nowhere.csv does not exist",
+        ),
         (lambda t: t.replace("factor: 2.0", "factor: lots"), "factor"),
     ],
 )
@@ -196,8 +206,10 @@ def test_kill_9_mid_stage_then_rerun_is_identical(project, tmp_path: Path) -> No
     cwd = project.pipe_file.parent
     proc = subprocess.Popen(
         [sys.executable, str(DRIVER), str(project.stages_dir), "run", "-S", "slow.seconds=0.6"],
-        cwd=cwd, env={**os.environ, "PYTHONPATH": str(Path(__file__).resolve().parents[2])},
-        stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
+        cwd=cwd,
+        env={**os.environ, "PYTHONPATH": str(Path(__file__).resolve().parents[2])},
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.DEVNULL,
     )
     marker = cwd / "artifacts" / "runs" / "reference" / "scale.json"
     deadline = time.time() + 60
@@ -259,9 +271,12 @@ def test_a_second_run_waits_for_the_lock(project) -> None:
     cwd = project.pipe_file.parent
     with r.store.lock():
         proc = subprocess.Popen(
-            [sys.executable, str(DRIVER), str(project.stages_dir), "run"], cwd=cwd,
+            [sys.executable, str(DRIVER), str(project.stages_dir), "run"],
+            cwd=cwd,
             env={**os.environ, "PYTHONPATH": str(Path(__file__).resolve().parents[2])},
-            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+            stdout=subprocess.PIPE,
+            stderr=subprocess.PIPE,
+            text=True,
         )
         # blocked while we hold the store: it says so (however slowly a loaded machine starts it)
         first = proc.stderr.readline() if proc.stderr is not None else ""

@@ -13,8 +13,10 @@ from tagtrail.stages import REGISTRY
 
 def test_parameters_without_the_sources(tmp_path: Path) -> None:
     f = tmp_path / "pipeline.yaml"
-    f.write_text("datasets:\n  reference: {source: bags/run1, camera: cam.yaml}\n"
-                 "stages:\n  pnp: {tag_size: 0.1}\n  report: {plane: xy}\n")
+    f.write_text(
+        "datasets:\n  reference: {source: bags/run1, camera: cam.yaml}\n"
+        "stages:\n  pnp: {tag_size: 0.1}\n  report: {plane: xy}\n"
+    )
     with pytest.raises(SpecError, match="does not exist"):
         load_pipeline(f, REGISTRY)
     pipe = load_pipeline(f, REGISTRY, check_sources=False)

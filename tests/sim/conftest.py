@@ -20,5 +20,6 @@ def room_mcap(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Path]:
 def room_detections(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Path]:
     """The room scenario as /detections + /camera_info, sqlite3, more frames (cheap)."""
     out = tmp_path_factory.mktemp("room_det")
-    return simulate("room", out, frames=300, query_frames=10, detections=True,
-                    storage="sqlite3", seed=5)
+    return simulate(
+        "room", out, frames=300, query_frames=10, detections=True, storage="sqlite3", seed=5
+    )

@@ -35,8 +35,10 @@ def read_topic(bag: Path, topic: str) -> list[tuple[int, Any]]:
         conns = [c for c in reader.connections if c.topic == topic]
         if not conns:  # messages(connections=[]) would mean "all topics"
             return []
-        return [(t, reader.deserialize(raw, c.msgtype))
-                for c, t, raw in reader.messages(connections=conns)]
+        return [
+            (t, reader.deserialize(raw, c.msgtype))
+            for c, t, raw in reader.messages(connections=conns)
+        ]
 
 
 def image_of(msg: Any) -> np.ndarray:

@@ -58,15 +58,45 @@ def test_figure_eight_crosses_itself() -> None:
     assert mid.any() and np.hypot(*(xy[0] - xy[-1])) > 0.3  # an open path with an end
 
 
-@pytest.mark.xfail(reason="open defect: after the merges the loop converges (RMS 1.2 cm) "
-                   "but does not complete the path (closing note)", strict=False)
+@pytest.mark.xfail(
+    reason="open defect: after the merges the loop converges (RMS 1.2 cm) "
+    "but does not complete the path (closing note)",
+    strict=False,
+)
 def test_closed_loop_figure_eight(tmp_path: Path, capsys: object) -> None:
     out = tmp_path / "eight"
-    assert main(["simulate", "follow", "--out", str(out), "--start-offset", "0.3",
-                 "--start-heading", "30", "--speed", "0.3"]) == 0
+    assert (
+        main(
+            [
+                "simulate",
+                "follow",
+                "--out",
+                str(out),
+                "--start-offset",
+                "0.3",
+                "--start-heading",
+                "30",
+                "--speed",
+                "0.3",
+            ]
+        )
+        == 0
+    )
     s = json.loads((out / "follow_summary.json").read_text())
-    print(json.dumps({k: s[k] for k in ("converged_s", "cross_track_rms_m", "cross_track_max_m",
-                                        "crossing", "latency_detections_to_twist_ms")}))
+    print(
+        json.dumps(
+            {
+                k: s[k]
+                for k in (
+                    "converged_s",
+                    "cross_track_rms_m",
+                    "cross_track_max_m",
+                    "crossing",
+                    "latency_detections_to_twist_ms",
+                )
+            }
+        )
+    )
     assert (out / "follow.csv").read_text().splitlines()[0] == COLUMNS
     assert (out / "follow.png").stat().st_size > 0
     assert (out / "ground_truth" / "trajectory.csv").is_file()
@@ -114,8 +144,11 @@ def test_closed_loop_blackout_stops_then_resumes(tmp_path: Path) -> None:
     assert (v_cmd[(t > t0 + 0.6) & (t < t0 + 2.0)] == 0.0).all()  # stopped in the dark
     assert (v_cmd[t > t0 + 3.0] > 0).any()  # and on again
     assert s["completed"] and s["cross_track_max_m"] <= 0.05
-    print(json.dumps({k: s[k] for k in ("converged_s", "cross_track_rms_m", "cross_track_max_m",
-                                        "blackout")}))
+    print(
+        json.dumps(
+            {k: s[k] for k in ("converged_s", "cross_track_rms_m", "cross_track_max_m", "blackout")}
+        )
+    )
 
 
 def test_bad_options_are_one_error_line(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:

@@ -43,12 +43,15 @@ def ground_truth(folder: Path) -> tuple[dict[int, F64], dict[int, F64], dict[int
     traj = read_trajectory(folder / "ground_truth" / "trajectory.csv")
     tags, _ = read_tag_map(folder / "ground_truth" / "tag_map.yaml")
     cams = T_from_xyz_quat(traj[POSE_COLS[:3]].to_numpy(float), traj[POSE_COLS[3:]].to_numpy(float))
-    world_T_tag = T_from_xyz_quat(tags[POSE_COLS[:3]].to_numpy(float),
-                                  tags[POSE_COLS[3:]].to_numpy(float))
+    world_T_tag = T_from_xyz_quat(
+        tags[POSE_COLS[:3]].to_numpy(float), tags[POSE_COLS[3:]].to_numpy(float)
+    )
     ids = tags["tag_id"].to_numpy(int)
-    return (dict(zip(traj["t_ns"].to_numpy(int), cams, strict=True)),
-            dict(zip(ids, world_T_tag, strict=True)),
-            dict(zip(ids, tags["size_m"].to_numpy(float), strict=True)))
+    return (
+        dict(zip(traj["t_ns"].to_numpy(int), cams, strict=True)),
+        dict(zip(ids, world_T_tag, strict=True)),
+        dict(zip(ids, tags["size_m"].to_numpy(float), strict=True)),
+    )
 
 
 def pnp(corners_cv: F64, size: float, K: F64, D: F64) -> F64:
@@ -64,8 +67,13 @@ def pnp(corners_cv: F64, size: float, K: F64, D: F64) -> F64:
     # noise-free data. Solve in a virtually rotated camera q (p_q = Q p_cam) and rotate back.
     rays = np.concatenate([und.reshape(-1, 2), np.ones((4, 1))], axis=1) @ VIRTUAL_Q.T
     img_q = (rays[:, :2] / rays[:, 2:]).reshape(-1, 1, 2)
-    ok, rvec, tvec = cv2.solvePnP(SPEC_CORNERS[IPPE_ORDER] * size, img_q[IPPE_ORDER], np.eye(3),
-                                  None, flags=cv2.SOLVEPNP_IPPE_SQUARE)
+    ok, rvec, tvec = cv2.solvePnP(
+        SPEC_CORNERS[IPPE_ORDER] * size,
+        img_q[IPPE_ORDER],
+        np.eye(3),
+        None,
+        flags=cv2.SOLVEPNP_IPPE_SQUARE,
+    )
     assert ok
     return make_T(VIRTUAL_Q.T, np.zeros(3)) @ T_from_rotvec_t(rvec.ravel(), tvec.ravel())
 
@@ -97,8 +105,10 @@ def test_rendered_tags_pnp_matches_ground_truth(room_mcap: dict[str, Path]) -> N
     # The bound, every detection within 1.5 m: < 5 mm and < 0.5 deg (measured max
     # 0.6 mm / 0.20 deg; the detector's own corners, ~0.1 px off, give up to 2.7 mm / 0.65 deg).
     # A 180-degree (or mirrored) tag frame would be off by > 90 deg.
-    print(f"\nwithin 1.5 m: {len(near)} detections, max {1e3 * near[:, 1].max():.2f} mm / "
-          f"{near[:, 2].max():.2f} deg")
+    print(
+        f"\nwithin 1.5 m: {len(near)} detections, max {1e3 * near[:, 1].max():.2f} mm / "
+        f"{near[:, 2].max():.2f} deg"
+    )
     assert near[:, 1].max() < 0.005 and near[:, 2].max() < 0.5
     far = e[e[:, 0] < 3.0]
     assert np.median(far[:, 1]) < 0.01 and np.median(far[:, 2]) < 1.5

@@ -47,8 +47,11 @@ def test_room_layout_and_ground_truth(room_mcap: dict[str, Path]) -> None:
         if name.startswith("query"):
             test_pose = read_trajectory(gt / "test_poses.csv")
             assert len(test_pose) == 1
-            np.testing.assert_allclose(traj[POSE_COLS].to_numpy(), np.repeat(
-                test_pose[POSE_COLS].to_numpy(), n, axis=0), atol=1e-12)
+            np.testing.assert_allclose(
+                traj[POSE_COLS].to_numpy(),
+                np.repeat(test_pose[POSE_COLS].to_numpy(), n, axis=0),
+                atol=1e-12,
+            )
     assert not list(room_mcap["reference"].parent.glob(".simulate-*"))
 
 
@@ -69,8 +72,15 @@ def test_rosbags_reads_images_info_and_ground_truth(room_mcap: dict[str, Path]) 
     np.testing.assert_array_equal(traj["t_ns"].to_numpy(), [t for t, _ in poses])
     p = poses[5][1]
     assert p.header.frame_id == "map"
-    got = [p.pose.position.x, p.pose.position.y, p.pose.position.z, p.pose.orientation.x,
-           p.pose.orientation.y, p.pose.orientation.z, p.pose.orientation.w]
+    got = [
+        p.pose.position.x,
+        p.pose.position.y,
+        p.pose.position.z,
+        p.pose.orientation.x,
+        p.pose.orientation.y,
+        p.pose.orientation.z,
+        p.pose.orientation.w,
+    ]
     np.testing.assert_allclose(got, traj.loc[5, POSE_COLS].to_numpy(float), atol=1e-9)
 
 
@@ -180,8 +190,21 @@ def _parse(argv: list[str]) -> argparse.Namespace:
 
 
 def test_cli(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
-    argv = ["observations", "--out", str(tmp_path), "--frames", "20", "--noise-t", "0.1",
-            "--tag-ids", "10-33", "--tag-sizes", "10=0.2", "--anchor", "12"]
+    argv = [
+        "observations",
+        "--out",
+        str(tmp_path),
+        "--frames",
+        "20",
+        "--noise-t",
+        "0.1",
+        "--tag-ids",
+        "10-33",
+        "--tag-sizes",
+        "10=0.2",
+        "--anchor",
+        "12",
+    ]
     assert cli.main(_parse(argv)) == 0
     assert "observations:" in capsys.readouterr().out
     obs = pd.read_csv(tmp_path / "observations" / "observations.csv")
@@ -203,20 +226,26 @@ def test_cli(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
 
 def test_observations_follow_rigid_transforms(tmp_path: Path) -> None:
     exact = simulate("observations", tmp_path / "a", frames=30)["observations"]
-    noisy = simulate("observations", tmp_path / "b", frames=200, noise_t_m=0.1,
-                     noise_r_deg=3.0)["observations"]
+    noisy = simulate("observations", tmp_path / "b", frames=200, noise_t_m=0.1, noise_r_deg=3.0)[
+        "observations"
+    ]
     for folder, tol in ((exact, 1e-9), (noisy, None)):
         obs = pd.read_csv(folder / "observations.csv")
         traj = read_trajectory(folder / "ground_truth").set_index("t_ns")
         tags = read_tag_map(folder / "ground_truth")[0].set_index("tag_id")
         t_ns = obs["stamp_sec"].to_numpy() * 10**9 + obs["stamp_nanosec"].to_numpy()
         ids = obs["tag"].str.split(":").str[1].astype(int).to_numpy()
-        world_T_cam = T_from_xyz_quat(traj.loc[t_ns, POSE_COLS[:3]].to_numpy(float),
-                                      traj.loc[t_ns, POSE_COLS[3:]].to_numpy(float))
-        cam_T_tag = T_from_xyz_quat(obs[["x", "y", "z"]].to_numpy(float),
-                                    obs[["qx", "qy", "qz", "qw"]].to_numpy(float))
-        world_T_tag = T_from_xyz_quat(tags.loc[ids, POSE_COLS[:3]].to_numpy(float),
-                                      tags.loc[ids, POSE_COLS[3:]].to_numpy(float))
+        world_T_cam = T_from_xyz_quat(
+            traj.loc[t_ns, POSE_COLS[:3]].to_numpy(float),
+            traj.loc[t_ns, POSE_COLS[3:]].to_numpy(float),
+        )
+        cam_T_tag = T_from_xyz_quat(
+            obs[["x", "y", "z"]].to_numpy(float), obs[["qx", "qy", "qz", "qw"]].to_numpy(float)
+        )
+        world_T_tag = T_from_xyz_quat(
+            tags.loc[ids, POSE_COLS[:3]].to_numpy(float),
+            tags.loc[ids, POSE_COLS[3:]].to_numpy(float),
+        )
         # translation noise of cam_T_tag, in the camera frame
         expect = np.linalg.inv(world_T_cam) @ world_T_tag
         dt = cam_T_tag[:, :3, 3] - expect[:, :3, 3]

@@ -22,8 +22,13 @@ def test_hall_visibility_profile() -> None:
     (scene,) = build("hall", OPTS)
     assert scene.name == "hall" and len(scene.tags) == 28 and scene.anchor_id == 0
     assert 1800 <= len(scene.t_ns) <= 2600  # ~22 m at 0.3 m/s, 30 fps
-    vis = tag_visibility(scene.camera, scene.cam_T_tags(), scene.tag_sizes,
-                         max_range_m=OPTS.max_range_m, max_incidence_deg=OPTS.max_incidence_deg)
+    vis = tag_visibility(
+        scene.camera,
+        scene.cam_T_tags(),
+        scene.tag_sizes,
+        max_range_m=OPTS.max_range_m,
+        max_incidence_deg=OPTS.max_incidence_deg,
+    )
     n = vis.visible.sum(axis=1)
     assert n.max() <= 3 and (n == 0).mean() < 0.15  # the U-turn and the end see none
     one = (n[n > 0] == 1).mean()

@@ -25,8 +25,9 @@ OPTS = SimOptions()
 
 
 def _visible(scene: Scene) -> np.ndarray:
-    return tag_visibility(scene.camera, scene.cam_T_tags(), scene.tag_sizes,
-                          max_range_m=OPTS.max_range_m).visible
+    return tag_visibility(
+        scene.camera, scene.cam_T_tags(), scene.tag_sizes, max_range_m=OPTS.max_range_m
+    ).visible
 
 
 def test_circle_has_24_tags_and_sees_two_or_more() -> None:
@@ -70,7 +71,8 @@ def test_room_loop_has_no_heading_kinks() -> None:
     _, _, eased_length = resample_path(eased, 20000, True)
     assert np.linalg.norm(eased[::20, None] - dense[None], axis=2).min(axis=1).max() < 0.01
     assert np.linalg.norm(eased[-1] - eased[0]) < 2e-3 and eased_length == pytest.approx(
-        length, abs=0.01)
+        length, abs=0.01
+    )
 
 
 def test_corridor_sees_one_or_two_tags_and_stays_connected() -> None:
@@ -113,8 +115,18 @@ def test_near_plane_clipping() -> None:
     tag = Tag(0, 0.8, make_T(R_tag, [0.3, 0.0, 0.05]))
     scene = Scene("clip", cam, (tag,), (), 0, scene_T_cam[None], stamps_ns(1, 30))
     r = Renderer(scene, Realism(0, 0, 1, 1, 0))
-    empty = Renderer(Scene("none", cam, (Tag(1, 0.1, make_T(np.eye(3), [0, 0, -5])),), (), 1,
-                           scene_T_cam[None], stamps_ns(1, 30)), Realism(0, 0, 1, 1, 0))
+    empty = Renderer(
+        Scene(
+            "none",
+            cam,
+            (Tag(1, 0.1, make_T(np.eye(3), [0, 0, -5])),),
+            (),
+            1,
+            scene_T_cam[None],
+            stamps_ns(1, 30),
+        ),
+        Realism(0, 0, 1, 1, 0),
+    )
     diff = r.render_ideal(scene_T_cam) != empty.render_ideal(scene_T_cam)
     cols = np.flatnonzero(diff.any(axis=0)) - r.offset[0]
     fx, cx = cam.K[0, 0], cam.K[0, 2]
@@ -132,8 +144,9 @@ def test_texture_orientation_and_corner_order() -> None:
     assert d.tag_id == 7 and d.hamming == 0
     c = d.corners
     assert c[0, 0] < c[1, 0] and c[0, 1] > c[3, 1]  # 0 left of 1, 0 below 3 (image y down)
-    expect = tag_visibility(cam, inv(np.eye(4))[None, None] @ tag.scene_T_tag[None, None],
-                            np.array([0.16])).corners_px[0, 0]
+    expect = tag_visibility(
+        cam, inv(np.eye(4))[None, None] @ tag.scene_T_tag[None, None], np.array([0.16])
+    ).corners_px[0, 0]
     np.testing.assert_allclose(c - 0.5, expect, atol=0.3)
 
 
@@ -158,11 +171,17 @@ def test_rendered_corners_follow_the_camera_model(model: str) -> None:
     assert vis.visible[0, 0] and d.tag_id == 3
     np.testing.assert_allclose(d.corners - 0.5, vis.corners_px[0, 0], atol=0.3)
     pinhole = CameraModel(640, 480, limo.K, [], "none")
-    assert np.abs(tag_visibility(pinhole, tag.scene_T_tag[None, None], np.array([0.16]))
-                  .corners_px[0, 0] - vis.corners_px[0, 0]).max() > 2.0
+    assert (
+        np.abs(
+            tag_visibility(pinhole, tag.scene_T_tag[None, None], np.array([0.16])).corners_px[0, 0]
+            - vis.corners_px[0, 0]
+        ).max()
+        > 2.0
+    )
 
 
 def test_upright_pose_axes() -> None:
     T = upright_pose(np.array([1.0, 2.0, 0.3]), np.array([-1.0, 0.0]))
-    np.testing.assert_allclose(T[:3, :3], np.column_stack([[0, -1, 0], [0, 0, 1], [-1, 0, 0]]),
-                               atol=1e-12)
+    np.testing.assert_allclose(
+        T[:3, :3], np.column_stack([[0, -1, 0], [0, 0, 1], [-1, 0, 0]]), atol=1e-12
+    )

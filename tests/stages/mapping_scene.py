@@ -157,6 +157,16 @@ def tag_map_frame(world_T_tag: np.ndarray, ids: np.ndarray | None = None) -> pd.
 def map_report(**joint: object) -> OptimizeReport:
     """An ``optimize.report`` of a pose-graph map made under the joint settings ``joint``: what
     ``trajectory`` takes its settings from (its ``map_report`` input)."""
-    return OptimizeReport(anchor_id=0, loss="soft_l1", f_scale=0.1, cost=0.0, nfev=1, status=1,
-                          rms_t_m=0.0, rms_r_deg=0.0, method="pairwise", bundle=None,
-                          joint=JointSettings.model_validate(joint))
+    return OptimizeReport(
+        anchor_id=0,
+        loss="soft_l1",
+        f_scale=0.1,
+        cost=0.0,
+        nfev=1,
+        status=1,
+        rms_t_m=0.0,
+        rms_r_deg=0.0,
+        method="pairwise",
+        bundle=None,
+        joint=JointSettings.model_validate(joint),
+    )

@@ -14,8 +14,9 @@ from tagtrail.stages import REGISTRY
 
 def pipeline_file(tmp_path: Path, dataset: str, stages: dict) -> Path:
     path = tmp_path / "pipeline.yaml"
-    path.write_text(yaml.safe_dump({"datasets": {"reference": yaml.safe_load(dataset)},
-                                    "stages": stages}))
+    path.write_text(
+        yaml.safe_dump({"datasets": {"reference": yaml.safe_load(dataset)}, "stages": stages})
+    )
     return path
 
 

@@ -53,8 +53,9 @@ def scene() -> dict[str, object]:
     """Reference world + a query world related by a planar similarity (xz) and 30 % bad tags."""
     rng = np.random.default_rng(11)
     ids = np.arange(20)
-    ref_tags = np.column_stack([rng.uniform(-3, 3, 20), rng.uniform(-0.05, 0.3, 20),
-                                rng.uniform(-3, 3, 20)])  # fmt: skip
+    ref_tags = np.column_stack(
+        [rng.uniform(-3, 3, 20), rng.uniform(-0.05, 0.3, 20), rng.uniform(-3, 3, 20)]
+    )
     s, deg, t = 1.03, -54.9, np.array([-2.04, -0.11])  # query → reference, in (x, z)
     a = math.radians(deg)
     R2 = np.array([[math.cos(a), -math.sin(a)], [math.sin(a), math.cos(a)]])
@@ -68,16 +69,26 @@ def scene() -> dict[str, object]:
     Pq_ref, Rq_ref = P[::3] * 0.8 + [0.3, 0.0, -0.2], R[::3]  # query poses, reference world
     R_about_n = Rotation.from_rotvec(a * np.array([0.0, -1.0, 0.0])).as_matrix()  # n = −y
     return {
-        "ref_tags": tag_map(ids, ref_tags), "q_tags": tag_map(ids, q_tags),
+        "ref_tags": tag_map(ids, ref_tags),
+        "q_tags": tag_map(ids, q_tags),
         "ref_traj": trajectory(P, R),
         "q_traj": trajectory(to_query(Pq_ref), R_about_n.T @ Rq_ref),
-        "truth": (Pq_ref, Rq_ref), "s": s, "deg": deg, "t": t, "bad": bad,
-    }  # fmt: skip
+        "truth": (Pq_ref, Rq_ref),
+        "s": s,
+        "deg": deg,
+        "t": t,
+        "bad": bad,
+    }
 
 
 def run(scene: dict, **params: object) -> dict:
-    return align.run(scene["q_tags"], scene["ref_tags"], scene["q_traj"], scene["ref_traj"],
-                     align.Params(**params))  # fmt: skip
+    return align.run(
+        scene["q_tags"],
+        scene["ref_tags"],
+        scene["q_traj"],
+        scene["ref_traj"],
+        align.Params(**params),
+    )
 
 
 @pytest.mark.parametrize("plane", ["xz", "auto"])
@@ -112,8 +123,13 @@ def test_se3_recovers_a_3d_transform() -> None:
     q_tags = (ref_tags - tt) @ Rt  # query = inv(T) · reference
     P, R = upright_circle(12)
     q_traj = trajectory((P - tt) @ Rt, Rt.T @ R)
-    out = align.run(tag_map(np.arange(8), q_tags), tag_map(np.arange(8), ref_tags), q_traj,
-                    trajectory(P, R), align.Params(model="se3"))  # fmt: skip
+    out = align.run(
+        tag_map(np.arange(8), q_tags),
+        tag_map(np.arange(8), ref_tags),
+        q_traj,
+        trajectory(P, R),
+        align.Params(model="se3"),
+    )
     assert out["alignment"]["inliers"] == 8 and len(out["alignment"]["translation"]) == 3
     np.testing.assert_allclose(out["trajectory"][["x_m", "y_m", "z_m"]].to_numpy(), P, atol=1e-9)
     Rq = Rotation.from_quat(out["trajectory"][["qx", "qy", "qz", "qw"]].to_numpy()).as_matrix()
@@ -123,9 +139,15 @@ def test_se3_recovers_a_3d_transform() -> None:
 def test_align_none_keeps_the_query_frame(scene: dict) -> None:
     out = run(scene, align="none")
     pd.testing.assert_frame_equal(out["trajectory"], scene["q_traj"])
-    assert out["alignment"].model_dump() == {"model": "none", "scale": 1.0, "rotation_deg": 0.0,
-                                "translation": [0.0, 0.0], "inliers": 0, "common_tags": 20,
-                                "rms_m": None}  # fmt: skip
+    assert out["alignment"].model_dump() == {
+        "model": "none",
+        "scale": 1.0,
+        "rotation_deg": 0.0,
+        "translation": [0.0, 0.0],
+        "inliers": 0,
+        "common_tags": 20,
+        "rms_m": None,
+    }
 
 
 def test_auto_without_enough_common_tags_warns(scene: dict, caplog: pytest.LogCaptureFixture):

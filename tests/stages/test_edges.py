@@ -108,6 +108,7 @@ def test_ambiguous_observations_are_left_out() -> None:
     alt = scene.cam_T_tag() @ flip
     amb = np.where(np.arange(len(obs)) % 5 == 0, 0.9, 0.2)
     obs = observations(scene, ambiguity=amb, alt_cam_T_tag=alt)
+
     def used(p: edges.Params, ob: pd.DataFrame = obs) -> pd.DataFrame:
         e = edges.run(ob, p)["edges"]
         return e[e["hypothesis"] == 0]
@@ -119,7 +120,8 @@ def test_ambiguous_observations_are_left_out() -> None:
 
 
 def test_ambiguous_observations_that_hold_the_graph_together_are_kept_down_weighted(
-        caplog: pytest.LogCaptureFixture) -> None:
+    caplog: pytest.LogCaptureFixture,
+) -> None:
     """Every observation of tags 6-11 in a frame that also shows one of tags 0-5 is ambiguous:
     left out, the ring would split in two; they are kept instead (and only they: other
     ambiguous observations are left out), their edges weighted ``ambiguous_weight``, and the
@@ -132,8 +134,9 @@ def test_ambiguous_observations_that_hold_the_graph_together_are_kept_down_weigh
     low = pd.Series(tag < 6).groupby(frame).transform("any").to_numpy()
     inner = ~low & (tag >= 6) & (np.arange(len(obs)) % 3 == 0)  # ambiguous, linking nothing
     amb = np.where(low & (tag >= 6) | inner, 0.9, 0.2)
-    alt = scene.cam_T_tag() @ make_T(Rotation.from_euler("x", 40, degrees=True).as_matrix(),
-                                     np.zeros(3))
+    alt = scene.cam_T_tag() @ make_T(
+        Rotation.from_euler("x", 40, degrees=True).as_matrix(), np.zeros(3)
+    )
     obs = observations(scene, ambiguity=amb, alt_cam_T_tag=alt)
     with caplog.at_level(logging.WARNING, logger="tagtrail.stages.edges"):
         out = edges.run(obs, edges.Params(weighting="uniform"))
@@ -154,8 +157,9 @@ def test_ambiguous_observations_that_hold_the_graph_together_are_kept_down_weigh
 
 
 def test_distance_weights_favour_close_tags() -> None:
-    w = edges.edge_weights(np.array([1.0, 1.0, 3.0]), np.array([1.0, 2.0, 3.0]),
-                           np.full(3, 0.16), np.full(3, 0.16))
+    w = edges.edge_weights(
+        np.array([1.0, 1.0, 3.0]), np.array([1.0, 2.0, 3.0]), np.full(3, 0.16), np.full(3, 0.16)
+    )
     assert w[1] == 1.0 and w[0] > w[1] > w[2]
 
 
@@ -173,8 +177,11 @@ def test_bridges_match_brute_force() -> None:
         all_pairs = np.array([(u, v) for u in range(n) for v in range(u + 1, n)])
         pairs = all_pairs[rng.random(len(all_pairs)) < rng.uniform(0.1, 0.5)].reshape(-1, 2)
         base = n_comp(pairs, n)
-        want = {(int(u), int(v)) for k, (u, v) in enumerate(pairs)
-                if n_comp(np.delete(pairs, k, axis=0), n) > base}
+        want = {
+            (int(u), int(v))
+            for k, (u, v) in enumerate(pairs)
+            if n_comp(np.delete(pairs, k, axis=0), n) > base
+        }
         assert edges.bridges(pairs, n) == want
 
 

@@ -22,8 +22,21 @@ from tests.io import bags
 T0 = bags.T0_NS
 DT = 33_333_333
 FRAME_COLS = ["t_ns", "frame_idx", "n_det", "timed"]
-DET_COLS = ["t_ns", "frame_idx", "tag_id", "hamming", "decision_margin",
-            "c0x", "c0y", "c1x", "c1y", "c2x", "c2y", "c3x", "c3y"]
+DET_COLS = [
+    "t_ns",
+    "frame_idx",
+    "tag_id",
+    "hamming",
+    "decision_margin",
+    "c0x",
+    "c0y",
+    "c1x",
+    "c1y",
+    "c2x",
+    "c2y",
+    "c3x",
+    "c3y",
+]
 OBS_COLS = ["t_ns", "frame_idx", "tag_id", "x_m", "y_m", "z_m", "qx", "qy", "qz", "qw"]
 
 
@@ -38,8 +51,14 @@ def upenn_bag(upenn_dir: Path, tmp_path_factory) -> Path:
     cam = read_camera_file(upenn_dir / "frames/camera.yaml")
     files = sorted((upenn_dir / "frames").glob("frame*.jpg"))
     out = [("/cam/camera_info", T0, bags.camera_info_msg(cam))]
-    out += [("/cam/image/compressed", T0 + k * DT,
-             bags.compressed_msg(f.read_bytes(), "jpeg", T0 + k * DT)) for k, f in enumerate(files)]
+    out += [
+        (
+            "/cam/image/compressed",
+            T0 + k * DT,
+            bags.compressed_msg(f.read_bytes(), "jpeg", T0 + k * DT),
+        )
+        for k, f in enumerate(files)
+    ]
     return bags.write_bag(tmp_path_factory.mktemp("upenn") / "bag", out, "sqlite3")
 
 
@@ -91,10 +110,17 @@ def test_upenn_refit_moves_real_corners_by_a_fraction_of_a_pixel(
     check_tables(refit)
     for col in ("t_ns", "frame_idx", "tag_id"):
         assert refit["detections"][col].tolist() == raw["detections"][col].tolist()
-    shift = np.linalg.norm((refit["detections"][DET_COLS[5:]].to_numpy()
-                            - raw["detections"][DET_COLS[5:]].to_numpy()).reshape(-1, 4, 2), axis=2)
-    print(f"\nupenn re-fit shift: median {np.median(shift):.3f} px, max {shift.max():.3f} px, "
-          f"{np.mean(shift.max(axis=1) > 0):.0%} of tags re-fitted")
+    shift = np.linalg.norm(
+        (
+            refit["detections"][DET_COLS[5:]].to_numpy()
+            - raw["detections"][DET_COLS[5:]].to_numpy()
+        ).reshape(-1, 4, 2),
+        axis=2,
+    )
+    print(
+        f"\nupenn re-fit shift: median {np.median(shift):.3f} px, max {shift.max():.3f} px, "
+        f"{np.mean(shift.max(axis=1) > 0):.0%} of tags re-fitted"
+    )
     assert np.mean(shift.max(axis=1) > 0) > 0.9  # re-fitted, not skipped
     assert np.median(shift) < 0.3 and shift.max() <= 1.0
 
@@ -119,8 +145,9 @@ def test_rgb8_mcap_bag_and_folder_agree(upenn_bag_out: dict, upenn_dir, tmp_path
     got = extract_from(folder, extract.Params(workers=1, chunk_size=4))
     assert got["frames"]["n_det"].tolist() == [1] * 6 + [0]  # frames without tags are kept
     assert got["frames"]["t_ns"].tolist() == [k * 100_000_000 for k in range(7)]
-    pd.testing.assert_frame_equal(got["detections"].drop(columns="t_ns"),
-                                  ref.drop(columns="t_ns"))  # same JPEG bytes, same result
+    pd.testing.assert_frame_equal(
+        got["detections"].drop(columns="t_ns"), ref.drop(columns="t_ns")
+    )  # same JPEG bytes, same result
 
 
 def test_swatbotics_ids_vs_groundtruth(realdata: Path) -> None:
@@ -128,8 +155,11 @@ def test_swatbotics_ids_vs_groundtruth(realdata: Path) -> None:
     out = extract_from(folder / "images", extract.Params())
     check_tables(out)
     files = sorted(p.name for p in (folder / "images").glob("*.JPG"))
-    truth = {ln.split()[0]: set(map(int, ln.split()[1:]))
-             for ln in (folder / "groundtruth.txt").read_text().splitlines() if ln.strip()}
+    truth = {
+        ln.split()[0]: set(map(int, ln.split()[1:]))
+        for ln in (folder / "groundtruth.txt").read_text().splitlines()
+        if ln.strip()
+    }
     det = out["detections"]
     found = {files[i]: set(det.loc[det["frame_idx"] == i, "tag_id"]) for i in range(len(files))}
     tp = sum(len(found[f] & truth[f]) for f in files)
@@ -148,8 +178,13 @@ def test_detection_bag_humble_sqlite3(upenn_dir: Path, tmp_path: Path) -> None:
     for k, c in enumerate(corners):
         dets = [(12, 0, 90.0, c), (7, 1, 90.0, c + 50), (5, 0, 10.0, c + 100)]
         out.append(("/detections", T0 + k * DT, bags.detections_msg(T0 + k * DT, dets)))
-    out.append(("/detections", T0 + 9 * DT, bags.detections_msg(T0 + 9 * DT, [
-        (12, 0, 90.0, corners[0])], family="tag25h9")))
+    out.append(
+        (
+            "/detections",
+            T0 + 9 * DT,
+            bags.detections_msg(T0 + 9 * DT, [(12, 0, 90.0, corners[0])], family="tag25h9"),
+        )
+    )
     bag = bags.make_humble(bags.write_bag(tmp_path / "bag", out, "sqlite3"))
     assert extract_from(bag)["frames"]["n_det"].tolist() == [2] * 5 + [0]  # hamming 1 kept
     got = extract_from(bag, extract.Params(max_hamming=0))
@@ -167,7 +202,8 @@ def test_observations_source(tmp_path: Path) -> None:
     (tmp_path / "observations.csv").write_text(
         "stamp_sec,stamp_nanosec,tag,x,y,z,qx,qy,qz,qw\n"
         "1,0,tag36h11:4,0.1,0.2,1.5,0,0,0,1\n1,0,tag36h11:2,0.0,0.1,2.0,1,0,0,0\n"
-        "2,0,tag36h11:4,0.1,0.2,1.4,0,0,0,1\n")
+        "2,0,tag36h11:4,0.1,0.2,1.4,0,0,0,1\n"
+    )
     out = extract_from(tmp_path, extract.Params())
     check_tables(out)
     assert out["camera"] is None and len(out["detections"]) == 0
@@ -185,8 +221,11 @@ def test_worker_count_and_chunking_do_not_change_output(upenn_dir: Path, tmp_pat
     b = extract_from(folder, extract.Params(workers=2, chunk_size=1))
     for k in ("frames", "detections", "observations"):
         pd.testing.assert_frame_equal(a[k], b[k])
-    with pytest.raises(SourceError, match=r"\(7 images\): no detection is left: tag_ids \[3\] "
-                       r"drops 7 of 7 detections; set extract.tag_ids: null"):
+    with pytest.raises(
+        SourceError,
+        match=r"\(7 images\): no detection is left: tag_ids \[3\] "
+        r"drops 7 of 7 detections; set extract.tag_ids: null",
+    ):
         extract_from(folder, extract.Params(tag_ids=(3,)))
     c = extract_from(folder, extract.Params(tag_ids=(3, 12)))
     pd.testing.assert_frame_equal(c["detections"], a["detections"])
@@ -237,9 +276,15 @@ def test_repeated_runs_in_subprocesses_always_exit_0(upenn_dir: Path, tmp_path: 
     script.write_text(SCRIPT + "\nmain()\n")  # no `if __name__ == "__main__"` guard needed
     codes, outs = [], []
     for _ in range(10):  # two at a time: the machine has 2 cores
-        procs = [subprocess.Popen([sys.executable, str(script), str(tmp_path)],
-                                  stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
-                 for _ in range(2)]
+        procs = [
+            subprocess.Popen(
+                [sys.executable, str(script), str(tmp_path)],
+                stdout=subprocess.PIPE,
+                stderr=subprocess.PIPE,
+                text=True,
+            )
+            for _ in range(2)
+        ]
         for p in procs:
             out, err = p.communicate(timeout=120)
             codes.append(p.returncode)
@@ -261,8 +306,9 @@ def upenn_folder(upenn_dir: Path, folder: Path, resize: tuple[int, ...]) -> Path
     return folder
 
 
-def test_folder_frames_of_another_size_are_left_out(upenn_dir, tmp_path, monkeypatch, caplog,
-                                                    capsys) -> None:  # fmt: skip
+def test_folder_frames_of_another_size_are_left_out(
+    upenn_dir, tmp_path, monkeypatch, caplog, capsys
+) -> None:
     from tagtrail.cli import main
 
     monkeypatch.chdir(tmp_path)
@@ -271,17 +317,20 @@ def test_folder_frames_of_another_size_are_left_out(upenn_dir, tmp_path, monkeyp
     with caplog.at_level("WARNING"):
         assert main(["run"]) == 0
     warned = [r.getMessage() for r in caplog.records if "left out" in r.getMessage()]
-    assert warned == [f"image folder {folder} (10 images): 1 of 10 frames left out, their size "
-                      f"is not the camera's 640x480 ({folder / 'camera.yaml'}): "
-                      "frame0005.jpg (1280x960)"]  # fmt: skip
+    assert warned == [
+        f"image folder {folder} (10 images): 1 of 10 frames left out, their size "
+        f"is not the camera's 640x480 ({folder / 'camera.yaml'}): "
+        "frame0005.jpg (1280x960)"
+    ]
     raw = pd.read_csv(tmp_path / "outputs/reference/trajectory_raw.csv")
     assert raw["stamp_nanosec"].tolist() == [k * 100_000_000 for k in range(10) if k != 5]
     xyz = raw[["x", "y", "z"]].to_numpy()  # a hand-held camera barely moving: no outlier
     assert np.linalg.norm(xyz - np.median(xyz, axis=0), axis=1).max() < 0.005
 
 
-def test_folder_of_wrong_size_frames_stops_with_one_line(upenn_dir, tmp_path, monkeypatch,
-                                                         capsys) -> None:  # fmt: skip
+def test_folder_of_wrong_size_frames_stops_with_one_line(
+    upenn_dir, tmp_path, monkeypatch, capsys
+) -> None:
     from tagtrail.cli import main
 
     monkeypatch.chdir(tmp_path)
@@ -291,14 +340,17 @@ def test_folder_of_wrong_size_frames_stops_with_one_line(upenn_dir, tmp_path, mo
     assert main(["run"]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and err[0].startswith("error: "), err
-    assert (f"{folder}: no frame has the size 640x480 of the camera ({folder / 'camera.yaml'}), "
-            "they are 1280x960 (10 frames); give the camera calibration") in err[0]
+    assert (
+        f"{folder}: no frame has the size 640x480 of the camera ({folder / 'camera.yaml'}), "
+        "they are 1280x960 (10 frames); give the camera calibration"
+    ) in err[0]
     assert not (tmp_path / "outputs/reference/trajectory_raw.csv").exists()
 
 
 @pytest.mark.parametrize("compressed", [False, True])
-def test_bag_frames_of_another_size_are_left_out(upenn_dir, tmp_path, caplog,
-                                                 compressed: bool) -> None:  # fmt: skip
+def test_bag_frames_of_another_size_are_left_out(
+    upenn_dir, tmp_path, caplog, compressed: bool
+) -> None:
     """Image / CompressedImage messages whose decoded size is not CameraInfo's: the same rule."""
     files = sorted((upenn_dir / "frames").glob("frame*.jpg"))[:4]
     cam = read_camera_file(upenn_dir / "frames/camera.yaml")
@@ -310,8 +362,11 @@ def test_bag_frames_of_another_size_are_left_out(upenn_dir, tmp_path, caplog,
             img = cv2.resize(img, (320, 240)) if k in small else img
             t = T0 + k * DT
             rgb = np.ascontiguousarray(img[..., ::-1])
-            msg = (bags.compressed_msg(cv2.imencode(".png", img)[1].tobytes(), "png", t)
-                   if compressed else bags.image_msg(rgb, "rgb8", t))
+            msg = (
+                bags.compressed_msg(cv2.imencode(".png", img)[1].tobytes(), "png", t)
+                if compressed
+                else bags.image_msg(rgb, "rgb8", t)
+            )
             out.append(("/camera/image" + "/compressed" * compressed, t, msg))
         return bags.write_bag(tmp_path / name, out)
 
@@ -323,7 +378,11 @@ def test_bag_frames_of_another_size_are_left_out(upenn_dir, tmp_path, caplog,
     assert len(msg) == 1 and msg[0].endswith(
         f"1 of 4 frames left out, their size is not the camera's 640x480 (CameraInfo of "
         f"/camera/camera_info): frame 2 at {(T0 + 2 * DT) // 10**9}.{(T0 + 2 * DT) % 10**9:09d} s "
-        "(320x240)")
-    with pytest.raises(SourceError, match=r"no frame has the size 640x480 of the camera "
-                       r"\(CameraInfo of /camera/camera_info\), they are 320x240 \(4 frames\)"):
+        "(320x240)"
+    )
+    with pytest.raises(
+        SourceError,
+        match=r"no frame has the size 640x480 of the camera "
+        r"\(CameraInfo of /camera/camera_info\), they are 320x240 \(4 frames\)",
+    ):
         extract_from(bag("all", {0, 1, 2, 3}), extract.Params())

@@ -18,8 +18,15 @@ from tagtrail.stages import extract
 from tests.extracting import extract_from
 from tests.io import bags
 
-CAM = CameraModel.from_dict({"width": 640, "height": 480, "distortion_model": "plumb_bob",
-                             "K": [500, 0, 320, 0, 500, 240, 0, 0, 1], "D": [0] * 5})
+CAM = CameraModel.from_dict(
+    {
+        "width": 640,
+        "height": 480,
+        "distortion_model": "plumb_bob",
+        "K": [500, 0, 320, 0, 500, 240, 0, 0, 1],
+        "D": [0] * 5,
+    }
+)
 SQUARE = np.array([[300.0, 260.0], [340.0, 260.0], [340.0, 220.0], [300.0, 220.0]])
 
 
@@ -34,8 +41,11 @@ def _ros2_bag(tmp_path: Path, quality: list[tuple[int, float]]) -> Path:
 
 def test_a_filter_dropping_every_detection_stops_naming_it(tmp_path: Path) -> None:
     bag = _ros2_bag(tmp_path, [(0, 8.0)] * 10)
-    with pytest.raises(SourceError, match=r"no detection is left: min_decision_margin 20 drops "
-                       r"10 of 10 detections; set extract.min_decision_margin: 0$"):
+    with pytest.raises(
+        SourceError,
+        match=r"no detection is left: min_decision_margin 20 drops "
+        r"10 of 10 detections; set extract.min_decision_margin: 0$",
+    ):
         extract_from(bag)
     assert len(extract_from(bag, extract.Params(min_decision_margin=0))["detections"]) == 10
 
@@ -70,18 +80,28 @@ def test_unapplied_quality_filters_are_said_once(tmp_path: Path, caplog) -> None
     with caplog.at_level(logging.INFO, logger="tagtrail.extract"):
         det = extract_from(bag)["detections"]
     lines = [r.getMessage() for r in caplog.records]
-    assert sum("max_hamming is not applied to 10 detections: the source carries no hamming"
-               in m for m in lines) == 1
-    assert sum("min_decision_margin is not applied to 10 detections: the source carries no "
-               "decision margin" in m for m in lines) == 1
+    assert (
+        sum(
+            "max_hamming is not applied to 10 detections: the source carries no hamming" in m
+            for m in lines
+        )
+        == 1
+    )
+    assert (
+        sum(
+            "min_decision_margin is not applied to 10 detections: the source carries no "
+            "decision margin" in m
+            for m in lines
+        )
+        == 1
+    )
     assert (det["hamming"] == -1).all() and det["decision_margin"].isna().all()
     corners = det[[f"c{k}{a}" for k in range(4) for a in "xy"]].to_numpy().reshape(-1, 4, 2)
     order = np.array(truth).reshape(5, 2, 4, 2).reshape(-1, 4, 2)  # frame, then tag id
     assert np.abs(corners - order).max() < 1e-9
 
 
-def test_tagslam_test_1_hamming_drops_are_counted(realdata: Path, tmp_path: Path,
-                                                  caplog) -> None:
+def test_tagslam_test_1_hamming_drops_are_counted(realdata: Path, tmp_path: Path, caplog) -> None:
     """TagSLAM test 1: 110 of its 772 detections have hamming 1-2; max_hamming 0 drops them
     (not most: counted at info level), max_hamming 2 keeps them; no margin to filter on; 8 are
     of tags cut by the image border (keep_truncated)."""
@@ -91,8 +111,9 @@ def test_tagslam_test_1_hamming_drops_are_counted(realdata: Path, tmp_path: Path
     cfg = DatasetConfig(source=bag, camera=root / "cameras.yaml")
     with caplog.at_level(logging.INFO, logger="tagtrail.extract"):
         strict = extract_from(cfg, extract.Params(max_hamming=0))["detections"]
-    assert ("kept 654 of 772 detections, dropped 110 by max_hamming, 8 by keep_truncated"
-            in caplog.text)
+    assert (
+        "kept 654 of 772 detections, dropped 110 by max_hamming, 8 by keep_truncated" in caplog.text
+    )
     assert "min_decision_margin is not applied to 772 detections" in caplog.text
     every = extract_from(cfg, extract.Params(max_hamming=2))["detections"]
     assert len(strict) == 654 and len(every) == 764

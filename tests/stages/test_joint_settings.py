@@ -18,9 +18,11 @@ from tagtrail.sim import simulate
 from tagtrail.stages import REGISTRY, optimize, trajectory
 from tests.cli_helpers import one_error_line
 
-QUERY = {"trajectory.tag_map": "reference:optimize.tag_map",
-         "trajectory.map_report": "reference:optimize.report",
-         "align.tag_map": "reference:optimize.tag_map"}
+QUERY = {
+    "trajectory.tag_map": "reference:optimize.tag_map",
+    "trajectory.map_report": "reference:optimize.report",
+    "align.tag_map": "reference:optimize.tag_map",
+}
 
 
 def settable(model: type[BaseModel], nested: tuple[type[BaseModel], ...]) -> int:
@@ -47,35 +49,56 @@ def project(tmp_path_factory: pytest.TempPathFactory) -> Path:
     """The room: a 4 s reference drive and a parked 1 s query, from detections."""
     root = tmp_path_factory.mktemp("joint")
     simulate("room", root / "data", frames=120, query_frames=30, detections=True)
-    doc = {"reference": "reference", "datasets": {
-        "reference": {"source": str(root / "data" / "reference")},
-        "query_1": {"source": str(root / "data" / "query_1"), "inputs": QUERY},
-        # wired as before issue 27: the map from the reference, the settings its own
-        "query_2": {"source": str(root / "data" / "query_2"),
-                    "inputs": {k: v for k, v in QUERY.items() if "map_report" not in k}}},
-        "stages": {"pnp": {"tag_size": 0.16}}}
+    doc = {
+        "reference": "reference",
+        "datasets": {
+            "reference": {"source": str(root / "data" / "reference")},
+            "query_1": {"source": str(root / "data" / "query_1"), "inputs": QUERY},
+            # wired as before issue 27: the map from the reference, the settings its own
+            "query_2": {
+                "source": str(root / "data" / "query_2"),
+                "inputs": {k: v for k, v in QUERY.items() if "map_report" not in k},
+            },
+        },
+        "stages": {"pnp": {"tag_size": 0.16}},
+    }
     (root / "pipeline.yaml").write_text(yaml.safe_dump(doc))
     return root
 
 
-@pytest.mark.parametrize(("key", "where"), [
-    ("optimize.motion_acc_sigma=0.2", "optimize.motion_acc_sigma is no longer a setting: use "
-                                      "optimize.joint.motion"),
-    ("trajectory.ground=none", "trajectory.ground is no longer a setting: use "
-                               "optimize.joint.ground; trajectory takes the map's settings"),
-    ("optimize.ba_loss=huber", "optimize.ba_loss is no longer a setting: the corners' loss is "
-                               "fixed"),
-])
+@pytest.mark.parametrize(
+    ("key", "where"),
+    [
+        (
+            "optimize.motion_acc_sigma=0.2",
+            "optimize.motion_acc_sigma is no longer a setting: use optimize.joint.motion",
+        ),
+        (
+            "trajectory.ground=none",
+            "trajectory.ground is no longer a setting: use "
+            "optimize.joint.ground; trajectory takes the map's settings",
+        ),
+        (
+            "optimize.ba_loss=huber",
+            "optimize.ba_loss is no longer a setting: the corners' loss is fixed",
+        ),
+    ],
+)
 def test_an_old_key_is_refused_in_one_line_naming_its_place(
-        project: Path, monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str],
-        key: str, where: str) -> None:
+    project: Path,
+    monkeypatch: pytest.MonkeyPatch,
+    capsys: pytest.CaptureFixture[str],
+    key: str,
+    where: str,
+) -> None:
     monkeypatch.chdir(project)
     assert main(["status", "-S", key]) == 2
     assert where in one_error_line(capsys)
 
 
 def test_a_parked_query_takes_the_maps_decisions_and_says_so(
-        project: Path, monkeypatch: pytest.MonkeyPatch, caplog: pytest.LogCaptureFixture) -> None:
+    project: Path, monkeypatch: pytest.MonkeyPatch, caplog: pytest.LogCaptureFixture
+) -> None:
     """The reference (4 s of driving) decides the ground plane and the wheeled drive on its own
     data; the parked query's own map decides neither (the log and its report say why), and its
     trajectory, solved against the reference's map under its settings, takes the reference's
@@ -92,13 +115,22 @@ def test_a_parked_query_takes_the_maps_decisions_and_says_so(
     lines = [r.getMessage() for r in caplog.records if r.name.endswith("stages.trajectory")]
     said = [m for m in lines if "the reference's decision" in m]
     assert len(said) == 1 and "parked" in said[0]
-    assert said[0].startswith("trajectory: whether the camera moves in one plane like a robot's "
-                              "is not decided on this data: the camera moved")
+    assert said[0].startswith(
+        "trajectory: whether the camera moves in one plane like a robot's "
+        "is not decided on this data: the camera moved"
+    )
     assert ref.bundle.ground.applied == ("held to one plane at a fixed tilt" in said[0])
-    warned = [r.getMessage() for r in caplog.records if r.levelno == logging.WARNING
-              and "is it the map's?" in r.getMessage()]
+    warned = [
+        r.getMessage()
+        for r in caplog.records
+        if r.levelno == logging.WARNING and "is it the map's?" in r.getMessage()
+    ]
     assert len(warned) == 1 and "trajectory.map_report: reference:optimize.report" in warned[0]
-    assert any(r.getMessage().startswith("optimize: whether the camera moves in one plane like a "
-                                         "robot's is not decided on this data: the camera moved")
-               and r.getMessage().endswith("too little to decide on; held to neither")
-               for r in caplog.records)
+    assert any(
+        r.getMessage().startswith(
+            "optimize: whether the camera moves in one plane like a "
+            "robot's is not decided on this data: the camera moved"
+        )
+        and r.getMessage().endswith("too little to decide on; held to neither")
+        for r in caplog.records
+    )

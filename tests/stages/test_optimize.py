@@ -21,11 +21,33 @@ from tests.stages.mapping_scene import (
     ring_scene,
 )
 
-TAG_MAP_COLS = ["tag_id", *POSE, "n_obs", "size_m", "res_t_rms_m", "res_r_rms_deg", "std_pos_m",
-                "std_rot_deg"]
+TAG_MAP_COLS = [
+    "tag_id",
+    *POSE,
+    "n_obs",
+    "size_m",
+    "res_t_rms_m",
+    "res_r_rms_deg",
+    "std_pos_m",
+    "std_rot_deg",
+]
 CORNERS = [f"c{k}{a}" for k in range(4) for a in "xy"]
-REPORT_KEYS = {"anchor_id", "loss", "f_scale", "cost", "nfev", "status", "rms_t_m", "rms_r_deg",
-               "method", "edges_rebuilt", "bundle", "survey", "components", "joint"}
+REPORT_KEYS = {
+    "anchor_id",
+    "loss",
+    "f_scale",
+    "cost",
+    "nfev",
+    "status",
+    "rms_t_m",
+    "rms_r_deg",
+    "method",
+    "edges_rebuilt",
+    "bundle",
+    "survey",
+    "components",
+    "joint",
+}
 
 
 def paper_scene() -> Scene:
@@ -103,8 +125,10 @@ def test_paper_table_4_2_ten_cm_noise(capsys: pytest.CaptureFixture[str]) -> Non
     with capsys.disabled():
         print("\nSec. 4.1, 10 cm noise      mean m / deg     min m     max m    (paper mean)")
         for name, (dt, dr) in err.items():
-            print(f"  {name:7s} {dt.mean():10.4f} / {dr.mean():5.2f} {dt.min():9.4f} "
-                  f"{dt.max():9.4f}    ({paper[name][0]} / {paper[name][1]})")
+            print(
+                f"  {name:7s} {dt.mean():10.4f} / {dr.mean():5.2f} {dt.min():9.4f} "
+                f"{dt.max():9.4f}    ({paper[name][0]} / {paper[name][1]})"
+            )
     assert err["tags"][0].mean() < 0.10 and err["tags"][1].mean() < 2.0
     assert err["raw"][0].mean() < 0.15
     assert err["smooth"][0].mean() < 0.8 * err["raw"][0].mean()
@@ -136,13 +160,20 @@ def test_the_map_undoes_mirrored_solutions_a_pair_cannot_check(seed: int) -> Non
     T = scene.cam_T_tag()
     mirror = T @ make_T(Rotation.from_euler("x", 50, degrees=True).as_matrix(), np.zeros(3))
     bad = (np.random.default_rng(seed).random(len(T)) < 0.15)[:, None, None]
-    obs = observations(scene, np.where(bad, mirror, T), noise_t_m=0.01, seed=3,
-                       ambiguity=np.full(len(T), 0.3), alt_cam_T_tag=np.where(bad, T, mirror))
+    obs = observations(
+        scene,
+        np.where(bad, mirror, T),
+        noise_t_m=0.01,
+        seed=3,
+        ambiguity=np.full(len(T), 0.3),
+        alt_cam_T_tag=np.where(bad, T, mirror),
+    )
     e = edges.run(obs, edges.Params())
     err, rebuilt = {}, {}
     for check in ("none", "map"):
-        o = optimize.run(e["edges"], e["graph"], obs,
-                         optimize.Params(method="pairwise", branch_check=check))
+        o = optimize.run(
+            e["edges"], e["graph"], obs, optimize.Params(method="pairwise", branch_check=check)
+        )
         err[check] = tag_errors(scene, o["tag_map"], e["graph"]["anchor_id"])[0].mean()
         rebuilt[check] = o["report"]["edges_rebuilt"]
     assert err["none"] > 0.05 and rebuilt["none"] == 0
@@ -182,8 +213,14 @@ def test_corner_refinement_beats_the_pose_graph() -> None:
     anchor = e["graph"]["anchor_id"]
     err, reports = {}, {}
     for method in ("pairwise", "joint"):
-        o = optimize.run(e["edges"], e["graph"], obs, optimize.Params(method=method),
-                         detections=det, camera=CAMERA)
+        o = optimize.run(
+            e["edges"],
+            e["graph"],
+            obs,
+            optimize.Params(method=method),
+            detections=det,
+            camera=CAMERA,
+        )
         err[method] = tag_errors(scene, o["tag_map"], anchor)[0].mean()
         reports[method] = o["report"]
     assert err["joint"] < 0.35 * err["pairwise"] and err["joint"] < 0.025
@@ -193,18 +230,22 @@ def test_corner_refinement_beats_the_pose_graph() -> None:
     # rms_px: RMS corner distance, sqrt(2) * 0.3 px less what the fit absorbs
     assert ba["observations"] == len(obs) and 0.3 < ba["rms_px"] < 0.42
     # Without detections (an observations dataset) the pose graph is the map.
-    o = optimize.run(e["edges"], e["graph"], obs, optimize.Params(), detections=det.iloc[:0],
-                     camera=None)
+    o = optimize.run(
+        e["edges"], e["graph"], obs, optimize.Params(), detections=det.iloc[:0], camera=None
+    )
     assert o["report"]["method"] == "pairwise"
 
 
 def test_joint_is_the_default_and_old_names_are_refused_naming_the_new_place() -> None:
     assert optimize.Params().method == "joint"
-    for old, where in (("refine", "use optimize.method"),
-                       ("ba_min_frames", "use optimize.joint_min_frames"),
-                       ("corner_sigma_px", "use optimize.joint.corner_sigma_px"),
-                       ("motion_acc_sigma", "use optimize.joint.motion"),
-                       ("ba_f_scale_px", "the corners. loss is fixed")):
-        with pytest.raises(pydantic.ValidationError,
-                           match=f"optimize.{old} is no longer a setting: {where}"):
+    for old, where in (
+        ("refine", "use optimize.method"),
+        ("ba_min_frames", "use optimize.joint_min_frames"),
+        ("corner_sigma_px", "use optimize.joint.corner_sigma_px"),
+        ("motion_acc_sigma", "use optimize.joint.motion"),
+        ("ba_f_scale_px", "the corners. loss is fixed"),
+    ):
+        with pytest.raises(
+            pydantic.ValidationError, match=f"optimize.{old} is no longer a setting: {where}"
+        ):
             optimize.Params.model_validate({old: 1.0})

@@ -44,8 +44,15 @@ def random_poses(n: int, seed: int = 0) -> np.ndarray:
 
 def detections_table(corners: np.ndarray, tag_ids: np.ndarray) -> pd.DataFrame:
     n = len(corners)
-    df = pd.DataFrame({"t_ns": np.arange(n, dtype=np.int64) * 10, "frame_idx": np.arange(n),
-                       "tag_id": tag_ids, "hamming": 0, "decision_margin": 50.0})
+    df = pd.DataFrame(
+        {
+            "t_ns": np.arange(n, dtype=np.int64) * 10,
+            "frame_idx": np.arange(n),
+            "tag_id": tag_ids,
+            "hamming": 0,
+            "decision_margin": 50.0,
+        }
+    )
     df[CORNERS] = corners.reshape(n, 8)
     return df
 
@@ -81,9 +88,20 @@ def test_synthetic_poses_recovered_exactly(model: str) -> None:
 
 
 def test_pass_through_and_empty_inputs() -> None:
-    obs = pd.DataFrame({"t_ns": [5, 6], "frame_idx": [0, 1], "tag_id": [4, 9],
-                        "x_m": [0.1, 0.2], "y_m": 0.0, "z_m": 1.0, "qx": 0.0, "qy": 0.0,
-                        "qz": 0.0, "qw": 1.0})
+    obs = pd.DataFrame(
+        {
+            "t_ns": [5, 6],
+            "frame_idx": [0, 1],
+            "tag_id": [4, 9],
+            "x_m": [0.1, 0.2],
+            "y_m": 0.0,
+            "z_m": 1.0,
+            "qx": 0.0,
+            "qy": 0.0,
+            "qz": 0.0,
+            "qw": 1.0,
+        }
+    )
     empty_det = detections_table(np.zeros((0, 4, 2)), np.zeros(0, int))
     params = pnp.Params(tag_size=0.2, tag_sizes={9: 0.1})
     out = pnp.run(empty_det, None, obs, params)["observations"]
@@ -119,12 +137,19 @@ def official_tag(tag_id: int, cell_px: int) -> np.ndarray:
     """The official tag36h11 image (OpenCV's is rotated 180°) with a 1-cell white quiet zone."""
     d = cv2.aruco.getPredefinedDictionary(cv2.aruco.DICT_APRILTAG_36h11)
     img = np.rot90(cv2.aruco.generateImageMarker(d, tag_id, 8 * cell_px, borderBits=1), 2)
-    return cv2.copyMakeBorder(img, cell_px, cell_px, cell_px, cell_px, cv2.BORDER_CONSTANT,
-                              value=255)
+    return cv2.copyMakeBorder(
+        img, cell_px, cell_px, cell_px, cell_px, cv2.BORDER_CONSTANT, value=255
+    )
 
 
-def render(tex: np.ndarray, size_m: float, cam_T_tag: np.ndarray, Km: np.ndarray,
-           wh: tuple[int, int], ss: int = 4) -> np.ndarray:
+def render(
+    tex: np.ndarray,
+    size_m: float,
+    cam_T_tag: np.ndarray,
+    Km: np.ndarray,
+    wh: tuple[int, int],
+    ss: int = 4,
+) -> np.ndarray:
     """Image of a textured tag (10 cells wide, black square = ``size_m``), supersampled ``ss``×.
 
     Texel (u, v), pixel centres at integers, sits at tag-frame x = (u + ½)·L/N − L/2,
@@ -134,8 +159,9 @@ def render(tex: np.ndarray, size_m: float, cam_T_tag: np.ndarray, Km: np.ndarray
     A = np.array([[L / n, 0, L / n / 2 - L / 2], [0, -L / n, L / 2 - L / n / 2], [0, 0, 1]])
     S = np.array([[ss, 0, (ss - 1) / 2], [0, ss, (ss - 1) / 2], [0, 0, 1]])
     Hp = S @ Km @ np.c_[cam_T_tag[:3, :2], cam_T_tag[:3, 3]]
-    big = cv2.warpPerspective(tex, Hp @ A, (wh[0] * ss, wh[1] * ss), flags=cv2.INTER_LINEAR,
-                              borderValue=140)
+    big = cv2.warpPerspective(
+        tex, Hp @ A, (wh[0] * ss, wh[1] * ss), flags=cv2.INTER_LINEAR, borderValue=140
+    )
     return cv2.resize(big, wh, interpolation=cv2.INTER_AREA)
 
 
@@ -144,20 +170,31 @@ def test_spec_tag_frame_end_to_end(tmp_path: Path) -> None:
     size = 0.16
     poses = [
         se3.make_T(Rotation.from_euler("xyz", [180 + a, b, c], degrees=True).as_matrix(), t)
-        for a, b, c, t in [(20, -25, 5, [0.05, -0.02, 0.9]), (-30, 10, 95, [-0.1, 0.08, 1.1]),
-                           (10, 35, -150, [0.12, 0.05, 0.8]), (-15, 0, 45, [0.0, 0.0, 1.2])]
+        for a, b, c, t in [
+            (20, -25, 5, [0.05, -0.02, 0.9]),
+            (-30, 10, 95, [-0.1, 0.08, 1.1]),
+            (10, 35, -150, [0.12, 0.05, 0.8]),
+            (-15, 0, 45, [0.0, 0.0, 1.2]),
+        ]
     ]
     tex = official_tag(7, cell_px=24)
     for k, T in enumerate(poses):
         cv2.imwrite(str(tmp_path / f"f{k}.png"), render(tex, size, T, cam.K, (640, 480)))
-    (tmp_path / "camera.yaml").write_text(yaml.safe_dump({
-        "image_width": 640, "image_height": 480, "camera_matrix": {"data": K},
-        "distortion_model": "plumb_bob", "distortion_coefficients": {"data": [0.0] * 5}}))
+    (tmp_path / "camera.yaml").write_text(
+        yaml.safe_dump(
+            {
+                "image_width": 640,
+                "image_height": 480,
+                "camera_matrix": {"data": K},
+                "distortion_model": "plumb_bob",
+                "distortion_coefficients": {"data": [0.0] * 5},
+            }
+        )
+    )
     ex = extract_from(tmp_path, extract.Params(workers=1))
     det = ex["detections"]
     assert det["tag_id"].tolist() == [7] * 4
-    truth_px = np.stack([cam.project(se3.transform_points(T, SPEC_CORNERS * size))
-                         for T in poses])
+    truth_px = np.stack([cam.project(se3.transform_points(T, SPEC_CORNERS * size)) for T in poses])
     offset = det[CORNERS].to_numpy().reshape(-1, 4, 2) - truth_px
     # corner i of the detector is SPEC corner i, in the OpenCV pixel convention (mean ≈ 0)
     # measured: mean (-0.006, +0.007) px, max 0.16 px; without the -0.5 px it would be +0.5

@@ -14,8 +14,15 @@ from tagtrail.runner.stage import stage_spec
 from tagtrail.stages import report
 
 T0 = 1_770_992_000_000_000_000
-ALIGNMENT = {"model": "similarity", "scale": 0.99, "rotation_deg": 12.0,
-             "translation": [0.1, 0.2], "inliers": 4, "common_tags": 4, "rms_m": 0.002}  # fmt: skip
+ALIGNMENT = {
+    "model": "similarity",
+    "scale": 0.99,
+    "rotation_deg": 12.0,
+    "translation": [0.1, 0.2],
+    "inliers": 4,
+    "common_tags": 4,
+    "rms_m": 0.002,
+}
 STAT_KEYS = ["mean", "median", "p90", "p95", "max", "rmse"]
 
 
@@ -46,15 +53,28 @@ def test_trajectory_mode_against_hand_values() -> None:
     np.testing.assert_allclose(rel["distance_m"], math.hypot(0.02, 0.2), atol=1e-9)
     np.testing.assert_allclose(rel["heading_error_deg"], heading, atol=1e-9)
     np.testing.assert_allclose(rel["t_rel_s"], [0.0, 0.1, 0.2, 0.3, 0.4], atol=1e-12)
-    np.testing.assert_allclose(rel[["ref_u", "ref_v"]], np.column_stack([0.1 * k, np.zeros(5)]),
-                               atol=1e-12)  # fmt: skip
-    assert list(summary.model_dump())[:6] == ["mode", "plane", "n", "distance_m",
-                                              "abs_heading_error_deg", "alignment"]  # seed's first
+    np.testing.assert_allclose(
+        rel[["ref_u", "ref_v"]], np.column_stack([0.1 * k, np.zeros(5)]), atol=1e-12
+    )
+    assert list(summary.model_dump())[:6] == [
+        "mode",
+        "plane",
+        "n",
+        "distance_m",
+        "abs_heading_error_deg",
+        "alignment",
+    ]  # seed's first
     assert summary["mode"] == "trajectory" and summary["plane"] == "xz" and summary["n"] == 5
     assert summary["alignment"].model_dump() == ALIGNMENT
     a = np.abs(heading)  # 20, 10, 30, 179, 90
-    expected = {"mean": 65.8, "median": 30.0, "p90": 143.4, "p95": 161.2, "max": 179.0,
-                "rmse": math.sqrt(np.mean(a**2))}  # fmt: skip
+    expected = {
+        "mean": 65.8,
+        "median": 30.0,
+        "p90": 143.4,
+        "p95": 161.2,
+        "max": 179.0,
+        "rmse": math.sqrt(np.mean(a**2)),
+    }
     assert list(summary["abs_heading_error_deg"].model_dump()) == STAT_KEYS
     for key, value in expected.items():
         assert summary["abs_heading_error_deg"][key] == pytest.approx(value, abs=1e-9)
@@ -81,8 +101,9 @@ def test_point_mode_parked_robot_across_180() -> None:
 
 
 def test_auto_mode_uses_the_capture_radius() -> None:
-    parked = traj(np.array([2.0, 0.5]) + np.random.default_rng(1).normal(0, 0.05, (30, 2)),
-                  np.full(30, 5.0))  # fmt: skip
+    parked = traj(
+        np.array([2.0, 0.5]) + np.random.default_rng(1).normal(0, 0.05, (30, 2)), np.full(30, 5.0)
+    )
     moving = traj(np.column_stack([np.linspace(0, 3, 30), np.full(30, 0.5)]), np.zeros(30))
     for q, mode in ((parked, "point"), (moving, "trajectory")):
         out = report.run(q, REF, ALIGNMENT, report.Params(plane="xz"))

@@ -77,8 +77,10 @@ def test_gaps_split_segments() -> None:
     df = noisy(t_s, 3)
     both = smooth.run(df, smooth.Params())["trajectory"]
     parts = pd.concat(
-        [smooth.run(df.iloc[:40], smooth.Params())["trajectory"],
-         smooth.run(df.iloc[40:].reset_index(drop=True), smooth.Params())["trajectory"]],
+        [
+            smooth.run(df.iloc[:40], smooth.Params())["trajectory"],
+            smooth.run(df.iloc[40:].reset_index(drop=True), smooth.Params())["trajectory"],
+        ],
         ignore_index=True,
     )
     assert np.abs(both[POSE[:3]].to_numpy() - parts[POSE[:3]].to_numpy()).max() < 1e-4
@@ -103,14 +105,25 @@ def test_untimed_frames_are_neither_smoothed_nor_held_by_the_prior() -> None:
     from tagtrail.stages import smooth as smooth_stage
 
     t_ns = np.arange(5, dtype=np.int64) * 100_000_000
-    traj = pd.DataFrame({"t_ns": t_ns, "x_m": [0.0, 1.0, 0.0, 1.0, 0.0], "y_m": 0.0,
-                         "z_m": 0.0, "qx": 0.0, "qy": 0.0, "qz": 0.0, "qw": 1.0, "n_tags": 1})
-    frames = pd.DataFrame({"t_ns": t_ns, "frame_idx": np.arange(5), "n_det": 1,
-                           "timed": False})
+    traj = pd.DataFrame(
+        {
+            "t_ns": t_ns,
+            "x_m": [0.0, 1.0, 0.0, 1.0, 0.0],
+            "y_m": 0.0,
+            "z_m": 0.0,
+            "qx": 0.0,
+            "qy": 0.0,
+            "qz": 0.0,
+            "qw": 1.0,
+            "n_tags": 1,
+        }
+    )
+    frames = pd.DataFrame({"t_ns": t_ns, "frame_idx": np.arange(5), "n_det": 1, "timed": False})
     out = smooth_stage.run(traj, smooth_stage.Params(method="lsq"), frames)["trajectory"]
     assert out["x_m"].tolist() == traj["x_m"].tolist()
-    moved = smooth_stage.run(traj, smooth_stage.Params(method="lsq"),
-                             frames.assign(timed=True))["trajectory"]
+    moved = smooth_stage.run(traj, smooth_stage.Params(method="lsq"), frames.assign(timed=True))[
+        "trajectory"
+    ]
     assert moved["x_m"].tolist() != traj["x_m"].tolist()
 
 
@@ -123,9 +136,12 @@ def test_the_change_it_makes_is_added_to_the_frames_shift_from_their_evidence() 
     raw["shift_m"] = raw["shift_deg"] = raw["shift_sigma"] = 0.0
     out = smooth.run(raw, smooth.Params())["trajectory"]
     moved = np.linalg.norm(out[POSE[:3]].to_numpy() - raw[POSE[:3]].to_numpy(), axis=1)
-    turned = np.degrees(Rotation.from_matrix(
-        R_from_quat_xyzw(out[POSE[3:]].to_numpy()).transpose(0, 2, 1)
-        @ R_from_quat_xyzw(raw[POSE[3:]].to_numpy())).magnitude())
+    turned = np.degrees(
+        Rotation.from_matrix(
+            R_from_quat_xyzw(out[POSE[3:]].to_numpy()).transpose(0, 2, 1)
+            @ R_from_quat_xyzw(raw[POSE[3:]].to_numpy())
+        ).magnitude()
+    )
     assert moved.mean() > 0.005  # the 2 cm noise was smoothed
     np.testing.assert_allclose(out["shift_m"], moved, atol=1e-12)
     np.testing.assert_allclose(out["shift_deg"], turned, atol=1e-9)

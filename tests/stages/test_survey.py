@@ -28,8 +28,9 @@ from tests.tagslam import poses as _poses
 from tests.tagslam import tagslam_reference as _tagslam_reference
 
 
-def test_tagslam_yaml_reproduces_tagslams_world_on_test_16(realdata: Path, tmp_path: Path,
-                                                           caplog) -> None:
+def test_tagslam_yaml_reproduces_tagslams_world_on_test_16(
+    realdata: Path, tmp_path: Path, caplog
+) -> None:
     """Test 16 names one known tag (2, on the static body 'lab'): with it, tagtrail's map is in
     TagSLAM's world -- each tag within 0.1 mm / 0.02 deg of TagSLAM's -- and the trajectory
     needs no fit to TagSLAM's (the best rigid fit is within 0.05 deg / 3 mm of the identity).
@@ -44,10 +45,15 @@ def test_tagslam_yaml_reproduces_tagslams_world_on_test_16(realdata: Path, tmp_p
     survey = {"file": str(root / "tagslam.yaml")}
     plain = _run(_pipeline(tmp_path, dataset, {"pnp": {"tag_size": 0.16}}), "optimize")
     with caplog.at_level(logging.INFO, logger="tagtrail.stages.optimize"):
-        runner = _run(_pipeline(tmp_path, dataset, {"pnp": {"tag_size": 0.16},
-                                                   "optimize": {"survey": survey}}), "smooth")
-    assert "surveyed world (" in caplog.text and "from known tags [2]: residuals 0.0 mm" \
-        in caplog.text
+        runner = _run(
+            _pipeline(
+                tmp_path, dataset, {"pnp": {"tag_size": 0.16}, "optimize": {"survey": survey}}
+            ),
+            "smooth",
+        )
+    assert (
+        "surveyed world (" in caplog.text and "from known tags [2]: residuals 0.0 mm" in caplog.text
+    )
     tags = _artifact(runner, "optimize", "tag_map")
     assert sorted(tags["tag_id"]) == sorted(ref_tags) == [0, 1, 2, 3, 4]
     T = _poses(tags)
@@ -65,11 +71,13 @@ def test_tagslam_yaml_reproduces_tagslams_world_on_test_16(realdata: Path, tmp_p
     p_ref = np.array([ref_cams[int(stamps[k])][:3, 3] for k in common])
     _, R, t = umeyama(p, p_ref, with_scale=False)
     assert np.degrees(rotation_angle(R)) < 0.05 and np.linalg.norm(t) < 0.003
-    print(f"\ntest 16 surveyed world: tags within "
-          f"{1e3 * np.linalg.norm(T[:, :3, 3] - ref[:, :3, 3], axis=1).max():.3f} mm of "
-          f"TagSLAM's; trajectory vs TagSLAM's without a fit: "
-          f"{1e3 * np.linalg.norm(p - p_ref, axis=1).mean():.1f} mm mean; best fit "
-          f"{np.degrees(rotation_angle(R)):.3f} deg / {1e3 * np.linalg.norm(t):.2f} mm")
+    print(
+        f"\ntest 16 surveyed world: tags within "
+        f"{1e3 * np.linalg.norm(T[:, :3, 3] - ref[:, :3, 3], axis=1).max():.3f} mm of "
+        f"TagSLAM's; trajectory vs TagSLAM's without a fit: "
+        f"{1e3 * np.linalg.norm(p - p_ref, axis=1).mean():.1f} mm mean; best fit "
+        f"{np.degrees(rotation_angle(R)):.3f} deg / {1e3 * np.linalg.norm(t):.2f} mm"
+    )
 
 
 def _layout(path: Path) -> dict[int, np.ndarray]:
@@ -77,8 +85,9 @@ def _layout(path: Path) -> dict[int, np.ndarray]:
     return {t["ID"]: np.array([t["pose"]["translation"][k] for k in "xyz"]) for t in doc["tags"]}
 
 
-def test_field_layout_puts_the_field_photos_map_in_the_field_frame(realdata: Path,
-                                                                   tmp_path: Path) -> None:
+def test_field_layout_puts_the_field_photos_map_in_the_field_frame(
+    realdata: Path, tmp_path: Path
+) -> None:
     """The FRC photos map tags 3 and 4 together (the other tags are seen in separate groups);
     with the WPILib layout of all 16 tags they land in the field frame: the residuals at the
     known tags (position and orientation, the layout's +X-out-of-the-face frame turned to SPEC's)
@@ -93,8 +102,10 @@ def test_field_layout_puts_the_field_photos_map_in_the_field_frame(realdata: Pat
     tags = _artifact(runner, "optimize", "tag_map")
     assert sorted(tags["tag_id"]) == sorted(local["tag_id"]) == [3, 4]
     layout = _layout(layout_file)
-    err = [np.linalg.norm(p - layout[int(i)])
-           for i, p in zip(tags["tag_id"], tags[["x_m", "y_m", "z_m"]].to_numpy(), strict=True)]
+    err = [
+        np.linalg.norm(p - layout[int(i)])
+        for i, p in zip(tags["tag_id"], tags[["x_m", "y_m", "z_m"]].to_numpy(), strict=True)
+    ]
     assert max(err) < 0.01, err
     assert np.linalg.norm(local[["x_m", "y_m", "z_m"]].to_numpy(), axis=1).max() < 1  # anchor 3
     # the residuals at the known tags, as the stage computes (and logs) them
@@ -122,12 +133,21 @@ def test_field_layout_puts_the_field_photos_map_in_the_field_frame(realdata: Pat
 def test_position_only_and_inline_known_tags(tmp_path: Path) -> None:
     """Inline known tags (tape-measured positions) over a file's; ``use`` picks ids."""
     tag_map = pd.DataFrame({"tag_id": [1, 2, 3, 4]})
-    tag_map[POSE_COLS] = [[0, 0, 0, 0, 0, 0, 1], [1, 0, 0, 0, 0, 0, 1], [0, 1, 0, 0, 0, 0, 1],
-                          [1, 1, 0.5, 0, 0, 0, 1]]
+    tag_map[POSE_COLS] = [
+        [0, 0, 0, 0, 0, 0, 1],
+        [1, 0, 0, 0, 0, 0, 1],
+        [0, 1, 0, 0, 0, 0, 1],
+        [1, 1, 0.5, 0, 0, 0, 1],
+    ]
     tag_map["size_m"] = 0.16
     tag_map["std_pos_m"] = 0.001
-    survey = {"tags": {1: {"position": [10, 0, 0]}, 2: {"position": [10, 1, 0]},
-                       3: {"position": [9, 0, 0]}}}
+    survey = {
+        "tags": {
+            1: {"position": [10, 0, 0]},
+            2: {"position": [10, 1, 0]},
+            3: {"position": [9, 0, 0]},
+        }
+    }
     params = optimize.Params(survey=survey)
     assert params.survey is not None
     moved, block = optimize.surveyed_world(tag_map, params.survey)
@@ -139,31 +159,43 @@ def test_position_only_and_inline_known_tags(tmp_path: Path) -> None:
         optimize.surveyed_world(tag_map, two.survey)
 
 
-@pytest.mark.parametrize(("name", "text", "message"), [
-    ("layout.json", '{"tags": [{"ID": 1}]}', r"layout.json: tags\[0\]: expected \{ID, pose"),
-    ("layout.json", '{"tags": [',
-     r"layout.json: cannot read the known-poses file: Expecting value"),
-    ("tagslam.yaml", "bodies:\n - rig: {is_static: false}\n",
-     r"tagslam.yaml: no tag with a pose on a static body"),
-    ("cameras.yaml", "cam0: {intrinsics: [1, 1, 1, 1]}\n", r"cameras.yaml: not a known-poses"),
-    ("absent.yaml", None, r"absent.yaml: known-poses file not found"),
-])
-def test_bad_known_pose_files_are_one_line(tmp_path: Path, name: str, text: str | None,
-                                           message: str) -> None:
+@pytest.mark.parametrize(
+    ("name", "text", "message"),
+    [
+        ("layout.json", '{"tags": [{"ID": 1}]}', r"layout.json: tags\[0\]: expected \{ID, pose"),
+        (
+            "layout.json",
+            '{"tags": [',
+            r"layout.json: cannot read the known-poses file: Expecting value",
+        ),
+        (
+            "tagslam.yaml",
+            "bodies:\n - rig: {is_static: false}\n",
+            r"tagslam.yaml: no tag with a pose on a static body",
+        ),
+        ("cameras.yaml", "cam0: {intrinsics: [1, 1, 1, 1]}\n", r"cameras.yaml: not a known-poses"),
+        ("absent.yaml", None, r"absent.yaml: known-poses file not found"),
+    ],
+)
+def test_bad_known_pose_files_are_one_line(
+    tmp_path: Path, name: str, text: str | None, message: str
+) -> None:
     bag_dir = tmp_path / "imgs"
     bag_dir.mkdir()
     (bag_dir / "a.png").write_bytes(b"")
     if text is not None:
         (tmp_path / name).write_text(text)
-    path = _pipeline(tmp_path, f"{{source: {bag_dir}}}",
-                     {"optimize": {"survey": {"file": str(tmp_path / name)}}})
+    path = _pipeline(
+        tmp_path, f"{{source: {bag_dir}}}", {"optimize": {"survey": {"file": str(tmp_path / name)}}}
+    )
     with pytest.raises(SpecError, match=message) as err:
         load_pipeline(path, REGISTRY)
     assert "\n" not in str(err.value)
 
 
 def test_a_relative_survey_file_is_taken_from_the_pipeline_folder(
-        realdata: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    realdata: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
     """As the datasets' sources are: `tagtrail -p lab/pipeline.yaml run` from anywhere."""
     import shutil
 
@@ -172,9 +204,14 @@ def test_a_relative_survey_file_is_taken_from_the_pipeline_folder(
     lab = tmp_path / "lab"
     lab.mkdir()
     shutil.copy(realdata / "photonvision_frc2024_field" / "2024-crescendo.json", lab / "field.json")
-    (lab / "pipeline.yaml").write_text(yaml.safe_dump({
-        "datasets": {"reference": {"source": "images"}},
-        "stages": {"optimize": {"survey": {"file": "field.json"}}}}))
+    (lab / "pipeline.yaml").write_text(
+        yaml.safe_dump(
+            {
+                "datasets": {"reference": {"source": "images"}},
+                "stages": {"optimize": {"survey": {"file": "field.json"}}},
+            }
+        )
+    )
     monkeypatch.chdir(tmp_path)  # not the pipeline's folder
     pipe = load_pipeline(lab / "pipeline.yaml", REGISTRY, check_sources=False)
     survey = pipe.params_for("optimize", "reference").survey  # type: ignore[attr-defined]
@@ -184,8 +221,9 @@ def test_a_relative_survey_file_is_taken_from_the_pipeline_folder(
         load_pipeline(lab / "pipeline.yaml", REGISTRY, check_sources=False)
 
 
-def test_a_surveyed_world_places_every_part_of_the_tag_graph(realdata: Path,
-                                                              tmp_path: Path) -> None:
+def test_a_surveyed_world_places_every_part_of_the_tag_graph(
+    realdata: Path, tmp_path: Path
+) -> None:
     """The FRC photos see the field's tags in groups never seen together ({3, 4}, {2}, {5},
     {12}, {15}, and 6-10, one group or two depending on the corners); with
     ``edges.on_disconnected: keep`` each group is solved on its own and placed by its known
@@ -197,15 +235,20 @@ def test_a_surveyed_world_places_every_part_of_the_tag_graph(realdata: Path,
     root = realdata / "photonvision_frc2024_field"
     layout_file = root / "2024-crescendo.json"
     dataset = f"{{source: {root / 'images'}}}"
-    stages = {"pnp": {"tag_size": 0.1651}, "edges": {"on_disconnected": "keep"},
-              "optimize": {"survey": {"file": str(layout_file)}}}
+    stages = {
+        "pnp": {"tag_size": 0.1651},
+        "edges": {"on_disconnected": "keep"},
+        "optimize": {"survey": {"file": str(layout_file)}},
+    }
     runner = _run(_pipeline(tmp_path, dataset, stages), "smooth")
     tags = _artifact(runner, "optimize", "tag_map")
     seen = [2, 3, 4, 5, 6, 7, 8, 9, 10, 12, 15]
     assert sorted(tags["tag_id"]) == seen
     layout = _layout(layout_file)
-    err = {int(i): float(np.linalg.norm(p - layout[int(i)]))
-           for i, p in zip(tags["tag_id"], tags[["x_m", "y_m", "z_m"]].to_numpy(), strict=True)}
+    err = {
+        int(i): float(np.linalg.norm(p - layout[int(i)]))
+        for i, p in zip(tags["tag_id"], tags[["x_m", "y_m", "z_m"]].to_numpy(), strict=True)
+    }
     print(f"\nposition error per tag (mm): { {k: round(1e3 * v, 1) for k, v in err.items()} }")
     assert max(err[3], err[4]) < 0.01 and max(err.values()) < 0.2, err
     report = _artifact(runner, "optimize", "report")

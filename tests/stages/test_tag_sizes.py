@@ -31,8 +31,9 @@ def bags(realdata: Path, tmp_path_factory: pytest.TempPathFactory) -> dict[str, 
     bags = {}
     for name in ("tagslam_test_1", "tagslam_test_16"):
         bags[name] = out / f"{name}.bag"
-        bags[name].write_bytes(bz2.decompress(
-            (realdata / name / "tag_detections.bag.bz2").read_bytes()))
+        bags[name].write_bytes(
+            bz2.decompress((realdata / name / "tag_detections.bag.bz2").read_bytes())
+        )
     return bags
 
 
@@ -45,13 +46,16 @@ def _distances(tag_map: pd.DataFrame) -> np.ndarray:
     return np.linalg.norm(p[:, None] - p[None], axis=2)[np.triu_indices(len(p), 1)]
 
 
-@pytest.mark.parametrize(("name", "listed", "size"), [
-    ("tagslam_test_1", {0: 0.225}, 0.225),  # perch: tag 0 listed; default body perch
-    ("tagslam_test_16", {2: 0.16}, 0.16),  # lab: tag 2 listed; default body lab
-])
-def test_tagslam_yaml_sizes_are_the_explicit_sizes(realdata: Path, bags: dict[str, Path],
-                                                   tmp_path: Path, name: str, listed: dict,
-                                                   size: float) -> None:
+@pytest.mark.parametrize(
+    ("name", "listed", "size"),
+    [
+        ("tagslam_test_1", {0: 0.225}, 0.225),  # perch: tag 0 listed; default body perch
+        ("tagslam_test_16", {2: 0.16}, 0.16),  # lab: tag 2 listed; default body lab
+    ],
+)
+def test_tagslam_yaml_sizes_are_the_explicit_sizes(
+    realdata: Path, bags: dict[str, Path], tmp_path: Path, name: str, listed: dict, size: float
+) -> None:
     """The file lists one tag; the others are the default body's (``default_tag_size``), as
     TagSLAM sizes the tags it discovers: ``tag_size`` (0.5 here) is then not used."""
     dataset = _dataset(realdata, bags, name)
@@ -60,14 +64,18 @@ def test_tagslam_yaml_sizes_are_the_explicit_sizes(realdata: Path, bags: dict[st
     given = load_pipeline(path, REGISTRY).params_for("pnp", "reference").tag_sizes_from  # type: ignore[attr-defined]
     assert (given.format, given.sizes, given.default) == ("tagslam", listed, size)
     from_file = _artifact(_run(path, "pnp"), "pnp", "observations")
-    explicit = _artifact(_run(_pipeline(tmp_path, dataset, {"pnp": {"tag_size": size}}), "pnp"),
-                         "pnp", "observations")
+    explicit = _artifact(
+        _run(_pipeline(tmp_path, dataset, {"pnp": {"tag_size": size}}), "pnp"),
+        "pnp",
+        "observations",
+    )
     assert len(set(from_file["tag_id"]) - set(listed)) >= 3  # the default sizes most of them
     pd.testing.assert_frame_equal(from_file, explicit)
 
 
-def test_a_tag_map_yaml_written_by_tagtrail_sizes_its_tags(realdata: Path, bags: dict[str, Path],
-                                                           tmp_path: Path) -> None:
+def test_a_tag_map_yaml_written_by_tagtrail_sizes_its_tags(
+    realdata: Path, bags: dict[str, Path], tmp_path: Path
+) -> None:
     """A ``tag_map.yaml`` (tagtrail's own, relative to the pipeline's folder) gives its tags'
     sizes; an explicit ``tag_sizes`` entry wins over the file's, ``tag_size`` sizes the tags the
     file does not list (a tag map has no default)."""
@@ -77,17 +85,20 @@ def test_a_tag_map_yaml_written_by_tagtrail_sizes_its_tags(realdata: Path, bags:
     assert sorted(tag_map["tag_id"]) == [0, 1, 2, 3]
     write_tag_map(tmp_path / "maps", tag_map[tag_map["tag_id"] != 3], anchor_id=2)
     stages = {"pnp": {"tag_sizes_from": "maps/tag_map.yaml", "tag_sizes": {1: 0.2}}}
-    from_file = _artifact(_run(_pipeline(tmp_path, dataset, stages), "pnp"), "pnp",
-                          "observations")
+    from_file = _artifact(_run(_pipeline(tmp_path, dataset, stages), "pnp"), "pnp", "observations")
     sizes = {0: 0.225, 1: 0.2, 2: 0.225}  # and tag 3 at tag_size's default, 0.16
-    explicit = _artifact(_run(_pipeline(tmp_path, dataset, {"pnp": {"tag_sizes": sizes}}), "pnp"),
-                         "pnp", "observations")
+    explicit = _artifact(
+        _run(_pipeline(tmp_path, dataset, {"pnp": {"tag_sizes": sizes}}), "pnp"),
+        "pnp",
+        "observations",
+    )
     pd.testing.assert_frame_equal(from_file, explicit)
     assert from_file.groupby("tag_id")["size_m"].first().to_dict() == {**sizes, 3: 0.16}
 
 
 def test_a_wrong_size_in_the_file_scales_the_map_and_a_similarity_scales_it_back(
-        realdata: Path, bags: dict[str, Path], tmp_path: Path) -> None:
+    realdata: Path, bags: dict[str, Path], tmp_path: Path
+) -> None:
     """Test 1's tags are 0.225 m; a ``tagslam.yaml`` saying 0.3 m makes every distance of the map
     4/3 as long (measured: within 1e-5). Put in the world of TagSLAM's own tag positions
     (``reference.bag``), a rigid fit shows it (residuals of 0.33 m); a similarity fits a scale
@@ -98,11 +109,15 @@ def test_a_wrong_size_in_the_file_scales_the_map_and_a_similarity_scales_it_back
     text = (root / "tagslam.yaml").read_text()
     assert text.count("0.225") == 2  # perch's default_tag_size and tag 0's size
     (tmp_path / "wrong.yaml").write_text(text.replace("0.225", "0.3"))
-    good = _artifact(_run(_pipeline(tmp_path, dataset, {"pnp": {"tag_size": 0.225}}),
-                          "optimize"), "optimize", "tag_map")
+    good = _artifact(
+        _run(_pipeline(tmp_path, dataset, {"pnp": {"tag_size": 0.225}}), "optimize"),
+        "optimize",
+        "tag_map",
+    )
     wrong_stages = {"pnp": {"tag_sizes_from": "wrong.yaml"}}
-    wrong = _artifact(_run(_pipeline(tmp_path, dataset, wrong_stages), "optimize"),
-                      "optimize", "tag_map")
+    wrong = _artifact(
+        _run(_pipeline(tmp_path, dataset, wrong_stages), "optimize"), "optimize", "tag_map"
+    )
     assert (wrong["size_m"] == 0.3).all()
     np.testing.assert_allclose(_distances(wrong) / _distances(good), 0.3 / 0.225, rtol=1e-4)
 
@@ -115,8 +130,10 @@ def test_a_wrong_size_in_the_file_scales_the_map_and_a_similarity_scales_it_back
     for model in ("rigid", "similarity"):
         stages = {**wrong_stages, "optimize": {"survey": {"tags": known, "model": model}}}
         runner = _run(_pipeline(tmp_path, dataset, stages), "optimize")
-        fits[model] = (_artifact(runner, "optimize", "tag_map"),
-                       _artifact(runner, "optimize", "report").survey)
+        fits[model] = (
+            _artifact(runner, "optimize", "tag_map"),
+            _artifact(runner, "optimize", "report").survey,
+        )
     rigid, similarity = fits["rigid"][1], fits["similarity"][1]
     assert rigid is not None and similarity is not None
     assert rigid.res_pos_max_m > 0.2
@@ -129,9 +146,9 @@ def test_a_wrong_size_in_the_file_scales_the_map_and_a_similarity_scales_it_back
     assert (moved["std_pos_m"] > 0).sum() == 3  # the anchor's is 0
 
 
-def test_the_sizes_in_the_file_are_in_the_cache_key(realdata: Path, bags: dict[str, Path],
-                                                    tmp_path: Path,
-                                                    monkeypatch: pytest.MonkeyPatch) -> None:
+def test_the_sizes_in_the_file_are_in_the_cache_key(
+    realdata: Path, bags: dict[str, Path], tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
     """With one ``tagslam.yaml`` named (relative paths) by ``pnp.tag_sizes_from`` and
     ``optimize.survey.file``: moving a known tag reruns optimize, not pnp; changing a size
     reruns pnp."""
@@ -139,10 +156,19 @@ def test_the_sizes_in_the_file_are_in_the_cache_key(realdata: Path, bags: dict[s
     lab.mkdir()
     doc = yaml.safe_load((realdata / "tagslam_test_16" / "tagslam.yaml").read_text())
     (lab / "tagslam.yaml").write_text(yaml.safe_dump(doc))
-    (lab / "pipeline.yaml").write_text(yaml.safe_dump({
-        "datasets": {"reference": yaml.safe_load(_dataset(realdata, bags, "tagslam_test_16"))},
-        "stages": {"pnp": {"tag_sizes_from": "tagslam.yaml"},
-                   "optimize": {"survey": {"file": "tagslam.yaml"}}}}))
+    (lab / "pipeline.yaml").write_text(
+        yaml.safe_dump(
+            {
+                "datasets": {
+                    "reference": yaml.safe_load(_dataset(realdata, bags, "tagslam_test_16"))
+                },
+                "stages": {
+                    "pnp": {"tag_sizes_from": "tagslam.yaml"},
+                    "optimize": {"survey": {"file": "tagslam.yaml"}},
+                },
+            }
+        )
+    )
     monkeypatch.chdir(tmp_path)  # not the pipeline's folder
 
     def plan() -> dict[str, tuple[str, str]]:
@@ -158,33 +184,54 @@ def test_the_sizes_in_the_file_are_in_the_cache_key(realdata: Path, bags: dict[s
     (lab / "tagslam.yaml").write_text(yaml.safe_dump(doc))
     states = plan()
     assert states["pnp"][0] == "cached" and states["edges"][0] == "cached"
-    assert states["optimize"] == ("stale", "params changed: survey.known.2.position: "
-                                  "[0.0, 0.0, 2.0] → [0.0, 0.0, 2.1]")
+    assert states["optimize"] == (
+        "stale",
+        "params changed: survey.known.2.position: [0.0, 0.0, 2.0] → [0.0, 0.0, 2.1]",
+    )
     lab_body["default_tag_size"] = lab_body["tags"][0]["size"] = 0.2
     (lab / "tagslam.yaml").write_text(yaml.safe_dump(doc))
     states = plan()
-    assert states["pnp"] == ("stale", "params changed: tag_sizes_from.default: 0.16 → 0.2, "
-                             "tag_sizes_from.sizes.2: 0.16 → 0.2")
+    assert states["pnp"] == (
+        "stale",
+        "params changed: tag_sizes_from.default: 0.16 → 0.2, tag_sizes_from.sizes.2: 0.16 → 0.2",
+    )
     runner = _run(lab / "pipeline.yaml", "pnp")
     assert (_artifact(runner, "pnp", "observations")["size_m"] == 0.2).all()
 
 
-@pytest.mark.parametrize(("name", "text", "message"), [
-    ("absent.yaml", None, r"absent.yaml: tag-sizes file not found \(pnp.tag_sizes_from; a "
-                          r"relative path is taken from the pipeline file's folder\)"),
-    ("bad.yaml", "bodies: [\n", r"bad.yaml: cannot read the tag-sizes file: while parsing"),
-    ("cameras.yaml", "cam0: {intrinsics: [1, 1, 1, 1]}\n", r"cameras.yaml: not a known-poses"),
-    ("field.json", None, r"field.json: a WPILib/PhotonVision field layout gives no tag sizes"),
-    ("tagslam.yaml", "bodies:\n - rig: {is_static: false, tags: [{id: 1}]}\n",
-     r"tagslam.yaml: no tag size given \(a tagslam file sizes tags with size: or "
-     r"default_tag_size:\)"),
-    ("tagslam.yaml", "bodies:\n - lab: {default_tag_size: -0.1}\n",
-     r"tagslam.yaml: bodies.lab.default_tag_size: expected a size > 0 m, got -0.1"),
-    ("tag_map.yaml", "tags: {'tag36h11:1': {position: [0, 0, 0], size: 0}}\n",
-     r"tag_map.yaml: tag 1: size: expected a size > 0 m, got 0"),
-])
-def test_bad_tag_size_files_are_one_line(realdata: Path, tmp_path: Path, name: str,
-                                         text: str | None, message: str) -> None:
+@pytest.mark.parametrize(
+    ("name", "text", "message"),
+    [
+        (
+            "absent.yaml",
+            None,
+            r"absent.yaml: tag-sizes file not found \(pnp.tag_sizes_from; a "
+            r"relative path is taken from the pipeline file's folder\)",
+        ),
+        ("bad.yaml", "bodies: [\n", r"bad.yaml: cannot read the tag-sizes file: while parsing"),
+        ("cameras.yaml", "cam0: {intrinsics: [1, 1, 1, 1]}\n", r"cameras.yaml: not a known-poses"),
+        ("field.json", None, r"field.json: a WPILib/PhotonVision field layout gives no tag sizes"),
+        (
+            "tagslam.yaml",
+            "bodies:\n - rig: {is_static: false, tags: [{id: 1}]}\n",
+            r"tagslam.yaml: no tag size given \(a tagslam file sizes tags with size: or "
+            r"default_tag_size:\)",
+        ),
+        (
+            "tagslam.yaml",
+            "bodies:\n - lab: {default_tag_size: -0.1}\n",
+            r"tagslam.yaml: bodies.lab.default_tag_size: expected a size > 0 m, got -0.1",
+        ),
+        (
+            "tag_map.yaml",
+            "tags: {'tag36h11:1': {position: [0, 0, 0], size: 0}}\n",
+            r"tag_map.yaml: tag 1: size: expected a size > 0 m, got 0",
+        ),
+    ],
+)
+def test_bad_tag_size_files_are_one_line(
+    realdata: Path, tmp_path: Path, name: str, text: str | None, message: str
+) -> None:
     if name == "field.json":
         text = (realdata / "photonvision_frc2024_field" / "2024-crescendo.json").read_text()
     if text is not None:

@@ -32,8 +32,13 @@ def scene() -> Scene:
     return ring_scene(n_tags=16, r_cam=1.0, half_fov_deg=50.0, n_frames=120)
 
 
-def run(scene: Scene, obs: pd.DataFrame, method: str, det: pd.DataFrame | None = None,
-        tag_map: pd.DataFrame | None = None) -> pd.DataFrame:
+def run(
+    scene: Scene,
+    obs: pd.DataFrame,
+    method: str,
+    det: pd.DataFrame | None = None,
+    tag_map: pd.DataFrame | None = None,
+) -> pd.DataFrame:
     det = detections(scene) if det is None else det
     tm = tag_map_frame(scene.world_T_tag) if tag_map is None else tag_map
     params = trajectory.Params(method=method)  # type: ignore[arg-type]
@@ -69,9 +74,14 @@ EXTRA = ["std_pos_m", "std_rot_deg", "motion_prior", *EVIDENCE_COLS, *ALONE_POSE
 @pytest.mark.parametrize("method", ["avg", "lsq", "pnp", "joint-none"])
 def test_exact_observations_give_exact_poses(scene: Scene, method: str) -> None:
     if method == "joint-none":  # the joint method without the motion prior: exact too
-        traj = trajectory.run(observations(scene), detections(scene), CAMERA,
-                              tag_map_frame(scene.world_T_tag), trajectory.Params(method="joint"),
-                              map_report=map_report(motion="none"))["trajectory"]
+        traj = trajectory.run(
+            observations(scene),
+            detections(scene),
+            CAMERA,
+            tag_map_frame(scene.world_T_tag),
+            trajectory.Params(method="joint"),
+            map_report=map_report(motion="none"),
+        )["trajectory"]
         assert np.isfinite(traj["std_pos_m"]).all() and not traj["motion_prior"].any()
     else:
         traj = run(scene, observations(scene), method)
@@ -106,8 +116,12 @@ def test_frames_of_several_tags_take_the_solution_the_map_agrees_with(scene: Sce
     """A mirrored solution first (lower reprojection, ambiguity 0.3), the true one second: the
     frame-by-frame fusion takes, per observation, the one the map agrees with in its frame."""
     T_bad, bad = flipped(scene, frac=0.15, seed=1)
-    obs = observations(scene, T_bad, ambiguity=np.full(len(T_bad), 0.3),
-                       alt_cam_T_tag=np.where(bad[:, None, None], scene.cam_T_tag(), T_bad))
+    obs = observations(
+        scene,
+        T_bad,
+        ambiguity=np.full(len(T_bad), 0.3),
+        alt_cam_T_tag=np.where(bad[:, None, None], scene.cam_T_tag(), T_bad),
+    )
     assert bad.sum() > 30 and (np.bincount(scene.frame) > 1).all()
     dt, dr = frame_errors(scene, run(scene, obs, "lsq"))
     assert dt.max() < 1e-9 and dr.max() < 1e-7
@@ -128,8 +142,13 @@ def test_pnp_without_detections_falls_back_to_lsq(
 ) -> None:
     obs = observations(scene)
     with caplog.at_level(logging.WARNING, logger="tagtrail.stages.trajectory"):
-        traj = trajectory.run(obs, pd.DataFrame(), {}, tag_map_frame(scene.world_T_tag),
-                              trajectory.Params(method="pnp"))["trajectory"]
+        traj = trajectory.run(
+            obs,
+            pd.DataFrame(),
+            {},
+            tag_map_frame(scene.world_T_tag),
+            trajectory.Params(method="pnp"),
+        )["trajectory"]
     assert "using lsq" in caplog.text
     assert frame_errors(scene, traj)[0].max() < 1e-9
 
@@ -155,10 +174,17 @@ def test_joint_frames_report_how_far_the_motion_prior_moved_them(scene: Scene) -
     det = _noisy_detections(scene, 0.3)
     tm = tag_map_frame(scene.world_T_tag)
     obs = observations(scene)
-    traj = trajectory.run(obs, det, CAMERA, tm, trajectory.Params(),
-                          map_report=map_report(corner_sigma_px=0.3))
-    alone = trajectory.run(obs, det, CAMERA, tm, trajectory.Params(),
-                           map_report=map_report(corner_sigma_px=0.3, motion="none"))["trajectory"]
+    traj = trajectory.run(
+        obs, det, CAMERA, tm, trajectory.Params(), map_report=map_report(corner_sigma_px=0.3)
+    )
+    alone = trajectory.run(
+        obs,
+        det,
+        CAMERA,
+        tm,
+        trajectory.Params(),
+        map_report=map_report(corner_sigma_px=0.3, motion="none"),
+    )["trajectory"]
     traj = traj["trajectory"]
     assert (traj["shift_m"] > 0).all() and (alone["shift_m"] == 0).all()
     np.testing.assert_allclose(alone["reproj_px"], alone["alone_reproj_px"])
@@ -178,16 +204,22 @@ def test_a_prior_far_too_stiff_still_leaves_the_frames_with_their_evidence(scene
     its robust (Cauchy) loss lets go where the motion disagrees, so the frames stay within their
     own corners' uncertainty (measured: 1 % beyond the 99.9 % bound, corner RMS 1.10x)."""
     det = _noisy_detections(scene, 0.3)
-    traj = trajectory.run(observations(scene), det, CAMERA, tag_map_frame(scene.world_T_tag),
-                          trajectory.Params(),
-                          map_report=map_report(corner_sigma_px=0.3, motion=0.001))["trajectory"]
+    traj = trajectory.run(
+        observations(scene),
+        det,
+        CAMERA,
+        tag_map_frame(scene.world_T_tag),
+        trajectory.Params(),
+        map_report=map_report(corner_sigma_px=0.3, motion=0.001),
+    )["trajectory"]
     assert (traj["shift_sigma"] > SHIFT_SIGMA_BOUND).mean() <= 0.02
     assert np.median(traj["reproj_px"]) <= 1.2 * np.median(traj["alone_reproj_px"])
 
 
 @pytest.mark.parametrize("method", ["joint", "lsq"])
 def test_a_map_at_another_scale_than_pnp_sizes_gives_the_maps_scale(
-        scene: Scene, method: str) -> None:
+    scene: Scene, method: str
+) -> None:
     """pnp solved with 0.16 m tags, the map says 0.2 m (a surveyed similarity rescaled it, or a
     query uses the reference's map): the same image is a world 1.25x as large, and the
     trajectory comes out in it."""
@@ -195,9 +227,15 @@ def test_a_map_at_another_scale_than_pnp_sizes_gives_the_maps_scale(
     W[:, :3, 3] *= 1.25
     tm = tag_map_frame(W)
     tm["size_m"] = 0.2
-    traj = trajectory.run(observations(scene), detections(scene), CAMERA, tm,
-                          trajectory.Params(method=method),  # type: ignore[arg-type]
-                          map_report=map_report(motion="none"))["trajectory"]
+    traj = trajectory.run(
+        observations(scene),
+        detections(scene),
+        CAMERA,
+        tm,
+        trajectory.Params(method=method),  # type: ignore[arg-type]
+        map_report=map_report(motion="none"),
+    )["trajectory"]
     idx = np.searchsorted(scene.t_ns, traj["t_ns"].to_numpy())
-    np.testing.assert_allclose(traj[POSE[:3]].to_numpy(),
-                               1.25 * scene.world_T_cam[idx, :3, 3], atol=1e-6)
+    np.testing.assert_allclose(
+        traj[POSE[:3]].to_numpy(), 1.25 * scene.world_T_cam[idx, :3, 3], atol=1e-6
+    )

@@ -81,27 +81,60 @@ def synthetic_case(tmp: Path, n_ref: int = 300, n_query: int = 120) -> Case:
     ref, query = reference_frame(n_ref), query_frame(n_query, out_of_order=False)
     write_trajectory_csv(tmp / "reference" / "trajectory.csv", ref)
     write_trajectory_csv(tmp / "query" / "trajectory.csv", query)
-    block = {"model": "similarity", "scale": 1.02, "rotation_deg": 7.5,
-             "translation": [0.05, -0.1], "inliers": 4, "common_tags": 4, "rms_m": 0.001}
+    block = {
+        "model": "similarity",
+        "scale": 1.02,
+        "rotation_deg": 7.5,
+        "translation": [0.05, -0.1],
+        "inliers": 4,
+        "common_tags": 4,
+        "rms_m": 0.001,
+    }
     (tmp / "alignment.json").write_text(json.dumps({"plane": "xz", "alignment": block}))
     a = np.radians(block["rotation_deg"])
-    al = Alignment("similarity", block["scale"], np.array([[np.cos(a), -np.sin(a)],
-                   [np.sin(a), np.cos(a)]]), np.array(block["translation"]), np.ones(4, bool),
-                   0.001)  # fmt: skip
+    al = Alignment(
+        "similarity",
+        block["scale"],
+        np.array([[np.cos(a), -np.sin(a)], [np.sin(a), np.cos(a)]]),
+        np.array(block["translation"]),
+        np.ones(4, bool),
+        0.001,
+    )
     # offline, from the files as written (what a user would run)
     ref_f = read_trajectory(tmp / "reference")
     q_f = read_trajectory(tmp / "query")
     A, R = world_transform(al, reference_plane("xz", *poses(ref_f)))
-    res = report_stage.run(transform_trajectory(q_f, A, R), ref_f, block,
-                           report_stage.Params(mode="trajectory", plane="xz"))  # fmt: skip
-    return Case(tmp / "reference", tmp / "query" / "trajectory.csv", tmp / "alignment.json", "xz",
-                res["relocalization"])
+    res = report_stage.run(
+        transform_trajectory(q_f, A, R),
+        ref_f,
+        block,
+        report_stage.Params(mode="trajectory", plane="xz"),
+    )
+    return Case(
+        tmp / "reference",
+        tmp / "query" / "trajectory.csv",
+        tmp / "alignment.json",
+        "xz",
+        res["relocalization"],
+    )
 
 
 def limo_case(tmp: Path, limo: Path, query: str = "query_metric_8") -> Case:
     """The LIMO reference and a query, aligned on their common tags by ``tagtrail relocalize``."""
     out = tmp / "offline"
-    relocalize(limo / "reference_three_letric", limo / query, out, mode="trajectory",
-               align="tags", align_model="similarity", plane="xz")  # fmt: skip
-    return Case(limo / "reference_three_letric", limo / query / "trajetoria_camera.csv",
-                out / "summary.json", "xz", read_relocalization_csv(out / "relocalization.csv"))
+    relocalize(
+        limo / "reference_three_letric",
+        limo / query,
+        out,
+        mode="trajectory",
+        align="tags",
+        align_model="similarity",
+        plane="xz",
+    )
+    return Case(
+        limo / "reference_three_letric",
+        limo / query / "trajetoria_camera.csv",
+        out / "summary.json",
+        "xz",
+        read_relocalization_csv(out / "relocalization.csv"),
+    )

@@ -46,8 +46,12 @@ class Proc:
     def __init__(self, args: Sequence[str]) -> None:
         env = {**os.environ, "PYTHONUNBUFFERED": "1"}
         self.p = subprocess.Popen(
-            [sys.executable, "-m", "tagtrail.stream.cli", *map(str, args)], cwd=NODE_CWD, env=env,
-            stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
+            [sys.executable, "-m", "tagtrail.stream.cli", *map(str, args)],
+            cwd=NODE_CWD,
+            env=env,
+            stdout=subprocess.PIPE,
+            stderr=subprocess.STDOUT,
+            text=True,
         )
         self.lines: list[str] = []
         self._t = threading.Thread(target=self._read, daemon=True)
@@ -94,7 +98,7 @@ class Proc:
 
     def stats(self) -> dict[str, Any]:
         line = next(s for s in reversed(self.lines) if s.startswith("stats "))
-        return json.loads(line[len("stats "):])
+        return json.loads(line[len("stats ") :])
 
 
 @contextmanager
@@ -131,8 +135,9 @@ class Collector:
         with self._lock:
             return list(self.samples[key])
 
-    def wait_until(self, key: str, done: Callable[[list[bytes]], bool],
-                   timeout: float = 20.0) -> list[bytes]:  # fmt: skip
+    def wait_until(
+        self, key: str, done: Callable[[list[bytes]], bool], timeout: float = 20.0
+    ) -> list[bytes]:
         deadline = time.monotonic() + timeout
         while True:
             with self._lock:
@@ -150,8 +155,14 @@ class Collector:
 
 
 def localize_replayed(
-    node_args: Sequence[str | Path], recording: Path, port: int, n_poses: int, *,
-    replay_timeout: float = 30.0, timeout: float = 20.0, sig: int = signal.SIGTERM,
+    node_args: Sequence[str | Path],
+    recording: Path,
+    port: int,
+    n_poses: int,
+    *,
+    replay_timeout: float = 30.0,
+    timeout: float = 20.0,
+    sig: int = signal.SIGTERM,
 ) -> tuple[list[bytes], Proc]:
     """Run a ``stream localize`` node (``node_args``, listening on ``port``), replay the
     detections bag ``recording`` into it, collect ``n_poses`` ``tag_only_pose`` messages, stop
@@ -160,8 +171,19 @@ def localize_replayed(
         node.wait_for("localize: ready")
         sub = Collector(port, ["tag_only_pose"])
         try:
-            with running(["replay", str(recording), "--topics", "/camera_info", "/detections",
-                          "--connect", loopback(port), "--rate", "2"]) as (rep,):  # fmt: skip
+            with running(
+                [
+                    "replay",
+                    str(recording),
+                    "--topics",
+                    "/camera_info",
+                    "/detections",
+                    "--connect",
+                    loopback(port),
+                    "--rate",
+                    "2",
+                ]
+            ) as (rep,):
                 assert rep.p.wait(replay_timeout) == 0, rep.output
             poses = sub.wait("tag_only_pose", n_poses, timeout=timeout)
         finally:

@@ -23,8 +23,13 @@ HEADER = "stamp_sec,stamp_nanosec,x,y,z,qx,qy,qz,qw\n"
 
 
 def tagtrail(*args: object, cwd: Path, timeout: float = 60) -> subprocess.CompletedProcess[str]:
-    return subprocess.run([sys.executable, "-m", "tagtrail.cli", *map(str, args)], cwd=cwd,
-                          capture_output=True, text=True, timeout=timeout)  # fmt: skip
+    return subprocess.run(
+        [sys.executable, "-m", "tagtrail.cli", *map(str, args)],
+        cwd=cwd,
+        capture_output=True,
+        text=True,
+        timeout=timeout,
+    )
 
 
 def one_error_line(stderr: str) -> str:
@@ -54,8 +59,16 @@ def test_replay_without_subscriber_is_an_error(poses: Path, listener) -> None:
     other = session.declare_subscriber("some/other/key", lambda _s: None)
     try:
         t0 = time.monotonic()
-        res = tagtrail("stream", "replay", poses, "--connect", loopback(port), "--wait", "1.5",
-                       cwd=poses.parent)  # fmt: skip
+        res = tagtrail(
+            "stream",
+            "replay",
+            poses,
+            "--connect",
+            loopback(port),
+            "--wait",
+            "1.5",
+            cwd=poses.parent,
+        )
         dt = time.monotonic() - t0
     finally:
         other.undeclare()
@@ -65,8 +78,17 @@ def test_replay_without_subscriber_is_an_error(poses: Path, listener) -> None:
     assert "--publish-anyway" in line and "published" not in res.stdout
     assert dt >= 1.5, f"--wait 1.5 waited {dt:.2f} s"
 
-    res = tagtrail("stream", "replay", poses, "--connect", loopback(port), "--wait", "0.2",
-                   "--publish-anyway", cwd=poses.parent)  # fmt: skip
+    res = tagtrail(
+        "stream",
+        "replay",
+        poses,
+        "--connect",
+        loopback(port),
+        "--wait",
+        "0.2",
+        "--publish-anyway",
+        cwd=poses.parent,
+    )
     assert res.returncode == 0, res
     assert "no subscriber on tag_only_pose" in res.stderr and "error:" not in res.stderr
     assert "published 30 messages" in res.stdout
@@ -82,10 +104,26 @@ def test_replay_waits_for_a_late_subscriber(poses: Path, listener) -> None:
         with lock:
             got.append(sample.payload.to_bytes())
 
-    proc = subprocess.Popen([sys.executable, "-m", "tagtrail.cli", "stream", "replay", poses,
-                             "--rate", "0", "--connect", loopback(port), "--wait", "20"],
-                            cwd=poses.parent, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
-                            text=True)  # fmt: skip
+    proc = subprocess.Popen(
+        [
+            sys.executable,
+            "-m",
+            "tagtrail.cli",
+            "stream",
+            "replay",
+            poses,
+            "--rate",
+            "0",
+            "--connect",
+            loopback(port),
+            "--wait",
+            "20",
+        ],
+        cwd=poses.parent,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+    )
     sub = None
     try:
         time.sleep(1.5)
@@ -105,21 +143,24 @@ def test_replay_waits_for_a_late_subscriber(poses: Path, listener) -> None:
     assert len(got) == 30
 
 
-@pytest.mark.parametrize("args", [
-    ["replay", "x.csv", "--rate", "-1"],
-    ["replay", "x.csv", "--rate", "nan"],
-    ["replay", "x.csv", "--rate", "inf"],
-    ["replay", "x.csv", "--wait", "-0.5"],
-    ["replay", "x.csv", "--count", "-1"],
-    ["replay", "x.csv", "--count", "2.5"],
-    ["relocalize", "--reference", "r.csv", "--path-period", "-1"],
-    ["relocalize", "--reference", "r.csv", "--path-max-points", "-5"],
-    ["relocalize", "--reference", "r.csv", "--duration", "1e999"],
-    ["relocalize", "--reference", "r.csv", "--stats-period", "-10"],
-    ["localize", "--map", "m.yaml", "--tag-size", "0"],
-    ["localize", "--map", "m.yaml", "--max-hamming", "-1"],
-    ["localize", "--map", "m.yaml", "--min-decision-margin", "nan"],
-])  # fmt: skip
+@pytest.mark.parametrize(
+    "args",
+    [
+        ["replay", "x.csv", "--rate", "-1"],
+        ["replay", "x.csv", "--rate", "nan"],
+        ["replay", "x.csv", "--rate", "inf"],
+        ["replay", "x.csv", "--wait", "-0.5"],
+        ["replay", "x.csv", "--count", "-1"],
+        ["replay", "x.csv", "--count", "2.5"],
+        ["relocalize", "--reference", "r.csv", "--path-period", "-1"],
+        ["relocalize", "--reference", "r.csv", "--path-max-points", "-5"],
+        ["relocalize", "--reference", "r.csv", "--duration", "1e999"],
+        ["relocalize", "--reference", "r.csv", "--stats-period", "-10"],
+        ["localize", "--map", "m.yaml", "--tag-size", "0"],
+        ["localize", "--map", "m.yaml", "--max-hamming", "-1"],
+        ["localize", "--map", "m.yaml", "--min-decision-margin", "nan"],
+    ],
+)
 def test_bad_numbers_are_one_error_line(args: list[str], capsys: pytest.CaptureFixture) -> None:
     with pytest.raises(SystemExit) as info:
         cli.main(args)
@@ -135,17 +176,22 @@ def test_replay_rate_minus_one_as_a_user(tmp_path: Path, poses: Path) -> None:
     assert "--rate: must be a finite number >= 0, got '-1'" in one_error_line(res.stderr)
 
 
-@pytest.mark.parametrize(("row", "want"), [
-    ("2,0,abc,0,0,0,0,0,1\n", "column x"),
-    ("2,0,1,0,0,0,0,0,0\n", "quaternion"),
-])  # fmt: skip
+@pytest.mark.parametrize(
+    ("row", "want"),
+    [
+        ("2,0,abc,0,0,0,0,0,1\n", "column x"),
+        ("2,0,1,0,0,0,0,0,0\n", "quaternion"),
+    ],
+)
 def test_bad_trajectory_csv_is_one_error_line(tmp_path: Path, row: str, want: str) -> None:
     """Needs the shared reader's SourceError naming file, row and column (tagtrail.io.layouts)."""
     bad = tmp_path / "bad.csv"
     bad.write_text(HEADER + "1,0,0,0,0,0,0,0,1\n" + row)
     port = str(free_port())
-    for args in (["replay", bad, "--connect", loopback(port), "--wait", "0"],
-                 ["relocalize", "--reference", bad, "--listen", loopback(port)]):  # fmt: skip
+    for args in (
+        ["replay", bad, "--connect", loopback(port), "--wait", "0"],
+        ["relocalize", "--reference", bad, "--listen", loopback(port)],
+    ):
         res = tagtrail("stream", *args, cwd=tmp_path, timeout=30)
         assert res.returncode == 2, res
         line = one_error_line(res.stderr)

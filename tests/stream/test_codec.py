@@ -28,27 +28,44 @@ def test_map_pose_is_76_bytes_with_le_header() -> None:
 @pytest.mark.parametrize("frame", FRAMES)
 def test_decode_covariance_and_odometry(frame: str) -> None:
     T = codec.types()
-    pwc = T["geometry_msgs/msg/PoseWithCovariance"](codec.pose(VALS[:3], VALS[3:]),
-                                                   np.arange(36.0))  # fmt: skip
-    cov = codec.serialize(T["geometry_msgs/msg/PoseWithCovarianceStamped"](
-        codec.header(7, 8, frame), pwc))  # fmt: skip
+    pwc = T["geometry_msgs/msg/PoseWithCovariance"](codec.pose(VALS[:3], VALS[3:]), np.arange(36.0))
+    cov = codec.serialize(
+        T["geometry_msgs/msg/PoseWithCovarianceStamped"](codec.header(7, 8, frame), pwc)
+    )
     twist = T["geometry_msgs/msg/TwistWithCovariance"](
-        T["geometry_msgs/msg/Twist"](T["geometry_msgs/msg/Vector3"](1, 2, 3),
-                                     T["geometry_msgs/msg/Vector3"](4, 5, 6)), np.ones(36))
-    odo = codec.serialize(T["nav_msgs/msg/Odometry"](codec.header(7, 8, frame), "base_link" + frame,
-                                                     pwc, twist))  # fmt: skip
+        T["geometry_msgs/msg/Twist"](
+            T["geometry_msgs/msg/Vector3"](1, 2, 3), T["geometry_msgs/msg/Vector3"](4, 5, 6)
+        ),
+        np.ones(36),
+    )
+    odo = codec.serialize(
+        T["nav_msgs/msg/Odometry"](codec.header(7, 8, frame), "base_link" + frame, pwc, twist)
+    )
     want = codec.PoseIn(7, 8, frame, *VALS)
     assert codec.decode_pose(cov, "pose_with_covariance") == want
     assert codec.decode_pose(odo, "odometry") == want
     ps = codec.serialize(codec.pose_stamped(7, 8, frame, VALS[:3], VALS[3:]))
-    for data, kind in [(cov, "pose_stamped"), (odo, "pose_stamped"), (ps, "pose_with_covariance"),
-                       (ps, "odometry"), (odo, "pose_with_covariance")]:  # fmt: skip
+    for data, kind in [
+        (cov, "pose_stamped"),
+        (odo, "pose_stamped"),
+        (ps, "pose_with_covariance"),
+        (ps, "odometry"),
+        (odo, "pose_with_covariance"),
+    ]:
         with pytest.raises(codec.CodecError):
             codec.decode_pose(data, kind)
 
 
-@pytest.mark.parametrize("data", [b"", b"\x00\x01\x00\x00", b"\x02\x00\x00\x00" + bytes(72),
-                                  bytes(76), b"\x00\x01\x00\x00" + b"\xff" * 72])
+@pytest.mark.parametrize(
+    "data",
+    [
+        b"",
+        b"\x00\x01\x00\x00",
+        b"\x02\x00\x00\x00" + bytes(72),
+        bytes(76),
+        b"\x00\x01\x00\x00" + b"\xff" * 72,
+    ],
+)
 def test_decode_rejects_garbage(data: bytes) -> None:
     with pytest.raises(codec.CodecError):
         codec.decode_pose(data)
@@ -58,7 +75,8 @@ def test_float64() -> None:
     ts = typestore()
     for v in (0.0, -1.5, 1e300, float("nan")):
         assert codec.encode_float64(v) == bytes(
-            ts.serialize_cdr(ts.types["std_msgs/msg/Float64"](v), "std_msgs/msg/Float64"))
+            ts.serialize_cdr(ts.types["std_msgs/msg/Float64"](v), "std_msgs/msg/Float64")
+        )
 
 
 def test_marker_template_equals_full_serialization() -> None:

@@ -26,13 +26,30 @@ from tagtrail.stream.stats import DropError
 from tests.stream.helpers import Collector, free_port, loopback, running
 
 
-def state(e: float = 0.0, phi: float = 0.0, kappa: float = 0.0, s: float = 1.0,
-          lost: bool = False, stamp_ns: int | None = None) -> bytes:  # fmt: skip
+def state(
+    e: float = 0.0,
+    phi: float = 0.0,
+    kappa: float = 0.0,
+    s: float = 1.0,
+    lost: bool = False,
+    stamp_ns: int | None = None,
+) -> bytes:
     sec, nsec = divmod(time.time_ns() if stamp_ns is None else stamp_ns, 1_000_000_000)
-    return json.dumps({"stamp_sec": sec, "stamp_nanosec": nsec, "distance_m": abs(e),
-                       "heading_error_deg": math.degrees(phi), "heading_error_rad": phi,
-                       "cross_track_m": e, "progress_m": s, "curvature_1pm": kappa,
-                       "lookahead_u": 0.0, "lookahead_v": 0.0, "lost": lost}).encode()
+    return json.dumps(
+        {
+            "stamp_sec": sec,
+            "stamp_nanosec": nsec,
+            "distance_m": abs(e),
+            "heading_error_deg": math.degrees(phi),
+            "heading_error_rad": phi,
+            "cross_track_m": e,
+            "progress_m": s,
+            "curvature_1pm": kappa,
+            "lookahead_u": 0.0,
+            "lookahead_v": 0.0,
+            "lost": lost,
+        }
+    ).encode()
 
 
 class Clock:
@@ -60,20 +77,40 @@ def test_never_beyond_the_profiles_limits() -> None:
     rnd = random.Random(28)
     for limits, gains in (PROFILES["limo"][:2], (Limits(), Gains(law="pure_pursuit"))):
         clock = Clock()
-        fol = Follower(limits, gains, speed_mps=rnd.uniform(0.1, 2.0), path_length_m=20.0,
-                       max_jump_m=0.0, clock=clock, wall_ns=clock.wall_ns)  # fmt: skip
+        fol = Follower(
+            limits,
+            gains,
+            speed_mps=rnd.uniform(0.1, 2.0),
+            path_length_m=20.0,
+            max_jump_m=0.0,
+            clock=clock,
+            wall_ns=clock.wall_ns,
+        )
         prev, t_prev, n_drive = (0.0, 0.0), clock.t, 0
         for _ in range(5000):
             clock.t += rnd.choice([0.001, 0.01, 0.033, 0.05, 0.2, rnd.uniform(0, 0.3)])
             kind = rnd.random()
             if kind < 0.05:
-                data = rnd.choice([b"", b"{", b"[1]", b'{"cross_track_m": "x"}', bytes(40),
-                                   state(e=math.nan), state(kappa=math.inf)])
+                data = rnd.choice(
+                    [
+                        b"",
+                        b"{",
+                        b"[1]",
+                        b'{"cross_track_m": "x"}',
+                        bytes(40),
+                        state(e=math.nan),
+                        state(kappa=math.inf),
+                    ]
+                )
             else:
-                data = state(rnd.gauss(0, 0.5), rnd.uniform(-math.pi, math.pi),
-                             rnd.choice([0.0, rnd.gauss(0, 2.0), rnd.uniform(-50, 50)]),
-                             rnd.uniform(0, 21), lost=rnd.random() < 0.05,
-                             stamp_ns=clock.wall_ns())  # fmt: skip
+                data = state(
+                    rnd.gauss(0, 0.5),
+                    rnd.uniform(-math.pi, math.pi),
+                    rnd.choice([0.0, rnd.gauss(0, 2.0), rnd.uniform(-50, 50)]),
+                    rnd.uniform(0, 21),
+                    lost=rnd.random() < 0.05,
+                    stamp_ns=clock.wall_ns(),
+                )
             try:
                 c = fol.on_state(data)
             except DropError:
@@ -102,8 +139,11 @@ def test_stops_lost_end_stale_garbage() -> None:
     assert not c.stop and c.v > 0.2
     assert fol.on_state(state(lost=True, stamp_ns=clock.wall_ns())).reason == "lost"
     old = clock.wall_ns() - 600_000_000
-    for bad, reason in ((b"nope", "garbage"), (state(e=math.nan), "non_finite"),
-                        (state(stamp_ns=old), "stale")):  # fmt: skip
+    for bad, reason in (
+        (b"nope", "garbage"),
+        (state(e=math.nan), "non_finite"),
+        (state(stamp_ns=old), "stale"),
+    ):
         try:
             fol.on_state(bad)
             raise AssertionError(f"{bad!r} accepted")
@@ -138,8 +178,9 @@ def test_a_jumping_cross_track_is_dropped_until_the_timeout() -> None:
         except DropError:
             dropped += 1
     # the documented gate: |Δe| > 0.1 m + v_max·dt while dt ≤ 0.5 s
-    rule = sum(k * 0.033 <= 0.5 and 0.57 > 0.1 + limits.max_speed_mps * k * 0.033
-               for k in range(1, 21))  # fmt: skip
+    rule = sum(
+        k * 0.033 <= 0.5 and 0.57 > 0.1 + limits.max_speed_mps * k * 0.033 for k in range(1, 21)
+    )
     assert dropped == rule >= 10 and fol.last_e == 0.6
 
 
@@ -148,8 +189,9 @@ def test_steers_back_towards_the_path() -> None:
     clock = Clock()
     limits, gains, _ = PROFILES["limo"]
     for normal_down, sign in ((True, 1.0), (False, -1.0)):
-        fol = Follower(limits, gains, 0.3, clock=clock, wall_ns=clock.wall_ns,
-                       normal_down=normal_down)  # fmt: skip
+        fol = Follower(
+            limits, gains, 0.3, clock=clock, wall_ns=clock.wall_ns, normal_down=normal_down
+        )
         for _ in range(30):
             clock.t += 0.033
             c = fol.on_state(state(e=0.2, stamp_ns=clock.wall_ns()))
@@ -176,8 +218,11 @@ def test_node_stops_counts_drops_and_exits_on_sigint() -> None:
             t_last = time.monotonic()
             moving = sub.wait_until("cmd_vel", lambda g: decode_twist(g[-1])[0] > 0, 5)
             n0 = len(moving)
-            got = sub.wait_until("cmd_vel", lambda g: len(g) > n0 and any(
-                decode_twist(x) == (0.0, 0.0) for x in g[n0:]), 2)  # fmt: skip
+            got = sub.wait_until(
+                "cmd_vel",
+                lambda g: len(g) > n0 and any(decode_twist(x) == (0.0, 0.0) for x in g[n0:]),
+                2,
+            )
             t_zero = time.monotonic()
             assert t_zero - t_last <= 0.5, t_zero - t_last
             assert all(decode_twist(x)[0] <= 1.0 for x in got)
@@ -201,8 +246,19 @@ def test_node_on_the_rmw_zenoh_wire() -> None:
     from tagtrail.stream import wire as W
 
     port = free_port()
-    args = ["follow", "--profile", "limo", "--wire", "rmw_zenoh", "--ros-distro", "jazzy",
-            "--listen", loopback(port), "--stats-period", "0"]
+    args = [
+        "follow",
+        "--profile",
+        "limo",
+        "--wire",
+        "rmw_zenoh",
+        "--ros-distro",
+        "jazzy",
+        "--listen",
+        loopback(port),
+        "--stats-period",
+        "0",
+    ]
     with running(args) as (node,):
         node.wait_for("follow: ready")
         s = zenoh.open(make_config("peer", connect=[loopback(port)]))

@@ -29,13 +29,17 @@ from tests.stream.helpers import Collector, free_port, loopback, running
 
 PREFIX = "reloc_fox"
 TYPES = {
-    "distance_m": "std_msgs/msg/Float64", "heading_error_deg": "std_msgs/msg/Float64",
+    "distance_m": "std_msgs/msg/Float64",
+    "heading_error_deg": "std_msgs/msg/Float64",
     "current_pose": "geometry_msgs/msg/PoseStamped",
     "nearest_pose": "geometry_msgs/msg/PoseStamped",
-    "markers": "visualization_msgs/msg/MarkerArray", "reference_path": "nav_msgs/msg/Path",
-    "cross_track_m": "std_msgs/msg/Float64", "progress_m": "std_msgs/msg/Float64",
-    "curvature_1pm": "std_msgs/msg/Float64", "lookahead_pose": "geometry_msgs/msg/PoseStamped",
-}  # fmt: skip
+    "markers": "visualization_msgs/msg/MarkerArray",
+    "reference_path": "nav_msgs/msg/Path",
+    "cross_track_m": "std_msgs/msg/Float64",
+    "progress_m": "std_msgs/msg/Float64",
+    "curvature_1pm": "std_msgs/msg/Float64",
+    "lookahead_pose": "geometry_msgs/msg/PoseStamped",
+}
 SUBPROTOCOL = "foxglove.sdk.v1"  # what foxglove-sdk's server accepts (and the Foxglove app sends)
 Got = dict[str, list[tuple[int, bytes]]]  # channel topic → [(log time ns, payload)]
 
@@ -75,8 +79,16 @@ def _open(ws: Any, n_channels: int) -> dict[str, dict[str, Any]]:
 def _subscribe(ws: Any, channels: dict[str, dict[str, Any]], topics: list[str]) -> dict[int, str]:
     """Subscribe to ``topics``; subscription id → topic."""
     sub_of = dict(enumerate(topics, start=1))
-    ws.send(json.dumps({"op": "subscribe", "subscriptions": [
-        {"id": i, "channelId": channels[t]["id"]} for i, t in sub_of.items()]}))  # fmt: skip
+    ws.send(
+        json.dumps(
+            {
+                "op": "subscribe",
+                "subscriptions": [
+                    {"id": i, "channelId": channels[t]["id"]} for i, t in sub_of.items()
+                ],
+            }
+        )
+    )
     return sub_of
 
 
@@ -113,9 +125,25 @@ def test_relocalize_serves_d_and_phi_as_published_on_zenoh(tmp_path: Path) -> No
     ws_client = _sdk_and_client()
     case = synthetic_case(tmp_path, n_ref=200, n_query=40)
     port = free_port()
-    node_args = ["relocalize", "--reference", case.reference, "--alignment", case.alignment,
-                 "--prefix", PREFIX, "--listen", loopback(port), "--path-period", "0",
-                 "--duration", "60", "--stats-period", "0", "--foxglove", "0"]
+    node_args = [
+        "relocalize",
+        "--reference",
+        case.reference,
+        "--alignment",
+        case.alignment,
+        "--prefix",
+        PREFIX,
+        "--listen",
+        loopback(port),
+        "--path-period",
+        "0",
+        "--duration",
+        "60",
+        "--stats-period",
+        "0",
+        "--foxglove",
+        "0",
+    ]
     d_key, phi_key = f"{PREFIX}/distance_m", f"{PREFIX}/heading_error_deg"
     n = len(case.offline)
     t0 = time.time_ns()
@@ -123,24 +151,40 @@ def test_relocalize_serves_d_and_phi_as_published_on_zenoh(tmp_path: Path) -> No
         node.wait_for("relocalize: ready")
         zsub = Collector(port, [d_key, phi_key])
         try:
-            with ws_client.connect(_url(node.lines, "relocalize"), subprotocols=[SUBPROTOCOL],
-                                   open_timeout=10) as ws:  # fmt: skip
+            with ws_client.connect(
+                _url(node.lines, "relocalize"), subprotocols=[SUBPROTOCOL], open_timeout=10
+            ) as ws:
                 channels = _open(ws, len(TYPES) + 1)
                 assert set(channels) == {f"/{PREFIX}/{k}" for k in (*TYPES, "state")}
                 for key, typename in TYPES.items():
                     c = channels[f"/{PREFIX}/{key}"]
                     assert (c["encoding"], c["schemaName"], c["schemaEncoding"]) == (
-                        "cdr", typename, "ros2msg")
-                assert "MSG: geometry_msgs/PoseStamped" in channels[
-                    f"/{PREFIX}/reference_path"]["schema"]  # the full definition
+                        "cdr",
+                        typename,
+                        "ros2msg",
+                    )
+                assert (
+                    "MSG: geometry_msgs/PoseStamped"
+                    in channels[f"/{PREFIX}/reference_path"]["schema"]
+                )  # the full definition
                 assert channels[f"/{PREFIX}/state"]["encoding"] == "json"
                 sub_of = _subscribe(ws, channels, sorted(channels))
                 got: Got = {t: [] for t in channels}
                 # the path was published once, before this client: latched for new subscribers
                 while not got[f"/{PREFIX}/reference_path"]:
                     _collect(ws, sub_of, got)
-                with running(["replay", case.query, "--rate", "0", "--connect", loopback(port),
-                              "--wait", "10"]) as (rep,):  # fmt: skip
+                with running(
+                    [
+                        "replay",
+                        case.query,
+                        "--rate",
+                        "0",
+                        "--connect",
+                        loopback(port),
+                        "--wait",
+                        "10",
+                    ]
+                ) as (rep,):
                     assert rep.p.wait(30) == 0, rep.output
                 # one message per pose on each channel; markers: + the latched path's marker
                 want = {t: n + (t == f"/{PREFIX}/markers") for t in channels}
@@ -167,15 +211,20 @@ def test_relocalize_serves_d_and_phi_as_published_on_zenoh(tmp_path: Path) -> No
     np.testing.assert_allclose(D, off.loc[t_ns, "distance_m"], rtol=0, atol=1e-9)
     np.testing.assert_allclose(phi, off.loc[t_ns, "heading_error_deg"], rtol=0, atol=1e-9)
     # every message of every CDR channel decodes against its advertised schema
-    decoded = {t: _decode(channels[t], [b for _, b in got[t]]) for t in channels
-               if channels[t]["encoding"] == "cdr"}  # fmt: skip
+    decoded = {
+        t: _decode(channels[t], [b for _, b in got[t]])
+        for t in channels
+        if channels[t]["encoding"] == "cdr"
+    }
     for key in ("current_pose", "nearest_pose"):
-        stamps = [m.header.stamp.sec * 10**9 + m.header.stamp.nanosec
-                  for m in decoded[f"/{PREFIX}/{key}"]]  # fmt: skip
+        stamps = [
+            m.header.stamp.sec * 10**9 + m.header.stamp.nanosec for m in decoded[f"/{PREFIX}/{key}"]
+        ]
         assert stamps == t_ns, key
     assert len(decoded[f"/{PREFIX}/markers"]) == n + 1
-    (path,) = _decode(channels[f"/{PREFIX}/reference_path"],
-                      [got[f"/{PREFIX}/reference_path"][0][1]])  # fmt: skip
+    (path,) = _decode(
+        channels[f"/{PREFIX}/reference_path"], [got[f"/{PREFIX}/reference_path"][0][1]]
+    )
     ref = read_trajectory(case.reference)
     assert len(path.poses) == 200 and path.header.frame_id == "map"
     np.testing.assert_allclose([p.pose.position.x for p in path.poses], ref["x_m"], atol=1e-12)
@@ -186,19 +235,32 @@ def test_localize_serves_its_poses(tmp_path: Path) -> None:
     to the simulator's ground truth (noise-free corners: exact)."""
     ws_client = _sdk_and_client()
     n_frames = 20
-    rec = simulate("circle", tmp_path, frames=n_frames, detections=True, corner_noise_px=0.0,
-                   seed=3)["circle"]  # fmt: skip
+    rec = simulate(
+        "circle", tmp_path, frames=n_frames, detections=True, corner_noise_px=0.0, seed=3
+    )["circle"]
     gt = read_trajectory(rec / "ground_truth" / "trajectory.csv").set_index("t_ns")
     port = free_port()
-    node_args = ["localize", "--map", rec / "ground_truth" / "tag_map.yaml", "--listen",
-                 loopback(port), "--duration", "60", "--stats-period", "0", "--foxglove", "0"]
+    node_args = [
+        "localize",
+        "--map",
+        rec / "ground_truth" / "tag_map.yaml",
+        "--listen",
+        loopback(port),
+        "--duration",
+        "60",
+        "--stats-period",
+        "0",
+        "--foxglove",
+        "0",
+    ]
     t0 = time.time_ns()
     with running(node_args) as (node,):
         node.wait_for("localize: ready")
         zsub = Collector(port, ["tag_only_pose"])
         try:
-            with ws_client.connect(_url(node.lines, "localize"), subprotocols=[SUBPROTOCOL],
-                                   open_timeout=10) as ws:  # fmt: skip
+            with ws_client.connect(
+                _url(node.lines, "localize"), subprotocols=[SUBPROTOCOL], open_timeout=10
+            ) as ws:
                 channels = _open(ws, 1)
                 assert set(channels) == {"/tag_only_pose"}
                 c = channels["/tag_only_pose"]
@@ -207,8 +269,19 @@ def test_localize_serves_its_poses(tmp_path: Path) -> None:
                 # at the recording's own rate, as a robot publishes: a flood (--rate 0) on two
                 # keys has no order across them, and detections before the first CameraInfo
                 # are dropped (counted)
-                with running(["replay", rec, "--topics", "/camera_info", "/detections",
-                              "--connect", loopback(port), "--rate", "1"]) as (rep,):  # fmt: skip
+                with running(
+                    [
+                        "replay",
+                        rec,
+                        "--topics",
+                        "/camera_info",
+                        "/detections",
+                        "--connect",
+                        loopback(port),
+                        "--rate",
+                        "1",
+                    ]
+                ) as (rep,):
                     assert rep.p.wait(30) == 0, rep.output
                 # the first detection may precede the first CameraInfo (dropped, counted)
                 on_zenoh = zsub.wait("tag_only_pose", n_frames - 1)
@@ -242,8 +315,9 @@ def test_viewer_must_speak_the_sdk_subprotocol() -> None:
     fox = FoxgloveServer({"fox_test/d": "std_msgs/msg/Float64"}, port=0)
     try:
         assert fox.url.startswith("ws://127.0.0.1:")
-        with ws_client.connect(fox.url, subprotocols=["foxglove.websocket.v1", SUBPROTOCOL],
-                               open_timeout=10) as ws:  # fmt: skip
+        with ws_client.connect(
+            fox.url, subprotocols=["foxglove.websocket.v1", SUBPROTOCOL], open_timeout=10
+        ) as ws:
             channels = _open(ws, 1)
             assert channels["/fox_test/d"]["schemaName"] == "std_msgs/msg/Float64"
         with pytest.raises(InvalidStatus) as info:
@@ -253,16 +327,29 @@ def test_viewer_must_speak_the_sdk_subprotocol() -> None:
         fox.close()
 
 
-def test_missing_sdk_is_one_line(tmp_path: Path, monkeypatch: pytest.MonkeyPatch,
-                                 capsys: pytest.CaptureFixture[str]) -> None:  # fmt: skip
+def test_missing_sdk_is_one_line(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
+) -> None:
     case = synthetic_case(tmp_path, n_ref=20, n_query=5)
     monkeypatch.setitem(sys.modules, "foxglove", None)  # import foxglove → ImportError
-    rc = cli.main(["relocalize", "--reference", str(case.reference), "--foxglove",
-                   "--listen", loopback(free_port()), "--duration", "0"])  # fmt: skip
+    rc = cli.main(
+        [
+            "relocalize",
+            "--reference",
+            str(case.reference),
+            "--foxglove",
+            "--listen",
+            loopback(free_port()),
+            "--duration",
+            "0",
+        ]
+    )
     err = capsys.readouterr().err.strip().splitlines()
     assert rc == 2 and len(err) == 1, err
-    assert err[0] == "error: --foxglove needs the foxglove-sdk package: pip install " \
+    assert (
+        err[0] == "error: --foxglove needs the foxglove-sdk package: pip install "
         "'tagtrail[foxglove]'"
+    )
 
 
 def test_port_in_use_and_bad_port(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
@@ -272,11 +359,25 @@ def test_port_in_use_and_bad_port(tmp_path: Path, capsys: pytest.CaptureFixture[
         s.bind(("127.0.0.1", 0))
         s.listen()
         busy = s.getsockname()[1]
-        rc = cli.main(["relocalize", "--reference", str(case.reference), "--foxglove", str(busy),
-                       "--listen", loopback(free_port()), "--duration", "0"])  # fmt: skip
+        rc = cli.main(
+            [
+                "relocalize",
+                "--reference",
+                str(case.reference),
+                "--foxglove",
+                str(busy),
+                "--listen",
+                loopback(free_port()),
+                "--duration",
+                "0",
+            ]
+        )
     err = capsys.readouterr().err.strip().splitlines()
-    assert rc == 2 and len(err) == 1 and err[0].startswith(
-        f"error: --foxglove: cannot serve on 127.0.0.1:{busy}: "), err
+    assert (
+        rc == 2
+        and len(err) == 1
+        and err[0].startswith(f"error: --foxglove: cannot serve on 127.0.0.1:{busy}: ")
+    ), err
     with pytest.raises(SystemExit) as exc:
         cli.build_parser().parse_args(["relocalize", "--reference", "x", "--foxglove", "70000"])
     assert exc.value.code == 2

@@ -29,30 +29,34 @@ RSS_LIMIT_MB = 700  # the node itself (numpy, scipy, cv2, pupil, zenoh) measured
 
 @pytest.fixture(scope="module")
 def rec(tmp_path_factory: pytest.TempPathFactory) -> Path:
-    return simulate("circle", tmp_path_factory.mktemp("guard"), frames=3, compressed=True,
-                    seed=4)["circle"]  # fmt: skip
+    return simulate("circle", tmp_path_factory.mktemp("guard"), frames=3, compressed=True, seed=4)[
+        "circle"
+    ]
 
 
 @pytest.fixture(scope="module")
 def huge_png() -> bytes:
     """A real 16000x16000 PNG (~250 KB: zeros compress well); 256 MB once decoded."""
-    ok, buf = cv2.imencode(".png", np.zeros((16000, 16000), np.uint8),
-                           [cv2.IMWRITE_PNG_COMPRESSION, 9])  # fmt: skip
+    ok, buf = cv2.imencode(
+        ".png", np.zeros((16000, 16000), np.uint8), [cv2.IMWRITE_PNG_COMPRESSION, 9]
+    )
     assert ok and len(buf) < 400_000
     return buf.tobytes()
 
 
 def _compressed(data: bytes, fmt: str, sec: int = 1) -> bytes:
     T = codec.types()
-    msg = T["sensor_msgs/msg/CompressedImage"](codec.header(sec, 0, "camera"), fmt,
-                                               np.frombuffer(data, np.uint8))  # fmt: skip
+    msg = T["sensor_msgs/msg/CompressedImage"](
+        codec.header(sec, 0, "camera"), fmt, np.frombuffer(data, np.uint8)
+    )
     return codec.serialize(msg)
 
 
 def _raw(width: int, height: int, step: int, n: int) -> bytes:
     T = codec.types()
-    msg = T["sensor_msgs/msg/Image"](codec.header(1, 0, "camera"), height, width, "mono8", 0,
-                                     step, np.zeros(n, np.uint8))  # fmt: skip
+    msg = T["sensor_msgs/msg/Image"](
+        codec.header(1, 0, "camera"), height, width, "mono8", 0, step, np.zeros(n, np.uint8)
+    )
     return codec.serialize(msg)
 
 
@@ -111,9 +115,21 @@ def test_sizes_are_checked_before_decoding(rec: Path, huge_png: bytes) -> None:
 def test_huge_png_over_zenoh_is_dropped_and_counted(rec: Path, huge_png: bytes) -> None:
     port = free_port()
     frames = bag_messages(rec, [f"/{IMAGE_KEY}"]).payloads
-    node_args = ["localize", "--map", rec / "ground_truth" / "tag_map.yaml", "--listen",
-                 loopback(port), "--image-key", IMAGE_KEY, "--camera-info-key", INFO_KEY,
-                 "--duration", "60", "--stats-period", "0"]  # fmt: skip
+    node_args = [
+        "localize",
+        "--map",
+        rec / "ground_truth" / "tag_map.yaml",
+        "--listen",
+        loopback(port),
+        "--image-key",
+        IMAGE_KEY,
+        "--camera-info-key",
+        INFO_KEY,
+        "--duration",
+        "60",
+        "--stats-period",
+        "0",
+    ]
     with running(node_args) as (node,):
         node.wait_for("localize: ready")
         sub = Collector(port, ["tag_only_pose"])
@@ -151,7 +167,9 @@ def test_peak_rss_is_the_nodes_own_not_its_parents() -> None:
 
     ballast = np.ones(300_000_000 // 8)  # 300 MB touched in this (the parent) process
     code = "from tagtrail.stream.node import peak_rss_mb; print(peak_rss_mb())"
-    child = float(subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
-                                 check=True).stdout)
+    child = float(
+        subprocess.run(
+            [sys.executable, "-c", code], capture_output=True, text=True, check=True
+        ).stdout
+    )
     assert ballast.sum() > 0 and child < 250, child  # the imports alone: ~100 MB
-

@@ -31,15 +31,21 @@ MIN_MARGIN = 72.0  # not extract's default (20): drops ~1/4 of these detections,
 @pytest.fixture(scope="module")
 def project(tmp_path_factory: pytest.TempPathFactory) -> Path:
     root = tmp_path_factory.mktemp("live_offline")
-    rec = simulate("corridor", root / "data", frames=120, detections=True, corner_noise_px=0.5,
-                   seed=11)["corridor"]  # fmt: skip
+    rec = simulate(
+        "corridor", root / "data", frames=120, detections=True, corner_noise_px=0.5, seed=11
+    )["corridor"]
     (root / "pipeline.yaml").write_text(
         f"reference: corridor\ndatasets:\n  corridor:\n    source: {rec}\nstages:\n"
         f"  extract:\n    min_decision_margin: {MIN_MARGIN}\n"
         "  trajectory:\n    method: pnp\n    ransac_px: 2.0\n"
     )
-    run = subprocess.run([sys.executable, "-m", "tagtrail.cli", "run", "trajectory"], cwd=root,
-                         capture_output=True, text=True, timeout=300)  # fmt: skip
+    run = subprocess.run(
+        [sys.executable, "-m", "tagtrail.cli", "run", "trajectory"],
+        cwd=root,
+        capture_output=True,
+        text=True,
+        timeout=300,
+    )
     assert run.returncode == 0, run.stderr
     return root
 
@@ -64,12 +70,23 @@ def test_live_localize_equals_the_trajectory_stage(project: Path) -> None:
     assert (n == 1).sum() > 5 and (n >= 2).sum() > 5 and len(offline) == (n > 0).sum()
 
     port = free_port()
-    node_args = ["localize", "--map", out / "tag_map.yaml", "--pipeline",
-                 project / "pipeline.yaml", "--listen", loopback(port), "--duration", "60",
-                 "--stats-period", "0"]  # fmt: skip
+    node_args = [
+        "localize",
+        "--map",
+        out / "tag_map.yaml",
+        "--pipeline",
+        project / "pipeline.yaml",
+        "--listen",
+        loopback(port),
+        "--duration",
+        "60",
+        "--stats-period",
+        "0",
+    ]
     # the first detection message precedes the first CameraInfo: dropped, counted
-    poses, node = localize_replayed(node_args, rec, port, len(offline) - 1, replay_timeout=60,
-                                    timeout=30)
+    poses, node = localize_replayed(
+        node_args, rec, port, len(offline) - 1, replay_timeout=60, timeout=30
+    )
     assert set(node.stats()["dropped"]) <= {"no_camera_info", "no_pose"}, node.stats()
 
     live = [codec.decode_pose(raw) for raw in poses]
@@ -80,6 +97,7 @@ def test_live_localize_equals_the_trajectory_stage(project: Path) -> None:
     q = np.array([[p.qx, p.qy, p.qz, p.qw] for p in live])
     np.testing.assert_allclose(xyz, row[["x_m", "y_m", "z_m"]].to_numpy(), rtol=0, atol=1e-9)
     R_live = T_from_xyz_quat(xyz, q)[:, :3, :3]
-    R_off = T_from_xyz_quat(row[["x_m", "y_m", "z_m"]].to_numpy(),
-                            row[["qx", "qy", "qz", "qw"]].to_numpy())[:, :3, :3]  # fmt: skip
+    R_off = T_from_xyz_quat(
+        row[["x_m", "y_m", "z_m"]].to_numpy(), row[["qx", "qy", "qz", "qw"]].to_numpy()
+    )[:, :3, :3]
     np.testing.assert_allclose(R_live, R_off, rtol=0, atol=1e-9)

@@ -22,8 +22,9 @@ N_FRAMES = 45
 
 
 def _sim(tmp: Path, noise_px: float) -> Path:
-    return simulate("circle", tmp, frames=N_FRAMES, detections=True, corner_noise_px=noise_px,
-                    seed=3)["circle"]  # fmt: skip
+    return simulate(
+        "circle", tmp, frames=N_FRAMES, detections=True, corner_noise_px=noise_px, seed=3
+    )["circle"]
 
 
 @pytest.fixture(scope="module")
@@ -73,11 +74,21 @@ def test_localize_over_zenoh_within_1cm(noisy: Path) -> None:
     """Bag topics replayed over zenoh → ``stream localize`` (separate processes) → poses."""
     port = free_port()
     gt = read_trajectory(noisy / "ground_truth" / "trajectory.csv")
-    node_args = ["localize", "--map", noisy / "ground_truth" / "tag_map.yaml",
-                 "--listen", loopback(port), "--duration", "45", "--stats-period", "0"]
+    node_args = [
+        "localize",
+        "--map",
+        noisy / "ground_truth" / "tag_map.yaml",
+        "--listen",
+        loopback(port),
+        "--duration",
+        "45",
+        "--stats-period",
+        "0",
+    ]
     # the first detection may precede the first CameraInfo: it is dropped, counted
-    poses, node = localize_replayed(node_args, noisy, port, N_FRAMES - 1,
-                                    sig=signal.SIGINT)  # Ctrl-C: a clean exit too
+    poses, node = localize_replayed(
+        node_args, noisy, port, N_FRAMES - 1, sig=signal.SIGINT
+    )  # Ctrl-C: a clean exit too
     stats = node.stats()
     assert stats["processed"] >= 2 * N_FRAMES - 1
     assert set(stats["dropped"]) <= {"no_camera_info"}, stats
@@ -90,17 +101,38 @@ def test_localize_from_compressed_images_over_zenoh(tmp_path: Path) -> None:
     rec = simulate("circle", tmp_path, frames=16, compressed=True, seed=4)["circle"]
     gt = read_trajectory(rec / "ground_truth" / "trajectory.csv")
     port = free_port()
-    node_args = ["localize", "--map", rec / "ground_truth" / "tag_map.yaml", "--listen",
-                 loopback(port), "--image-key", "camera/color/image_raw/compressed",
-                 "--camera-info-key", "camera/color/camera_info", "--duration", "45",
-                 "--stats-period", "0"]  # fmt: skip
+    node_args = [
+        "localize",
+        "--map",
+        rec / "ground_truth" / "tag_map.yaml",
+        "--listen",
+        loopback(port),
+        "--image-key",
+        "camera/color/image_raw/compressed",
+        "--camera-info-key",
+        "camera/color/camera_info",
+        "--duration",
+        "45",
+        "--stats-period",
+        "0",
+    ]
     with running(node_args) as (node,):
         node.wait_for("localize: ready")
         sub = Collector(port, ["tag_only_pose"])
         try:
-            with running(["replay", rec, "--topics", "/camera/color/camera_info",
-                          "/camera/color/image_raw/compressed", "--connect", loopback(port),
-                          "--rate", "0.1"]) as (rep,):  # fmt: skip
+            with running(
+                [
+                    "replay",
+                    rec,
+                    "--topics",
+                    "/camera/color/camera_info",
+                    "/camera/color/image_raw/compressed",
+                    "--connect",
+                    loopback(port),
+                    "--rate",
+                    "0.1",
+                ]
+            ) as (rep,):
                 assert rep.p.wait(30) == 0, rep.output
             # 3 frames/s: the detector keeps up on a loaded 2-core machine (at 15 frames/s
             # under CI's load it posed fewer than 8 of 16); frames arriving while it is busy

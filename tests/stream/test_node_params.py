@@ -30,13 +30,21 @@ N_FRAMES = 20
 
 @pytest.fixture(scope="module")
 def rec(tmp_path_factory: pytest.TempPathFactory) -> Path:
-    return simulate("circle", tmp_path_factory.mktemp("params"), frames=N_FRAMES, detections=True,
-                    corner_noise_px=0.0, tag_size_m=TAG_SIZE, seed=2)["circle"]  # fmt: skip
+    return simulate(
+        "circle",
+        tmp_path_factory.mktemp("params"),
+        frames=N_FRAMES,
+        detections=True,
+        corner_noise_px=0.0,
+        tag_size_m=TAG_SIZE,
+        seed=2,
+    )["circle"]
 
 
 def _pipeline(path: Path, source: Path, stages: str, datasets: str = "") -> Path:
-    path.write_text(f"reference: ref\ndatasets:\n  ref:\n    source: {source}\n{datasets}"
-                    f"stages:\n{stages}")  # fmt: skip
+    path.write_text(
+        f"reference: ref\ndatasets:\n  ref:\n    source: {source}\n{datasets}stages:\n{stages}"
+    )
     return path
 
 
@@ -76,9 +84,12 @@ def test_tag_size_from_the_pipeline_or_the_flag(
     assert _localize_offline(rec, ["--pipeline", str(pipe)]).max() < 1e-6
     assert _localize_offline(rec, ["--pipeline", str(pipe), "--tag-size", "0.16"]).min() > 0.05
     # ./pipeline.yaml is the default pipeline; a dataset's params: override the stages'
-    _pipeline(tmp_path / "pipeline.yaml", rec, f"  pnp:\n    tag_size: {TAG_SIZE}\n",
-              f"  other:\n    source: {rec}\n    params:\n      pnp:\n"
-              "        tag_size: 0.1\n")  # fmt: skip
+    _pipeline(
+        tmp_path / "pipeline.yaml",
+        rec,
+        f"  pnp:\n    tag_size: {TAG_SIZE}\n",
+        f"  other:\n    source: {rec}\n    params:\n      pnp:\n        tag_size: 0.1\n",
+    )
     assert _localize_offline(rec, []).max() < 1e-6
     assert stage_params(["pnp"], None, "other")["pnp"].tag_size == 0.1
     assert _localize_offline(rec, ["--dataset", "other"]).min() > 0.05
@@ -87,8 +98,19 @@ def test_tag_size_from_the_pipeline_or_the_flag(
 def test_localize_node_publishes_with_the_pipeline_tag_size(rec: Path, tmp_path: Path) -> None:
     pipe = _pipeline(tmp_path / "lab.yaml", rec, f"  pnp:\n    tag_size: {TAG_SIZE}\n")
     port = free_port()
-    node_args = ["localize", "--map", rec / "ground_truth" / "tag_map.csv", "--pipeline", pipe,
-                 "--listen", loopback(port), "--duration", "45", "--stats-period", "0"]
+    node_args = [
+        "localize",
+        "--map",
+        rec / "ground_truth" / "tag_map.csv",
+        "--pipeline",
+        pipe,
+        "--listen",
+        loopback(port),
+        "--duration",
+        "45",
+        "--stats-period",
+        "0",
+    ]
     poses, _ = localize_replayed(node_args, rec, port, N_FRAMES - 1)
     err = _errors_m(poses, read_trajectory(rec / "ground_truth" / "trajectory.csv"))
     assert err.max() < 1e-6, err.max()
@@ -102,34 +124,60 @@ def test_relocalize_node_publishes_in_the_pipeline_plane(tmp_path: Path) -> None
 
     def offline(plane: str) -> pd.DataFrame:
         none = align_stage.alignment_block("none", None, 0, 2)
-        return report_stage.run(q_f, ref_f, none, report_stage.Params(
-            mode="trajectory", plane=plane))["relocalization"].set_index("t_ns")  # fmt: skip
+        return report_stage.run(
+            q_f, ref_f, none, report_stage.Params(mode="trajectory", plane=plane)
+        )["relocalization"].set_index("t_ns")
 
     want, auto = offline("xy"), offline("auto")
     assert np.abs(want["distance_m"] - auto["distance_m"]).max() > 0.05  # the plane matters
     pipe = _pipeline(tmp_path / "lab.yaml", tmp_path / "reference", "  report:\n    plane: xy\n")
     port = free_port()
-    node_args = ["relocalize", "--reference", tmp_path / "reference", "--pipeline", pipe,
-                 "--prefix", "p", "--listen", loopback(port), "--duration", "45",
-                 "--stats-period", "0"]  # fmt: skip
+    node_args = [
+        "relocalize",
+        "--reference",
+        tmp_path / "reference",
+        "--pipeline",
+        pipe,
+        "--prefix",
+        "p",
+        "--listen",
+        loopback(port),
+        "--duration",
+        "45",
+        "--stats-period",
+        "0",
+    ]
     with running(node_args) as (node,):
         node.wait_for("relocalize: ready")
         sub = Collector(port, ["p/state"])
         try:
-            with running(["replay", tmp_path / "query", "--rate", "0", "--connect",
-                          loopback(port), "--wait", "10"]) as (rep,):  # fmt: skip
+            with running(
+                [
+                    "replay",
+                    tmp_path / "query",
+                    "--rate",
+                    "0",
+                    "--connect",
+                    loopback(port),
+                    "--wait",
+                    "10",
+                ]
+            ) as (rep,):
                 assert rep.p.wait(30) == 0, rep.output
             states = [json.loads(b) for b in sub.wait("p/state", len(query))]
         finally:
             sub.close()
         assert node.stop() == 0, node.output
     t_ns = [s["stamp_sec"] * 1_000_000_000 + s["stamp_nanosec"] for s in states]
-    np.testing.assert_allclose([s["distance_m"] for s in states],
-                               want.loc[t_ns, "distance_m"], rtol=0, atol=1e-9)  # fmt: skip
+    np.testing.assert_allclose(
+        [s["distance_m"] for s in states], want.loc[t_ns, "distance_m"], rtol=0, atol=1e-9
+    )
 
 
 def test_parameter_errors_are_spec_errors(
-    rec: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch,
+    rec: Path,
+    tmp_path: Path,
+    monkeypatch: pytest.MonkeyPatch,
     capsys: pytest.CaptureFixture[str],
 ) -> None:
     monkeypatch.chdir(tmp_path)
@@ -143,7 +191,19 @@ def test_parameter_errors_are_spec_errors(
     with pytest.raises(SpecError, match="unknown key 'tag_siz' — did you mean 'tag_size'"):
         stage_params(["pnp"], bad)
     # as the user sees it: one error line, exit 2, before any port is opened
-    assert cli.main(["localize", "--map", str(rec / "ground_truth"), "--pipeline", str(bad),
-                     "--connect", "tcp/127.0.0.1:1"]) == 2  # fmt: skip
+    assert (
+        cli.main(
+            [
+                "localize",
+                "--map",
+                str(rec / "ground_truth"),
+                "--pipeline",
+                str(bad),
+                "--connect",
+                "tcp/127.0.0.1:1",
+            ]
+        )
+        == 2
+    )
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and err[0].startswith("error: ") and "tag_siz" in err[0], err

@@ -63,8 +63,10 @@ def source_messages(bag: Path, topics: list[str]) -> dict[str, list[bytes]]:
 
 def stamps(payloads: list[bytes], msgtype: str) -> list[tuple[int, int]]:
     store = msgs.typestore()
-    return [(m.header.stamp.sec, m.header.stamp.nanosec)
-            for m in (store.deserialize_cdr(p, msgtype) for p in payloads)]  # fmt: skip
+    return [
+        (m.header.stamp.sec, m.header.stamp.nanosec)
+        for m in (store.deserialize_cdr(p, msgtype) for p in payloads)
+    ]
 
 
 def read_rosbags(bag: Path) -> tuple[dict[str, list[bytes]], dict[str, list[int]], dict[str, str]]:
@@ -93,19 +95,20 @@ def replay(bag: Path, port: int, topics: list[str], rate: str = "1") -> list[str
 @pytest.fixture(scope="module")
 def images(tmp_path_factory: pytest.TempPathFactory) -> Path:
     """10 s of 640x480 rgb8 images + camera_info at 30 Hz (the LIMO camera), 300 frames."""
-    return simulate("circle", tmp_path_factory.mktemp("rec_src"), frames=300,
-                    fps=30.0)["circle"]  # fmt: skip
+    return simulate("circle", tmp_path_factory.mktemp("rec_src"), frames=300, fps=30.0)["circle"]
 
 
 @pytest.fixture(scope="module")
 def detections(tmp_path_factory: pytest.TempPathFactory) -> Path:
-    return simulate("circle", tmp_path_factory.mktemp("rec_det"), frames=240,
-                    detections=True)["circle"]  # fmt: skip
+    return simulate("circle", tmp_path_factory.mktemp("rec_det"), frames=240, detections=True)[
+        "circle"
+    ]
 
 
 @pytest.mark.slow
-def test_30hz_images_recorded_into_mcap_and_sqlite3(images: Path, bridge: Any,
-                                                    tmp_path: Path) -> None:  # fmt: skip
+def test_30hz_images_recorded_into_mcap_and_sqlite3(
+    images: Path, bridge: Any, tmp_path: Path
+) -> None:
     """The issue's done-when: 10 s of 30 Hz 640x480 images + camera_info over zenoh on
     loopback, recorded at once into MCAP and sqlite3: every message, in order, byte for byte,
     stamps kept, log time = receive time; read by rosbags and by the mcap reader; then the
@@ -115,8 +118,7 @@ def test_30hz_images_recorded_into_mcap_and_sqlite3(images: Path, bridge: Any,
     assert len(src[IMAGE]) == len(src[INFO]) == 300
     out = {"mcap": tmp_path / "rec_mcap", "sqlite3": tmp_path / "rec_db3"}
     t_start = time.time_ns()
-    recs = {k: record(o, port, "--storage", k, "--profile", "limo-images")
-            for k, o in out.items()}  # fmt: skip
+    recs = {k: record(o, port, "--storage", k, "--profile", "limo-images") for k, o in out.items()}
     try:
         for r in recs.values():
             r.wait_for("record: recording")
@@ -158,15 +160,27 @@ def test_30hz_images_recorded_into_mcap_and_sqlite3(images: Path, bridge: Any,
     assert got == {IMAGE: src[IMAGE], INFO: src[INFO]}
     assert summary is not None and sum(summary.statistics.channel_message_counts.values()) == 600
     with sqlite3.connect(out["sqlite3"] / "rec_db3.db3") as con:  # definitions in sqlite3 too
-        defs = dict(con.execute("SELECT topic_type, encoded_message_definition "
-                                "FROM message_definitions").fetchall())  # fmt: skip
+        defs = dict(
+            con.execute(
+                "SELECT topic_type, encoded_message_definition FROM message_definitions"
+            ).fetchall()
+        )
     assert "uint8[] data" in defs[msgs.IMAGE] and "float64[9] k" in defs[msgs.CAMERA_INFO]
     # the pipeline on both recordings
     project = tmp_path / "project"
     project.mkdir()
-    init = tagtrail(project, "init", "--profile", "limo-images", "--tag-size", "0.16",
-                    "--reference", str(out["mcap"]),
-                    "--query", str(out["sqlite3"]))  # fmt: skip
+    init = tagtrail(
+        project,
+        "init",
+        "--profile",
+        "limo-images",
+        "--tag-size",
+        "0.16",
+        "--reference",
+        str(out["mcap"]),
+        "--query",
+        str(out["sqlite3"]),
+    )
     assert init.returncode == 0, init.stderr
     run = tagtrail(project, "run")
     assert run.returncode == 0, run.stderr[-2000:]
@@ -177,9 +191,14 @@ def test_30hz_images_recorded_into_mcap_and_sqlite3(images: Path, bridge: Any,
 
 
 def tagtrail(cwd: Path, *args: str) -> subprocess.CompletedProcess[str]:
-    return subprocess.run([sys.executable, "-m", "tagtrail.cli", *args], cwd=cwd, text=True,
-                          capture_output=True, timeout=600,
-                          env={**os.environ, "PYTHONPATH": str(REPO)})  # fmt: skip
+    return subprocess.run(
+        [sys.executable, "-m", "tagtrail.cli", *args],
+        cwd=cwd,
+        text=True,
+        capture_output=True,
+        timeout=600,
+        env={**os.environ, "PYTHONPATH": str(REPO)},
+    )
 
 
 def test_kill_9_leaves_a_readable_bag(detections: Path, bridge: Any, tmp_path: Path) -> None:
@@ -189,15 +208,16 @@ def test_kill_9_leaves_a_readable_bag(detections: Path, bridge: Any, tmp_path: P
     src = source_messages(detections, [DET, DET_INFO])
     for kind in ("mcap", "sqlite3"):
         bag = tmp_path / f"killed_{kind}"
-        rec = record(bag, port, "--profile", "limo", "--storage", kind,
-                     "--flush-period", "0.2")  # fmt: skip
+        rec = record(bag, port, "--profile", "limo", "--storage", kind, "--flush-period", "0.2")
         try:
             rec.wait_for("record: recording")
             rep = Proc(replay(detections, port, [DET, DET_INFO], rate="0.5"))
             rec.wait_for(f"{DET} ", 20)  # a live line with messages: some flushed
             deadline = time.monotonic() + 20
-            while not any(f"{DET}" in ln and f"{DET} 0.0 Hz 0 " not in ln
-                          and " Hz " in ln for ln in rec.lines[-1:]):  # fmt: skip
+            while not any(
+                f"{DET}" in ln and f"{DET} 0.0 Hz 0 " not in ln and " Hz " in ln
+                for ln in rec.lines[-1:]
+            ):
                 assert time.monotonic() < deadline, rec.output
                 time.sleep(0.05)
             time.sleep(0.5)
@@ -209,26 +229,33 @@ def test_kill_9_leaves_a_readable_bag(detections: Path, bridge: Any, tmp_path: P
         data, _, _ = read_rosbags(bag)  # as the kill left it
         n = len(data.get(DET, []))
         assert 0 < n < len(src[DET]), n
-        assert data[DET] == src[DET][:n] and data[DET_INFO] == src[DET_INFO][:len(data[DET_INFO])]
+        assert data[DET] == src[DET][:n] and data[DET_INFO] == src[DET_INFO][: len(data[DET_INFO])]
         if kind == "mcap":
             from mcap.reader import make_reader
 
             with open(bag / f"{bag.name}.mcap", "rb") as f:
-                assert f.read()[-len(TAIL):] == TAIL  # the provisional end
+                assert f.read()[-len(TAIL) :] == TAIL  # the provisional end
                 f.seek(0)
                 assert sum(1 for _ in make_reader(f).iter_messages()) == n + len(data[DET_INFO])
         line = recover(bag)
         assert line.startswith(f"recovered {bag}") and f"{DET} " in line
         after, _, _ = read_rosbags(bag)
-        assert len(after[DET]) >= n and after[DET] == src[DET][:len(after[DET])]
+        assert len(after[DET]) >= n and after[DET] == src[DET][: len(after[DET])]
 
 
-def test_wrong_type_and_silent_key_stop_in_one_line(detections: Path, bridge: Any,
-                                                    tmp_path: Path) -> None:  # fmt: skip
+def test_wrong_type_and_silent_key_stop_in_one_line(
+    detections: Path, bridge: Any, tmp_path: Path
+) -> None:
     _, port = bridge
     wrong = tmp_path / "wrong"
-    rec = record(wrong, port, "--topic", f"{DET}:apriltag_msgs/msg/AprilTagDetectionArray",
-                 "--topic", f"{DET_INFO}:sensor_msgs/msg/Image")  # fmt: skip
+    rec = record(
+        wrong,
+        port,
+        "--topic",
+        f"{DET}:apriltag_msgs/msg/AprilTagDetectionArray",
+        "--topic",
+        f"{DET_INFO}:sensor_msgs/msg/Image",
+    )
     try:
         rec.wait_for("record: recording")
         rep = Proc(replay(detections, port, [DET, DET_INFO], rate="0"))
@@ -237,8 +264,11 @@ def test_wrong_type_and_silent_key_stop_in_one_line(detections: Path, bridge: An
         rec.kill()
         rep.kill()
     errors = [ln for ln in rec.lines if ln.startswith("error:")]
-    assert len(errors) == 1 and "key camera_info: the messages are not sensor_msgs/msg/Image" \
-        in errors[0] and f"kept in {wrong}" in errors[0], rec.output
+    assert (
+        len(errors) == 1
+        and "key camera_info: the messages are not sensor_msgs/msg/Image" in errors[0]
+        and f"kept in {wrong}" in errors[0]
+    ), rec.output
     data, _, _ = read_rosbags(wrong)  # what was recorded is kept, readable
     assert DET_INFO not in data or not data[DET_INFO]
 
@@ -257,10 +287,12 @@ def test_topics_discovered_from_the_bridge_admin_space(bridge: Any, tmp_path: Pa
     with its liveliness tokens, and records them."""
     session, port = bridge
     zid = str(session.zid())
-    tokens = [session.liveliness().declare_token(
-        f"@/{zid}/@ros2_lv/MP/{key.replace('/', '§')}/{typ.replace('/', '§')}/:1:1:1,10")
-        for key, typ in (("tag_only_pose", msgs.POSE_STAMPED),
-                         ("rosout", "rcl_interfaces/msg/Log"))]
+    tokens = [
+        session.liveliness().declare_token(
+            f"@/{zid}/@ros2_lv/MP/{key.replace('/', '§')}/{typ.replace('/', '§')}/:1:1:1,10"
+        )
+        for key, typ in (("tag_only_pose", msgs.POSE_STAMPED), ("rosout", "rcl_interfaces/msg/Log"))
+    ]
     from tagtrail.stream import codec
 
     enc = codec.PoseStampedEncoder("map")
@@ -288,12 +320,17 @@ def test_topics_discovered_from_the_bridge_admin_space(bridge: Any, tmp_path: Pa
     assert types == {"/tag_only_pose": msgs.POSE_STAMPED} and data["/tag_only_pose"] == sent
 
 
-def test_full_disk_keeps_the_bag_up_to_its_last_flush(detections: Path, bridge: Any,
-                                                      tmp_path: Path) -> None:  # fmt: skip
+def test_full_disk_keeps_the_bag_up_to_its_last_flush(
+    detections: Path, bridge: Any, tmp_path: Path
+) -> None:
     mnt = tmp_path / "disk"
     mnt.mkdir()
-    if subprocess.run(["mount", "-t", "tmpfs", "-o", "size=120k", "tmpfs", str(mnt)],
-                      capture_output=True).returncode != 0:  # fmt: skip
+    if (
+        subprocess.run(
+            ["mount", "-t", "tmpfs", "-o", "size=120k", "tmpfs", str(mnt)], capture_output=True
+        ).returncode
+        != 0
+    ):
         if os.environ.get("CI") == "true":
             pytest.fail("CI runs as root and must be able to mount a tmpfs")
         pytest.skip("cannot mount a tmpfs here (not root)")
@@ -301,8 +338,18 @@ def test_full_disk_keeps_the_bag_up_to_its_last_flush(detections: Path, bridge: 
     try:
         for kind in ("mcap", "sqlite3"):
             bag = mnt / f"full_{kind}"
-            rec = record(bag, port, "--profile", "limo", "--storage", kind,
-                         "--flush-period", "0.1", "--duration", "40")  # fmt: skip
+            rec = record(
+                bag,
+                port,
+                "--profile",
+                "limo",
+                "--storage",
+                kind,
+                "--flush-period",
+                "0.1",
+                "--duration",
+                "40",
+            )
             try:
                 rec.wait_for("record: recording")
                 rep = Proc(replay(detections, port, [DET, DET_INFO], rate="2"))
@@ -347,8 +394,7 @@ def test_topic_arguments() -> None:
         recover(Path("/nonexistent/bag"))
 
 
-def test_max_size_and_duration_stop_cleanly(detections: Path, bridge: Any,
-                                            tmp_path: Path) -> None:  # fmt: skip
+def test_max_size_and_duration_stop_cleanly(detections: Path, bridge: Any, tmp_path: Path) -> None:
     _, port = bridge
     bag = tmp_path / "capped"
     rec = record(bag, port, "--profile", "limo", "--max-size", "20k", "--duration", "60")
@@ -362,8 +408,18 @@ def test_max_size_and_duration_stop_cleanly(detections: Path, bridge: Any,
     assert "record: --max-size reached" in rec.output, rec.output
     data, _, _ = read_rosbags(bag)
     size = sum(len(p) for msgs_ in data.values() for p in msgs_)
-    assert 20_000 <= size < 40_000 and data[DET] == source_messages(detections, [DET])[DET][
-        :len(data[DET])]
-    timed = record(tmp_path / "timed", port, "--topic", "/nobody:std_msgs/msg/Float64",
-                   "--wait", "0", "--duration", "1")
+    assert (
+        20_000 <= size < 40_000
+        and data[DET] == source_messages(detections, [DET])[DET][: len(data[DET])]
+    )
+    timed = record(
+        tmp_path / "timed",
+        port,
+        "--topic",
+        "/nobody:std_msgs/msg/Float64",
+        "--wait",
+        "0",
+        "--duration",
+        "1",
+    )
     assert timed.p.wait(20) == 0 and "record: --duration 1 s: 0 messages" in timed.output

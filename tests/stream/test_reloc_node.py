@@ -22,8 +22,15 @@ from tagtrail.stream.reloc_node import OUTPUTS, Relocalizer, load_alignment
 from tagtrail.stream.stats import DropError, Stats
 from tests.stream.cases import frame, planar_poses, query_frame, reference_frame
 
-BLOCK = {"model": "similarity", "scale": 0.98, "rotation_deg": -20.0, "translation": [0.3, 0.1],
-         "inliers": 3, "common_tags": 3, "rms_m": 0.002}
+BLOCK = {
+    "model": "similarity",
+    "scale": 0.98,
+    "rotation_deg": -20.0,
+    "translation": [0.3, 0.1],
+    "inliers": 3,
+    "common_tags": 3,
+    "rms_m": 0.002,
+}
 
 
 def _payloads(query) -> list[bytes]:
@@ -42,17 +49,27 @@ def test_process_equals_report_stage(tmp_path: Path, n_ref: int, plane: str) -> 
     assert file_plane == plane
     node = Relocalizer(ref, plane, (A, R), path_max_points=500)
     a = math.radians(BLOCK["rotation_deg"])
-    al = Alignment("similarity", BLOCK["scale"], np.array([[math.cos(a), -math.sin(a)],
-                   [math.sin(a), math.cos(a)]]), np.array(BLOCK["translation"]),
-                   np.ones(3, bool), 0.0)  # fmt: skip
+    al = Alignment(
+        "similarity",
+        BLOCK["scale"],
+        np.array([[math.cos(a), -math.sin(a)], [math.sin(a), math.cos(a)]]),
+        np.array(BLOCK["translation"]),
+        np.ones(3, bool),
+        0.0,
+    )
     A2, R2 = world_transform(al, reference_plane(plane, *poses(ref)))
-    off = report_stage.run(transform_trajectory(query, A2, R2), ref, BLOCK,
-                           report_stage.Params(mode="trajectory", plane=plane))["relocalization"]
+    off = report_stage.run(
+        transform_trajectory(query, A2, R2),
+        ref,
+        BLOCK,
+        report_stage.Params(mode="trajectory", plane=plane),
+    )["relocalization"]
     stats = Stats("t")
     outs = [node.process(codec.decode_pose(p)) for p in _payloads(query)]
     np.testing.assert_allclose([o.distance_m for o in outs], off["distance_m"], atol=1e-9, rtol=0)
-    np.testing.assert_allclose([o.heading_error_deg for o in outs], off["heading_error_deg"],
-                               atol=1e-9, rtol=0)  # fmt: skip
+    np.testing.assert_allclose(
+        [o.heading_error_deg for o in outs], off["heading_error_deg"], atol=1e-9, rtol=0
+    )
     np.testing.assert_allclose([o.u for o in outs], off["query_u"], atol=1e-9)
     np.testing.assert_allclose([o.ref_v for o in outs], off["ref_v"], atol=1e-9)
     keyed = node.handle(_payloads(query)[0], stats)
@@ -71,15 +88,20 @@ def test_drive_along_long_reference_equals_batch_query() -> None:
     off = 0.3 * np.sin(np.linspace(0.0, 14 * np.pi, len(s)))
     tu, tv = -1.5 * np.sin(s), np.cos(s)
     nu, nv = tv / np.hypot(tu, tv), -tu / np.hypot(tu, tv)
-    T = planar_poses(1.5 * np.cos(s) + off * nu, np.sin(s) + off * nv, np.arctan2(tv, tu) + 0.3,
-                     np.full(len(s), -0.13))  # fmt: skip
+    T = planar_poses(
+        1.5 * np.cos(s) + off * nu,
+        np.sin(s) + off * nv,
+        np.arctan2(tv, tu) + 0.3,
+        np.full(len(s), -0.13),
+    )
     query = frame(T, np.arange(len(s), dtype=np.int64))
     outs = [node.process(codec.decode_pose(p)) for p in _payloads(query)]
     want = node.path.query(T[:, :3, 3], T[:, :3, :3])
     assert [o.nearest_ref_idx for o in outs] == want.ref_idx.tolist()
     np.testing.assert_allclose([o.distance_m for o in outs], want.distance_m, atol=1e-12, rtol=0)
-    np.testing.assert_allclose([o.heading_error_rad for o in outs], want.phi_rad, atol=1e-12,
-                               rtol=0)  # fmt: skip
+    np.testing.assert_allclose(
+        [o.heading_error_rad for o in outs], want.phi_rad, atol=1e-12, rtol=0
+    )
 
 
 def test_alignment_files(tmp_path: Path) -> None:
@@ -101,9 +123,12 @@ def test_alignment_files(tmp_path: Path) -> None:
     A, R, _ = load_alignment(tmp_path / "matrix.json", ref)
     np.testing.assert_allclose(A, A0)
     np.testing.assert_allclose(R, se3.R_from_rotvec([0.1, 0.2, 0.3]), atol=1e-12)
-    bad = {"sim3.json": {"model": "sim3", "scale": 1.0, "rotation_deg": 3.0},
-           "garbage.json": "[1, 2", "plane.json": {"plane": "zz", "alignment": BLOCK},
-           "empty.json": {}}  # fmt: skip
+    bad = {
+        "sim3.json": {"model": "sim3", "scale": 1.0, "rotation_deg": 3.0},
+        "garbage.json": "[1, 2",
+        "plane.json": {"plane": "zz", "alignment": BLOCK},
+        "empty.json": {},
+    }
     for name, doc in bad.items():
         (tmp_path / name).write_text(doc if isinstance(doc, str) else json.dumps(doc))
         with pytest.raises(SourceError, match=name):
@@ -115,8 +140,10 @@ def test_bad_input_raises_drop_with_reason() -> None:
     enc = codec.PoseStampedEncoder("map")
     cases = {
         "malformed": [b"", b"\x00\x01\x00\x00", codec.encode_float64(2.0)],
-        "non_finite": [enc(1, 0, math.nan, 0, 0, 0, 0, 0, 1),
-                       enc(1, 0, 0, 0, 0, 0, math.inf, 0, 1)],
+        "non_finite": [
+            enc(1, 0, math.nan, 0, 0, 0, 0, 0, 1),
+            enc(1, 0, 0, 0, 0, 0, math.inf, 0, 1),
+        ],
         "bad_quaternion": [enc(1, 0, 0, 0, 0, 0, 0, 0, 0)],
     }
     for reason, payloads in cases.items():

@@ -20,8 +20,9 @@ from tests.stream.cases import query_frame
 
 @pytest.fixture(scope="module")
 def bag(tmp_path_factory: pytest.TempPathFactory) -> Path:
-    return simulate("circle", tmp_path_factory.mktemp("replay_bag"), frames=12,
-                    detections=True)["circle"]  # fmt: skip
+    return simulate("circle", tmp_path_factory.mktemp("replay_bag"), frames=12, detections=True)[
+        "circle"
+    ]
 
 
 def test_trajectory_files_both_layouts(tmp_path: Path) -> None:

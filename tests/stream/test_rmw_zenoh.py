@@ -51,21 +51,31 @@ def session() -> Iterator[zenoh.Session]:
 def test_data_keys_humble_and_jazzy(session: zenoh.Session) -> None:
     humble = W.make_wire("rmw_zenoh", session, "humble", 0)
     assert humble.key("/relocalization/distance_m", "std_msgs/msg/Float64") == (
-        "0/relocalization/distance_m/std_msgs::msg::dds_::Float64_/TypeHashNotSupported")
+        "0/relocalization/distance_m/std_msgs::msg::dds_::Float64_/TypeHashNotSupported"
+    )
     assert humble.key("tag_only_pose", "geometry_msgs/msg/PoseStamped") == (
-        "0/tag_only_pose/geometry_msgs::msg::dds_::PoseStamped_/TypeHashNotSupported")
+        "0/tag_only_pose/geometry_msgs::msg::dds_::PoseStamped_/TypeHashNotSupported"
+    )
     # design.md's examples (demo_nodes_cpp on a Jazzy+ distro)
     jazzy = W.make_wire("rmw_zenoh", session, "jazzy", 0)
     assert jazzy.key("/chatter", "std_msgs/msg/String") == (
-        f"0/chatter/std_msgs::msg::dds_::String_/{STRING_RIHS01}")
+        f"0/chatter/std_msgs::msg::dds_::String_/{STRING_RIHS01}"
+    )
     assert jazzy.key("/robot1/chatter", "std_msgs/msg/String") == (
-        f"0/robot1/chatter/std_msgs::msg::dds_::String_/{STRING_RIHS01}")
-    assert W.make_wire("rmw_zenoh", session, "rolling", 2).key("/chatter", "std_msgs/msg/String") \
+        f"0/robot1/chatter/std_msgs::msg::dds_::String_/{STRING_RIHS01}"
+    )
+    assert (
+        W.make_wire("rmw_zenoh", session, "rolling", 2).key("/chatter", "std_msgs/msg/String")
         == f"2/chatter/std_msgs::msg::dds_::String_/{STRING_RIHS01}"
+    )
     # any Jazzy type: rosbags' REP-2016 hash of Jazzy's definition
     jazzy_store = get_typestore(Stores.ROS2_JAZZY)
-    for t in ("std_msgs/msg/Float64", "sensor_msgs/msg/Image", "nav_msgs/msg/Path",
-              "visualization_msgs/msg/MarkerArray"):
+    for t in (
+        "std_msgs/msg/Float64",
+        "sensor_msgs/msg/Image",
+        "nav_msgs/msg/Path",
+        "visualization_msgs/msg/MarkerArray",
+    ):
         pkg, _, name = t.split("/")
         want = f"5/x/{pkg}::msg::dds_::{name}_/{jazzy_store.hash_rihs01(t)}"
         assert W.make_wire("rmw_zenoh", session, "jazzy", 5).key("/x", t) == want
@@ -73,7 +83,8 @@ def test_data_keys_humble_and_jazzy(session: zenoh.Session) -> None:
     # the bridge: the topic without its leading '/', whatever the type
     bridge = W.make_wire("bridge", session)
     assert bridge.key("/relocalization/distance_m", "std_msgs/msg/Float64") == (
-        "relocalization/distance_m")
+        "relocalization/distance_m"
+    )
     with pytest.raises(SpecError, match="ros-distro"):
         W.make_wire("rmw_zenoh", session, "iron", 0)
     with pytest.raises(SpecError, match="--wire"):
@@ -91,8 +102,9 @@ def test_attachment_layout() -> None:
     assert len(want) == 33
     assert W.attachment(1, 0x0102030405060708, gid) == want
     # what rmw_zenoh's zenoh-ext serializer makes of (int64, int64, std::array<uint8_t, 16>)
-    ours = zext.z_serialize((zext.Int64(1), zext.Int64(0x0102030405060708),
-                             [zext.UInt8(b) for b in gid])).to_bytes()  # fmt: skip
+    ours = zext.z_serialize(
+        (zext.Int64(1), zext.Int64(0x0102030405060708), [zext.UInt8(b) for b in gid])
+    ).to_bytes()
     assert ours == want
     big = W.attachment(2**62, 1_764_000_000_123_456_789, gid)
     assert struct.unpack("<qqB", big[:17]) == (2**62, 1_764_000_000_123_456_789, 16)
@@ -111,53 +123,70 @@ def test_gid_is_16_bytes_fixed_per_token_and_distinct() -> None:
     assert a == W.gid_of(f"@ros2_lv/0/z/0/1/MP/%/%/n/%a/{tail}")
 
 
-@pytest.mark.parametrize(("qos", "text"), [
-    (W.QoS(), "::,10:,:,:,,"),  # rclcpp QoS(10): design.md's listener/server examples
-    (W.QoS(depth=7), "::,7:,:,:,,"),  # design.md's talker
-    (W.QoS(1, 2, 1, 42), "::,:,:,:,,"),  # rmw_zenoh's defaults throughout
-    (W.QoS(reliability=2, depth=5), "2::,5:,:,:,,"),  # SensorDataQoS: best effort, depth 5
-    (W.QoS(durability=1, depth=1), ":1:,1:,:,:,,"),  # transient local, depth 1 (a latched map)
-    (W.QoS(history=2, depth=42), "::2,:,:,:,,"),  # keep all
-])  # fmt: skip
+@pytest.mark.parametrize(
+    ("qos", "text"),
+    [
+        (W.QoS(), "::,10:,:,:,,"),  # rclcpp QoS(10): design.md's listener/server examples
+        (W.QoS(depth=7), "::,7:,:,:,,"),  # design.md's talker
+        (W.QoS(1, 2, 1, 42), "::,:,:,:,,"),  # rmw_zenoh's defaults throughout
+        (W.QoS(reliability=2, depth=5), "2::,5:,:,:,,"),  # SensorDataQoS: best effort, depth 5
+        (W.QoS(durability=1, depth=1), ":1:,1:,:,:,,"),  # transient local, depth 1 (a latched map)
+        (W.QoS(history=2, depth=42), "::2,:,:,:,,"),  # keep all
+    ],
+)
 def test_qos_strings(qos: W.QoS, text: str) -> None:
     assert W.qos_string(qos) == text
 
 
 def test_liveliness_tokens(session: zenoh.Session) -> None:
-    for distro, hash_f64 in (("humble", "TypeHashNotSupported"),
-                             ("jazzy", get_typestore(Stores.ROS2_JAZZY).hash_rihs01(
-                                 "std_msgs/msg/Float64"))):  # fmt: skip
+    for distro, hash_f64 in (
+        ("humble", "TypeHashNotSupported"),
+        ("jazzy", get_typestore(Stores.ROS2_JAZZY).hash_rihs01("std_msgs/msg/Float64")),
+    ):
         w = W.RmwZenohWire(session, distro, 0)
         w.node = "tagtrail_relocalize"
         assert w.zid == ZID
         assert w.token("NN") == f"@ros2_lv/0/{ZID}/0/0/NN/%/%/tagtrail_relocalize"
         assert w.token("MP", 3, "relocalization/distance_m", "std_msgs/msg/Float64") == (
             f"@ros2_lv/0/{ZID}/0/3/MP/%/%/tagtrail_relocalize/%relocalization%distance_m/"
-            f"std_msgs::msg::dds_::Float64_/{hash_f64}/::,10:,:,:,,")
+            f"std_msgs::msg::dds_::Float64_/{hash_f64}/::,10:,:,:,,"
+        )
     w = W.RmwZenohWire(session, "humble", 7)
     w.node = "tagtrail_record"
     assert w.token("MS", 12, "/camera/color/image_raw", "sensor_msgs/msg/Image") == (
         f"@ros2_lv/7/{ZID}/0/12/MS/%/%/tagtrail_record/%camera%color%image_raw/"
-        "sensor_msgs::msg::dds_::Image_/TypeHashNotSupported/::,10:,:,:,,")
+        "sensor_msgs::msg::dds_::Image_/TypeHashNotSupported/::,10:,:,:,,"
+    )
 
 
 def test_tokens_parsed_as_rmw_zenoh_reads_them() -> None:
-    sub = ("@ros2_lv/2/aac3178e146ba6f1fc6e6a4085e77f21/0/10/MS/%/%/listener/%chatter/"
-           f"std_msgs::msg::dds_::String_/{STRING_RIHS01}/::,10:,:,:,,")  # design.md
+    sub = (
+        "@ros2_lv/2/aac3178e146ba6f1fc6e6a4085e77f21/0/10/MS/%/%/listener/%chatter/"
+        f"std_msgs::msg::dds_::String_/{STRING_RIHS01}/::,10:,:,:,,"
+    )  # design.md
     ep = W.parse_token(sub)
     assert ep is not None
     assert (ep.domain_id, ep.zid, ep.nid, ep.eid, ep.kind) == (2, ZID, "0", "10", "MS")
     assert (ep.enclave, ep.namespace, ep.node) == ("/", "/", "listener")
     assert (ep.topic, ep.dds_type, ep.type_hash, ep.qos) == (
-        "/chatter", "std_msgs::msg::dds_::String_", STRING_RIHS01, "::,10:,:,:,,")
+        "/chatter",
+        "std_msgs::msg::dds_::String_",
+        STRING_RIHS01,
+        "::,10:,:,:,,",
+    )
     node = W.parse_token("@ros2_lv/2/aac3178e146ba6f1fc6e6a4085e77f21/0/0/NN/%/%/listener")
     assert node is not None and node.kind == "NN" and node.topic is None
-    ns = W.parse_token("@ros2_lv/0/z/0/4/MP/%/%robot1/talker/%robot1%chatter/"
-                       "std_msgs::msg::dds_::String_/TypeHashNotSupported/::,7:,:,:,,")
+    ns = W.parse_token(
+        "@ros2_lv/0/z/0/4/MP/%/%robot1/talker/%robot1%chatter/"
+        "std_msgs::msg::dds_::String_/TypeHashNotSupported/::,7:,:,:,,"
+    )
     assert ns is not None and ns.namespace == "/robot1" and ns.topic == "/robot1/chatter"
     # the bridge's tokens, other admin spaces and truncated tokens are not rmw_zenoh entities
-    for other in ("@/z/@ros2_lv/MP/chatter/std_msgs§msg§String/x", "@ros2_lv/0/z/0/0/NN/%/%",
-                  "@ros2_lv/x/z/0/0/NN/%/%/n"):
+    for other in (
+        "@/z/@ros2_lv/MP/chatter/std_msgs§msg§String/x",
+        "@ros2_lv/0/z/0/0/NN/%/%",
+        "@ros2_lv/x/z/0/0/NN/%/%/n",
+    ):
         assert W.parse_token(other) is None
 
 
@@ -165,7 +194,8 @@ def test_type_names() -> None:
     assert W.dds_type("sensor_msgs/msg/CameraInfo") == "sensor_msgs::msg::dds_::CameraInfo_"
     assert W.ros_type("sensor_msgs::msg::dds_::CameraInfo_") == "sensor_msgs/msg/CameraInfo"
     assert W.ros_type(W.dds_type("apriltag_msgs/msg/AprilTagDetectionArray")) == (
-        "apriltag_msgs/msg/AprilTagDetectionArray")
+        "apriltag_msgs/msg/AprilTagDetectionArray"
+    )
     with pytest.raises(ValueError, match="DDS type"):
         W.ros_type("sensor_msgs/msg/Image")
 
@@ -179,10 +209,17 @@ def test_defaults_from_the_environment(monkeypatch: pytest.MonkeyPatch) -> None:
     assert (W.default_distro(), W.default_domain()) == ("jazzy", 42)
 
 
-@pytest.mark.parametrize("cmd", [
-    ["relocalize", "--reference", "ref"], ["localize", "--map", "m.yaml"], ["replay", "t.csv"],
-    ["record", "out"], ["echo", "relocalization/state"], ["follow", "--path-length", "1"],
-])  # fmt: skip
+@pytest.mark.parametrize(
+    "cmd",
+    [
+        ["relocalize", "--reference", "ref"],
+        ["localize", "--map", "m.yaml"],
+        ["replay", "t.csv"],
+        ["record", "out"],
+        ["echo", "relocalization/state"],
+        ["follow", "--path-length", "1"],
+    ],
+)
 def test_every_stream_command_takes_the_wire_flags(cmd: list[str]) -> None:
     from tagtrail.stream.cli import build_parser
     from tagtrail.stream.session import config_from_args
@@ -200,7 +237,8 @@ def test_every_stream_command_takes_the_wire_flags(cmd: list[str]) -> None:
     # explicit endpoints win (tests: 127.0.0.1 only)
     ns = p.parse_args([*cmd, "--wire", "rmw_zenoh", "--connect", "tcp/127.0.0.1:7999"])
     assert config_from_args(ns, "listen").get_json("connect/endpoints") == (
-        '["tcp/127.0.0.1:7999"]')
+        '["tcp/127.0.0.1:7999"]'
+    )
     for bad in (["--domain-id", "-1"], ["--wire", "dds"], ["--ros-distro", "iron"]):
         with pytest.raises(SystemExit) as exc:
             p.parse_args([*cmd, *bad])

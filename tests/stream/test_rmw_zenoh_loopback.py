@@ -70,14 +70,17 @@ class RosPeer:
     def zid(self) -> str:
         return str(self.session.info.zid())
 
-    def token(self, kind: str, topic: str | None = None, msgtype: str | None = None,
-              qos: str = QOS) -> str:  # fmt: skip
+    def token(
+        self, kind: str, topic: str | None = None, msgtype: str | None = None, qos: str = QOS
+    ) -> str:
         eid, self._eid = self._eid, self._eid + 1
         head = f"@ros2_lv/{self.domain}/{self.zid}/0/{eid}/{kind}/%/%/{self.node}"
         if topic is None or msgtype is None:
             return head
-        return (f"{head}/{topic.replace('/', '%')}/{dds(msgtype)}/"
-                f"{type_hash(msgtype, self.distro)}/{qos}")
+        return (
+            f"{head}/{topic.replace('/', '%')}/{dds(msgtype)}/"
+            f"{type_hash(msgtype, self.distro)}/{qos}"
+        )
 
     def announce(self) -> None:
         """The node's token, and a watch on the domain's tokens (as rmw_zenoh's graph cache)."""
@@ -88,8 +91,11 @@ class RosPeer:
                 with self._lock:
                     self.seen.append(str(s.key_expr))
 
-        self.entities.append(self.session.liveliness().declare_subscriber(
-            f"@ros2_lv/{self.domain}/**", on_token, history=True))
+        self.entities.append(
+            self.session.liveliness().declare_subscriber(
+                f"@ros2_lv/{self.domain}/**", on_token, history=True
+            )
+        )
 
     def publisher(self, topic: str, msgtype: str, qos: str = QOS) -> Publisher:
         tok = self.token("MP", topic, msgtype, qos)
@@ -99,8 +105,9 @@ class RosPeer:
         return Publisher(pub, bytes(range(16, 32)) if "image" in topic else bytes(range(16)))
 
     def subscribe(self, topic: str, msgtype: str) -> None:
-        self.entities.append(self.session.liveliness().declare_token(
-            self.token("MS", topic, msgtype)))
+        self.entities.append(
+            self.session.liveliness().declare_token(self.token("MS", topic, msgtype))
+        )
         self.received[topic] = []
 
         def on_sample(s: zenoh.Sample) -> None:
@@ -108,8 +115,11 @@ class RosPeer:
             with self._lock:
                 self.received[topic].append((s.payload.to_bytes(), att))
 
-        self.entities.append(self.session.declare_subscriber(
-            data_key(topic, msgtype, self.distro, self.domain), on_sample))
+        self.entities.append(
+            self.session.declare_subscriber(
+                data_key(topic, msgtype, self.distro, self.domain), on_sample
+            )
+        )
 
     def tokens(self) -> list[str]:
         replies = self.session.liveliness().get(f"@ros2_lv/{self.domain}/**", timeout=2.0)
@@ -172,17 +182,21 @@ def wait_token(p: RosPeer, fragment: str, timeout: float = 20.0) -> list[str]:
 def pose_cdr(row: Any) -> bytes:
     T = HUMBLE.types
     msg = T["geometry_msgs/msg/PoseStamped"](
-        T["std_msgs/msg/Header"](T["builtin_interfaces/msg/Time"](
-            int(row.t_ns // 10**9), int(row.t_ns % 10**9)), "map"),
-        T["geometry_msgs/msg/Pose"](T["geometry_msgs/msg/Point"](row.x_m, row.y_m, row.z_m),
-                                    T["geometry_msgs/msg/Quaternion"](row.qx, row.qy, row.qz,
-                                                                      row.qw)))  # fmt: skip
+        T["std_msgs/msg/Header"](
+            T["builtin_interfaces/msg/Time"](int(row.t_ns // 10**9), int(row.t_ns % 10**9)), "map"
+        ),
+        T["geometry_msgs/msg/Pose"](
+            T["geometry_msgs/msg/Point"](row.x_m, row.y_m, row.z_m),
+            T["geometry_msgs/msg/Quaternion"](row.qx, row.qy, row.qz, row.qw),
+        ),
+    )
     return bytes(HUMBLE.serialize_cdr(msg, "geometry_msgs/msg/PoseStamped"))
 
 
 @pytest.mark.parametrize("distro", ["humble", "jazzy"])
-def test_relocalize_speaks_rmw_zenoh(peer: tuple[RosPeer, int], tmp_path: Path,
-                                     distro: str) -> None:  # fmt: skip
+def test_relocalize_speaks_rmw_zenoh(
+    peer: tuple[RosPeer, int], tmp_path: Path, distro: str
+) -> None:
     """A ROS-like peer publishes poses on /tag_only_pose (rmw_zenoh keys, attachments, tokens;
     the last two without attachment); ``stream relocalize --wire rmw_zenoh`` answers D and phi
     on rmw_zenoh keys with well-formed attachments, sequence numbers 1, 2, … per publisher, and
@@ -198,15 +212,32 @@ def test_relocalize_speaks_rmw_zenoh(peer: tuple[RosPeer, int], tmp_path: Path,
     p.subscribe("/relocalization/distance_m", "std_msgs/msg/Float64")
     p.subscribe("/relocalization/heading_error_deg", "std_msgs/msg/Float64")
     pose_pub = p.publisher("/tag_only_pose", "geometry_msgs/msg/PoseStamped")
-    node = Proc(["relocalize", "--reference", case.reference, "--alignment", case.alignment,
-                 "--plane", case.plane, "--wire", "rmw_zenoh", "--ros-distro", distro,
-                 "--connect", loopback(port), "--stats-period", "0"])  # fmt: skip
+    node = Proc(
+        [
+            "relocalize",
+            "--reference",
+            case.reference,
+            "--alignment",
+            case.alignment,
+            "--plane",
+            case.plane,
+            "--wire",
+            "rmw_zenoh",
+            "--ros-distro",
+            distro,
+            "--connect",
+            loopback(port),
+            "--stats-period",
+            "0",
+        ]
+    )
     t0 = time.time_ns()
     try:
         node.wait_for("relocalize: ready")
         f64, pose = dds("std_msgs/msg/Float64"), dds("geometry_msgs/msg/PoseStamped")
-        h64, hpose = (type_hash(t, distro) for t in ("std_msgs/msg/Float64",
-                                                    "geometry_msgs/msg/PoseStamped"))
+        h64, hpose = (
+            type_hash(t, distro) for t in ("std_msgs/msg/Float64", "geometry_msgs/msg/PoseStamped")
+        )
         toks = wait_token(p, f"/MS/%/%/tagtrail_relocalize/%tag_only_pose/{pose}/{hpose}/{QOS}")
         pose_pub.wait_matched()
         for i, row in enumerate(query.itertuples()):
@@ -227,19 +258,28 @@ def test_relocalize_speaks_rmw_zenoh(peer: tuple[RosPeer, int], tmp_path: Path,
     zid = zids.pop()
     assert f"@ros2_lv/0/{zid}/0/0/NN/%/%/tagtrail_relocalize" in ours
     for topic in ("distance_m", "heading_error_deg"):
-        assert any(t.startswith(f"@ros2_lv/0/{zid}/0/") and t.endswith(
-            f"/MP/%/%/tagtrail_relocalize/%relocalization%{topic}/{f64}/{h64}/{QOS}")
-            for t in ours), ours  # fmt: skip
+        assert any(
+            t.startswith(f"@ros2_lv/0/{zid}/0/")
+            and t.endswith(f"/MP/%/%/tagtrail_relocalize/%relocalization%{topic}/{f64}/{h64}/{QOS}")
+            for t in ours
+        ), ours
     eids = [t.split("/")[4] for t in ours]
     assert len(eids) == len(set(eids))  # one entity id per endpoint
     assert not [t for t in gone if "/tagtrail_relocalize" in t]  # undeclared on the way out
     # D and phi: the offline report's values, in order
-    got = {k: [HUMBLE.deserialize_cdr(d, "std_msgs/msg/Float64").data for d, _ in v]
-           for k, v in p.received.items()}  # fmt: skip
-    np.testing.assert_allclose(got["/relocalization/distance_m"], case.offline["distance_m"],
-                               atol=1e-9, rtol=0)  # fmt: skip
-    np.testing.assert_allclose(got["/relocalization/heading_error_deg"],
-                               case.offline["heading_error_deg"], atol=1e-9, rtol=0)
+    got = {
+        k: [HUMBLE.deserialize_cdr(d, "std_msgs/msg/Float64").data for d, _ in v]
+        for k, v in p.received.items()
+    }
+    np.testing.assert_allclose(
+        got["/relocalization/distance_m"], case.offline["distance_m"], atol=1e-9, rtol=0
+    )
+    np.testing.assert_allclose(
+        got["/relocalization/heading_error_deg"],
+        case.offline["heading_error_deg"],
+        atol=1e-9,
+        rtol=0,
+    )
     gids = set()
     for topic, samples in p.received.items():
         atts = [a for _, a in samples]
@@ -264,8 +304,7 @@ IMAGE, INFO = "/camera/color/image_raw", "/camera/color/camera_info"
 @pytest.fixture(scope="module")
 def images(tmp_path_factory: pytest.TempPathFactory) -> Path:
     """6 s of 640x480 rgb8 images + camera_info at 30 Hz (the LIMO camera), 180 frames."""
-    return simulate("circle", tmp_path_factory.mktemp("rmw_src"), frames=180,
-                    fps=30.0)["circle"]  # fmt: skip
+    return simulate("circle", tmp_path_factory.mktemp("rmw_src"), frames=180, fps=30.0)["circle"]
 
 
 def bag_messages(bag: Path) -> tuple[dict[str, list[bytes]], dict[str, str]]:
@@ -280,8 +319,9 @@ def bag_messages(bag: Path) -> tuple[dict[str, list[bytes]], dict[str, str]]:
 
 
 @pytest.mark.slow
-def test_record_discovers_and_records_a_humble_camera(images: Path, peer: tuple[RosPeer, int],
-                                                      tmp_path: Path) -> None:  # fmt: skip
+def test_record_discovers_and_records_a_humble_camera(
+    images: Path, peer: tuple[RosPeer, int], tmp_path: Path
+) -> None:
     """A Humble camera driver on rmw_zenoh (tokens, keys, attachments; sensor-data QoS):
     ``stream record --wire rmw_zenoh`` finds both topics and their types from the tokens alone,
     records every message byte for byte, and ``tagtrail run`` maps the bag."""
@@ -294,8 +334,20 @@ def test_record_discovers_and_records_a_humble_camera(images: Path, peer: tuple[
     # an unrelated subscriber and a node token: not recorded (only publishers are)
     p.subscribe("/cmd_vel", "geometry_msgs/msg/Twist")
     out = tmp_path / "rec"
-    rec = Proc(["record", str(out), "--wire", "rmw_zenoh", "--connect", loopback(port),
-                "--stats-period", "1", "--wait", "30"])  # fmt: skip
+    rec = Proc(
+        [
+            "record",
+            str(out),
+            "--wire",
+            "rmw_zenoh",
+            "--connect",
+            loopback(port),
+            "--stats-period",
+            "1",
+            "--wait",
+            "30",
+        ]
+    )
     try:
         rec.wait_for("record: recording")
         for pub in pubs.values():
@@ -305,15 +357,19 @@ def test_record_discovers_and_records_a_humble_camera(images: Path, peer: tuple[
             pubs[INFO].put(info)
             time.sleep(0.005)
         deadline = time.monotonic() + 30
-        while not any("| dropped" in ln and f"{IMAGE} " in ln and " 180 |" in ln
-                      and f"{INFO} " in ln for ln in rec.lines[-3:]):  # fmt: skip
+        while not any(
+            "| dropped" in ln and f"{IMAGE} " in ln and " 180 |" in ln and f"{INFO} " in ln
+            for ln in rec.lines[-3:]
+        ):
             assert time.monotonic() < deadline and rec.p.poll() is None, rec.output
             time.sleep(0.2)
         assert rec.stop(sig=signal.SIGINT) == 0, rec.output
     finally:
         rec.kill()
-    assert f"recording {INFO} (sensor_msgs/msg/CameraInfo), {IMAGE} (sensor_msgs/msg/Image)" \
-        in rec.output, rec.output
+    assert (
+        f"recording {INFO} (sensor_msgs/msg/CameraInfo), {IMAGE} (sensor_msgs/msg/Image)"
+        in rec.output
+    ), rec.output
     assert "360 messages" in rec.output and "dropped 0" in rec.output, rec.output
     wire = json.loads(next(ln for ln in rec.lines if ln.startswith("record: {"))[8:])
     assert wire["without_attachment"] == 0 and wire["sequence_gaps"] == 0
@@ -322,8 +378,9 @@ def test_record_discovers_and_records_a_humble_camera(images: Path, peer: tuple[
     assert got[IMAGE] == src[IMAGE] and got[INFO] == src[INFO]  # nothing lost, in order
     project = tmp_path / "project"
     project.mkdir()
-    init = _tagtrail(project, "init", "--profile", "limo-images", "--tag-size", "0.16",
-                     "--reference", str(out))
+    init = _tagtrail(
+        project, "init", "--profile", "limo-images", "--tag-size", "0.16", "--reference", str(out)
+    )
     assert init.returncode == 0, init.stderr
     run = _tagtrail(project, "run")
     assert run.returncode == 0, run.stderr[-2000:]
@@ -334,9 +391,14 @@ def test_record_discovers_and_records_a_humble_camera(images: Path, peer: tuple[
 
 
 def _tagtrail(cwd: Path, *args: str) -> subprocess.CompletedProcess[str]:
-    return subprocess.run([sys.executable, "-m", "tagtrail.cli", *args], cwd=cwd, text=True,
-                          capture_output=True, timeout=600,
-                          env={**os.environ, "PYTHONPATH": str(REPO)})  # fmt: skip
+    return subprocess.run(
+        [sys.executable, "-m", "tagtrail.cli", *args],
+        cwd=cwd,
+        text=True,
+        capture_output=True,
+        timeout=600,
+        env={**os.environ, "PYTHONPATH": str(REPO)},
+    )
 
 
 def test_replay_and_echo_speak_rmw_zenoh(peer: tuple[RosPeer, int], tmp_path: Path) -> None:
@@ -352,15 +414,32 @@ def test_replay_and_echo_speak_rmw_zenoh(peer: tuple[RosPeer, int], tmp_path: Pa
     p.announce()
     p.subscribe("/tag_only_pose", "geometry_msgs/msg/PoseStamped")
     t0 = time.time_ns()
-    rep = Proc(["replay", case.query, "--rate", "0", "--wire", "rmw_zenoh",
-                "--connect", loopback(port), "--wait", "20"])  # fmt: skip
+    rep = Proc(
+        [
+            "replay",
+            case.query,
+            "--rate",
+            "0",
+            "--wire",
+            "rmw_zenoh",
+            "--connect",
+            loopback(port),
+            "--wait",
+            "20",
+        ]
+    )
     try:
         assert rep.p.wait(60) == 0, rep.output
     finally:
         rep.kill()
     toks = list(p.seen)
-    assert any(t.endswith("/MP/%/%/tagtrail_replay/%tag_only_pose/geometry_msgs::msg::dds_::"
-                          f"PoseStamped_/TypeHashNotSupported/{QOS}") for t in toks), toks
+    assert any(
+        t.endswith(
+            "/MP/%/%/tagtrail_replay/%tag_only_pose/geometry_msgs::msg::dds_::"
+            f"PoseStamped_/TypeHashNotSupported/{QOS}"
+        )
+        for t in toks
+    ), toks
     assert any(t.endswith("/0/0/NN/%/%/tagtrail_replay") for t in toks), toks
     deadline = time.monotonic() + 10
     while len(p.received["/tag_only_pose"]) < n:
@@ -377,18 +456,33 @@ def test_replay_and_echo_speak_rmw_zenoh(peer: tuple[RosPeer, int], tmp_path: Pa
     np.testing.assert_allclose([m.pose.position.x for m in poses], query["x_m"], atol=0)
     # echo: the peer's Float64 (a Jazzy hash: echo takes any) and a JSON document
     jazzy_key = data_key("/relocalization/distance_m", "std_msgs/msg/Float64", "jazzy")
-    echo = Proc(["echo", "relocalization/distance_m", "--wire", "rmw_zenoh", "--connect",
-                 loopback(port), "--count", "3", "--wait", "20"])  # fmt: skip
+    echo = Proc(
+        [
+            "echo",
+            "relocalization/distance_m",
+            "--wire",
+            "rmw_zenoh",
+            "--connect",
+            loopback(port),
+            "--count",
+            "3",
+            "--wait",
+            "20",
+        ]
+    )
     pub = p.session.declare_publisher(jazzy_key)
     bare = p.session.declare_publisher("relocalization/distance_m")
     try:
         deadline = time.monotonic() + 20
-        while not (pub.matching_status.matching  # type: ignore[attr-defined]
-                   and bare.matching_status.matching):  # type: ignore[attr-defined]
+        while not (
+            pub.matching_status.matching  # type: ignore[attr-defined]
+            and bare.matching_status.matching
+        ):  # type: ignore[attr-defined]
             assert time.monotonic() < deadline, echo.output
             time.sleep(0.02)
-        f64 = bytes(HUMBLE.serialize_cdr(HUMBLE.types["std_msgs/msg/Float64"](1.5),
-                                         "std_msgs/msg/Float64"))  # fmt: skip
+        f64 = bytes(
+            HUMBLE.serialize_cdr(HUMBLE.types["std_msgs/msg/Float64"](1.5), "std_msgs/msg/Float64")
+        )
         pub.put(f64, attachment=struct.pack("<qqB", 1, time.time_ns(), 16) + bytes(16))
         pub.put(f64)
         bare.put(b'{"distance_m": 1.5}')

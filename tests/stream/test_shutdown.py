@@ -97,8 +97,19 @@ def _wait(cond, timeout: float, what: str) -> None:
 
 def _relocalize_node(tmp: Path, port: int) -> list[str]:
     case = synthetic_case(tmp, n_ref=300, n_query=5)
-    return ["relocalize", "--reference", case.reference, "--plane", "xz", "--listen",
-            loopback(port), "--duration", "120", "--stats-period", "0"]  # fmt: skip
+    return [
+        "relocalize",
+        "--reference",
+        case.reference,
+        "--plane",
+        "xz",
+        "--listen",
+        loopback(port),
+        "--duration",
+        "120",
+        "--stats-period",
+        "0",
+    ]
 
 
 def test_relocalize_exits_fast_on_sigint_under_a_flood(tmp_path: Path) -> None:
@@ -150,8 +161,9 @@ def test_replay_exits_fast_when_its_subscriber_stalls(tmp_path: Path) -> None:
     port = free_port()
     peer = Peer(port, "tag_only_pose", stall=True, listen=True)
     try:
-        with running(["replay", tmp_path / "trajectory.csv", "--rate", "0", "--connect",
-                      loopback(port)]) as (rep,):  # fmt: skip
+        with running(
+            ["replay", tmp_path / "trajectory.csv", "--rate", "0", "--connect", loopback(port)]
+        ) as (rep,):
             _wait(lambda: peer.got >= 1, 30, "replay publishes")
             time.sleep(1.0)
             rc, dt = _interrupt(rep)

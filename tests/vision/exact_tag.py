@@ -25,8 +25,15 @@ def true_corners(camera: CameraModel, cam_T_tag: F64, size: float) -> F64:
 
 
 def render_tag(
-    camera: CameraModel, cam_T_tag: F64, size: float, tag_id: int, rng: np.random.Generator,
-    ss: int = 10, blur: float = 0.5, noise: float = 0.0, background: float = 90.0,
+    camera: CameraModel,
+    cam_T_tag: F64,
+    size: float,
+    tag_id: int,
+    rng: np.random.Generator,
+    ss: int = 10,
+    blur: float = 0.5,
+    noise: float = 0.0,
+    background: float = 90.0,
 ) -> NDArray[np.uint8]:
     """Grey image of one tag (black square of edge ``size`` m) at ``cam_T_tag``."""
     bits = tag_bits(tag_id)
@@ -37,13 +44,18 @@ def render_tag(
     w, h = camera.width, camera.height
     x0, y0 = np.maximum(np.floor(outline.min(0)) - 4, 0).astype(int)
     x1, y1 = np.minimum(np.ceil(outline.max(0)) + 4, (w - 1, h - 1)).astype(int)
-    ys, xs = np.mgrid[y0:y1 + 1, x0:x1 + 1].astype(np.float64)
+    ys, xs = np.mgrid[y0 : y1 + 1, x0 : x1 + 1].astype(np.float64)
     normal = R[:, 2]
     acc = np.zeros(xs.shape)
     for i in range(ss):
         for j in range(ss):
-            px = np.stack([xs + (j + rng.random(xs.shape)) / ss - 0.5,
-                           ys + (i + rng.random(xs.shape)) / ss - 0.5], axis=-1)
+            px = np.stack(
+                [
+                    xs + (j + rng.random(xs.shape)) / ss - 0.5,
+                    ys + (i + rng.random(xs.shape)) / ss - 0.5,
+                ],
+                axis=-1,
+            )
             xy = camera.undistort(px)
             ray = np.concatenate([xy, np.ones(xy.shape[:-1] + (1,))], axis=-1)
             hit = ray * ((normal @ t) / (ray @ normal))[..., None] - t
@@ -54,7 +66,7 @@ def render_tag(
             paper = bits[np.clip(row, 0, 9), np.clip(col, 0, 9)] > 0
             acc += np.where(inside, np.where(paper, PAPER, INK), background)
     img = np.full((h, w), background)
-    img[y0:y1 + 1, x0:x1 + 1] = acc / ss**2
+    img[y0 : y1 + 1, x0 : x1 + 1] = acc / ss**2
     if blur > 0:
         img = cv2.GaussianBlur(img, (0, 0), blur)
     if noise > 0:

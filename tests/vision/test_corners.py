@@ -96,8 +96,7 @@ def test_blurred_small_tags_are_not_pulled_by_the_neighbouring_edges(background:
     offsets = []
     for tag_id, dx in [(0, 0.0), (7, 0.013), (13, 0.027), (21, 0.005), (7, 0.021), (0, 0.009)]:
         cam_T_tag = make_T(R_from_rotvec([np.pi, 0.0, 0.0]), np.array([dx, 0.02 + dx, 2.6]))
-        img = render_tag(LIMO, cam_T_tag, SIZE, tag_id, rng, ss=6, blur=1.0,
-                         background=background)
+        img = render_tag(LIMO, cam_T_tag, SIZE, tag_id, rng, ss=6, blur=1.0, background=background)
         found = [d for d in detector(2.0).detect(img) if d.tag_id == tag_id]
         assert found
         fitted = refine_corners(img, found[0].corners - C_LIBRARY_PIXEL_OFFSET, LIMO)
@@ -129,8 +128,10 @@ def test_oblique_tags_with_narrow_cells_are_refitted() -> None:
         offsets.append(edge_offsets(fitted, true_corners(LIMO, cam_T_tag, SIZE)))
         before.append(edge_offsets(raw, true_corners(LIMO, cam_T_tag, SIZE)))
     rms = np.sqrt(np.mean(np.square(offsets)))
-    print(f"\noblique 55 deg: edge offsets RMS {rms:.4f} px, the detector's "
-          f"{np.sqrt(np.mean(np.square(before))):.4f} px, mean {np.mean(before, axis=0)}")
+    print(
+        f"\noblique 55 deg: edge offsets RMS {rms:.4f} px, the detector's "
+        f"{np.sqrt(np.mean(np.square(before))):.4f} px, mean {np.mean(before, axis=0)}"
+    )
     assert rms < 0.05
 
 
@@ -197,8 +198,11 @@ def test_frames_batched_equal_frames_one_at_a_time() -> None:
     for cam_T_tag, tag_id in random_views(3, seed=4):
         img = render_tag(LIMO, cam_T_tag, SIZE, tag_id, rng, ss=4)
         grays.append(img)
-        raws.append(np.array([d.corners - C_LIBRARY_PIXEL_OFFSET
-                              for d in detector(2.0).detect(img)]).reshape(-1, 4, 2))
+        raws.append(
+            np.array(
+                [d.corners - C_LIBRARY_PIXEL_OFFSET for d in detector(2.0).detect(img)]
+            ).reshape(-1, 4, 2)
+        )
     grays.insert(1, grays[0])
     raws.insert(1, np.zeros((0, 4, 2)))  # a frame without tags
     batch = refine_many(grays, raws, LIMO)
@@ -226,9 +230,21 @@ def test_extract_drops_cut_tags_says_so_and_refits_the_rest(
     img = compose([render_tag(LIMO, whole, SIZE, 3, rng), render_tag(LIMO, cut, SIZE, 5, rng)])
     cv2.imwrite(str(tmp_path / "frame0.png"), img)
     K = LIMO.K
-    (tmp_path / "camera.yaml").write_text(yaml.safe_dump({"camera": {
-        "width": 640, "height": 480, "fx": float(K[0, 0]), "fy": float(K[1, 1]),
-        "cx": float(K[0, 2]), "cy": float(K[1, 2]), "distortion": LIMO.D.tolist()}}))
+    (tmp_path / "camera.yaml").write_text(
+        yaml.safe_dump(
+            {
+                "camera": {
+                    "width": 640,
+                    "height": 480,
+                    "fx": float(K[0, 0]),
+                    "fy": float(K[1, 1]),
+                    "cx": float(K[0, 2]),
+                    "cy": float(K[1, 2]),
+                    "distortion": LIMO.D.tolist(),
+                }
+            }
+        )
+    )
     src = DatasetConfig(source=tmp_path)
     with caplog.at_level(logging.INFO, logger="tagtrail.extract"):
         det = extract_from(src, extract.Params(workers=1))["detections"]

@@ -24,8 +24,15 @@ def raw(img: np.ndarray, encoding: str, pad: int = 0) -> RawImage:
     rows = img.reshape(h, -1).view(np.uint8)
     data = np.zeros((h, rows.shape[1] + pad), np.uint8)
     data[:, : rows.shape[1]] = rows
-    return RawImage("raw", data.tobytes(), encoding, img.shape[1], h, rows.shape[1] + pad,
-                    bigendian=img.dtype.byteorder == ">")
+    return RawImage(
+        "raw",
+        data.tobytes(),
+        encoding,
+        img.shape[1],
+        h,
+        rows.shape[1] + pad,
+        bigendian=img.dtype.byteorder == ">",
+    )
 
 
 @pytest.mark.parametrize(
@@ -67,8 +74,9 @@ def test_compressed_jpeg_and_png(bgr: np.ndarray) -> None:
     assert np.abs(decode_compressed(png, "bgr8; png compressed").astype(int) - gray).max() <= 1
     jpg = cv2.imencode(".jpg", bgr)[1].tobytes()
     want = cv2.imdecode(np.frombuffer(jpg, np.uint8), cv2.IMREAD_GRAYSCALE)
-    np.testing.assert_array_equal(RawImage("compressed", jpg, "rgb8; jpeg compressed bgr8")
-                                  .decode(), want)
+    np.testing.assert_array_equal(
+        RawImage("compressed", jpg, "rgb8; jpeg compressed bgr8").decode(), want
+    )
 
 
 def test_raw_image_is_small_to_pickle() -> None:

@@ -15,17 +15,20 @@ from tagtrail.geometry.se3 import R_from_rotvec, make_T
 from tagtrail.stages import extract
 from tests.vision.exact_tag import LIMO, compose, render_tag, true_corners
 
-MODES = {"full": {"quad_decimate": 1.0, "small_tags": "off"},
-         "dec2": {"quad_decimate": 2.0, "small_tags": "off"},
-         "default": {}}
+MODES = {
+    "full": {"quad_decimate": 1.0, "small_tags": "off"},
+    "dec2": {"quad_decimate": 2.0, "small_tags": "off"},
+    "default": {},
+}
 Dets = dict[str, list[tuple[Any, Any]]]
 
 
 def _detect_all(frames: list[np.ndarray]) -> Dets:
     from tagtrail.vision.apriltag import detect
 
-    return {m: [detect(f, extract.Params(**o).detector()) for f in frames]
-            for m, o in MODES.items()}
+    return {
+        m: [detect(f, extract.Params(**o).detector()) for f in frames] for m, o in MODES.items()
+    }
 
 
 @pytest.fixture(scope="module")
@@ -44,8 +47,11 @@ def swatbotics(realdata: Path) -> tuple[Dets, list[set[int]]]:
 def duckietown(realdata: Path) -> tuple[Dets, list[set[int]]]:
     """26 real Duckiebot frames, tags ~11-90 px, many on a table seen at a grazing angle (long and
     thin) or on a dark mat; the ids of each scene from the set's README."""
-    scenes = {"test_image.png": {60, 82, 318, 328, 387}, "rotation": {76},
-              "multiple": {22, 24, 58, 85, 144, 198}}
+    scenes = {
+        "test_image.png": {60, 82, 318, 328, 387},
+        "rotation": {76},
+        "multiple": {22, 24, 58, 85, 144, 198},
+    }
     files = sorted((realdata / "duckietown_dt_apriltags_test").glob("*.png"))
     truth = [next(ids for key, ids in scenes.items() if key in f.name) for f in files]
     return _detect_all([cv2.imread(str(f), cv2.IMREAD_GRAYSCALE) for f in files]), truth
@@ -64,8 +70,10 @@ def small_tags_scene(background: float, seed: int) -> tuple[np.ndarray, dict[int
             tilt = R_from_rotvec(np.radians([*rng.uniform(-40, 40, 2), rng.uniform(-15, 15)]))
             t = np.array([(col - 2) * 0.22 * z, (row - 1.5) * 0.2 * z, z])
             views.append((make_T(R_from_rotvec([np.pi, 0.0, 0.0]) @ tilt, t), 10 + 5 * row + col))
-    img = compose([render_tag(LIMO, T, SIZE, i, rng, background=background) for T, i in views],
-                  background=background)
+    img = compose(
+        [render_tag(LIMO, T, SIZE, i, rng, background=background) for T, i in views],
+        background=background,
+    )
     img = np.clip(img + rng.normal(0.0, 2.0, img.shape), 0, 255).astype(np.uint8)
     return img, {i: true_corners(LIMO, T, SIZE) for T, i in views}
 
@@ -115,9 +123,12 @@ def test_rendered_small_tags_are_where_they_are_drawn(
     """Every tag found is a drawn one, its corners within 1 px of the true ones (measured: up to
     0.73 px, on a tag of the decimated pass; median 0.21 px)."""
     res, truth = rendered
-    errors = [np.abs(floats[k, 1:].reshape(4, 2) - corners[int(ints[k, 0])]).max()
-              for (ints, floats), corners in zip(res["default"], truth, strict=True)
-              for k in range(len(ints)) if int(ints[k, 0]) in corners]
+    errors = [
+        np.abs(floats[k, 1:].reshape(4, 2) - corners[int(ints[k, 0])]).max()
+        for (ints, floats), corners in zip(res["default"], truth, strict=True)
+        for k in range(len(ints))
+        if int(ints[k, 0]) in corners
+    ]
     assert len(errors) == _n(res["default"])  # no id that is not drawn
     assert max(errors) < 1.0
 
@@ -129,10 +140,9 @@ def test_redetected_corners_agree_with_full_resolution(frames: str, request: Any
     so it is thresholded as the full image; both re-fitted to the same border edges)."""
     res = request.getfixturevalue(frames)[0]
     diffs = []
-    for (ri, rf), (di, df), (fi, ff) in zip(res["default"], res["dec2"], res["full"],
-                                            strict=True):
-        np.testing.assert_array_equal(ri[:len(di)], di)
-        np.testing.assert_allclose(rf[:len(di)], df, atol=1e-9)
+    for (ri, rf), (di, df), (fi, ff) in zip(res["default"], res["dec2"], res["full"], strict=True):
+        np.testing.assert_array_equal(ri[: len(di)], di)
+        np.testing.assert_allclose(rf[: len(di)], df, atol=1e-9)
         for k in range(len(di), len(ri)):
             j = np.flatnonzero(fi[:, 0] == ri[k, 0])
             if len(j):  # a few are found in a crop and not in the full image
@@ -146,11 +156,13 @@ def test_redetected_corners_agree_with_full_resolution(frames: str, request: Any
 def test_default_finds_the_tags_off_misses(realdata: Path) -> None:
     from tagtrail.vision.apriltag import detect
 
-    img = cv2.imread(str(realdata / "duckietown_dt_apriltags_test" / "test_image.png"),
-                     cv2.IMREAD_GRAYSCALE)
+    img = cv2.imread(
+        str(realdata / "duckietown_dt_apriltags_test" / "test_image.png"), cv2.IMREAD_GRAYSCALE
+    )
     off = sorted(detect(img, extract.Params(small_tags="off").detector())[0][:, 0].tolist())
-    default = sorted(detect(img, extract.Params(small_tags="redetect").detector())[0][:, 0]
-                     .tolist())
+    default = sorted(
+        detect(img, extract.Params(small_tags="redetect").detector())[0][:, 0].tolist()
+    )
     assert off == [318, 387]  # 2 of the 5 tags of the scene (the other 3: ~15-35 px on a mat)
     assert default == [60, 82, 318, 328, 387]
 

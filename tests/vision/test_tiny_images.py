@@ -20,6 +20,7 @@ print("ok")
 
 
 def test_tiny_images_give_no_detection_and_no_crash() -> None:
-    done = subprocess.run([sys.executable, "-c", SCRIPT], capture_output=True, text=True,
-                          timeout=120)
+    done = subprocess.run(
+        [sys.executable, "-c", SCRIPT], capture_output=True, text=True, timeout=120
+    )
     assert done.returncode == 0 and done.stdout.strip() == "ok", (done.returncode, done.stderr)

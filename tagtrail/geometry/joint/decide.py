@@ -68,12 +68,17 @@ class Travel:
 
     def words(self) -> str:
         """The travel in plain words, for a log line."""
-        what = "parked" if self.extent_m < MIN_TRAVEL_M and self.turn_deg < MIN_TURN_DEG \
+        what = (
+            "parked"
+            if self.extent_m < MIN_TRAVEL_M and self.turn_deg < MIN_TURN_DEG
             else "too short"
-        return (f"the camera moved {100 * self.extent_m:.1f} cm and turned {self.turn_deg:.1f} "
-                f"deg in {self.duration_s:.1f} s ({what}; auto decides on at least "
-                f"{100 * MIN_TRAVEL_M:.0f} cm or {MIN_TURN_DEG:.0f} deg over "
-                f"{MIN_DURATION_S:.0f} s)")
+        )
+        return (
+            f"the camera moved {100 * self.extent_m:.1f} cm and turned {self.turn_deg:.1f} "
+            f"deg in {self.duration_s:.1f} s ({what}; auto decides on at least "
+            f"{100 * MIN_TRAVEL_M:.0f} cm or {MIN_TURN_DEG:.0f} deg over "
+            f"{MIN_DURATION_S:.0f} s)"
+        )
 
 
 def travel(R_cam: F64, t_cam: F64, t_s: F64 | None) -> Travel:
@@ -90,9 +95,14 @@ def travel(R_cam: F64, t_cam: F64, t_s: F64 | None) -> Travel:
 
 
 def solve_grounded(
-    res: JointResult, resolve: Resolve, ground: GroundPrior, mode: str,
-    drive: DrivePrior | None = None, drive_mode: str = "auto",
-    motion: MotionPrior | None = None, fallback: tuple[bool, bool] | None = None,
+    res: JointResult,
+    resolve: Resolve,
+    ground: GroundPrior,
+    mode: str,
+    drive: DrivePrior | None = None,
+    drive_mode: str = "auto",
+    motion: MotionPrior | None = None,
+    fallback: tuple[bool, bool] | None = None,
 ) -> tuple[JointResult, GroundReport]:
     """The ground-plane prior on a solution ``res`` solved without it (with ``cam_cov``):
     ``mode`` ``plane`` applies it, ``auto`` only when the motion is planar; with ``drive`` and
@@ -112,29 +122,44 @@ def solve_grounded(
             use_ground = use_ground or stat < PLANAR_BOUND
         else:
             ref = fallback or (False, False)
-            note = moved.words() + (", so the reference's decision is taken" if fallback
-                                    else ", too little to decide on")
+            note = moved.words() + (
+                ", so the reference's decision is taken"
+                if fallback
+                else ", too little to decide on"
+            )
             use_ground = use_ground or (mode == "auto" and ref[0])
             use_drive = use_drive or (drive_mode == "auto" and ref[1])
     part = GroundPlane(ground, plane)
     drive_rep = None
     if use_ground and drive is not None and motion is not None:
         j = steps(motion.t_s, motion.max_gap_s)
-        wheels = WheeledDrive(drive, motion.t_s, motion.max_gap_s,
-                              fit_mount(res.R_cam, res.t_cam, motion.t_s, j, plane))
+        wheels = WheeledDrive(
+            drive,
+            motion.t_s,
+            motion.max_gap_s,
+            fit_mount(res.R_cam, res.t_cam, motion.t_s, j, plane),
+        )
         driven = resolve(res, [part, wheels])
-        q, _, _ = drive_terms(driven.R_cam, driven.t_cam, motion.t_s, wheels.j,
-                              driven.unknowns["ground"], driven.unknowns["drive"], drive)
+        q, _, _ = drive_terms(
+            driven.R_cam,
+            driven.t_cam,
+            motion.t_s,
+            wheels.j,
+            driven.unknowns["ground"],
+            driven.unknowns["drive"],
+            drive,
+        )
         fit = strain(q, drive, driven.variance_factor)
         wheeled = use_drive or (moved.enough and drive_mode == "auto" and bool(fit < WHEELED_BOUND))
-        drive_rep = drive_report(q, wheels, driven.unknowns["ground"], driven.unknowns["drive"],
-                                 drive_mode, wheeled, fit)
+        drive_rep = drive_report(
+            q, wheels, driven.unknowns["ground"], driven.unknowns["drive"], drive_mode, wheeled, fit
+        )
         if wheeled:
             res = driven
     if use_ground and (drive_rep is None or not drive_rep.applied):
         res = resolve(res, [part])
     if use_ground:
         plane = res.unknowns["ground"]
-    return res, ground_report(res.R_cam, res.t_cam, plane, ground, mode, use_ground, stat,
-                              drive_rep, note)
-
+    return res, ground_report(
+        res.R_cam, res.t_cam, plane, ground, mode, use_ground, stat, drive_rep, note
+    )

@@ -100,8 +100,9 @@ def _geometry(R: F64, t: F64, j: I64, n: F64) -> tuple[F64, F64, F64, F64, F64, 
     return x, np.einsum("pi,pi->p", u, e), E, e, u, dc
 
 
-def drive_terms(R_cam: F64, t_cam: F64, t_s: F64, j: I64, plane: Plane, mount: Mount,
-                prior: DrivePrior) -> tuple[F64, F64, F64]:
+def drive_terms(
+    R_cam: F64, t_cam: F64, t_s: F64, j: I64, plane: Plane, mount: Mount, prior: DrivePrior
+) -> tuple[F64, F64, F64]:
     """Whitened residuals ``q (P,)`` of the steps ``j`` and their Jacobians on the cameras
     ``[w ; v]`` of frames ``j, j+1`` ``(P, 2, 6)`` and on the plane's 6 then the mount's 2
     parameters ``(P, 8)``."""
@@ -122,8 +123,9 @@ def drive_terms(R_cam: F64, t_cam: F64, t_s: F64, j: I64, plane: Plane, mount: M
     Jc[:, 0, 3:] = 0.5 * (s + Es)
     Jc[:, 1, 3:] = -0.5 * (s + EtS)
     # theta = (R_j n) . Log(R_j R_{j+1}^T)
-    Jc[:, 0, :3] -= lev * (np.cross(u, e) + np.einsum("pij,pj->pi", E, np.einsum(
-        "pij,pj->pi", Jinv_T, u)))
+    Jc[:, 0, :3] -= lev * (
+        np.cross(u, e) + np.einsum("pij,pj->pi", E, np.einsum("pij,pj->pi", Jinv_T, u))
+    )
     Jc[:, 1, :3] += lev * np.einsum("pij,pj->pi", Jinv_T, u)
     Jc *= inv_sig[:, None, None]
     Jg = np.zeros((len(j), 6 + N_MOUNT))
@@ -167,7 +169,7 @@ def fit_mount(R_cam: F64, t_cam: F64, t_s: F64, j: I64, plane: Plane) -> Mount:
     for _ in range(5):  # lateral = s . x - lever theta; d s / d yaw = -g
         s = mount.lateral(plane.u)[0]
         r = x @ s - mount.lever_m * theta
-        J = np.stack([-(x @ mount.g), -theta], axis=1)[:, :2 if turns else 1]
+        J = np.stack([-(x @ mount.g), -theta], axis=1)[:, : 2 if turns else 1]
         step = np.linalg.lstsq(J * np.sqrt(w)[:, None], -r * np.sqrt(w), rcond=None)[0]
         mount = mount.update(np.r_[step, 0.0][:2], plane.u)
         if np.abs(step).max() < 1e-9:
@@ -198,13 +200,19 @@ class WheeledDrive:
 
     def terms(self, R_cam: F64, t_cam: F64, values: Mapping[str, Any]) -> Terms:
         """Each step's whitened lateral velocity; 1 degree of freedom a step less the mount's 2."""
-        q, Jc, Jg = drive_terms(R_cam, t_cam, self.t_s, self.j, values["ground"],
-                                values[self.name], self.prior)
+        q, Jc, Jg = drive_terms(
+            R_cam, t_cam, self.t_s, self.j, values["ground"], values[self.name], self.prior
+        )
         val, w = robust_weights(q, self.prior)
         s = np.sqrt(w)
-        return Terms(float(val.sum()), (q * s)[:, None], self.j,
-                     (Jc * s[:, None, None])[:, :, None], (Jg * s[:, None])[:, None],
-                     len(self.j) - N_MOUNT)
+        return Terms(
+            float(val.sum()),
+            (q * s)[:, None],
+            self.j,
+            (Jc * s[:, None, None])[:, :, None],
+            (Jg * s[:, None])[:, None],
+            len(self.j) - N_MOUNT,
+        )
 
     def update(self, value: Mount, step: F64, values: Mapping[str, Any]) -> Mount:
         return value.update(step, values["ground"].u)
@@ -243,17 +251,22 @@ class DriveReport:
 
     def line(self) -> str:
         """What was decided and found, in plain words (for the log)."""
-        return (("the camera moves like a wheeled robot's, never sliding sideways: held so"
-                 if self.applied else "the camera moves sideways too: not held to a wheeled "
-                 "robot's motion")
-                + f" (sideways-motion score {self.strain:.2f}, limit {WHEELED_BOUND:.1f}); the "
-                f"camera sits {self.lever_m:.3f} m from the turning point, looks "
-                f"{self.camera_yaw_deg:.1f} deg off the direction of travel and slides "
-                f"{1e3 * self.lateral_rms_mps:.1f} mm/s RMS sideways")
+        return (
+            (
+                "the camera moves like a wheeled robot's, never sliding sideways: held so"
+                if self.applied
+                else "the camera moves sideways too: not held to a wheeled robot's motion"
+            )
+            + f" (sideways-motion score {self.strain:.2f}, limit {WHEELED_BOUND:.1f}); the "
+            f"camera sits {self.lever_m:.3f} m from the turning point, looks "
+            f"{self.camera_yaw_deg:.1f} deg off the direction of travel and slides "
+            f"{1e3 * self.lateral_rms_mps:.1f} mm/s RMS sideways"
+        )
 
 
-def drive_report(q: F64, part: WheeledDrive, plane: Plane, mount: Mount, mode: str,
-                 applied: bool, fit: float) -> DriveReport:
+def drive_report(
+    q: F64, part: WheeledDrive, plane: Plane, mount: Mount, mode: str, applied: bool, fit: float
+) -> DriveReport:
     """The :class:`DriveReport` of a solution with the ``plane`` and ``mount`` it solved and
     its whitened steps ``q (P,)``."""
     j = part.j
@@ -263,7 +276,12 @@ def drive_report(q: F64, part: WheeledDrive, plane: Plane, mount: Mount, mode: s
     z = np.array([0.0, 0.0, 1.0]) - u[2] * u
     yaw = np.degrees(np.arctan2(np.cross(fwd, z) @ u, fwd @ z))
     lat = q * part.prior.lateral_sigma / np.sqrt(h)  # m/s
-    return DriveReport(mode=mode, applied=bool(applied), strain=fit, lever_m=mount.lever_m,
-                       camera_yaw_deg=float(yaw),
-                       lateral_rms_mps=float(np.sqrt(np.mean(lat**2))) if len(lat) else 0.0,
-                       steps_off=int((q * q > part.prior.f_scale**2).sum()))
+    return DriveReport(
+        mode=mode,
+        applied=bool(applied),
+        strain=fit,
+        lever_m=mount.lever_m,
+        camera_yaw_deg=float(yaw),
+        lateral_rms_mps=float(np.sqrt(np.mean(lat**2))) if len(lat) else 0.0,
+        steps_off=int((q * q > part.prior.f_scale**2).sum()),
+    )

@@ -42,18 +42,28 @@ class FrameEvidence:
 SHIFT_SIGMA_BOUND = 4.74  # sqrt of chi^2 with 6 dof at 99.9 %
 
 
-def frame_evidence(res: JointResult, ob: CornerObservations, corners: Corners,
-                   max_iter: int = 50) -> FrameEvidence:
+def frame_evidence(
+    res: JointResult, ob: CornerObservations, corners: Corners, max_iter: int = 50
+) -> FrameEvidence:
     """:class:`FrameEvidence` of the cameras of ``res`` (tags fixed): every frame solved again on
     its own corners from where the joint solution left it (the same corner model, no prior),
     then compared with it."""
     n_f = len(res.R_cam)
-    alone = solve_joint(res.R_tag, res.t_tag, res.R_cam, res.t_cam, ob,
-                        np.zeros(len(res.R_tag), bool), corners, max_iter=max_iter,
-                        covariance=True)
+    alone = solve_joint(
+        res.R_tag,
+        res.t_tag,
+        res.R_cam,
+        res.t_cam,
+        ob,
+        np.zeros(len(res.R_tag), bool),
+        corners,
+        max_iter=max_iter,
+        covariance=True,
+    )
     w = log_so3(res.R_cam @ np.swapaxes(alone.R_cam, 1, 2))
-    d = np.concatenate([w, res.t_cam - np.einsum("nij,nj->ni", R_from_rotvec(w), alone.t_cam)],
-                       axis=1)
+    d = np.concatenate(
+        [w, res.t_cam - np.einsum("nij,nj->ni", R_from_rotvec(w), alone.t_cam)], axis=1
+    )
     assert alone.cam_cov is not None
     vf = alone.variance_factor if np.isfinite(alone.variance_factor) else 1.0
     cov = alone.cam_cov * (vf / max(vf, 1.0))  # at the noise the residuals show, not above it
@@ -64,5 +74,7 @@ def frame_evidence(res: JointResult, ob: CornerObservations, corners: Corners,
         alone_reproj_px=frame_rms_px(alone.res_px, ob.frame, n_f),
         shift_m=np.linalg.norm(centre - centre_alone, axis=1),
         shift_deg=np.degrees(np.linalg.norm(w, axis=1)),
-        shift_sigma=np.sqrt(np.maximum(maha, 0.0)), R_alone=alone.R_cam, t_alone=alone.t_cam)
-
+        shift_sigma=np.sqrt(np.maximum(maha, 0.0)),
+        R_alone=alone.R_cam,
+        t_alone=alone.t_cam,
+    )

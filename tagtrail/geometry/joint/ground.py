@@ -83,15 +83,16 @@ def fit_plane(R_cam: F64, t_cam: F64, prior: GroundPrior) -> Plane:
     c = centres(R_cam, t_cam)
     c_mean, R_mean = c.mean(axis=0), R_cam.mean(axis=0)
     dc, dR = c - c_mean, R_cam - R_mean
-    M = (np.einsum("fi,fj->ij", dc, dc) / prior.height_sigma_m**2
-         + np.einsum("fki,fkj->ij", dR, dR) / prior.tilt_sigma_rad**2) / len(R_cam)
+    M = (
+        np.einsum("fi,fj->ij", dc, dc) / prior.height_sigma_m**2
+        + np.einsum("fki,fkj->ij", dR, dR) / prior.tilt_sigma_rad**2
+    ) / len(R_cam)
     n = np.linalg.eigh(M)[1][:, 0]
     n = n if n @ (R_mean.T @ np.array([0.0, -1.0, 0.0])) >= 0 else -n  # camera y points down
     return Plane(n, float(n @ c_mean), R_mean @ n)
 
 
-def plane_terms(R_cam: F64, t_cam: F64, plane: Plane, prior: GroundPrior
-                ) -> tuple[F64, F64, F64]:
+def plane_terms(R_cam: F64, t_cam: F64, plane: Plane, prior: GroundPrior) -> tuple[F64, F64, F64]:
     """Whitened residuals ``p (F, 4)`` and their Jacobians on each camera's ``[w ; v]``
     ``(F, 4, 6)`` and on the plane's 6 parameters ``(F, 4, 6)``."""
     n_f = len(R_cam)
@@ -137,8 +138,14 @@ class GroundPlane:
         p, Jc, Jg = plane_terms(R_cam, t_cam, values[self.name], self.prior)
         val, w = robust_weights(p, self.prior)
         s = np.sqrt(w)
-        return Terms(float(val.sum()), p * s[:, None], np.arange(len(R_cam)),
-                     (Jc * s[:, None, None])[:, None], Jg * s[:, None, None], 3 * len(R_cam) - 5)
+        return Terms(
+            float(val.sum()),
+            p * s[:, None],
+            np.arange(len(R_cam)),
+            (Jc * s[:, None, None])[:, None],
+            Jg * s[:, None, None],
+            3 * len(R_cam) - 5,
+        )
 
     def update(self, value: Plane, step: F64, values: Mapping[str, Any]) -> Plane:
         return value.update(step)
@@ -162,9 +169,12 @@ def planarity(R_cam: F64, t_cam: F64, cam_cov: F64, prior: GroundPrior) -> tuple
     K = hat(Rn)
     var_g = np.einsum("fij,fjk,flk->fil", K, cam_cov[:, :3, :3], K)  # of R n - u, (F, 3, 3)
     sh2, st2 = prior.height_sigma_m**2, prior.tilt_sigma_rad**2
-    chi2 = (p[:, 0] ** 2 * sh2 / (sh2 + var_h)
-            + np.einsum("fi,fij,fj->f", p[:, 1:],
-                        np.linalg.inv(np.eye(3) + var_g / st2 + 1e-9 * np.eye(3)), p[:, 1:]))
+    chi2 = p[:, 0] ** 2 * sh2 / (sh2 + var_h) + np.einsum(
+        "fi,fij,fj->f",
+        p[:, 1:],
+        np.linalg.inv(np.eye(3) + var_g / st2 + 1e-9 * np.eye(3)),
+        p[:, 1:],
+    )
     return plane, float(np.median(chi2) / 3.0) if len(chi2) else float("inf")
 
 
@@ -192,33 +202,60 @@ class GroundReport:
         """What was decided, in a line or two of plain words (for the log)."""
         wheels = self.drive
         if self.note:
-            held = [name for name, on in (("one plane at a fixed tilt", self.applied),
-                                          ("a wheeled robot's motion", wheels is not None
-                                           and wheels.applied)) if on]
-            return [f"whether the camera moves in one plane like a robot's is not decided on "
-                    f"this data: {self.note}; "
-                    + (f"held to {' and '.join(held)}" if held else "held to neither")]
-        out = [("the camera moves in one plane at a fixed tilt, as on a robot: held there"
-                if self.applied else "the camera leaves a single plane: its height and tilt "
-                "left free")
-               + f" (off-plane score {self.planarity:.2f}, limit {PLANAR_BOUND:.1f}); the "
-               f"camera's up axis is {self.camera_tilt_deg:.1f} deg from that plane's normal, "
-               f"and it stays within {1e3 * self.height_rms_m:.1f} mm / "
-               f"{self.tilt_rms_deg:.2f} deg RMS of the plane"]
+            held = [
+                name
+                for name, on in (
+                    ("one plane at a fixed tilt", self.applied),
+                    ("a wheeled robot's motion", wheels is not None and wheels.applied),
+                )
+                if on
+            ]
+            return [
+                f"whether the camera moves in one plane like a robot's is not decided on "
+                f"this data: {self.note}; "
+                + (f"held to {' and '.join(held)}" if held else "held to neither")
+            ]
+        out = [
+            (
+                "the camera moves in one plane at a fixed tilt, as on a robot: held there"
+                if self.applied
+                else "the camera leaves a single plane: its height and tilt left free"
+            )
+            + f" (off-plane score {self.planarity:.2f}, limit {PLANAR_BOUND:.1f}); the "
+            f"camera's up axis is {self.camera_tilt_deg:.1f} deg from that plane's normal, "
+            f"and it stays within {1e3 * self.height_rms_m:.1f} mm / "
+            f"{self.tilt_rms_deg:.2f} deg RMS of the plane"
+        ]
         if wheels is not None:
             out.append(wheels.line())
         return out
 
 
-def ground_report(R_cam: F64, t_cam: F64, plane: Plane, prior: GroundPrior, mode: str,
-                  applied: bool, stat: float, drive: Any = None, note: str = "") -> GroundReport:
+def ground_report(
+    R_cam: F64,
+    t_cam: F64,
+    plane: Plane,
+    prior: GroundPrior,
+    mode: str,
+    applied: bool,
+    stat: float,
+    drive: Any = None,
+    note: str = "",
+) -> GroundReport:
     """The :class:`GroundReport` of cameras ``cam_T_world`` against ``plane``."""
     p, _, _ = plane_terms(R_cam, t_cam, plane, prior)
     u = plane.u / max(float(np.linalg.norm(plane.u)), 1e-300)
     return GroundReport(
-        mode=mode, applied=bool(applied), planarity=stat, normal=tuple(float(v) for v in plane.n),
+        mode=mode,
+        applied=bool(applied),
+        planarity=stat,
+        normal=tuple(float(v) for v in plane.n),
         camera_tilt_deg=float(np.degrees(np.arccos(np.clip(-u[1], -1.0, 1.0)))),
         height_rms_m=float(np.sqrt(np.mean(p[:, 0] ** 2))) * prior.height_sigma_m,
-        tilt_rms_deg=float(np.degrees(np.sqrt(np.mean(np.sum(p[:, 1:] ** 2, axis=1)))
-                                      * prior.tilt_sigma_rad)),
-        frames_off=int((np.sum(p * p, axis=1) > prior.f_scale**2).sum()), drive=drive, note=note)
+        tilt_rms_deg=float(
+            np.degrees(np.sqrt(np.mean(np.sum(p[:, 1:] ** 2, axis=1))) * prior.tilt_sigma_rad)
+        ),
+        frames_off=int((np.sum(p * p, axis=1) > prior.f_scale**2).sum()),
+        drive=drive,
+        note=note,
+    )

@@ -88,8 +88,9 @@ class MotionPrior:
         J = np.zeros((len(k), 3, 6, 6))
         gr = (g * s_r)[:, None, None]
         J[:, 0, :3, :3] = -gr / h1[:, None, None] * (Jinv[k - 1] @ np.swapaxes(E[k - 1], 1, 2))
-        J[:, 1, :3, :3] = gr * (Jinv[k] @ np.swapaxes(E[k], 1, 2) / h2[:, None, None]
-                                + Jinv[k - 1] / h1[:, None, None])
+        J[:, 1, :3, :3] = gr * (
+            Jinv[k] @ np.swapaxes(E[k], 1, 2) / h2[:, None, None] + Jinv[k - 1] / h1[:, None, None]
+        )
         J[:, 2, :3, :3] = -gr / h2[:, None, None] * Jinv[k]
         for j, f in enumerate((k - 1, k, k + 1)):  # d c / d v = -world_R_cam = -R^T
             J[:, j, 3:, 3:] = -(coef[:, j] * s_t)[:, None, None] * np.swapaxes(R[f], 1, 2)
@@ -100,8 +101,14 @@ class MotionPrior:
         f2 = self.f_scale**2
         val, w = rho(self.loss, np.sum(m * m, axis=1) / f2)
         s = np.sqrt(w)
-        return Terms(float(f2 * val.sum()), m * s[:, None], self.k - 1,
-                     J * s[:, None, None, None], None, 6 * len(self.k))
+        return Terms(
+            float(f2 * val.sum()),
+            m * s[:, None],
+            self.k - 1,
+            J * s[:, None, None, None],
+            None,
+            6 * len(self.k),
+        )
 
     def update(self, value: Any, step: F64, values: Mapping[str, Any]) -> Any:
         return None

@@ -132,8 +132,9 @@ class JointResult:
         return int(self.terms.get("motion", 0))
 
 
-def project(R_cam: F64, t_cam: F64, R_tag: F64, t_tag: F64, ob: CornerObservations
-            ) -> tuple[F64, F64, F64]:
+def project(
+    R_cam: F64, t_cam: F64, R_tag: F64, t_tag: F64, ob: CornerObservations
+) -> tuple[F64, F64, F64]:
     """Residuals ``(O, 4, 2)`` (normalised), points in world and camera frames ``(O, 4, 3)``."""
     pts_w = np.einsum("oij,okj->oki", R_tag[ob.tag], ob.pts_tag) + t_tag[ob.tag][:, None]
     pts_c = np.einsum("oij,okj->oki", R_cam[ob.frame], pts_w) + t_cam[ob.frame][:, None]
@@ -159,8 +160,9 @@ def centres(R_cam: F64, t_cam: F64) -> F64:
     return np.asarray(-np.einsum("fji,fj->fi", R_cam, t_cam))
 
 
-def observation_rms_px(R_cam: F64, t_cam: F64, R_tag: F64, t_tag: F64,
-                       ob: CornerObservations, px_per_unit: float) -> F64:
+def observation_rms_px(
+    R_cam: F64, t_cam: F64, R_tag: F64, t_tag: F64, ob: CornerObservations, px_per_unit: float
+) -> F64:
     """Each observation's RMS corner error ``(O,)`` (px) at cameras ``cam_T_world`` and tags
     ``world_T_tag``."""
     r, _, _ = project(R_cam, t_cam, R_tag, t_tag, ob)
@@ -171,7 +173,6 @@ def frame_rms_px(res_px: F64, frame: I64, n_f: int) -> F64:
     """Each frame's RMS corner error ``(F,)`` from its observations' RMS errors ``res_px``."""
     n = np.bincount(frame, minlength=n_f)
     return np.sqrt(np.bincount(frame, res_px**2, n_f) / np.maximum(n, 1))
-
 
 
 def same_frame_pairs(frame: I64) -> tuple[I64, I64]:
@@ -199,8 +200,9 @@ def corner_sigma(corners_px: F64, sigma_px: float, side_ref_px: float = 20.0) ->
     return np.asarray(sigma_px * np.clip(np.nan_to_num(ratio, nan=1.0), 0.5, 2.0))
 
 
-def corner_observations(frame_idx: I64, t_ns: I64, tag: I64, corners_px: F64, size_m: F64,
-                        camera: CameraModel) -> tuple[CornerObservations, I64]:
+def corner_observations(
+    frame_idx: I64, t_ns: I64, tag: I64, corners_px: F64, size_m: F64, camera: CameraModel
+) -> tuple[CornerObservations, I64]:
     """Observations (frames numbered in time order) and each frame's stamp ``(F,)`` (ns), from
     per-observation frame ids, stamps, tag indices, corners ``(O, 4, 2)`` (px) and sizes (m)."""
     frames, f = np.unique(frame_idx, return_inverse=True)
@@ -209,8 +211,10 @@ def corner_observations(frame_idx: I64, t_ns: I64, tag: I64, corners_px: F64, si
     order = np.argsort(stamp, kind="stable")
     rank = np.empty_like(order)
     rank[order] = np.arange(len(order))
-    ob = CornerObservations(frame=rank[f], tag=np.asarray(tag, np.int64),
-                            pts_tag=tag_corners(size_m), uv=camera.undistort(corners_px))
+    ob = CornerObservations(
+        frame=rank[f],
+        tag=np.asarray(tag, np.int64),
+        pts_tag=tag_corners(size_m),
+        uv=camera.undistort(corners_px),
+    )
     return ob, stamp[order]
-
-

@@ -42,8 +42,9 @@ DRIVE_LATERAL_SIGMA = 0.01
 class JointSettings(BaseModel):
     """``optimize.joint``: the joint solve of tag and camera poses on the tags' corners."""
 
-    model_config = ConfigDict(extra="forbid", frozen=True, strict=True, allow_inf_nan=False,
-                              use_attribute_docstrings=True)
+    model_config = ConfigDict(
+        extra="forbid", frozen=True, strict=True, allow_inf_nan=False, use_attribute_docstrings=True
+    )
 
     corner_sigma_px: float = Field(0.5, ge=1e-3, le=100.0)
     """Corner noise (px, per coordinate) of a tag of 20 px sides; a smaller, farther or more
@@ -75,11 +76,12 @@ class JointSettings(BaseModel):
         """A word other than ``none`` or a number out of range: one plain line, not the
         union's errors."""
         word = isinstance(v, str) and v != "none"
-        out = (isinstance(v, int | float) and not isinstance(v, bool)
-               and not 1e-6 <= v <= 1000.0)
+        out = isinstance(v, int | float) and not isinstance(v, bool) and not 1e-6 <= v <= 1000.0
         if word or out:
-            raise ValueError(f"a number from 1e-6 to 1000 (the acceleration noise density, "
-                             f"m/s^2/sqrt(Hz)) or none, not {v!r}")
+            raise ValueError(
+                f"a number from 1e-6 to 1000 (the acceleration noise density, "
+                f"m/s^2/sqrt(Hz)) or none, not {v!r}"
+            )
         return v
 
     def motion_sigmas(self) -> tuple[float, float] | None:
@@ -100,10 +102,10 @@ JOINT_OLD_KEYS = {
     "motion": "use {joint}.motion (none, or the acceleration noise density)",
     "motion_acc_sigma": "use {joint}.motion (its value is the acceleration noise density)",
     "motion_ang_sigma_deg": "the angular density follows {joint}.motion (30 deg/s^2/sqrt(Hz) "
-                            "at 0.1)",
+    "at 0.1)",
     "corner_noise": "the corner noise is taken as given: {joint}.corner_sigma_px",
     "corner_weighting": "a tag's corner noise grows as its sides shrink, always "
-                        "({joint}.corner_sigma_px is a 20 px tag's)",
+    "({joint}.corner_sigma_px is a 20 px tag's)",
     "joint_loss": "the corners' loss is fixed (Huber at 1 px)",
     "ba_loss": "the corners' loss is fixed (Huber at 1 px)",
     "joint_f_scale_px": "the corners' loss is fixed (Huber at 1 px)",

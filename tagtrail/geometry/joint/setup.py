@@ -62,21 +62,36 @@ class CornerProblem:
     max_gap_s: float
 
 
-def corner_problem(frame_idx: I64, t_ns: I64, tag: I64, corners_px: F64, size_m: F64,
-                   cam_T_tag: F64, camera: CameraModel, settings: JointSettings, timed: bool,
-                   priors: bool = True) -> CornerProblem:
+def corner_problem(
+    frame_idx: I64,
+    t_ns: I64,
+    tag: I64,
+    corners_px: F64,
+    size_m: F64,
+    cam_T_tag: F64,
+    camera: CameraModel,
+    settings: JointSettings,
+    timed: bool,
+    priors: bool = True,
+) -> CornerProblem:
     """The :class:`CornerProblem` of observations: frame ids, stamps (ns), tag indices, corners
     ``(O, 4, 2)`` (px), sizes (m), both IPPE solutions ``(O, 2, 4, 4)``; ``timed``: the stamps
     are capture times; ``priors`` False: each frame on its own corners (no prior), the frames'
     continuity still choosing their start."""
     ob, stamps = corner_observations(frame_idx, t_ns, tag, corners_px, size_m, camera)
     t_s = (stamps - stamps[0]) * 1e-9
-    corners = Corners(camera.focal_px, corner_sigma(corners_px, settings.corner_sigma_px),
-                      CORNER_LOSS, CORNER_F_SCALE_PX, ESTIMATE_NOISE)
+    corners = Corners(
+        camera.focal_px,
+        corner_sigma(corners_px, settings.corner_sigma_px),
+        CORNER_LOSS,
+        CORNER_F_SCALE_PX,
+        ESTIMATE_NOISE,
+    )
     sig = settings.motion_sigmas() if timed and priors else None
     motion = None if sig is None else MotionPrior(t_s, *sig, settings.max_gap_s)
-    return CornerProblem(ob, stamps, t_s, cam_T_tag, corners, motion,
-                         settings.max_gap_s if timed else 0.0)
+    return CornerProblem(
+        ob, stamps, t_s, cam_T_tag, corners, motion, settings.max_gap_s if timed else 0.0
+    )
 
 
 @dataclass(frozen=True)
@@ -90,26 +105,67 @@ class Solved:
     ground: GroundReport | None
 
 
-def solve_on_corners(pb: CornerProblem, W: F64, free: np.ndarray, settings: JointSettings, *,
-                     max_iter: int = MAX_ITER, covariance: bool = True, decide: bool = True,
-                     fallback: tuple[bool, bool] | None = None) -> Solved:
+def solve_on_corners(
+    pb: CornerProblem,
+    W: F64,
+    free: np.ndarray,
+    settings: JointSettings,
+    *,
+    max_iter: int = MAX_ITER,
+    covariance: bool = True,
+    decide: bool = True,
+    fallback: tuple[bool, bool] | None = None,
+) -> Solved:
     """Solve ``pb`` from the map ``W (T, 4, 4)`` (``world_T_tag``; ``free (T,)`` the tags
     solved with the cameras), each frame started at the IPPE solution its neighbours agree
     with; ``decide``: then the ground-plane and wheeled-drive priors as ``settings`` say
     (``fallback``: the reference's decisions, for data too short or too still to decide on)."""
-    cams, choice, _ = initial_cameras(W[pb.ob.tag], pb.cam_T_tag, pb.ob, pb.t_s,
-                                      px_per_unit=pb.corners.px_per_unit, max_gap_s=pb.max_gap_s)
+    cams, choice, _ = initial_cameras(
+        W[pb.ob.tag],
+        pb.cam_T_tag,
+        pb.ob,
+        pb.t_s,
+        px_per_unit=pb.corners.px_per_unit,
+        max_gap_s=pb.max_gap_s,
+    )
     base: list[Prior] = [] if pb.motion is None else [pb.motion]
 
     def again(start: JointResult, extra: Sequence[Prior]) -> JointResult:
-        return solve_joint(start.R_tag, start.t_tag, start.R_cam, start.t_cam, pb.ob, free,
-                           pb.corners, [*base, *extra], max_iter=max_iter, covariance=covariance)
+        return solve_joint(
+            start.R_tag,
+            start.t_tag,
+            start.R_cam,
+            start.t_cam,
+            pb.ob,
+            free,
+            pb.corners,
+            [*base, *extra],
+            max_iter=max_iter,
+            covariance=covariance,
+        )
 
-    res = solve_joint(W[:, :3, :3], W[:, :3, 3], cams[:, :3, :3], cams[:, :3, 3], pb.ob, free,
-                      pb.corners, base, max_iter=max_iter, covariance=covariance)
+    res = solve_joint(
+        W[:, :3, :3],
+        W[:, :3, 3],
+        cams[:, :3, :3],
+        cams[:, :3, 3],
+        pb.ob,
+        free,
+        pb.corners,
+        base,
+        max_iter=max_iter,
+        covariance=covariance,
+    )
     ground = None
     if decide and settings.ground != "none" and pb.motion is not None:
-        res, ground = solve_grounded(res, again, GROUND, settings.ground,
-                                     None if settings.drive == "free" else DRIVE,
-                                     settings.drive, pb.motion, fallback)
+        res, ground = solve_grounded(
+            res,
+            again,
+            GROUND,
+            settings.ground,
+            None if settings.drive == "free" else DRIVE,
+            settings.drive,
+            pb.motion,
+            fallback,
+        )
     return Solved(res, choice, ground)

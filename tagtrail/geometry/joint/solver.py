@@ -78,8 +78,15 @@ class _Problem:
     """The fixed parts of one solve: index maps, the priors' column offsets, the corner
     weights (rescaled once with ``estimate_noise``)."""
 
-    def __init__(self, ob: CornerObservations, free: np.ndarray, n_f: int, n_t: int,
-                 corners: Corners, priors: Sequence[Prior]) -> None:
+    def __init__(
+        self,
+        ob: CornerObservations,
+        free: np.ndarray,
+        n_f: int,
+        n_t: int,
+        corners: Corners,
+        priors: Sequence[Prior],
+    ) -> None:
         self.ob, self.n_f, self.n_t, self.n_o = ob, n_f, n_t, len(ob.frame)
         self.corners, self.priors = corners, tuple(priors) if n_f else ()
         self.free_idx = np.flatnonzero(np.asarray(free, bool))
@@ -87,34 +94,46 @@ class _Problem:
         col = np.full(n_t, -1)
         col[self.free_idx] = np.arange(self.n_free)
         self.of = np.flatnonzero(np.asarray(free, bool)[ob.tag])  # observations of free tags
-        self.brow = np.broadcast_to((6 * ob.frame[self.of])[:, None, None]
-                                    + np.arange(6)[:, None], (len(self.of), 6, 6)).reshape(-1)
-        self.bcol = np.broadcast_to((6 * col[ob.tag[self.of]])[:, None, None]
-                                    + np.arange(6)[None, :], (len(self.of), 6, 6)).reshape(-1)
+        self.brow = np.broadcast_to(
+            (6 * ob.frame[self.of])[:, None, None] + np.arange(6)[:, None], (len(self.of), 6, 6)
+        ).reshape(-1)
+        self.bcol = np.broadcast_to(
+            (6 * col[ob.tag[self.of]])[:, None, None] + np.arange(6)[None, :], (len(self.of), 6, 6)
+        ).reshape(-1)
         names = [p.name for p in self.priors]
         for p in self.priors:
             if not set(p.uses) <= set(names):
-                raise ValueError(f"solve_joint: the {p.name} prior needs the "
-                                 f"{', '.join(sorted(set(p.uses) - set(names)))} prior")
+                raise ValueError(
+                    f"solve_joint: the {p.name} prior needs the "
+                    f"{', '.join(sorted(set(p.uses) - set(names)))} prior"
+                )
         self.offset: dict[str, int] = {}
         for p in self.priors:  # each prior's own unknowns, in the list's order
             self.offset[p.name] = sum(q.n_params for q in self.priors if q.name in self.offset)
         self.n_g = sum(p.n_params for p in self.priors)  # the priors' unknowns
-        self.cols = [np.concatenate([np.arange(self.offset[u], self.offset[u] + self._n(u))
-                                     for u in p.uses]).astype(np.int64) if p.uses
-                     else np.zeros(0, np.int64) for p in self.priors]
+        self.cols = [
+            np.concatenate(
+                [np.arange(self.offset[u], self.offset[u] + self._n(u)) for u in p.uses]
+            ).astype(np.int64)
+            if p.uses
+            else np.zeros(0, np.int64)
+            for p in self.priors
+        ]
         self.n_dense = 6 * self.n_free + self.n_g  # columns of B: the free tags', the priors'
         if self.n_g:  # the priors' block column in B: every frame's 6 rows x the n_g parameters
-            self.prow = np.broadcast_to((6 * np.arange(n_f))[:, None, None]
-                                        + np.arange(6)[:, None], (n_f, 6, self.n_g)).reshape(-1)
-            self.pcol = np.broadcast_to(6 * self.n_free + np.arange(self.n_g)[None, :],
-                                        (n_f, 6, self.n_g)).reshape(-1)
+            self.prow = np.broadcast_to(
+                (6 * np.arange(n_f))[:, None, None] + np.arange(6)[:, None], (n_f, 6, self.n_g)
+            ).reshape(-1)
+            self.pcol = np.broadcast_to(
+                6 * self.n_free + np.arange(self.n_g)[None, :], (n_f, 6, self.n_g)
+            ).reshape(-1)
         self.bidx = _band_index(n_f)
         self.last_step = 0.0  # the largest parameter change of the last step taken
         self.eye3 = np.broadcast_to(np.eye(3), (self.n_o, 4, 3, 3))
         # normalised coordinates -> units of each observation's corner noise
-        self.set_noise(np.broadcast_to(np.asarray(corners.sigma_px, np.float64),
-                                       (self.n_o,)).copy())
+        self.set_noise(
+            np.broadcast_to(np.asarray(corners.sigma_px, np.float64), (self.n_o,)).copy()
+        )
 
     def _n(self, name: str) -> int:
         return next(p.n_params for p in self.priors if p.name == name)
@@ -143,7 +162,7 @@ class _Problem:
         Jp[..., 0, 0] = Jp[..., 1, 1] = scale[:, None] / z
         Jp[..., 2] = -scale[:, None, None] * s.pc[..., :2] / (z * z)[..., None]
         Jc = (Jp @ np.concatenate([-hat(s.pc), self.eye3], axis=-1)).reshape(n_o, 8, 6)
-        Jt = (Jp @ s.R_cam[ob.frame][:, None] @ np.concatenate([-hat(s.pw), self.eye3], axis=-1))
+        Jt = Jp @ s.R_cam[ob.frame][:, None] @ np.concatenate([-hat(s.pw), self.eye3], axis=-1)
         Jt = Jt.reshape(n_o, 8, 6)
         rv = s.r.reshape(n_o, 8) * scale[:, None]
         w = s.w
@@ -153,22 +172,27 @@ class _Problem:
         gc = sum_blocks(np.einsum("oki,ok->oi", Jc, rv) * w[:, None], ob.frame, n_f)
         Hgg = gg = Bg = None
         if self.n_g:
-            Hgg, gg, Bg = np.zeros((self.n_g, self.n_g)), np.zeros(self.n_g), np.zeros(
-                (n_f, 6, self.n_g))
+            Hgg, gg, Bg = (
+                np.zeros((self.n_g, self.n_g)),
+                np.zeros(self.n_g),
+                np.zeros((n_f, 6, self.n_g)),
+            )
         for t, cols in zip(s.terms, self.cols, strict=True):
             n = t.Jc.shape[1]  # consecutive frames first .. first + n - 1 (unique per term)
             for i in range(n):
                 gc[t.first + i] += np.einsum("mki,mk->mi", t.Jc[:, i], t.r)
                 for j in range(i, n):  # block row first+j, column first+i
-                    Ablk[t.first + i, j - i] += np.einsum("mki,mkj->mij", t.Jc[:, j],
-                                                          t.Jc[:, i])
+                    Ablk[t.first + i, j - i] += np.einsum("mki,mkj->mij", t.Jc[:, j], t.Jc[:, i])
             if t.Jg is not None and len(cols):
                 assert Hgg is not None and gg is not None and Bg is not None
                 Hgg[np.ix_(cols, cols)] += np.einsum("mki,mkj->ij", t.Jg, t.Jg)
                 gg[cols] += np.einsum("mki,mk->i", t.Jg, t.r)
                 for i in range(n):
-                    Bg[(t.first + i)[:, None, None], np.arange(6)[None, :, None],
-                       cols[None, None, :]] += np.einsum("mki,mkj->mij", t.Jc[:, i], t.Jg)
+                    Bg[
+                        (t.first + i)[:, None, None],
+                        np.arange(6)[None, :, None],
+                        cols[None, None, :],
+                    ] += np.einsum("mki,mkj->mij", t.Jc[:, i], t.Jg)
         Htt = sum_blocks(np.einsum("oki,okj->oij", Jt, Jt) * W, ob.tag, n_t)[self.free_idx]
         gt = sum_blocks(np.einsum("oki,ok->oi", Jt, rv) * w[:, None], ob.tag, n_t)[self.free_idx]
         Hct = (np.einsum("oki,okj->oij", Jc, Jt) * W)[self.of]
@@ -192,9 +216,9 @@ class _Problem:
             C[sl, sl] = H * (1.0 + lam * np.eye(len(H))) + eps * np.eye(len(H))
         step = max(6, (_CHUNK // max(6 * self.n_f, 1)) // 6 * 6)
         for c0 in range(0, self.n_dense, step):
-            Bc = ne.B[:, c0:c0 + step]
+            Bc = ne.B[:, c0 : c0 + step]
             X = cho_solve_banded((cb, True), Bc.toarray())
-            C[:, c0:c0 + step] -= (ne.B.T @ X)
+            C[:, c0 : c0 + step] -= ne.B.T @ X
         return C
 
     def step(self, s: _State, ne: _Normal, lam: float) -> _State | None:
@@ -207,11 +231,13 @@ class _Problem:
             if self.n_dense:
                 y = cho_solve_banded((cb, True), ne.gc.reshape(-1))
                 S = self.schur(cb, ne, lam)
-                rhs = -np.concatenate([ne.gt.reshape(-1), [] if ne.gg is None else ne.gg]) \
+                rhs = (
+                    -np.concatenate([ne.gt.reshape(-1), [] if ne.gg is None else ne.gg])
                     + ne.B.T @ y
+                )
                 dd = cho_solve(cho_factor(S), rhs)
-                dt[self.free_idx] = dd[:6 * self.n_free].reshape(self.n_free, 6)
-                dg = dd[6 * self.n_free:]
+                dt[self.free_idx] = dd[: 6 * self.n_free].reshape(self.n_free, 6)
+                dg = dd[6 * self.n_free :]
                 dcv = -y - cho_solve_banded((cb, True), ne.B @ dd)
             else:
                 dcv = -cho_solve_banded((cb, True), ne.gc.reshape(-1))
@@ -222,12 +248,22 @@ class _Problem:
             return None
         Rc, tc = left_update(s.R_cam, s.t_cam, dc)
         Rt, tt = left_update(s.R_tag, s.t_tag, dt)
-        values = {p.name: p.update(s.values[p.name],
-                                   dg[self.offset[p.name]:self.offset[p.name] + p.n_params],
-                                   s.values) for p in self.priors}
+        values = {
+            p.name: p.update(
+                s.values[p.name],
+                dg[self.offset[p.name] : self.offset[p.name] + p.n_params],
+                s.values,
+            )
+            for p in self.priors
+        }
         new = self.evaluate(Rc, tc, Rt, tt, values)
-        self.last_step = float(max(np.abs(dt).max(initial=0.0), np.abs(dc).max(initial=0.0),
-                                   np.abs(dg).max(initial=0.0)))
+        self.last_step = float(
+            max(
+                np.abs(dt).max(initial=0.0),
+                np.abs(dc).max(initial=0.0),
+                np.abs(dg).max(initial=0.0),
+            )
+        )
         return new
 
 
@@ -294,12 +330,26 @@ def solve_joint(
     res_px = observation_rms_px(s.R_cam, s.t_cam, s.R_tag, s.t_tag, ob, corners.px_per_unit)
     tag_std = cam_std = cam_cov = None
     if covariance and n_o:
-        tag_std, cam_std, cam_cov = _std(pb, pb.normal_equations(s), s.t_tag,
-                                         max(vf, 1.0) if np.isfinite(vf) else 1.0)
-    return JointResult(s.R_tag, s.t_tag, s.R_cam, s.t_cam, res_px, s.cost, it, converged, vf,
-                       float(np.median(pb.sig)) if n_o else float("nan"),
-                       {p.name: len(t.r) for p, t in zip(pb.priors, s.terms, strict=True)},
-                       dict(s.values), tag_std, cam_std, cam_cov)
+        tag_std, cam_std, cam_cov = _std(
+            pb, pb.normal_equations(s), s.t_tag, max(vf, 1.0) if np.isfinite(vf) else 1.0
+        )
+    return JointResult(
+        s.R_tag,
+        s.t_tag,
+        s.R_cam,
+        s.t_cam,
+        res_px,
+        s.cost,
+        it,
+        converged,
+        vf,
+        float(np.median(pb.sig)) if n_o else float("nan"),
+        {p.name: len(t.r) for p, t in zip(pb.priors, s.terms, strict=True)},
+        dict(s.values),
+        tag_std,
+        cam_std,
+        cam_cov,
+    )
 
 
 def _band_index(n_f: int) -> tuple[I64, I64, I64, I64, I64]:
@@ -348,7 +398,6 @@ def _banded_diag_inverse(cb: F64) -> F64:
     return out
 
 
-
 def _std(pb: _Problem, ne: _Normal, t_tag: F64, vf: float) -> tuple[F64, F64, F64]:
     """Per-tag and per-frame ``(position m, rotation rad)`` standard deviations (RMS over the
     axes) and each frame's 6x6 covariance, from the inverse normal matrix, scaled by the
@@ -366,8 +415,9 @@ def _std(pb: _Problem, ne: _Normal, t_tag: F64, vf: float) -> tuple[F64, F64, F6
         S = pb.schur(cb, ne, 0.0)
         Sinv = cho_solve(cho_factor(S), np.eye(len(S)))
         if len(free_idx):
-            blocks = np.stack([Sinv[6 * i:6 * i + 6, 6 * i:6 * i + 6]
-                               for i in range(len(free_idx))])
+            blocks = np.stack(
+                [Sinv[6 * i : 6 * i + 6, 6 * i : 6 * i + 6] for i in range(len(free_idx))]
+            )
             J = np.zeros((len(free_idx), 3, 6))
             J[:, :, :3] = -hat(t_tag[free_idx])  # d t = -hat(t) w + v
             J[:, :, 3:] = np.eye(3)
@@ -378,7 +428,11 @@ def _std(pb: _Problem, ne: _Normal, t_tag: F64, vf: float) -> tuple[F64, F64, F6
             X = cho_solve_banded((cb, True), B.toarray()).reshape(n_f, 6, -1)
             cam_cov = cam_cov + np.einsum("fik,fjk->fij", X @ Sinv, X)
     cam_cov = cam_cov * vf
-    cam_std = np.stack([np.sqrt(np.trace(cam_cov[:, 3:, 3:], axis1=1, axis2=2) / 3),
-                        np.sqrt(np.trace(cam_cov[:, :3, :3], axis1=1, axis2=2) / 3)], axis=1)
+    cam_std = np.stack(
+        [
+            np.sqrt(np.trace(cam_cov[:, 3:, 3:], axis1=1, axis2=2) / 3),
+            np.sqrt(np.trace(cam_cov[:, :3, :3], axis1=1, axis2=2) / 3),
+        ],
+        axis=1,
+    )
     return tag_std, cam_std, cam_cov
-

@@ -13,8 +13,15 @@ from tagtrail.geometry.se3 import R_from_rotvec, inv
 
 
 def initial_cameras(
-    world_T_tag: F64, cam_T_tag: F64, ob: CornerObservations, t_s: F64, *,
-    px_per_unit: float, max_gap_s: float, speed_mps: float = 1.5, turn_dps: float = 120.0,
+    world_T_tag: F64,
+    cam_T_tag: F64,
+    ob: CornerObservations,
+    t_s: F64,
+    *,
+    px_per_unit: float,
+    max_gap_s: float,
+    speed_mps: float = 1.5,
+    turn_dps: float = 120.0,
     cap_px: float = 8.0,
 ) -> tuple[F64, I64, float]:
     """A start for :func:`~.solver.solve_joint`: each frame's ``cam_T_world`` ``(F, 4, 4)``
@@ -33,12 +40,13 @@ def initial_cameras(
     valid = np.isfinite(cand).all(axis=(2, 3))
     a, b = same_frame_pairs(ob.frame)
     unary = np.zeros((n_o, 2))
-    pts_w = (np.einsum("oij,okj->oki", world_T_tag[:, :3, :3], ob.pts_tag)
-             + world_T_tag[:, None, :3, 3])
+    pts_w = (
+        np.einsum("oij,okj->oki", world_T_tag[:, :3, :3], ob.pts_tag) + world_T_tag[:, None, :3, 3]
+    )
     cap2 = (cap_px / px_per_unit) ** 2
     for s in range(2):
         for lo in range(0, len(a), 200_000):
-            aa, bb = a[lo:lo + 200_000], b[lo:lo + 200_000]
+            aa, bb = a[lo : lo + 200_000], b[lo : lo + 200_000]
             err = _capped_sq(np.nan_to_num(cand[aa, s]), pts_w[bb], ob.uv[bb], cap2)
             unary[:, s] += np.bincount(aa, err, n_o)
     unary = unary * px_per_unit**2
@@ -72,11 +80,11 @@ def initial_cameras(
             j = int(back[fr - (upto - len(idx_of))][j])
 
     for fr in range(n_f):
-        obs = order[starts[fr]:starts[fr + 1]]
+        obs = order[starts[fr] : starts[fr + 1]]
         ids = (2 * obs[:, None] + np.arange(2)).reshape(-1)
         ids = ids[np.isfinite(U[ids])]
         if not len(ids):  # no usable solution: the caller keeps such frames out
-            ids = (2 * obs[:1])
+            ids = 2 * obs[:1]
         if gap[fr] > max_gap_s or gap[fr] <= 0 or not idx_of:
             finish(fr)
             back, idx_of = [], []
@@ -87,8 +95,9 @@ def initial_cameras(
             dc = np.linalg.norm(centre[prev][:, None] - centre[ids][None], axis=-1)
             cosang = (np.einsum("pij,qij->pq", Tc[prev, :3, :3], Tc[ids, :3, :3]) - 1) / 2
             ang = np.arccos(np.clip(cosang, -1.0, 1.0))
-            trans = ((dc / (speed_mps * h + 0.02)) ** 2
-                     + (ang / (np.radians(turn_dps) * h + np.radians(2.0))) ** 2)
+            trans = (dc / (speed_mps * h + 0.02)) ** 2 + (
+                ang / (np.radians(turn_dps) * h + np.radians(2.0))
+            ) ** 2
             tot = cost[:, None] + trans
             bk = np.argmin(tot, axis=0)
             cost = tot[bk, np.arange(len(ids))] + U[ids]
@@ -97,7 +106,6 @@ def initial_cameras(
         prev = ids
     finish(n_f)
     return out, choice, total
-
 
 
 def _pose_distance(A: F64, B: F64) -> F64:
@@ -120,8 +128,15 @@ def _medoid(cands: F64) -> F64:
 
 
 def link_tags(
-    world_T_tag: F64, known: np.ndarray, cam_T_tag: F64, ob: CornerObservations, t_s: F64, *,
-    px_per_unit: float, max_gap_s: float, sightings: int = 3,
+    world_T_tag: F64,
+    known: np.ndarray,
+    cam_T_tag: F64,
+    ob: CornerObservations,
+    t_s: F64,
+    *,
+    px_per_unit: float,
+    max_gap_s: float,
+    sightings: int = 3,
 ) -> tuple[F64, np.ndarray]:
     """Place tags the pose graph could not (never seen together with a mapped tag without
     ambiguity) through the trajectory: one sweep in time, each frame posed from its known tags
@@ -140,7 +155,7 @@ def link_tags(
     posed: list[tuple[float, F64]] = []  # (t, world_T_cam) of the last two posed frames
     t_known = -np.inf  # when a frame was last posed from known tags
     for fr in range(n_f):
-        obs = order[starts[fr]:starts[fr + 1]]
+        obs = order[starts[fr] : starts[fr + 1]]
         k = known[ob.tag[obs]]
         pose = None
         if k.any():
@@ -167,18 +182,22 @@ def link_tags(
     return world_T_tag, known
 
 
-def _best_candidate(world_T_tag: F64, cam_T_tag: F64, ob: CornerObservations, kn: I64,
-                    px_per_unit: float) -> F64 | None:
+def _best_candidate(
+    world_T_tag: F64, cam_T_tag: F64, ob: CornerObservations, kn: I64, px_per_unit: float
+) -> F64 | None:
     """Of the IPPE candidates ``world_T_cam`` of observations ``kn`` (known tags of one frame),
     the one reprojecting all of them best (squared px, capped per tag); None if none is finite."""
     cand = (world_T_tag[ob.tag[kn]][:, None] @ inv(cam_T_tag[kn])).reshape(-1, 4, 4)
     cand = cand[np.isfinite(cand).all(axis=(1, 2))]
     if not len(cand):
         return None
-    pts_w = (np.einsum("oij,okj->oki", world_T_tag[ob.tag[kn], :3, :3], ob.pts_tag[kn])
-             + world_T_tag[ob.tag[kn], None, :3, 3])
-    score = _capped_sq(inv(cand)[:, None], pts_w[None], ob.uv[kn][None],
-                       (8.0 / px_per_unit) ** 2).sum(1)
+    pts_w = (
+        np.einsum("oij,okj->oki", world_T_tag[ob.tag[kn], :3, :3], ob.pts_tag[kn])
+        + world_T_tag[ob.tag[kn], None, :3, 3]
+    )
+    score = _capped_sq(
+        inv(cand)[:, None], pts_w[None], ob.uv[kn][None], (8.0 / px_per_unit) ** 2
+    ).sum(1)
     return np.asarray(cand[int(np.argmin(score))])
 
 
@@ -186,8 +205,10 @@ def _capped_sq(cam_T_world: F64, pts_w: F64, uv: F64, cap2: float) -> F64:
     """Mean squared corner error (normalised units) of world corners ``pts_w (..., 4, 3)`` seen
     at ``uv (..., 4, 2)`` from ``cam_T_world (..., 4, 4)`` (broadcast), capped at ``cap2``
     (a corner behind the camera counts as the cap): the candidate score of the start poses."""
-    pc = (np.einsum("...ij,...kj->...ki", cam_T_world[..., :3, :3], pts_w)
-          + cam_T_world[..., None, :3, 3])
+    pc = (
+        np.einsum("...ij,...kj->...ki", cam_T_world[..., :3, :3], pts_w)
+        + cam_T_world[..., None, :3, 3]
+    )
     z = pc[..., 2:3]
     e = np.where(z > 1e-6, pc[..., :2] / np.where(z > 1e-6, z, 1.0) - uv, 1e3)
     return np.asarray(np.minimum(np.mean(np.sum(e * e, -1), -1), cap2))
