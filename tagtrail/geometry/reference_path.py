@@ -67,6 +67,11 @@ class Plane:
         f_uv = np.asarray(world_R_cam, dtype=np.float64)[..., :, 2] @ self.basis[:2].T
         return np.arctan2(f_uv[..., 1], f_uv[..., 0])
 
+    def v_down(self, world_R_cam: ArrayLike) -> bool:
+        """Whether a drawing seen from above shows v downwards: the normal points along the
+        cameras' mean "down" (their y axis; rotations ``(N, 3, 3)``)."""
+        return bool(self.n @ np.asarray(world_R_cam, dtype=np.float64)[:, :, 1].mean(axis=0) > 0)
+
     def rotation_about_normal(self, angle_rad: float) -> F64:
         """World rotation ``(3, 3)`` by ``angle_rad`` about ``n``: adds the angle to headings."""
         c, s = np.cos(angle_rad), np.sin(angle_rad)

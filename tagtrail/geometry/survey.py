@@ -27,7 +27,7 @@ import numpy as np
 from tagtrail.geometry.arrays import F64
 from tagtrail.geometry.registration import umeyama
 from tagtrail.geometry.rotations import geodesic_angle
-from tagtrail.geometry.se3 import R_from_quat_xyzw, R_from_rotvec
+from tagtrail.geometry.se3 import R_from_quat_xyzw, R_from_rotvec, rotation_angle
 
 # WPILib's tag frame (+X out of the face, +Y to the viewer's right... as seen facing the tag, Z
 # up) -> SPEC's (x right, y up, z out): columns = SPEC's axes in WPILib's frame.
@@ -322,6 +322,30 @@ class SurveyFit:
         out[:, :3, :3] = self.R @ out[:, :3, :3]
         out[:, :3, 3] = self.scale * out[:, :3, 3] @ self.R.T + self.t
         return out
+
+    def report(self) -> dict[str, Any]:
+        """The fit and its residuals at the known tags as plain values (``optimize.report``'s
+        ``survey`` block, less where the survey came from)."""
+        rot = np.nan_to_num(self.res_rot_deg, nan=0.0)
+        full = np.isfinite(self.res_rot_deg)
+        return {
+            "scale": self.scale,
+            "rotation_deg": float(np.degrees(rotation_angle(self.R))),
+            "translation_m": [float(v) for v in self.t],
+            "tags": self.ids.astype(int).tolist(),
+            "missing": self.missing,
+            "res_pos_rms_m": float(np.sqrt(np.mean(self.res_pos_m**2))),
+            "res_pos_max_m": float(self.res_pos_m.max()),
+            "res_rot_rms_deg": float(np.sqrt(np.mean(rot[full] ** 2))) if full.any() else None,
+            "per_tag": [
+                {
+                    "tag_id": int(i),
+                    "res_pos_m": float(p),
+                    "res_rot_deg": float(r) if np.isfinite(r) else None,
+                }
+                for i, p, r in zip(self.ids, self.res_pos_m, self.res_rot_deg, strict=True)
+            ],
+        }
 
 
 def _points(T: F64, full: np.ndarray, half: F64) -> tuple[F64, np.ndarray]:

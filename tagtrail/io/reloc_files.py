@@ -192,8 +192,7 @@ def write_outputs(
     plane = reference_plane(plane_name, *poses(ref_traj))
     ref_P, ref_R = poses(ref_traj)
     names = plane_axis_names(plane_name)
-    # v is drawn downwards when the normal points along the cameras' "down" (seen from above)
-    flip_v = bool(plane.n @ ref_R[:, :, 1].mean(axis=0) > 0)
+    flip_v = plane.v_down(ref_R)
     d, p = summary["distance_m"], summary["abs_heading_error_deg"]
     assoc = summary.get("association")
     how = f" ({assoc} association)" if summary["mode"] == "trajectory" and assoc else ""

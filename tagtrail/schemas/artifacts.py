@@ -13,6 +13,7 @@ import pandas as pd
 import pyarrow as pa
 from numpy.typing import NDArray
 
+from tagtrail.geometry.joint.problem import CornerRows
 from tagtrail.geometry.se3 import R_from_quat_xyzw, T_from_xyz_quat
 
 VERSION = 4
@@ -213,3 +214,15 @@ def both_solutions(rows: pd.DataFrame) -> NDArray[np.float64]:
         swap = ok & (alt_err < err)
         out[swap] = out[swap][:, ::-1]
     return out
+
+
+def corner_arrays(rows: pd.DataFrame) -> CornerRows:
+    """:func:`corner_rows` as the joint solve's arrays (:class:`CornerRows`)."""
+    return CornerRows(
+        rows["frame_idx"].to_numpy(np.int64),
+        rows["t_ns"].to_numpy(np.int64),
+        rows["tag_id"].to_numpy(np.int64),
+        rows[CORNER_COLS].to_numpy(np.float64).reshape(-1, 4, 2),
+        rows["size_m"].to_numpy(np.float64),
+        both_solutions(rows),
+    )

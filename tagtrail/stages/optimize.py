@@ -28,63 +28,57 @@ shared camera pose couples the tags' model errors instead (a miscalibrated lens:
 fitting poorly drags the far ones; seen on the real FRC field photos, 3 frames per group of
 tags). So it runs only when ``joint_min_frames`` (30) frames or more see a mapped tag; otherwise
 the pose-graph map is kept and the log says so.
-Old parameter names (``refine: corners|none``, ``ba_*``) still work with a deprecation line.
+Old parameter names (``refine``, ``ba_*``, the joint solve's) are refused with one line naming
+their new place (:data:`OLD_KEYS`). The maths lives in geometry: the pose graph
+(:mod:`~tagtrail.geometry.posegraph`, its edges, branch check and components in
+:mod:`~tagtrail.geometry.tagmap`), the joint solve from it
+(:mod:`~tagtrail.geometry.joint.mapping`),
+the surveyed world (:mod:`~tagtrail.geometry.survey`).
 """
 
 from __future__ import annotations
 
-import dataclasses
 import logging
-from collections.abc import Callable
 from typing import Any, Literal
 
 import numpy as np
 import pandas as pd
 from pydantic import Field, model_validator
-from scipy.sparse import coo_matrix
-from scipy.sparse.csgraph import connected_components
 
 from tagtrail.errors import DataError
 from tagtrail.geometry.camera import CameraModel
-from tagtrail.geometry.ippe import map_branches
 from tagtrail.geometry.joint import (
-    SHIFT_SIGMA_BOUND,
-    CornerProblem,
     JointSettings,
-    corner_problem,
-    link_tags,
-    solve_on_corners,
+    MapRefinement,
+    choose_rivals,
+    evidence_rows,
+    refine_map,
 )
 from tagtrail.geometry.joint.settings import JOINT_OLD_KEYS
-from tagtrail.geometry.posegraph import PoseGraph, PoseGraphResult, relative_residuals, solve
+from tagtrail.geometry.posegraph import PoseGraphResult, relative_residuals, solve
 from tagtrail.geometry.reference_path import reference_plane
 from tagtrail.geometry.robust import LossName
-from tagtrail.geometry.rotations import geodesic_angle
-from tagtrail.geometry.se3 import (
-    R_from_quat_xyzw,
-    inv,
-    make_T,
-    quat_xyzw_from_R,
-    rotation_angle,
-    xyz_quat_from_T,
-)
+from tagtrail.geometry.se3 import R_from_quat_xyzw, make_T, quat_xyzw_from_R
 from tagtrail.geometry.survey import fit_survey
+from tagtrail.geometry.tagmap import (
+    EdgeSet,
+    map_checked_edges,
+    pair_key,
+    per_tag_rms,
+    poorly_constrained,
+    tag_components,
+)
 from tagtrail.schemas.artifacts import (
-    CORNER_COLS,
+    EVIDENCE_COLS,
     POSE_COLS,
     both_solutions,
     columns,
+    corner_arrays,
     corner_rows,
     poses,
     timed,
 )
-from tagtrail.schemas.documents import (
-    OptimizeReport,
-    PlacedComponent,
-    RivalPair,
-    Summary,
-    TagGraph,
-)
+from tagtrail.schemas.documents import OptimizeReport, PlacedComponent, Summary, TagGraph
 from tagtrail.schemas.pipeline import SurveyConfig
 from tagtrail.stages.base import Export, ExportFiles, Metric, StageParams, refuse_old_keys
 
@@ -166,23 +160,6 @@ OUTPUTS = ("tag_map", "edge_residuals", "report")
 SCOPE = "all"
 
 
-def poorly_constrained(tag_map: pd.DataFrame) -> np.ndarray:
-    """Tags whose position standard deviation exceeds 3x the map's median (or 5 cm): what the
-    diagnostics list and ``map.png`` draws apart. All False when the map has no uncertainty."""
-    std = tag_map["std_pos_m"].to_numpy(np.float64) if "std_pos_m" in tag_map else None
-    if std is None or not np.isfinite(std).any():
-        return np.zeros(len(tag_map), bool)
-    med = float(np.nanmedian(std[std > 0])) if (std > 0).any() else 0.0
-    return np.asarray(np.isfinite(std) & (std > min(3.0 * med, 0.05)) & (std > 0))
-
-
-def _per_tag_rms(idx_i: np.ndarray, idx_j: np.ndarray, sq: np.ndarray, n: int) -> np.ndarray:
-    """RMS of per-edge values ``sqrt(sq)`` over the edges touching each tag (NaN if none)."""
-    s = np.bincount(idx_i, sq, n) + np.bincount(idx_j, sq, n)
-    c = np.bincount(idx_i, minlength=n) + np.bincount(idx_j, minlength=n)
-    return np.where(c > 0, np.sqrt(s / np.maximum(c, 1)), np.nan)
-
-
 def surveyed_world(tag_map: pd.DataFrame, cfg: SurveyConfig) -> tuple[pd.DataFrame, dict[str, Any]]:
     """The tag map (anchor frame) re-expressed in the surveyed world of ``cfg`` (geometry.survey:
     rigid or similarity fit on the known tags it holds), and the report block: the fit and the
@@ -190,16 +167,12 @@ def surveyed_world(tag_map: pd.DataFrame, cfg: SurveyConfig) -> tuple[pd.DataFra
     ``size_m``, ``std_pos_m``, ``res_t_rms_m``: the tags' printed size in the survey's metres);
     the edge residuals stay in the measurements'. :class:`DataError` when the known tags do not
     fix the world."""
-    ids = tag_map["tag_id"].to_numpy(np.int64)
     vals = tag_map[POSE_COLS].to_numpy(np.float64)
     map_T_tag = make_T(R_from_quat_xyzw(vals[:, 3:]), vals[:, :3])
+    similarity, sizes = cfg.model == "similarity", tag_map["size_m"].to_numpy(np.float64)
     try:
         fit = fit_survey(
-            ids,
-            map_T_tag,
-            cfg.survey(),
-            cfg.model == "similarity",
-            tag_map["size_m"].to_numpy(np.float64),
+            tag_map["tag_id"].to_numpy(np.int64), map_T_tag, cfg.survey(), similarity, sizes
         )
     except ValueError as err:
         raise DataError(f"optimize: surveyed world ({cfg.file or 'survey.tags'}): {err}") from err
@@ -209,276 +182,21 @@ def surveyed_world(tag_map: pd.DataFrame, cfg: SurveyConfig) -> tuple[pd.DataFra
     for c in ("size_m", "std_pos_m", "res_t_rms_m"):  # lengths in the survey's metres, too
         if c in tag_map.columns:
             out[c] = tag_map[c] * fit.scale
-    rot = np.nan_to_num(fit.res_rot_deg, nan=0.0)
-    full = np.isfinite(fit.res_rot_deg)
-    per_tag = [
-        {
-            "tag_id": int(i),
-            "res_pos_m": float(p),
-            "res_rot_deg": float(r) if np.isfinite(r) else None,
-        }
-        for i, p, r in zip(fit.ids, fit.res_pos_m, fit.res_rot_deg, strict=True)
-    ]
-    block = {
-        "source": cfg.file or "inline",
-        "format": cfg.format,
-        "model": cfg.model,
-        "scale": fit.scale,
-        "rotation_deg": float(np.degrees(rotation_angle(fit.R))),
-        "translation_m": [float(v) for v in fit.t],
-        "tags": fit.ids.astype(int).tolist(),
-        "missing": fit.missing,
-        "res_pos_rms_m": float(np.sqrt(np.mean(fit.res_pos_m**2))),
-        "res_pos_max_m": float(fit.res_pos_m.max()),
-        "res_rot_rms_deg": float(np.sqrt(np.mean(rot[full] ** 2))) if full.any() else None,
-        "per_tag": per_tag,
-    }
-    rot_text = (
-        "" if block["res_rot_rms_deg"] is None else f", {block['res_rot_rms_deg']:.2f} deg rms"
-    )
+    fig = fit.report()
+    rot_rms = fig["res_rot_rms_deg"]
     log.info(
         "optimize: surveyed world (%s, %s, %s) from known tags %s: residuals %.1f mm rms "
         "(max %.1f mm)%s%s",
-        block["source"],
+        cfg.file or "inline",
         cfg.format,
         cfg.model,
-        block["tags"],
-        1e3 * block["res_pos_rms_m"],
-        1e3 * block["res_pos_max_m"],
-        rot_text,
+        fig["tags"],
+        1e3 * fig["res_pos_rms_m"],
+        1e3 * fig["res_pos_max_m"],
+        "" if rot_rms is None else f", {rot_rms:.2f} deg rms",
         f"; known tags not in the map: {fit.missing}" if fit.missing else "",
     )
-    return out, block
-
-
-def _problem(
-    m: pd.DataFrame,
-    k: np.ndarray,
-    cam_T_tag: np.ndarray,
-    camera: CameraModel,
-    settings: JointSettings,
-    timed: bool,
-) -> CornerProblem:
-    """The joint problem of ``corner_rows`` ``m`` (tag indices ``k``, IPPE solutions
-    ``cam_T_tag``)."""
-    return corner_problem(
-        m["frame_idx"].to_numpy(np.int64),
-        m["t_ns"].to_numpy(np.int64),
-        k,
-        m[CORNER_COLS].to_numpy(np.float64).reshape(-1, 4, 2),
-        m["size_m"].to_numpy(np.float64),
-        cam_T_tag,
-        camera,
-        settings,
-        timed,
-    )
-
-
-def refine_on_corners(
-    R: np.ndarray,
-    t: np.ndarray,
-    tags: np.ndarray,
-    anchor: int,
-    observations: pd.DataFrame,
-    detections: pd.DataFrame,
-    camera: CameraModel,
-    params: Params,
-    is_timed: bool,
-) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, dict[str, Any]] | None:
-    """The joint solve from the pose-graph map ``R (T, 3, 3)``, ``t (T, 3)`` of the sorted ids
-    ``tags``: the ids it maps (``tags`` plus tags linked through the trajectory), their
-    ``world_T_tag`` (R, t), standard deviations ``(N, 2)`` (m, rad) and a report block; None when
-    too few frames see a mapped tag (``joint_min_frames``). ``is_timed``: the stamps are capture
-    times (else no prior and no tag linked through the trajectory)."""
-    m = corner_rows(observations, detections, np.unique(observations["tag_id"].to_numpy()))
-    n_frames = int(m.loc[m["tag_id"].isin(tags), "frame_idx"].nunique())
-    if n_frames < params.joint_min_frames:
-        log.info(
-            "optimize: only %d frames see a mapped tag (joint_min_frames %d): the map from "
-            "tag pairs is kept, not refined over all frames together",
-            n_frames,
-            params.joint_min_frames,
-        )
-        return None
-    ids = np.union1d(tags, m["tag_id"].to_numpy(np.int64))
-    W = np.full((len(ids), 4, 4), np.nan)
-    W[np.searchsorted(ids, tags)] = make_T(R, t)
-    known = np.isin(ids, tags)
-    cam_T_tag = both_solutions(m)
-    k = np.searchsorted(ids, m["tag_id"].to_numpy(np.int64))
-    linked: list[int] = []
-    settings = params.joint
-    if is_timed and not known[k].all():
-        pb = _problem(m, k, cam_T_tag, camera, settings, is_timed)
-        W, now = link_tags(
-            W, known, cam_T_tag, pb.ob, pb.t_s, px_per_unit=camera.focal_px, max_gap_s=pb.max_gap_s
-        )
-        linked = ids[now & ~known].tolist()
-        if linked:
-            log.info("optimize: tags %s linked to the map through the trajectory", linked)
-        known = now
-    keep = known[k]
-    m, cam_T_tag = m[keep].reset_index(drop=True), cam_T_tag[keep]
-    ids, W = ids[known], W[known]
-    k = np.searchsorted(ids, m["tag_id"].to_numpy(np.int64))
-    pb = _problem(m, k, cam_T_tag, camera, settings, is_timed)
-    a = int(np.searchsorted(ids, tags[anchor]))
-    free = (np.arange(len(ids)) != a) & (np.bincount(k, minlength=len(ids)) > 0)
-    out = solve_on_corners(pb, W, free, settings)
-    res = out.res
-    for line in [] if out.ground is None else out.ground.lines():
-        log.info("optimize: %s", line)
-    if not res.converged:
-        log.warning(
-            "optimize: the joint solve stopped after %d iterations before converging", res.iters
-        )
-    n_tags = np.bincount(pb.ob.frame, minlength=len(pb.t_ns))
-    block = {
-        "frames": int(len(pb.t_ns)),
-        "single_tag_frames": int((n_tags == 1).sum()),
-        "observations": int(len(m)),
-        "motion_prior_frames": res.prior_terms,
-        "ippe_second_solution": int((out.choice % 2 == 1).sum()),
-        "linked_tags": linked,
-        "iterations": res.iters,
-        "converged": res.converged,
-        "cost": res.cost,
-        "variance_factor": res.variance_factor,
-        "corner_sigma_px": res.sigma_px,
-        "rms_px": float(np.sqrt(np.mean(res.res_px**2))),
-        "p95_px": float(np.percentile(res.res_px, 95)),
-        "ground": None if out.ground is None else dataclasses.asdict(out.ground),
-    }
-    assert res.tag_std is not None
-    fixed = np.where(np.arange(len(ids)) == a, 0.0, np.nan)[:, None]  # the anchor; unobserved
-    std = np.where(free[:, None], res.tag_std, fixed)
-    return ids, res.R_tag, res.t_tag, std, block
-
-
-def choose_hypotheses(
-    edges: pd.DataFrame,
-    hyp: np.ndarray,
-    rivals: list[RivalPair],
-    graph_of: Callable[[np.ndarray], PoseGraph],
-    res: PoseGraphResult,
-    tags: np.ndarray,
-    edges_anchor: int,
-    observations: pd.DataFrame,
-    detections: pd.DataFrame,
-    camera: CameraModel,
-    params: Params,
-) -> tuple[np.ndarray, PoseGraphResult, list[list[int]]]:
-    """Decide the tag pairs with a rival hypothesis (``edges.rival_pairs``) by the frames'
-    continuity: for each, closest call first (at most ``RIVAL_MAX_PAIRS``), the pose graph is
-    solved with the pair's rival edges instead and kept if the joint solve from there (corners
-    and motion prior, ``RIVAL_MAX_ITER`` iterations from ``initial_cameras``' start) costs
-    less. A mirrored tag seen only while
-    the view hardly changes agrees with itself across those frames; the frames before and after
-    do not agree with it. Returns the edge rows to use, the pose graph's solution and the
-    flipped pairs."""
-    m = corner_rows(observations, detections, tags)
-    k = np.searchsorted(tags, m["tag_id"].to_numpy(np.int64))
-    pb = _problem(m, k, both_solutions(m), camera, params.joint, True)
-    anchor = int(np.searchsorted(tags, edges_anchor))
-    free = (np.arange(len(tags)) != anchor) & (np.bincount(k, minlength=len(tags)) > 0)
-
-    def cost(r: PoseGraphResult) -> float:
-        return solve_on_corners(
-            pb,
-            make_T(r.R, r.t),
-            free,
-            params.joint,
-            max_iter=RIVAL_MAX_ITER,
-            covariance=False,
-            decide=False,
-        ).res.cost
-
-    key = edges["tag_i"].to_numpy(np.int64) * (1 << 32) + edges["tag_j"].to_numpy(np.int64)
-    ranked = sorted(rivals, key=lambda p: -p.support_ratio)[:RIVAL_MAX_PAIRS]
-    order = [p.tag_i * (1 << 32) + p.tag_j for p in ranked]
-    use, best = hyp == 0, cost(res)
-    flipped: list[list[int]] = []
-    for r in order:
-        trial = np.where(key == r, hyp == 1, use)
-        r_res = solve(
-            graph_of(trial), loss=params.loss, f_scale=params.f_scale, max_nfev=MAX_NFEV
-        )  # afresh: a flip turns a whole branch
-        c = cost(r_res)
-        if c < best:
-            use, res, best = trial, r_res, c
-            flipped.append([int(r >> 32), int(r & 0xFFFFFFFF)])
-    if flipped:
-        log.info(
-            "optimize: tag pairs %s: the other of the two mirror-image poses fits the "
-            "camera's smooth motion better and is used",
-            flipped,
-        )
-    return use, res, flipped
-
-
-def map_checked_edges(
-    edges: pd.DataFrame,
-    use: np.ndarray,
-    tags: np.ndarray,
-    res: PoseGraphResult,
-    observations: pd.DataFrame,
-    rivals: list[RivalPair],
-) -> tuple[pd.DataFrame, int]:
-    """``edges`` with the rows in ``use`` rebuilt from the IPPE solutions the map ``res`` (over
-    ``tags``) picks for their observations (geometry.ippe.map_branches) where that turns them
-    by more than a degree; and the number of rows rebuilt. The map's pick overrides the pair's
-    (``edges.branches``): it weighs every edge, the pair only its own frames. Pairs with a rival
-    hypothesis are left to ``choose_hypotheses`` (a bridge: the map cannot check it)."""
-    obs = observations[observations["tag_id"].isin(tags).to_numpy()]
-    obs = obs[~obs.duplicated(["t_ns", "tag_id"], keep=False).to_numpy()]
-    S = both_solutions(obs)
-    if not np.isfinite(S[:, 1]).all(axis=(1, 2)).any():
-        return edges, 0
-    k = np.searchsorted(tags, obs["tag_id"].to_numpy(np.int64))
-    pick = map_branches(obs["frame_idx"].to_numpy(np.int64), res.R[k], S[:, :, :3, :3])
-    chosen = S[np.arange(len(obs)), pick]
-    at = pd.MultiIndex.from_arrays([obs["t_ns"].to_numpy(), obs["tag_id"].to_numpy()])
-    t_ns = edges["t_ns"].to_numpy()
-    ri = at.get_indexer(pd.MultiIndex.from_arrays([t_ns, edges["tag_i"].to_numpy()]))
-    rj = at.get_indexer(pd.MultiIndex.from_arrays([t_ns, edges["tag_j"].to_numpy()]))
-    pair = edges["tag_i"].to_numpy(np.int64) * (1 << 32) + edges["tag_j"].to_numpy(np.int64)
-    rival = np.isin(pair, [r.tag_i * (1 << 32) + r.tag_j for r in rivals])
-    rows = np.flatnonzero(use & (ri >= 0) & (rj >= 0) & ~rival)
-    T_new = inv(chosen[ri[rows]]) @ chosen[rj[rows]]
-    R_old = R_from_quat_xyzw(edges[POSE_COLS[3:]].to_numpy(np.float64)[rows])
-    changed = geodesic_angle(R_old, T_new[:, :3, :3]) > np.radians(1.0)
-    if not changed.any():
-        return edges, 0
-    xyz, q = xyz_quat_from_T(T_new[changed])
-    edges = edges.copy()
-    edges.loc[edges.index[rows[changed]], POSE_COLS] = np.concatenate([xyz, q], axis=1)
-    return edges, int(changed.sum())
-
-
-def components(edges: pd.DataFrame, graph: TagGraph) -> list[np.ndarray]:
-    """The tag graph's connected components (tag ids), the anchor's first, then by size."""
-    tags = np.asarray(sorted(int(t) for t in graph.get("tags", [])), dtype=np.int64)
-    if graph.anchor_id not in tags:
-        raise DataError(
-            f"optimize: anchor tag {graph.anchor_id} is not among the mapped tags {tags}"
-        )
-    ti, tj = edges["tag_i"].to_numpy(np.int64), edges["tag_j"].to_numpy(np.int64)
-    if not (np.isin(ti, tags).all() and np.isin(tj, tags).all()):
-        raise DataError("optimize: edges name tags missing from the graph's tag list")
-    ii, jj = np.searchsorted(tags, ti), np.searchsorted(tags, tj)
-    adj = coo_matrix((np.ones(len(ii)), (ii, jj)), shape=(len(tags), len(tags)))
-    n, label = connected_components(adj, directed=False)
-    first = label[np.searchsorted(tags, graph.anchor_id)]
-    if n > 1 and n != graph.n_components:  # edges keeps one component, or all of them
-        lost = tags[label != first]
-        raise DataError(
-            f"optimize: tags {lost.tolist()} share no edge path with anchor tag "
-            f"{graph.anchor_id} (the edges and graph artifacts disagree; re-run the edges stage)"
-        )
-    order = sorted(
-        range(n), key=lambda c: (c != first, -int((label == c).sum()), int(tags[label == c].min()))
-    )
-    return [tags[label == c] for c in order]
+    return out, {"source": cfg.file or "inline", "format": cfg.format, "model": cfg.model, **fig}
 
 
 def run(
@@ -497,22 +215,34 @@ def run(
     observed tag its anchor, only its tags' observations) and placed by the known tags it holds
     (``report.components``); a component no known tag places is left out with a warning, as all
     of them are without a survey."""
-    comps = components(edges, graph)
+    tags = np.asarray(sorted(int(t) for t in graph.get("tags", [])), dtype=np.int64)
+    if graph.anchor_id not in tags:
+        raise DataError(
+            f"optimize: anchor tag {graph.anchor_id} is not among the mapped tags {tags}"
+        )
+    ti, tj = edges["tag_i"].to_numpy(np.int64), edges["tag_j"].to_numpy(np.int64)
+    if not (np.isin(ti, tags).all() and np.isin(tj, tags).all()):
+        raise DataError("optimize: edges name tags missing from the graph's tag list")
+    comps = tag_components(tags, ti, tj, graph.anchor_id)
+    if len(comps) > 1 and len(comps) != graph.n_components:  # edges keeps one, or all of them
+        raise DataError(
+            f"optimize: tags {np.sort(np.concatenate(comps[1:])).tolist()} share no edge path "
+            f"with anchor tag {graph.anchor_id} (the edges and graph artifacts disagree; re-run "
+            "the edges stage)"
+        )
     if len(comps) == 1:
         return _solve(edges, graph, observations, detections, params, camera, frames)
-    rest = np.concatenate(comps[1:])
     if params.survey is None:
         log.warning(
             "optimize: tags %s are not linked to anchor tag %d by co-observations and "
             "there is no surveyed world (optimize.survey) to place them: left out",
-            rest.tolist(),
+            np.concatenate(comps[1:]).tolist(),
             graph.anchor_id,
         )
 
-    def part(
-        tags: np.ndarray, anchor: int, obs_all: bool
-    ) -> tuple[pd.DataFrame, TagGraph, pd.DataFrame, pd.DataFrame | None]:
-        e = edges[edges["tag_i"].isin(tags).to_numpy()]
+    def part(tags: np.ndarray, anchor: int, obs_all: bool) -> dict[str, Any]:
+        """One component's :func:`_solve` (``obs_all``: with every observation, so that the
+        anchor's joint solve may link tags through the trajectory)."""
         g = graph.model_copy(
             update={
                 "anchor_id": anchor,
@@ -520,16 +250,14 @@ def run(
                 "rival_pairs": [r for r in graph.rival_pairs if r.tag_i in tags],
             }
         )
-        if obs_all:  # the anchor's solve keeps every observation: the trajectory may link tags
-            return e, g, observations, detections
-        return (
-            e,
-            g,
-            observations[observations["tag_id"].isin(tags).to_numpy()],
-            None if detections is None else detections[detections["tag_id"].isin(tags).to_numpy()],
-        )
+        obs, dets = observations, detections
+        if not obs_all:
+            obs = obs[obs["tag_id"].isin(tags).to_numpy()]
+            dets = None if dets is None else dets[dets["tag_id"].isin(tags).to_numpy()]
+        e = edges[edges["tag_i"].isin(tags).to_numpy()]
+        return _solve(e, g, obs, dets, params, camera, frames)
 
-    out = _solve(*part(comps[0], graph.anchor_id, True), params, camera=camera, frames=frames)
+    out = part(comps[0], graph.anchor_id, True)
     if params.survey is None:
         return out
     maps, residuals, placed = [out["tag_map"]], [out["edge_residuals"]], []
@@ -538,10 +266,9 @@ def run(
     for tags in comps[1:]:
         if done.issuperset(tags.tolist()):
             continue  # the anchor's joint solve linked it through the trajectory
-        counts = n_obs.reindex(tags, fill_value=0).to_numpy()
-        anchor = int(tags[int(np.argmax(counts))])
+        anchor = int(tags[int(np.argmax(n_obs.reindex(tags, fill_value=0).to_numpy()))])
         try:
-            sub = _solve(*part(tags, anchor, False), params, camera=camera, frames=frames)
+            sub = part(tags, anchor, False)
         except DataError as err:
             log.warning(
                 "optimize: tags %s (not linked to anchor tag %d) left out: %s",
@@ -555,16 +282,27 @@ def run(
         residuals.append(sub["edge_residuals"])
         done.update(sub["tag_map"]["tag_id"][new].tolist())
         placed.append(
-            PlacedComponent(
-                anchor_id=anchor, tags=[int(t) for t in tags], survey=sub["report"].survey
-            )
+            PlacedComponent(anchor_id=anchor, tags=tags.tolist(), survey=sub["report"].survey)
         )
-    tag_map = pd.concat(maps, ignore_index=True).sort_values("tag_id", ignore_index=True)
     return {
-        "tag_map": tag_map,
+        "tag_map": pd.concat(maps, ignore_index=True).sort_values("tag_id", ignore_index=True),
         "edge_residuals": pd.concat(residuals, ignore_index=True),
         "report": out["report"].model_copy(update={"components": placed}),
     }
+
+
+def _edge_set(edges: pd.DataFrame, tags: np.ndarray) -> EdgeSet:
+    """``edges.edges`` over the sorted ids ``tags`` as arrays."""
+    n = len(edges)
+    return EdgeSet(
+        tags,
+        edges["tag_i"].to_numpy(np.int64),
+        edges["tag_j"].to_numpy(np.int64),
+        edges["t_ns"].to_numpy(np.int64),
+        edges[POSE_COLS].to_numpy(np.float64),
+        edges["weight"].to_numpy(np.float64),
+        edges["hypothesis"].to_numpy(np.int64) if "hypothesis" in edges else np.zeros(n, np.int64),
+    )
 
 
 def _solve(
@@ -576,72 +314,61 @@ def _solve(
     camera: CameraModel | None = None,
     frames: pd.DataFrame | None = None,
 ) -> dict[str, Any]:
-    """:func:`run` on one connected tag graph."""
+    """:func:`run` on one connected tag graph: the pose graph, its branch check, the rival
+    hypotheses, the joint solve; the tables and the report."""
     tags = np.asarray(sorted(int(t) for t in graph.get("tags", [])), dtype=np.int64)
-    anchor = graph.anchor_id
-    ti, tj = edges["tag_i"].to_numpy(np.int64), edges["tag_j"].to_numpy(np.int64)
-    ii, jj = np.searchsorted(tags, ti), np.searchsorted(tags, tj)
-    hyp = (
-        edges["hypothesis"].to_numpy(np.int64)
-        if "hypothesis" in edges.columns
-        else np.zeros(len(edges), np.int64)
-    )
-    use = hyp == 0
+    anchor, E = graph.anchor_id, _edge_set(edges, tags)
 
-    def graph_of(use: np.ndarray) -> PoseGraph:
-        vals = edges[POSE_COLS].to_numpy(np.float64)[use]
-        return PoseGraph(
-            n_tags=len(tags),
-            anchor=int(np.searchsorted(tags, anchor)),
-            idx_i=ii[use],
-            idx_j=jj[use],
-            R_obs=R_from_quat_xyzw(vals[:, 3:]),
-            t_obs=vals[:, :3],
-            weight=edges["weight"].to_numpy(np.float64)[use],
-            rot_weight_m=ROT_WEIGHT_M,
-        )
+    def solve_graph(use: np.ndarray) -> PoseGraphResult:
+        g = E.graph(use, anchor, ROT_WEIGHT_M)
+        return solve(g, loss=params.loss, f_scale=params.f_scale, max_nfev=MAX_NFEV)
 
-    g = graph_of(use)
-    res = solve(g, loss=params.loss, f_scale=params.f_scale, max_nfev=MAX_NFEV)
-    rebuilt = 0
+    use = E.hypothesis == 0
+    res, rebuilt = solve_graph(use), 0
+    rivals = np.array([int(pair_key(r.tag_i, r.tag_j)) for r in graph.rival_pairs], np.int64)
+    if params.branch_check == "map":
+        obs = observations[observations["tag_id"].isin(tags).to_numpy()]
+        obs = obs[~obs.duplicated(["t_ns", "tag_id"], keep=False).to_numpy()]
+        o_t, o_tag = obs["t_ns"].to_numpy(np.int64), obs["tag_id"].to_numpy(np.int64)
+        o_frame, S = obs["frame_idx"].to_numpy(np.int64), both_solutions(obs)
     for _ in range(3 if params.branch_check == "map" else 0):
-        edges, n = map_checked_edges(edges, use, tags, res, observations, graph.rival_pairs)
+        R_obs = res.R[np.searchsorted(tags, o_tag)]
+        E, n = map_checked_edges(E, use, np.isin(E.key, rivals), o_t, o_tag, o_frame, S, R_obs)
         if n == 0:
             break
         rebuilt += n
-        g = graph_of(use)
-        res = solve(g, loss=params.loss, f_scale=params.f_scale, max_nfev=MAX_NFEV)
+        res = solve_graph(use)
     if rebuilt:
         log.info(
             "optimize: %d tag-pair links rebuilt from the mirror-image poses the map agrees with",
             rebuilt,
         )
-    joint = (
-        params.method == "joint"
-        and detections is not None
-        and len(detections) > 0
-        and camera is not None
-    )
+    joint = params.method == "joint" and detections is not None and len(detections) > 0
+    joint = joint and camera is not None
     flipped: list[list[int]] = []
-    if joint and (hyp > 0).any() and params.rival_search and timed(frames):
+    if joint and (E.hypothesis > 0).any() and params.rival_search and timed(frames):
         assert detections is not None and camera is not None
-        use, res, flipped = choose_hypotheses(
-            edges,
-            hyp,
-            graph.rival_pairs,
-            graph_of,
-            res,
+        ranked = sorted(graph.rival_pairs, key=lambda p: -p.support_ratio)[:RIVAL_MAX_PAIRS]
+        use, res, flipped = choose_rivals(
+            corner_arrays(corner_rows(observations, detections, tags)),
             tags,
-            anchor,
-            observations,
-            detections,
+            int(np.searchsorted(tags, anchor)),
             camera,
-            params,
+            params.joint,
+            E.key,
+            E.hypothesis,
+            [int(pair_key(p.tag_i, p.tag_j)) for p in ranked],
+            res,
+            solve_graph,
+            RIVAL_MAX_ITER,
         )
-        g = graph_of(use)
-    edges = edges[use]
-    ti, tj = ti[use], tj[use]
-    ii, jj = ii[use], jj[use]
+        if flipped:
+            log.info(
+                "optimize: tag pairs %s: the other of the two mirror-image poses fits the "
+                "camera's smooth motion better and is used",
+                flipped,
+            )
+    g = E.graph(use, anchor, ROT_WEIGHT_M)
     R_map, t_map, res_t, res_r = res.R, res.t, res.res_t, res.res_r
     bundle, std = None, np.full((len(tags), 2), np.nan)
     std[g.anchor] = 0.0
@@ -653,39 +380,36 @@ def _solve(
                 "optimize: the stamps are the files' order, not capture times: no motion "
                 "prior, no tags linked through the trajectory"
             )
-        out = refine_on_corners(
+        refined = _refine(
             R_map, t_map, tags, g.anchor, observations, detections, camera, params, is_timed
         )
-        if out is not None:
-            ids, R_map, t_map, std, bundle = out
+        if refined is not None:
+            R_map, t_map, std, bundle = refined.R, refined.t, refined.std, refined.block
             bundle["rival_pairs_flipped"] = flipped
-            sel = np.searchsorted(ids, tags)
+            sel = np.searchsorted(refined.ids, tags)
             res_t, res_r = relative_residuals(R_map[sel], t_map[sel], g)
-            tags = ids
-            ii, jj = np.searchsorted(tags, ti), np.searchsorted(tags, tj)
-
-    e_t = np.linalg.norm(res_t, axis=1)
-    e_r = np.linalg.norm(res_r, axis=1)
+            tags = refined.ids
+    ti, tj = E.tag_i[use], E.tag_j[use]
+    ii, jj = np.searchsorted(tags, ti), np.searchsorted(tags, tj)
+    e_t, e_r = np.linalg.norm(res_t, axis=1), np.linalg.norm(res_r, axis=1)
     obs_tag = observations["tag_id"].to_numpy(np.int64)
     n_obs = pd.Series(obs_tag).value_counts().reindex(tags, fill_value=0).to_numpy(np.int64)
+    size = np.full(len(tags), np.nan)
     if "size_m" in observations.columns:
         size = observations.groupby("tag_id")["size_m"].median().reindex(tags).to_numpy(float)
-    else:
-        size = np.full(len(tags), np.nan)
     tag_map = pd.DataFrame({"tag_id": tags.astype(np.int32)})
     tag_map[POSE_COLS] = np.concatenate([t_map, quat_xyzw_from_R(R_map)], axis=1)
     tag_map["n_obs"] = n_obs
     tag_map["size_m"] = size
-    tag_map["res_t_rms_m"] = _per_tag_rms(ii, jj, e_t**2, len(tags))
-    tag_map["res_r_rms_deg"] = np.rad2deg(_per_tag_rms(ii, jj, e_r**2, len(tags)))
+    tag_map["res_t_rms_m"] = per_tag_rms(ii, jj, e_t**2, len(tags))
+    tag_map["res_r_rms_deg"] = np.rad2deg(per_tag_rms(ii, jj, e_r**2, len(tags)))
     tag_map["std_pos_m"] = std[:, 0]
     tag_map["std_rot_deg"] = np.rad2deg(std[:, 1])
-
     residuals = pd.DataFrame(
         {
             "tag_i": ti.astype(np.int32),
             "tag_j": tj.astype(np.int32),
-            "t_ns": edges["t_ns"].to_numpy(np.int64),
+            "t_ns": E.t_ns[use],
             "res_t_m": e_t,
             "res_r_deg": np.rad2deg(e_r),
         }
@@ -715,7 +439,42 @@ def _solve(
     }
 
 
-# --- what a sweep ranks by and what a run exports (declared for the runner) ----------------
+def _refine(
+    R: np.ndarray,
+    t: np.ndarray,
+    tags: np.ndarray,
+    anchor: int,
+    observations: pd.DataFrame,
+    detections: pd.DataFrame,
+    camera: CameraModel,
+    params: Params,
+    is_timed: bool,
+) -> MapRefinement | None:
+    """The joint solve from the pose graph's map (geometry.joint.refine_map) on the corners of
+    every observed tag, its lines logged; None when fewer than ``joint_min_frames`` frames see
+    a mapped tag."""
+    m = corner_rows(observations, detections, np.unique(observations["tag_id"].to_numpy()))
+    n_frames = int(m.loc[m["tag_id"].isin(tags), "frame_idx"].nunique())
+    if n_frames < params.joint_min_frames:
+        log.info(
+            "optimize: only %d frames see a mapped tag (joint_min_frames %d): the map from "
+            "tag pairs is kept, not refined over all frames together",
+            n_frames,
+            params.joint_min_frames,
+        )
+        return None
+    out = refine_map(R, t, tags, anchor, corner_arrays(m), camera, params.joint, is_timed)
+    if out.linked:
+        log.info("optimize: tags %s linked to the map through the trajectory", out.linked)
+    for line in [] if out.solved.ground is None else out.solved.ground.lines():
+        log.info("optimize: %s", line)
+    if not out.solved.res.converged:
+        log.warning(
+            "optimize: the joint solve stopped after %d iterations before converging",
+            out.solved.res.iters,
+        )
+    return out
+
 
 METRICS = tuple(
     Metric(f"map.{name}", "report", path, unit, default=5 if name == "rms_t_m" else 0)
@@ -739,34 +498,6 @@ def _tag_map_files(
         "tag_map.yaml": ("tag_map_yaml", (tag_map, report.anchor_id)),
         "tag_map.csv": ("tag_map_csv", tag_map),
     }
-
-
-def _evidence_rows(traj: pd.DataFrame) -> list[tuple[str, Any]]:
-    """The reference trajectory against its evidence: corner RMS of the output and of the
-    frames on their own corners (medians, and their ratio), the temporal step's change, and the
-    frames it moved beyond their own uncertainty."""
-
-    def med(c: str) -> Any:
-        v = traj[c].to_numpy(np.float64)
-        return float(np.nanmedian(v)) if np.isfinite(v).any() else ""
-
-    def top(c: str) -> Any:
-        v = traj[c].to_numpy(np.float64)
-        return float(np.nanmax(v)) if np.isfinite(v).any() else ""
-
-    rp, ar = med("reproj_px"), med("alone_reproj_px")
-    sig = traj["shift_sigma"].to_numpy(np.float64)
-    beyond = int(np.sum(sig > SHIFT_SIGMA_BOUND)) if np.isfinite(sig).any() else ""
-    return [
-        ("frame_reproj_px_median", rp),
-        ("frame_alone_reproj_px_median", ar),
-        ("frame_reproj_ratio", rp / ar if rp != "" and ar != "" and ar > 0 else ""),
-        ("frame_shift_m_median", med("shift_m")),
-        ("frame_shift_m_max", top("shift_m")),
-        ("frame_shift_deg_max", top("shift_deg")),
-        ("frame_shift_sigma_max", top("shift_sigma")),
-        ("frames_moved_beyond_evidence", beyond),
-    ]
 
 
 def _diagnostics_file(
@@ -814,11 +545,11 @@ def _diagnostics_file(
     elif report is not None:
         rows.append(("map_method", report.method))
     if tags is not None and "std_pos_m" in tags.columns:
-        weak = tags.loc[poorly_constrained(tags), "tag_id"].astype(int)
+        weak = tags.loc[poorly_constrained(tags["std_pos_m"].to_numpy(np.float64)), "tag_id"]
         rows += [
             ("tag_std_pos_m_median", float(tags["std_pos_m"].median())),
             ("tag_std_pos_m_max", float(tags["std_pos_m"].max())),
-            ("poorly_constrained_tags", " ".join(f"tag36h11:{t}" for t in weak)),
+            ("poorly_constrained_tags", " ".join(f"tag36h11:{int(t)}" for t in weak)),
         ]
     survey = report.survey if report is not None else None
     if survey is not None:  # the surveyed world and its residuals at the known tags
@@ -848,7 +579,7 @@ def _diagnostics_file(
             ("frame_std_pos_m_max", float(traj["std_pos_m"].max())),
         ]
     if traj is not None and "shift_m" in traj.columns:
-        rows += _evidence_rows(traj)
+        rows += evidence_rows(*(traj[c].to_numpy(np.float64) for c in EVIDENCE_COLS))
     return {"diagnostics.csv": ("metric_value_csv", rows)}
 
 
@@ -866,22 +597,19 @@ def _recording_map_file(
     plane_name = str(getattr(report, "plane", "auto"))
     P, R = poses(traj)
     plane = reference_plane(plane_name, P, R)
-    return {
-        "map.png": (
-            "recording_map_png",
-            dict(
-                dataset=dataset,
-                plane_name=plane_name,
-                uv=plane.to_uv(P),
-                flip_v=bool(plane.n @ R[:, :, 1].mean(axis=0) > 0),
-                tags_uv=plane.to_uv(tags[["x_m", "y_m", "z_m"]].to_numpy()),
-                tag_ids=tags["tag_id"].astype(int).tolist(),
-                weak_tags=poorly_constrained(tags),
-                tag_std_m=tags["std_pos_m"].to_numpy(np.float64) if "std_pos_m" in tags else None,
-                ref_heading_rad=plane.heading(R),
-            ),
-        )
-    }
+    std = tags["std_pos_m"].to_numpy(np.float64) if "std_pos_m" in tags else None
+    view = dict(
+        dataset=dataset,
+        plane_name=plane_name,
+        uv=plane.to_uv(P),
+        flip_v=plane.v_down(R),
+        tags_uv=plane.to_uv(tags[["x_m", "y_m", "z_m"]].to_numpy()),
+        tag_ids=tags["tag_id"].astype(int).tolist(),
+        weak_tags=poorly_constrained(np.full(len(tags), np.nan) if std is None else std),
+        tag_std_m=std,
+        ref_heading_rad=plane.heading(R),
+    )
+    return {"map.png": ("recording_map_png", view)}
 
 
 EXPORTS = (

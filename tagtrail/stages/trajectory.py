@@ -66,6 +66,7 @@ from tagtrail.schemas.artifacts import (
     POSE_COLS,
     both_solutions,
     columns,
+    corner_arrays,
     corner_rows,
     per_frame,
     timed,
@@ -163,18 +164,7 @@ def joint_trajectory(
     the map's ``settings``; ``fallback``: the map's ground-plane and drive decisions, for data
     too short or too still to decide on; ``priors`` False: each frame on its own corners."""
     k = np.searchsorted(ids, rows["tag_id"].to_numpy(np.int64))
-    pb = corner_problem(
-        rows["frame_idx"].to_numpy(np.int64),
-        rows["t_ns"].to_numpy(np.int64),
-        k,
-        rows[CORNER_COLS].to_numpy(np.float64).reshape(-1, 4, 2),
-        rows["size_m"].to_numpy(np.float64),
-        both_solutions(rows),
-        camera,
-        settings,
-        is_timed,
-        priors,
-    )
+    pb = corner_problem(corner_arrays(rows), k, camera, settings, is_timed, priors)
     ob, t_ns, prior = pb.ob, pb.t_ns, pb.motion
     solved = solve_on_corners(pb, W_map, np.zeros(len(ids), bool), settings, fallback=fallback)
     res, ground = solved.res, solved.ground

@@ -11,21 +11,30 @@
   (:func:`solve_grounded`), taken only on data that can support them;
 - :mod:`.start` -- the starting poses (:func:`initial_cameras`, :func:`link_tags`);
 - :mod:`.evidence` -- how far the priors moved each frame from its own corners
-  (:func:`frame_evidence`);
+  (:func:`frame_evidence`; :func:`evidence_rows`, its ``diagnostics.csv`` rows);
 - :mod:`.settings` -- :class:`JointSettings`, what a user sets, and the fixed constants;
 - :mod:`.setup` -- one dataset's problem from its settings and its solve
-  (:func:`corner_problem`, :func:`solve_on_corners`), for ``optimize`` and ``trajectory``.
+  (:func:`corner_problem`, :func:`solve_on_corners`), for ``optimize`` and ``trajectory``;
+- :mod:`.mapping` -- the map's joint solve from the pose graph (:func:`refine_map`: tags linked
+  through the trajectory, the report block; :func:`choose_rivals`: rival hypotheses decided).
 """
 
 from __future__ import annotations
 
 from tagtrail.geometry.joint.decide import Travel, solve_grounded, travel
 from tagtrail.geometry.joint.drive import DrivePrior, DriveReport, Mount, WheeledDrive
-from tagtrail.geometry.joint.evidence import SHIFT_SIGMA_BOUND, FrameEvidence, frame_evidence
+from tagtrail.geometry.joint.evidence import (
+    SHIFT_SIGMA_BOUND,
+    FrameEvidence,
+    evidence_rows,
+    frame_evidence,
+)
 from tagtrail.geometry.joint.ground import GroundPlane, GroundPrior, GroundReport, Plane
+from tagtrail.geometry.joint.mapping import MapRefinement, choose_rivals, refine_map
 from tagtrail.geometry.joint.motion import MotionPrior
 from tagtrail.geometry.joint.problem import (
     CornerObservations,
+    CornerRows,
     Corners,
     JointResult,
     Prior,
@@ -44,6 +53,7 @@ __all__ = [
     "SHIFT_SIGMA_BOUND",
     "CornerObservations",
     "CornerProblem",
+    "CornerRows",
     "Corners",
     "DrivePrior",
     "DriveReport",
@@ -53,6 +63,7 @@ __all__ = [
     "GroundReport",
     "JointResult",
     "JointSettings",
+    "MapRefinement",
     "MotionPrior",
     "Mount",
     "Plane",
@@ -61,14 +72,17 @@ __all__ = [
     "Terms",
     "Travel",
     "WheeledDrive",
+    "choose_rivals",
     "corner_observations",
     "corner_problem",
     "corner_sigma",
+    "evidence_rows",
     "frame_evidence",
     "frame_rms_px",
     "initial_cameras",
     "link_tags",
     "observation_rms_px",
+    "refine_map",
     "solve_grounded",
     "solve_joint",
     "solve_on_corners",

@@ -78,3 +78,33 @@ def frame_evidence(
         R_alone=alone.R_cam,
         t_alone=alone.t_cam,
     )
+
+
+def evidence_rows(
+    reproj_px: F64, alone_reproj_px: F64, shift_m: F64, shift_deg: F64, shift_sigma: F64
+) -> list[tuple[str, float | int | str]]:
+    """A trajectory against its evidence (the columns of :class:`FrameEvidence`, NaN: unknown),
+    as ``diagnostics.csv`` rows: corner RMS of the output and of the frames on their own corners
+    (medians, and their ratio), the temporal step's change, and the frames it moved beyond their
+    own uncertainty (``""``: unknown)."""
+
+    def med(v: F64) -> float | str:
+        return float(np.nanmedian(v)) if np.isfinite(v).any() else ""
+
+    def top(v: F64) -> float | str:
+        return float(np.nanmax(v)) if np.isfinite(v).any() else ""
+
+    rp, ar = med(reproj_px), med(alone_reproj_px)
+    sig = shift_sigma
+    beyond = int(np.sum(sig > SHIFT_SIGMA_BOUND)) if np.isfinite(sig).any() else ""
+    ratio = rp / ar if isinstance(rp, float) and isinstance(ar, float) and ar > 0 else ""
+    return [
+        ("frame_reproj_px_median", rp),
+        ("frame_alone_reproj_px_median", ar),
+        ("frame_reproj_ratio", ratio),
+        ("frame_shift_m_median", med(shift_m)),
+        ("frame_shift_m_max", top(shift_m)),
+        ("frame_shift_deg_max", top(shift_deg)),
+        ("frame_shift_sigma_max", top(shift_sigma)),
+        ("frames_moved_beyond_evidence", beyond),
+    ]

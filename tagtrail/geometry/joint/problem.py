@@ -20,7 +20,7 @@ terms (:class:`Terms`); :mod:`.solver` minimises the sum.
 from __future__ import annotations
 
 from collections.abc import Mapping
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, fields
 from typing import Any, Protocol
 
 import numpy as np
@@ -198,6 +198,29 @@ def corner_sigma(corners_px: F64, sigma_px: float, side_ref_px: float = 20.0) ->
     side = np.linalg.norm(c - np.roll(c, 1, axis=1), axis=2).mean(axis=1)
     ratio = np.sqrt(side_ref_px / np.maximum(side, 1e-6))
     return np.asarray(sigma_px * np.clip(np.nan_to_num(ratio, nan=1.0), 0.5, 2.0))
+
+
+@dataclass(frozen=True)
+class CornerRows:
+    """Observations with their corners, in (time, frame, tag) order: frame ids, stamps (ns),
+    tag ids, corners ``(O, 4, 2)`` (px), sizes (m), both IPPE solutions ``(O, 2, 4, 4)``."""
+
+    frame_idx: I64
+    t_ns: I64
+    tag_id: I64
+    corners_px: F64
+    size_m: F64
+    cam_T_tag: F64
+
+    def take(self, keep: np.ndarray) -> CornerRows:
+        """The rows ``keep`` (bool or indices)."""
+        return CornerRows(*(getattr(self, f.name)[keep] for f in fields(self)))
+
+    def observations(self, tag: I64, camera: CameraModel) -> tuple[CornerObservations, I64]:
+        """:func:`corner_observations` of these rows, ``tag`` their tags' indices."""
+        return corner_observations(
+            self.frame_idx, self.t_ns, tag, self.corners_px, self.size_m, camera
+        )
 
 
 def corner_observations(

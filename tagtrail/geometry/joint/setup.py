@@ -23,10 +23,10 @@ from tagtrail.geometry.joint.ground import GroundPrior, GroundReport
 from tagtrail.geometry.joint.motion import MotionPrior
 from tagtrail.geometry.joint.problem import (
     CornerObservations,
+    CornerRows,
     Corners,
     JointResult,
     Prior,
-    corner_observations,
     corner_sigma,
 )
 from tagtrail.geometry.joint.settings import (
@@ -63,22 +63,18 @@ class CornerProblem:
 
 
 def corner_problem(
-    frame_idx: I64,
-    t_ns: I64,
+    rows: CornerRows,
     tag: I64,
-    corners_px: F64,
-    size_m: F64,
-    cam_T_tag: F64,
     camera: CameraModel,
     settings: JointSettings,
     timed: bool,
     priors: bool = True,
 ) -> CornerProblem:
-    """The :class:`CornerProblem` of observations: frame ids, stamps (ns), tag indices, corners
-    ``(O, 4, 2)`` (px), sizes (m), both IPPE solutions ``(O, 2, 4, 4)``; ``timed``: the stamps
-    are capture times; ``priors`` False: each frame on its own corners (no prior), the frames'
-    continuity still choosing their start."""
-    ob, stamps = corner_observations(frame_idx, t_ns, tag, corners_px, size_m, camera)
+    """The :class:`CornerProblem` of ``rows``, ``tag`` their tags' indices in the map;
+    ``timed``: the stamps are capture times; ``priors`` False: each frame on its own corners
+    (no prior), the frames' continuity still choosing their start."""
+    corners_px = rows.corners_px
+    ob, stamps = rows.observations(tag, camera)
     t_s = (stamps - stamps[0]) * 1e-9
     corners = Corners(
         camera.focal_px,
@@ -90,7 +86,7 @@ def corner_problem(
     sig = settings.motion_sigmas() if timed and priors else None
     motion = None if sig is None else MotionPrior(t_s, *sig, settings.max_gap_s)
     return CornerProblem(
-        ob, stamps, t_s, cam_T_tag, corners, motion, settings.max_gap_s if timed else 0.0
+        ob, stamps, t_s, rows.cam_T_tag, corners, motion, settings.max_gap_s if timed else 0.0
     )
 
 
