@@ -1,8 +1,31 @@
-"""The tag map around its pose graph (stage ``optimize``): the pairwise edges as arrays and the
-pose graph of any subset of them (:class:`EdgeSet`), the map's check of each edge's IPPE
-solutions (:func:`map_checked_edges`), the tag graph's connected components
-(:func:`tag_components`) and the per-tag figures of a map (:func:`per_tag_rms`,
-:func:`poorly_constrained`)."""
+"""The tag map of stage ``optimize``, from the pairwise edges to the joint solve.
+
+:func:`build_map` drives it for one connected tag graph. The pose graph of the edges
+(:class:`EdgeSet`, solved as :class:`GraphSettings` say; :mod:`tagtrail.geometry.posegraph` for
+the maths): the anchor tag is fixed at the identity (gauge); every other tag has a rotation vector
+and a translation; the residual per edge observation ``[t_pred - t_obs ; rot_weight_m *
+Log(R_pred^T R_obs)]`` scaled by ``sqrt(weight)``, the robust loss acting on its norm;
+initialised from a spanning tree of robust per-pair means, solved by Levenberg-Marquardt on the
+pair-accumulated normal equations. That map then checks each observation's IPPE solution in its
+frame (:func:`map_checked_edges`, :func:`tagtrail.geometry.ippe.map_branches`): edges built from
+a solution the map disagrees with are rebuilt from the other, and the graph solved again.
+
+With :class:`JointInputs`, the tag pairs with a close rival hypothesis are decided by the
+frames' continuity, and the tag poses and the camera pose of every frame that sees a mapped tag
+solved jointly on the corner reprojection error (:mod:`tagtrail.geometry.joint.mapping`), from
+the pose-graph map, each frame at the IPPE solution its neighbours agree with; tags the pose
+graph left out (seen with the map only ambiguously, or never together with it) are placed
+through the trajectory first. The pairwise edges of Eq. 3.2 carry the bias of single-tag PnP (a
+small tag's out-of-plane rotation error levered over the distance to the other tag) and the pose
+graph inherits it; the joint solve does not. It needs redundancy: its gain is averaging many
+frames; from a handful of photos the shared camera pose couples the tags' model errors instead
+(a miscalibrated lens: a near tag fitting poorly drags the far ones; seen on the real FRC field
+photos, 3 frames per group of tags), so it runs only when ``min_frames`` frames or more see a
+mapped tag.
+
+Beside it: the tag graph's connected components (:func:`tag_components`) and the per-tag figures
+of a map (:func:`per_tag_rms`, :func:`poorly_constrained`).
+"""
 
 from __future__ import annotations
 
@@ -13,8 +36,13 @@ from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
 
 from tagtrail.geometry.arrays import F64, I64
+from tagtrail.geometry.camera import CameraModel
 from tagtrail.geometry.ippe import map_branches
-from tagtrail.geometry.posegraph import PoseGraph
+from tagtrail.geometry.joint.mapping import MapRefinement, choose_rivals, refine_map
+from tagtrail.geometry.joint.problem import CornerRows
+from tagtrail.geometry.joint.settings import JointSettings
+from tagtrail.geometry.posegraph import PoseGraph, PoseGraphResult, relative_residuals, solve
+from tagtrail.geometry.robust import LossName
 from tagtrail.geometry.rotations import geodesic_angle
 from tagtrail.geometry.se3 import R_from_quat_xyzw, inv, xyz_quat_from_T
 
@@ -144,3 +172,155 @@ def poorly_constrained(std: F64) -> np.ndarray:
         return np.zeros(len(std), bool)
     med = float(np.nanmedian(std[std > 0])) if (std > 0).any() else 0.0
     return np.asarray(np.isfinite(std) & (std > min(3.0 * med, 0.05)) & (std > 0))
+
+
+@dataclass(frozen=True)
+class GraphSettings:
+    """How the pose graph is solved (:func:`~tagtrail.geometry.posegraph.solve`): the robust
+    ``loss`` and its ``f_scale`` (m), the evaluations allowed, metres per radian of rotation."""
+
+    loss: LossName
+    f_scale: float
+    max_nfev: int
+    rot_weight_m: float
+
+    def solve(self, edges: EdgeSet, use: np.ndarray, anchor_id: int) -> PoseGraphResult:
+        """The pose graph of the edges ``use``, gauge at tag ``anchor_id``, solved."""
+        g = edges.graph(use, anchor_id, self.rot_weight_m)
+        return solve(g, loss=self.loss, f_scale=self.f_scale, max_nfev=self.max_nfev)
+
+
+@dataclass(frozen=True)
+class Sightings:
+    """The map's tags' observations, one per stamp and tag: stamps, tag ids, frames and both
+    IPPE solutions ``cam_T_tag (O, 2, 4, 4)`` (what the branch check weighs)."""
+
+    t_ns: I64
+    tag_id: I64
+    frame_idx: I64
+    cam_T_tag: F64
+
+
+@dataclass(frozen=True)
+class JointInputs:
+    """What the joint solve from the pose graph needs: the corner ``rows`` of every observed
+    tag, the camera, the settings, whether the stamps are capture times, the frames needed
+    (``min_frames``), the rival pair keys to try in order (None: no rival search) and the
+    iterations each is scored by."""
+
+    rows: CornerRows
+    camera: CameraModel
+    settings: JointSettings
+    timed: bool
+    min_frames: int
+    rivals: list[int] | None
+    rival_max_iter: int
+
+
+@dataclass(frozen=True)
+class MapBuild:
+    """A tag map: the ids ``tags`` (sorted) and their ``world_T_tag`` (``R``, ``t``), standard
+    deviations ``std (T, 2)`` (m, rad; NaN: unknown, the anchor 0); the edges used (``use``)
+    and their residuals against the map ``res_t``, ``res_r`` ``(E', 3)``; the pose graph's
+    solution, the edges the branch check rebuilt, the rival pairs flipped, the frames seeing
+    a mapped tag with corners and the joint solve (None: not run)."""
+
+    tags: I64
+    R: F64
+    t: F64
+    std: F64
+    use: np.ndarray
+    res_t: F64
+    res_r: F64
+    graph: PoseGraphResult
+    rebuilt: int
+    flipped: list[list[int]]
+    n_frames: int
+    refined: MapRefinement | None
+
+
+def build_map(
+    edges: EdgeSet,
+    anchor_id: int,
+    gs: GraphSettings,
+    check: Sightings | None,
+    skip: I64,
+    joint: JointInputs | None,
+) -> MapBuild:
+    """The tag map of one connected tag graph: the pose graph of the edges of hypothesis 0;
+    with ``check``, up to 3 rounds of the map's branch check (:func:`map_checked_edges`; the
+    pairs ``skip`` left to the rival search), each solved again; with ``joint``, the rival
+    pairs decided (:func:`~tagtrail.geometry.joint.choose_rivals`) and the joint solve on the
+    corners (:func:`~tagtrail.geometry.joint.refine_map`) when ``min_frames`` frames or more see
+    a mapped tag."""
+    tags = edges.tags
+    use = edges.hypothesis == 0
+    res, rebuilt = gs.solve(edges, use, anchor_id), 0
+    for _ in range(0 if check is None else 3):
+        assert check is not None
+        R_obs = res.R[np.searchsorted(tags, check.tag_id)]
+        edges, n = map_checked_edges(
+            edges,
+            use,
+            np.isin(edges.key, skip),
+            check.t_ns,
+            check.tag_id,
+            check.frame_idx,
+            check.cam_T_tag,
+            R_obs,
+        )
+        if n == 0:
+            break
+        rebuilt += n
+        res = gs.solve(edges, use, anchor_id)
+    anchor = int(np.searchsorted(tags, anchor_id))
+    flipped: list[list[int]] = []
+    if joint is not None and (edges.hypothesis > 0).any() and joint.rivals is not None:
+        final = edges  # the rival search solves the graph of the checked edges
+
+        def solve_graph(u: np.ndarray) -> PoseGraphResult:
+            return gs.solve(final, u, anchor_id)
+
+        use, res, flipped = choose_rivals(
+            joint.rows.take(np.isin(joint.rows.tag_id, tags)),
+            tags,
+            anchor,
+            joint.camera,
+            joint.settings,
+            edges.key,
+            edges.hypothesis,
+            joint.rivals,
+            res,
+            solve_graph,
+            joint.rival_max_iter,
+        )
+    std = np.full((len(tags), 2), np.nan)
+    std[anchor] = 0.0
+    n_frames, refined = 0, None
+    res_t, res_r = res.res_t, res.res_r
+    if joint is not None:
+        n_frames = int(np.unique(joint.rows.frame_idx[np.isin(joint.rows.tag_id, tags)]).size)
+    if joint is not None and n_frames >= joint.min_frames:
+        refined = refine_map(
+            res.R, res.t, tags, anchor, joint.rows, joint.camera, joint.settings, joint.timed
+        )
+        sel = np.searchsorted(refined.ids, tags)
+        g = edges.graph(use, anchor_id, gs.rot_weight_m)
+        res_t, res_r = relative_residuals(refined.R[sel], refined.t[sel], g)
+        return MapBuild(
+            refined.ids,
+            refined.R,
+            refined.t,
+            refined.std,
+            use,
+            res_t,
+            res_r,
+            res,
+            rebuilt,
+            flipped,
+            n_frames,
+            refined,
+        )
+    return MapBuild(
+        tags, res.R, res.t, std, use, res_t, res_r, res, rebuilt, flipped, n_frames, refined
+    )

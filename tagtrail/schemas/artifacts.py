@@ -15,6 +15,7 @@ from numpy.typing import NDArray
 
 from tagtrail.geometry.joint.problem import CornerRows
 from tagtrail.geometry.se3 import R_from_quat_xyzw, T_from_xyz_quat
+from tagtrail.geometry.tagmap import EdgeSet, Sightings
 
 VERSION = 4
 
@@ -225,4 +226,30 @@ def corner_arrays(rows: pd.DataFrame) -> CornerRows:
         rows[CORNER_COLS].to_numpy(np.float64).reshape(-1, 4, 2),
         rows["size_m"].to_numpy(np.float64),
         both_solutions(rows),
+    )
+
+
+def edge_arrays(edges: pd.DataFrame, tags: NDArray[np.int64]) -> EdgeSet:
+    """``edges.edges`` over the sorted tag ids ``tags`` as arrays (no ``hypothesis``: all 0)."""
+    hyp = edges["hypothesis"] if "hypothesis" in edges.columns else np.zeros(len(edges))
+    return EdgeSet(
+        tags,
+        edges["tag_i"].to_numpy(np.int64),
+        edges["tag_j"].to_numpy(np.int64),
+        edges["t_ns"].to_numpy(np.int64),
+        edges[POSE_COLS].to_numpy(np.float64),
+        edges["weight"].to_numpy(np.float64),
+        np.asarray(hyp, dtype=np.int64),
+    )
+
+
+def sightings(observations: pd.DataFrame, tags: NDArray[np.int64]) -> Sightings:
+    """``pnp.observations`` of the ``tags`` as arrays, a tag seen twice at one stamp left out."""
+    obs = observations[observations["tag_id"].isin(tags).to_numpy()]
+    obs = obs[~obs.duplicated(["t_ns", "tag_id"], keep=False).to_numpy()]
+    return Sightings(
+        obs["t_ns"].to_numpy(np.int64),
+        obs["tag_id"].to_numpy(np.int64),
+        obs["frame_idx"].to_numpy(np.int64),
+        both_solutions(obs),
     )

@@ -1,39 +1,18 @@
-"""optimize: the tag map ``world_T_tag`` by robust non-linear least squares (Eq. 3.4-3.7).
+"""optimize: the tag map ``world_T_tag`` (Eq. 3.4-3.7), its per-edge residuals and a report.
 
-The anchor tag is fixed at the identity (gauge); every other mapped tag has a rotation vector and
-a translation. Residual per edge observation: ``[t_pred - t_obs ; rot_weight_m * Log(R_pred^T
-R_obs)]`` scaled by ``sqrt(weight)``; the robust ``loss`` acts on its norm with scale ``f_scale``
-(m). Initialised from a spanning tree of robust per-pair means; solved by Levenberg-Marquardt on
-the pair-accumulated normal equations (sparse LU). See :mod:`tagtrail.geometry.posegraph` for the
-maths. That map then checks each observation's IPPE solution in its frame
-(``branch_check``, :func:`tagtrail.geometry.ippe.map_branches`): edges built from a solution the
-map disagrees with are rebuilt from the other, and the graph solved again.
-
-``method="joint"`` (the default; datasets with detections and a camera) then solves the tag
-poses and the camera pose of every frame that sees a mapped tag jointly on the corner
-reprojection error, the frames held together in time by a constant-velocity motion prior, and on
-a ground robot by the ground-plane and wheeled-drive priors (:mod:`tagtrail.geometry.joint`:
-units, weights, priors and the solver; its settings ``joint``, which ``trajectory`` takes too).
-It starts from the pose-graph map, each frame at the IPPE solution its neighbours agree with;
-tags the pose graph left out (seen with the map only ambiguously, or never together with it) are
-placed through the trajectory first (``link_tags``). The pairwise edges of Eq. 3.2 carry the
-bias of single-tag PnP (a small tag's out-of-plane rotation error levered over the distance to
-the other tag) and the pose graph inherits it; the joint solve does not. Each tag gets its
-standard deviation (``std_pos_m``, ``std_rot_deg``; the anchor 0). The edge residuals and
-per-tag RMS are those of the final map. ``"pairwise"``: the paper's pose graph alone, also what
-observation-only datasets get.
-
-The joint solve needs redundancy: its gain is averaging many frames; from a handful of photos the
-shared camera pose couples the tags' model errors instead (a miscalibrated lens: a near tag
-fitting poorly drags the far ones; seen on the real FRC field photos, 3 frames per group of
-tags). So it runs only when ``joint_min_frames`` (30) frames or more see a mapped tag; otherwise
-the pose-graph map is kept and the log says so.
-Old parameter names (``refine``, ``ba_*``, the joint solve's) are refused with one line naming
-their new place (:data:`OLD_KEYS`). The maths lives in geometry: the pose graph
-(:mod:`~tagtrail.geometry.posegraph`, its edges, branch check and components in
-:mod:`~tagtrail.geometry.tagmap`), the joint solve from it
-(:mod:`~tagtrail.geometry.joint.mapping`),
-the surveyed world (:mod:`~tagtrail.geometry.survey`).
+Per connected tag graph (:func:`tagtrail.geometry.tagmap.build_map`, where the method is told in
+full): the pose graph of the pairwise edges (robust ``loss`` with scale ``f_scale``, the anchor
+tag fixed at the identity) and its check of each observation's IPPE solution
+(``branch_check``); ``method="joint"`` (the default; datasets with detections and a camera,
+``joint_min_frames`` frames or more seeing a mapped tag, else the pose graph is kept and the log
+says so) then the tag and camera poses jointly on the corners, held in time by the priors of
+:mod:`tagtrail.geometry.joint` (settings ``joint``, which ``trajectory`` takes too), the tags the
+pose graph left out linked through the trajectory, close rival pairs decided
+(``rival_search``). Each tag gets its standard deviation (``std_pos_m``, ``std_rot_deg``; the
+anchor 0); the edge residuals and per-tag RMS are those of the final map. ``"pairwise"``: the
+paper's pose graph alone, also what observation-only datasets get. With ``survey``, the map is
+put in the surveyed world (:mod:`tagtrail.geometry.survey`). Old parameter names are refused
+with one line naming their new place (:data:`OLD_KEYS`).
 """
 
 from __future__ import annotations
@@ -47,37 +26,33 @@ from pydantic import Field, model_validator
 
 from tagtrail.errors import DataError
 from tagtrail.geometry.camera import CameraModel
-from tagtrail.geometry.joint import (
-    JointSettings,
-    MapRefinement,
-    choose_rivals,
-    evidence_rows,
-    refine_map,
-)
+from tagtrail.geometry.joint import JointSettings
 from tagtrail.geometry.joint.settings import JOINT_OLD_KEYS
-from tagtrail.geometry.posegraph import PoseGraphResult, relative_residuals, solve
 from tagtrail.geometry.reference_path import reference_plane
 from tagtrail.geometry.robust import LossName
 from tagtrail.geometry.se3 import R_from_quat_xyzw, make_T, quat_xyzw_from_R
 from tagtrail.geometry.survey import fit_survey
 from tagtrail.geometry.tagmap import (
-    EdgeSet,
-    map_checked_edges,
+    GraphSettings,
+    JointInputs,
+    MapBuild,
+    build_map,
     pair_key,
     per_tag_rms,
     poorly_constrained,
     tag_components,
 )
 from tagtrail.schemas.artifacts import (
-    EVIDENCE_COLS,
     POSE_COLS,
-    both_solutions,
     columns,
     corner_arrays,
     corner_rows,
+    edge_arrays,
     poses,
+    sightings,
     timed,
 )
+from tagtrail.schemas.diagnostics import diagnostics_file
 from tagtrail.schemas.documents import OptimizeReport, PlacedComponent, Summary, TagGraph
 from tagtrail.schemas.pipeline import SurveyConfig
 from tagtrail.stages.base import Export, ExportFiles, Metric, StageParams, refuse_old_keys
@@ -291,20 +266,6 @@ def run(
     }
 
 
-def _edge_set(edges: pd.DataFrame, tags: np.ndarray) -> EdgeSet:
-    """``edges.edges`` over the sorted ids ``tags`` as arrays."""
-    n = len(edges)
-    return EdgeSet(
-        tags,
-        edges["tag_i"].to_numpy(np.int64),
-        edges["tag_j"].to_numpy(np.int64),
-        edges["t_ns"].to_numpy(np.int64),
-        edges[POSE_COLS].to_numpy(np.float64),
-        edges["weight"].to_numpy(np.float64),
-        edges["hypothesis"].to_numpy(np.int64) if "hypothesis" in edges else np.zeros(n, np.int64),
-    )
-
-
 def _solve(
     edges: pd.DataFrame,
     graph: TagGraph,
@@ -314,102 +275,52 @@ def _solve(
     camera: CameraModel | None = None,
     frames: pd.DataFrame | None = None,
 ) -> dict[str, Any]:
-    """:func:`run` on one connected tag graph: the pose graph, its branch check, the rival
-    hypotheses, the joint solve; the tables and the report."""
+    """:func:`run` on one connected tag graph (geometry.tagmap.build_map): the tables and the
+    report."""
     tags = np.asarray(sorted(int(t) for t in graph.get("tags", [])), dtype=np.int64)
-    anchor, E = graph.anchor_id, _edge_set(edges, tags)
-
-    def solve_graph(use: np.ndarray) -> PoseGraphResult:
-        g = E.graph(use, anchor, ROT_WEIGHT_M)
-        return solve(g, loss=params.loss, f_scale=params.f_scale, max_nfev=MAX_NFEV)
-
-    use = E.hypothesis == 0
-    res, rebuilt = solve_graph(use), 0
-    rivals = np.array([int(pair_key(r.tag_i, r.tag_j)) for r in graph.rival_pairs], np.int64)
-    if params.branch_check == "map":
-        obs = observations[observations["tag_id"].isin(tags).to_numpy()]
-        obs = obs[~obs.duplicated(["t_ns", "tag_id"], keep=False).to_numpy()]
-        o_t, o_tag = obs["t_ns"].to_numpy(np.int64), obs["tag_id"].to_numpy(np.int64)
-        o_frame, S = obs["frame_idx"].to_numpy(np.int64), both_solutions(obs)
-    for _ in range(3 if params.branch_check == "map" else 0):
-        R_obs = res.R[np.searchsorted(tags, o_tag)]
-        E, n = map_checked_edges(E, use, np.isin(E.key, rivals), o_t, o_tag, o_frame, S, R_obs)
-        if n == 0:
-            break
-        rebuilt += n
-        res = solve_graph(use)
-    if rebuilt:
-        log.info(
-            "optimize: %d tag-pair links rebuilt from the mirror-image poses the map agrees with",
-            rebuilt,
-        )
-    joint = params.method == "joint" and detections is not None and len(detections) > 0
-    joint = joint and camera is not None
-    flipped: list[list[int]] = []
-    if joint and (E.hypothesis > 0).any() and params.rival_search and timed(frames):
+    joint, is_timed = None, timed(frames)
+    has_pix = detections is not None and len(detections) > 0 and camera is not None
+    if params.method == "joint" and has_pix:
         assert detections is not None and camera is not None
         ranked = sorted(graph.rival_pairs, key=lambda p: -p.support_ratio)[:RIVAL_MAX_PAIRS]
-        use, res, flipped = choose_rivals(
-            corner_arrays(corner_rows(observations, detections, tags)),
-            tags,
-            int(np.searchsorted(tags, anchor)),
+        rivals = [int(pair_key(p.tag_i, p.tag_j)) for p in ranked]
+        rows = corner_rows(observations, detections, np.unique(observations["tag_id"].to_numpy()))
+        joint = JointInputs(
+            corner_arrays(rows),
             camera,
             params.joint,
-            E.key,
-            E.hypothesis,
-            [int(pair_key(p.tag_i, p.tag_j)) for p in ranked],
-            res,
-            solve_graph,
+            is_timed,
+            params.joint_min_frames,
+            rivals if params.rival_search and is_timed else None,
             RIVAL_MAX_ITER,
         )
-        if flipped:
-            log.info(
-                "optimize: tag pairs %s: the other of the two mirror-image poses fits the "
-                "camera's smooth motion better and is used",
-                flipped,
-            )
-    g = E.graph(use, anchor, ROT_WEIGHT_M)
-    R_map, t_map, res_t, res_r = res.R, res.t, res.res_t, res.res_r
-    bundle, std = None, np.full((len(tags), 2), np.nan)
-    std[g.anchor] = 0.0
-    if joint:
-        assert detections is not None and camera is not None
-        is_timed = timed(frames)
-        if not is_timed and params.joint.motion != "none":
-            log.info(
-                "optimize: the stamps are the files' order, not capture times: no motion "
-                "prior, no tags linked through the trajectory"
-            )
-        refined = _refine(
-            R_map, t_map, tags, g.anchor, observations, detections, camera, params, is_timed
-        )
-        if refined is not None:
-            R_map, t_map, std, bundle = refined.R, refined.t, refined.std, refined.block
-            bundle["rival_pairs_flipped"] = flipped
-            sel = np.searchsorted(refined.ids, tags)
-            res_t, res_r = relative_residuals(R_map[sel], t_map[sel], g)
-            tags = refined.ids
-    ti, tj = E.tag_i[use], E.tag_j[use]
+    check = sightings(observations, tags) if params.branch_check == "map" else None
+    skip = np.array([int(pair_key(r.tag_i, r.tag_j)) for r in graph.rival_pairs], np.int64)
+    gs = GraphSettings(params.loss, params.f_scale, MAX_NFEV, ROT_WEIGHT_M)
+    E = edge_arrays(edges, tags)
+    m = build_map(E, graph.anchor_id, gs, check, skip, joint)
+    _log(m, joint, params)
+    tags, ti, tj = m.tags, E.tag_i[m.use], E.tag_j[m.use]
     ii, jj = np.searchsorted(tags, ti), np.searchsorted(tags, tj)
-    e_t, e_r = np.linalg.norm(res_t, axis=1), np.linalg.norm(res_r, axis=1)
+    e_t, e_r = np.linalg.norm(m.res_t, axis=1), np.linalg.norm(m.res_r, axis=1)
     obs_tag = observations["tag_id"].to_numpy(np.int64)
-    n_obs = pd.Series(obs_tag).value_counts().reindex(tags, fill_value=0).to_numpy(np.int64)
     size = np.full(len(tags), np.nan)
     if "size_m" in observations.columns:
         size = observations.groupby("tag_id")["size_m"].median().reindex(tags).to_numpy(float)
     tag_map = pd.DataFrame({"tag_id": tags.astype(np.int32)})
-    tag_map[POSE_COLS] = np.concatenate([t_map, quat_xyzw_from_R(R_map)], axis=1)
-    tag_map["n_obs"] = n_obs
+    tag_map[POSE_COLS] = np.concatenate([m.t, quat_xyzw_from_R(m.R)], axis=1)
+    n_obs = pd.Series(obs_tag).value_counts().reindex(tags, fill_value=0)
+    tag_map["n_obs"] = n_obs.to_numpy(np.int64)
     tag_map["size_m"] = size
     tag_map["res_t_rms_m"] = per_tag_rms(ii, jj, e_t**2, len(tags))
     tag_map["res_r_rms_deg"] = np.rad2deg(per_tag_rms(ii, jj, e_r**2, len(tags)))
-    tag_map["std_pos_m"] = std[:, 0]
-    tag_map["std_rot_deg"] = np.rad2deg(std[:, 1])
+    tag_map["std_pos_m"] = m.std[:, 0]
+    tag_map["std_rot_deg"] = np.rad2deg(m.std[:, 1])
     residuals = pd.DataFrame(
         {
             "tag_i": ti.astype(np.int32),
             "tag_j": tj.astype(np.int32),
-            "t_ns": E.t_ns[use],
+            "t_ns": E.t_ns[m.use],
             "res_t_m": e_t,
             "res_r_deg": np.rad2deg(e_r),
         }
@@ -417,18 +328,19 @@ def _solve(
     survey = None
     if params.survey is not None:
         tag_map, survey = surveyed_world(tag_map, params.survey)
+    flipped = {"rival_pairs_flipped": m.flipped}
     report = {
-        "anchor_id": anchor,
+        "anchor_id": graph.anchor_id,
         "loss": params.loss,
         "f_scale": params.f_scale,
-        "cost": res.cost,
-        "nfev": res.nfev,
-        "status": res.status,
+        "cost": m.graph.cost,
+        "nfev": m.graph.nfev,
+        "status": m.graph.status,
         "rms_t_m": float(np.sqrt(np.mean(e_t**2))) if len(e_t) else 0.0,
         "rms_r_deg": float(np.rad2deg(np.sqrt(np.mean(e_r**2)))) if len(e_r) else 0.0,
-        "method": "joint" if bundle is not None else "pairwise",
-        "edges_rebuilt": rebuilt,
-        "bundle": bundle,
+        "method": "pairwise" if m.refined is None else "joint",
+        "edges_rebuilt": m.rebuilt,
+        "bundle": None if m.refined is None else {**m.refined.block, **flipped},
         "survey": survey,
         "joint": params.joint,
     }
@@ -439,41 +351,43 @@ def _solve(
     }
 
 
-def _refine(
-    R: np.ndarray,
-    t: np.ndarray,
-    tags: np.ndarray,
-    anchor: int,
-    observations: pd.DataFrame,
-    detections: pd.DataFrame,
-    camera: CameraModel,
-    params: Params,
-    is_timed: bool,
-) -> MapRefinement | None:
-    """The joint solve from the pose graph's map (geometry.joint.refine_map) on the corners of
-    every observed tag, its lines logged; None when fewer than ``joint_min_frames`` frames see
-    a mapped tag."""
-    m = corner_rows(observations, detections, np.unique(observations["tag_id"].to_numpy()))
-    n_frames = int(m.loc[m["tag_id"].isin(tags), "frame_idx"].nunique())
-    if n_frames < params.joint_min_frames:
+def _log(m: MapBuild, joint: JointInputs | None, params: Params) -> None:
+    """The lines of a map's build, in the order its steps ran."""
+    if m.rebuilt:
+        log.info(
+            "optimize: %d tag-pair links rebuilt from the mirror-image poses the map agrees with",
+            m.rebuilt,
+        )
+    if m.flipped:
+        log.info(
+            "optimize: tag pairs %s: the other of the two mirror-image poses fits the "
+            "camera's smooth motion better and is used",
+            m.flipped,
+        )
+    if joint is None:
+        return
+    if not joint.timed and params.joint.motion != "none":
+        log.info(
+            "optimize: the stamps are the files' order, not capture times: no motion "
+            "prior, no tags linked through the trajectory"
+        )
+    if m.refined is None:
         log.info(
             "optimize: only %d frames see a mapped tag (joint_min_frames %d): the map from "
             "tag pairs is kept, not refined over all frames together",
-            n_frames,
+            m.n_frames,
             params.joint_min_frames,
         )
-        return None
-    out = refine_map(R, t, tags, anchor, corner_arrays(m), camera, params.joint, is_timed)
-    if out.linked:
-        log.info("optimize: tags %s linked to the map through the trajectory", out.linked)
-    for line in [] if out.solved.ground is None else out.solved.ground.lines():
+        return
+    if m.refined.linked:
+        log.info("optimize: tags %s linked to the map through the trajectory", m.refined.linked)
+    res, ground = m.refined.solved.res, m.refined.solved.ground
+    for line in [] if ground is None else ground.lines():
         log.info("optimize: %s", line)
-    if not out.solved.res.converged:
+    if not res.converged:
         log.warning(
-            "optimize: the joint solve stopped after %d iterations before converging",
-            out.solved.res.iters,
+            "optimize: the joint solve stopped after %d iterations before converging", res.iters
         )
-    return out
 
 
 METRICS = tuple(
@@ -498,89 +412,6 @@ def _tag_map_files(
         "tag_map.yaml": ("tag_map_yaml", (tag_map, report.anchor_id)),
         "tag_map.csv": ("tag_map_csv", tag_map),
     }
-
-
-def _diagnostics_file(
-    frames: pd.DataFrame | None,
-    dets: pd.DataFrame | None,
-    obs: pd.DataFrame | None,
-    graph: TagGraph | None,
-    edges: pd.DataFrame | None,
-    tags: pd.DataFrame | None,
-    report: OptimizeReport | None,
-    traj: pd.DataFrame | None,
-) -> ExportFiles | None:
-    """``diagnostics.csv`` (metric,value), a superset of the original ``diagnostico_erros.csv``."""
-    if frames is None or obs is None:
-        return None
-    rows: list[tuple[str, Any]] = [
-        ("frames_total", len(frames) if len(frames) else obs["frame_idx"].nunique()),
-        ("frames_with_detections", int(obs["frame_idx"].nunique())),
-        ("frames_with_pose", len(traj) if traj is not None else ""),
-        ("detections", len(dets) if dets is not None and len(dets) else len(obs)),
-        ("tags_detected", int(obs["tag_id"].nunique())),
-        ("tags_mapped", len(tags) if tags is not None else ""),
-        ("tags_dropped", len(graph.dropped) if graph is not None else ""),
-        ("anchor_tag", f"tag36h11:{report.anchor_id}" if report is not None else ""),
-        ("pairwise_edges", len(edges) if edges is not None else ""),
-        ("map_residual_rms_t_m", report.rms_t_m if report is not None else ""),
-        ("map_residual_rms_r_deg", report.rms_r_deg if report is not None else ""),
-    ]
-    bundle = report.bundle if report is not None else None
-    if bundle is not None:  # the joint solve
-        rows += [
-            ("map_method", "joint"),
-            ("joint_frames", bundle.frames),
-            ("joint_single_tag_frames", bundle.single_tag_frames),
-            ("joint_motion_prior_frames", bundle.motion_prior_frames),
-            ("joint_ippe_second_solution", bundle.ippe_second_solution),
-            ("joint_corner_rms_px", bundle.rms_px),
-            ("joint_variance_factor", bundle.variance_factor),
-            ("joint_corner_sigma_px", bundle.corner_sigma_px),
-            (
-                "joint_rival_pairs_flipped",
-                " ".join(f"tag36h11:{i}-tag36h11:{j}" for i, j in bundle.rival_pairs_flipped),
-            ),
-        ]
-    elif report is not None:
-        rows.append(("map_method", report.method))
-    if tags is not None and "std_pos_m" in tags.columns:
-        weak = tags.loc[poorly_constrained(tags["std_pos_m"].to_numpy(np.float64)), "tag_id"]
-        rows += [
-            ("tag_std_pos_m_median", float(tags["std_pos_m"].median())),
-            ("tag_std_pos_m_max", float(tags["std_pos_m"].max())),
-            ("poorly_constrained_tags", " ".join(f"tag36h11:{int(t)}" for t in weak)),
-        ]
-    survey = report.survey if report is not None else None
-    if survey is not None:  # the surveyed world and its residuals at the known tags
-        rows += [
-            ("survey_source", survey.source),
-            ("survey_model", survey.model),
-            ("survey_tags", " ".join(f"tag36h11:{t}" for t in survey.tags)),
-            ("survey_res_pos_rms_m", survey.res_pos_rms_m),
-            ("survey_res_pos_max_m", survey.res_pos_max_m),
-            (
-                "survey_res_rot_rms_deg",
-                "" if survey.res_rot_rms_deg is None else survey.res_rot_rms_deg,
-            ),
-        ]
-    if graph is not None:
-        rows.append(
-            (
-                "weak_links",
-                " ".join(
-                    f"tag36h11:{w.tag_i}-tag36h11:{w.tag_j}({w.n_frames})" for w in graph.weak_links
-                ),
-            )
-        )
-    if traj is not None and "std_pos_m" in traj.columns and traj["std_pos_m"].notna().any():
-        rows += [
-            ("frame_std_pos_m_median", float(traj["std_pos_m"].median())),
-            ("frame_std_pos_m_max", float(traj["std_pos_m"].max())),
-        ]
-    if traj is not None and "shift_m" in traj.columns:
-        rows += evidence_rows(*(traj[c].to_numpy(np.float64) for c in EVIDENCE_COLS))
-    return {"diagnostics.csv": ("metric_value_csv", rows)}
 
 
 def _recording_map_file(
@@ -632,7 +463,7 @@ EXPORTS = (
             "report": "optimize.report",
             "traj": "smooth.trajectory",
         },
-        _diagnostics_file,
+        diagnostics_file,
     ),
     Export(
         "recording_map",
