@@ -46,18 +46,11 @@ from tagtrail.errors import DataError
 from tagtrail.geometry.camera import CameraModel
 from tagtrail.geometry.fusion import frame_poses
 from tagtrail.geometry.ippe import map_branches
-from tagtrail.geometry.joint import (
-    JointSettings,
-    corner_observations,
-    corner_problem,
-    frame_evidence,
-    frame_rms_px,
-    observation_rms_px,
-    solve_on_corners,
-)
+from tagtrail.geometry.joint import JointSettings
 from tagtrail.geometry.joint.settings import JOINT_OLD_KEYS
+from tagtrail.geometry.joint.track import posed_rms_px, solve_track
 from tagtrail.geometry.robust import LossName
-from tagtrail.geometry.se3 import T_from_xyz_quat, inv, make_T, xyz_quat_from_T
+from tagtrail.geometry.se3 import T_from_xyz_quat, xyz_quat_from_T
 from tagtrail.schemas.artifacts import (
     ALONE_POSE_COLS,
     ALT_POSE_COLS,
@@ -160,43 +153,29 @@ def joint_trajectory(
     fallback: tuple[bool, bool] | None,
     priors: bool = True,
 ) -> pd.DataFrame:
-    """The ``joint`` method on ``corner_rows`` of the mapped tags ``ids`` (map ``W_map``) under
-    the map's ``settings``; ``fallback``: the map's ground-plane and drive decisions, for data
-    too short or too still to decide on; ``priors`` False: each frame on its own corners."""
-    k = np.searchsorted(ids, rows["tag_id"].to_numpy(np.int64))
-    pb = corner_problem(corner_arrays(rows), k, camera, settings, is_timed, priors)
-    ob, t_ns, prior = pb.ob, pb.t_ns, pb.motion
-    solved = solve_on_corners(pb, W_map, np.zeros(len(ids), bool), settings, fallback=fallback)
-    res, ground = solved.res, solved.ground
+    """The ``joint`` method (geometry.joint.track.solve_track) on ``corner_rows`` of the mapped
+    tags ``ids`` (map ``W_map``) under the map's ``settings``; ``fallback``: the map's
+    ground-plane and drive decisions, for data too short or too still to decide on; ``priors``
+    False: each frame on its own corners."""
+    tr = solve_track(corner_arrays(rows), ids, W_map, camera, settings, is_timed, fallback, priors)
+    res, ground = tr.solved.res, tr.solved.ground
     for line in [] if ground is None else ground.lines():
         log.info("trajectory: %s", line)
-    if prior is not None:
-        ev = frame_evidence(res, ob, pb.corners)
-        evidence = {c: getattr(ev, c) for c in EVIDENCE_COLS}
-        alone = np.concatenate(xyz_quat_from_T(inv(make_T(ev.R_alone, ev.t_alone))), axis=1)
-    else:  # each frame on its own corners: it is its own evidence
-        rms = frame_rms_px(res.res_px, ob.frame, len(t_ns))
-        zero = np.zeros(len(t_ns))
-        evidence = dict(
-            reproj_px=rms, alone_reproj_px=rms, shift_m=zero, shift_deg=zero, shift_sigma=zero
-        )
-        alone = None
     if not res.converged:
         log.warning(
             "trajectory: the joint solve stopped after %d iterations before converging", res.iters
         )
-    xyz, q = xyz_quat_from_T(inv(make_T(res.R_cam, res.t_cam)))
-    out = pd.DataFrame({"t_ns": t_ns})
-    out[POSE_COLS] = np.concatenate([xyz, q], axis=1)
-    out["n_tags"] = np.bincount(ob.frame, minlength=len(t_ns)).astype(np.int32)
+    out = pd.DataFrame({"t_ns": tr.t_ns})
+    out[POSE_COLS] = tr.pose
+    out["n_tags"] = tr.n_tags.astype(np.int32)
     log.info(
         "trajectory: %d frames solved together (%d tied to their neighbours by smooth "
         "motion); tag corners fit to %.2f px RMS",
-        len(t_ns),
+        len(tr.t_ns),
         res.prior_terms,
         float(np.sqrt(np.mean(res.res_px**2))),
     )
-    return _extra(out, res.cam_std, prior is not None, evidence, alone)
+    return _extra(out, tr.std, tr.motion_prior, tr.evidence, tr.alone)
 
 
 def _own_evidence(
@@ -212,29 +191,8 @@ def _own_evidence(
     rms = np.full(len(out), np.nan)
     rows = rows[rows["frame_idx"].isin(frame_idx)]
     if len(rows) and camera is not None:
-        k = np.searchsorted(ids, rows["tag_id"].to_numpy(np.int64))
-        ob, _ = corner_observations(
-            rows["frame_idx"].to_numpy(np.int64),
-            rows["t_ns"].to_numpy(np.int64),
-            k,
-            rows[CORNER_COLS].to_numpy(np.float64).reshape(-1, 4, 2),
-            rows["size_m"].to_numpy(np.float64),
-            camera,
-        )
-        frames, first = np.unique(rows["frame_idx"].to_numpy(np.int64), return_index=True)
-        order = np.argsort(rows["t_ns"].to_numpy(np.int64)[first], kind="stable")
-        where = np.searchsorted(frame_idx, frames[order])  # ob's frames are in time order
-        pose = out[POSE_COLS].to_numpy(np.float64)[where]
-        cam_T_world = inv(T_from_xyz_quat(pose[:, :3], pose[:, 3:]))
-        res = observation_rms_px(
-            cam_T_world[:, :3, :3],
-            cam_T_world[:, :3, 3],
-            W_map[:, :3, :3],
-            W_map[:, :3, 3],
-            ob,
-            camera.focal_px,
-        )
-        rms[where] = frame_rms_px(res, ob.frame, len(where))
+        pose = out[POSE_COLS].to_numpy(np.float64)
+        rms = posed_rms_px(corner_arrays(rows), ids, W_map, camera, frame_idx, pose)
     zero = np.zeros(len(out))
     return _extra(
         out,

@@ -15,6 +15,8 @@
 - :mod:`.settings` -- :class:`JointSettings`, what a user sets, and the fixed constants;
 - :mod:`.setup` -- one dataset's problem from its settings and its solve
   (:func:`corner_problem`, :func:`solve_on_corners`), for ``optimize`` and ``trajectory``;
+- :mod:`.track` -- the cameras against a fixed map (:func:`solve_track`, for ``trajectory``;
+  :func:`posed_rms_px`, the corner error of poses found frame by frame);
 - :mod:`.mapping` -- the map's joint solve from the pose graph (:func:`refine_map`: tags linked
   through the trajectory, the report block; :func:`choose_rivals`: rival hypotheses decided).
 """
