@@ -323,6 +323,17 @@ class SurveyFit:
         out[:, :3, 3] = self.scale * out[:, :3, 3] @ self.R.T + self.t
         return out
 
+    def line(self, where: str) -> str:
+        """The fit in plain words (for the log); ``where``: the survey's source and model."""
+        fig = self.report()
+        rot = fig["res_rot_rms_deg"]
+        return (
+            f"surveyed world ({where}) from known tags {fig['tags']}: residuals "
+            f"{1e3 * fig['res_pos_rms_m']:.1f} mm rms (max {1e3 * fig['res_pos_max_m']:.1f} mm)"
+            + ("" if rot is None else f", {rot:.2f} deg rms")
+            + (f"; known tags not in the map: {self.missing}" if self.missing else "")
+        )
+
     def report(self) -> dict[str, Any]:
         """The fit and its residuals at the known tags as plain values (``optimize.report``'s
         ``survey`` block, less where the survey came from)."""

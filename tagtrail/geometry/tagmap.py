@@ -222,8 +222,9 @@ class MapBuild:
     """A tag map: the ids ``tags`` (sorted) and their ``world_T_tag`` (``R``, ``t``), standard
     deviations ``std (T, 2)`` (m, rad; NaN: unknown, the anchor 0); the edges used (``use``)
     and their residuals against the map ``res_t``, ``res_r`` ``(E', 3)``; the pose graph's
-    solution, the edges the branch check rebuilt, the rival pairs flipped, the frames seeing
-    a mapped tag with corners and the joint solve (None: not run)."""
+    solution, the edges the branch check rebuilt, the rival pairs flipped, what the joint
+    solve was given (None: not tried), the frames seeing a mapped tag with corners and the
+    joint solve (None: not run)."""
 
     tags: I64
     R: F64
@@ -235,8 +236,48 @@ class MapBuild:
     graph: PoseGraphResult
     rebuilt: int
     flipped: list[list[int]]
+    joint: JointInputs | None
     n_frames: int
     refined: MapRefinement | None
+
+    def lines(self) -> list[str]:
+        """What the build did, in the order it did it, in plain words (for the log)."""
+        out = []
+        if self.rebuilt:
+            out.append(
+                f"{self.rebuilt} tag-pair links rebuilt from the mirror-image poses the map "
+                "agrees with"
+            )
+        if self.flipped:
+            out.append(
+                f"tag pairs {self.flipped}: the other of the two mirror-image poses fits the "
+                "camera's smooth motion better and is used"
+            )
+        joint, refined = self.joint, self.refined
+        if joint is None:
+            return out
+        if not joint.timed and joint.settings.motion != "none":
+            out.append(
+                "the stamps are the files' order, not capture times: no motion prior, no tags "
+                "linked through the trajectory"
+            )
+        if refined is None:
+            return out + [
+                f"only {self.n_frames} frames see a mapped tag (joint_min_frames "
+                f"{joint.min_frames}): the map from tag pairs is kept, not refined over all "
+                "frames together"
+            ]
+        if refined.linked:
+            out.append(f"tags {refined.linked} linked to the map through the trajectory")
+        ground = refined.solved.ground
+        return out + ([] if ground is None else ground.lines())
+
+    def warnings(self) -> list[str]:
+        """What went wrong, after :meth:`lines` (for the log)."""
+        res = None if self.refined is None else self.refined.solved.res
+        if res is None or res.converged:
+            return []
+        return [f"the joint solve stopped after {res.iters} iterations before converging"]
 
 
 def build_map(
@@ -307,20 +348,9 @@ def build_map(
         sel = np.searchsorted(refined.ids, tags)
         g = edges.graph(use, anchor_id, gs.rot_weight_m)
         res_t, res_r = relative_residuals(refined.R[sel], refined.t[sel], g)
-        return MapBuild(
-            refined.ids,
-            refined.R,
-            refined.t,
-            refined.std,
-            use,
-            res_t,
-            res_r,
-            res,
-            rebuilt,
-            flipped,
-            n_frames,
-            refined,
-        )
+        tags, R, t, std = refined.ids, refined.R, refined.t, refined.std
+    else:
+        R, t = res.R, res.t
     return MapBuild(
-        tags, res.R, res.t, std, use, res_t, res_r, res, rebuilt, flipped, n_frames, refined
+        tags, R, t, std, use, res_t, res_r, res, rebuilt, flipped, joint, n_frames, refined
     )

@@ -28,18 +28,15 @@ from tagtrail.errors import DataError
 from tagtrail.geometry.camera import CameraModel
 from tagtrail.geometry.joint import JointSettings
 from tagtrail.geometry.joint.settings import JOINT_OLD_KEYS
-from tagtrail.geometry.reference_path import reference_plane
 from tagtrail.geometry.robust import LossName
 from tagtrail.geometry.se3 import R_from_quat_xyzw, make_T, quat_xyzw_from_R
 from tagtrail.geometry.survey import fit_survey
 from tagtrail.geometry.tagmap import (
     GraphSettings,
     JointInputs,
-    MapBuild,
     build_map,
     pair_key,
     per_tag_rms,
-    poorly_constrained,
     tag_components,
 )
 from tagtrail.schemas.artifacts import (
@@ -48,13 +45,12 @@ from tagtrail.schemas.artifacts import (
     corner_arrays,
     corner_rows,
     edge_arrays,
-    poses,
     sightings,
     timed,
 )
-from tagtrail.schemas.diagnostics import diagnostics_file
-from tagtrail.schemas.documents import OptimizeReport, PlacedComponent, Summary, TagGraph
+from tagtrail.schemas.documents import OptimizeReport, PlacedComponent, TagGraph
 from tagtrail.schemas.pipeline import SurveyConfig
+from tagtrail.schemas.recording_files import diagnostics_file, recording_map_file
 from tagtrail.stages.base import Export, ExportFiles, Metric, StageParams, refuse_old_keys
 
 log = logging.getLogger(__name__)
@@ -158,19 +154,7 @@ def surveyed_world(tag_map: pd.DataFrame, cfg: SurveyConfig) -> tuple[pd.DataFra
         if c in tag_map.columns:
             out[c] = tag_map[c] * fit.scale
     fig = fit.report()
-    rot_rms = fig["res_rot_rms_deg"]
-    log.info(
-        "optimize: surveyed world (%s, %s, %s) from known tags %s: residuals %.1f mm rms "
-        "(max %.1f mm)%s%s",
-        cfg.file or "inline",
-        cfg.format,
-        cfg.model,
-        fig["tags"],
-        1e3 * fig["res_pos_rms_m"],
-        1e3 * fig["res_pos_max_m"],
-        "" if rot_rms is None else f", {rot_rms:.2f} deg rms",
-        f"; known tags not in the map: {fit.missing}" if fit.missing else "",
-    )
+    log.info("optimize: %s", fit.line(f"{cfg.file or 'inline'}, {cfg.format}, {cfg.model}"))
     return out, {"source": cfg.file or "inline", "format": cfg.format, "model": cfg.model, **fig}
 
 
@@ -299,7 +283,10 @@ def _solve(
     gs = GraphSettings(params.loss, params.f_scale, MAX_NFEV, ROT_WEIGHT_M)
     E = edge_arrays(edges, tags)
     m = build_map(E, graph.anchor_id, gs, check, skip, joint)
-    _log(m, joint, params)
+    for line in m.lines():
+        log.info("optimize: %s", line)
+    for line in m.warnings():
+        log.warning("optimize: %s", line)
     tags, ti, tj = m.tags, E.tag_i[m.use], E.tag_j[m.use]
     ii, jj = np.searchsorted(tags, ti), np.searchsorted(tags, tj)
     e_t, e_r = np.linalg.norm(m.res_t, axis=1), np.linalg.norm(m.res_r, axis=1)
@@ -351,45 +338,6 @@ def _solve(
     }
 
 
-def _log(m: MapBuild, joint: JointInputs | None, params: Params) -> None:
-    """The lines of a map's build, in the order its steps ran."""
-    if m.rebuilt:
-        log.info(
-            "optimize: %d tag-pair links rebuilt from the mirror-image poses the map agrees with",
-            m.rebuilt,
-        )
-    if m.flipped:
-        log.info(
-            "optimize: tag pairs %s: the other of the two mirror-image poses fits the "
-            "camera's smooth motion better and is used",
-            m.flipped,
-        )
-    if joint is None:
-        return
-    if not joint.timed and params.joint.motion != "none":
-        log.info(
-            "optimize: the stamps are the files' order, not capture times: no motion "
-            "prior, no tags linked through the trajectory"
-        )
-    if m.refined is None:
-        log.info(
-            "optimize: only %d frames see a mapped tag (joint_min_frames %d): the map from "
-            "tag pairs is kept, not refined over all frames together",
-            m.n_frames,
-            params.joint_min_frames,
-        )
-        return
-    if m.refined.linked:
-        log.info("optimize: tags %s linked to the map through the trajectory", m.refined.linked)
-    res, ground = m.refined.solved.res, m.refined.solved.ground
-    for line in [] if ground is None else ground.lines():
-        log.info("optimize: %s", line)
-    if not res.converged:
-        log.warning(
-            "optimize: the joint solve stopped after %d iterations before converging", res.iters
-        )
-
-
 METRICS = tuple(
     Metric(f"map.{name}", "report", path, unit, default=5 if name == "rms_t_m" else 0)
     for name, path, unit in (
@@ -412,35 +360,6 @@ def _tag_map_files(
         "tag_map.yaml": ("tag_map_yaml", (tag_map, report.anchor_id)),
         "tag_map.csv": ("tag_map_csv", tag_map),
     }
-
-
-def _recording_map_file(
-    traj: pd.DataFrame | None,
-    tags: pd.DataFrame | None,
-    summary: Summary | None,
-    report: Any,
-    dataset: str,
-) -> ExportFiles | None:
-    """``map.png`` of a recording (not a query, whose ``report`` draws its own): its tags and
-    trajectory (or photos: camera views) seen from above, in the plane of ``report.plane``."""
-    if traj is None or tags is None or len(traj) < 2 or summary is not None:
-        return None
-    plane_name = str(getattr(report, "plane", "auto"))
-    P, R = poses(traj)
-    plane = reference_plane(plane_name, P, R)
-    std = tags["std_pos_m"].to_numpy(np.float64) if "std_pos_m" in tags else None
-    view = dict(
-        dataset=dataset,
-        plane_name=plane_name,
-        uv=plane.to_uv(P),
-        flip_v=plane.v_down(R),
-        tags_uv=plane.to_uv(tags[["x_m", "y_m", "z_m"]].to_numpy()),
-        tag_ids=tags["tag_id"].astype(int).tolist(),
-        weak_tags=poorly_constrained(np.full(len(tags), np.nan) if std is None else std),
-        tag_std_m=std,
-        ref_heading_rad=plane.heading(R),
-    )
-    return {"map.png": ("recording_map_png", view)}
 
 
 EXPORTS = (
@@ -474,6 +393,6 @@ EXPORTS = (
             "summary": "report.summary",
             "report": "params:report",
         },
-        _recording_map_file,
+        recording_map_file,
     ),
 )

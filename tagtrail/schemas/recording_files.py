@@ -1,7 +1,8 @@
-"""``diagnostics.csv``: what a recording's artifacts say about its map and trajectory, one
-metric per row (the frames and detections, the tag graph, the map's residuals and method, the
-joint solve, the tags' uncertainty, the surveyed world, the trajectory against its evidence).
-Stage ``optimize`` declares it as an export (``EXPORTS``); the runner writes it."""
+"""A recording's own files beside its tables, which stage ``optimize`` declares as exports
+(``EXPORTS``; the runner writes them through ``io.outputs``): ``diagnostics.csv``, what its
+artifacts say about its map and trajectory, one metric per row (the frames and detections, the
+tag graph, the map's residuals and method, the joint solve, the tags' uncertainty, the surveyed
+world, the trajectory against its evidence); ``map.png``, its tags and trajectory from above."""
 
 from __future__ import annotations
 
@@ -11,9 +12,10 @@ import numpy as np
 import pandas as pd
 
 from tagtrail.geometry.joint.evidence import evidence_rows
+from tagtrail.geometry.reference_path import reference_plane
 from tagtrail.geometry.tagmap import poorly_constrained
-from tagtrail.schemas.artifacts import EVIDENCE_COLS
-from tagtrail.schemas.documents import OptimizeReport, TagGraph
+from tagtrail.schemas.artifacts import EVIDENCE_COLS, poses
+from tagtrail.schemas.documents import OptimizeReport, Summary, TagGraph
 from tagtrail.schemas.stage import ExportFiles
 
 
@@ -99,3 +101,32 @@ def diagnostics_file(
     if traj is not None and "shift_m" in traj.columns:
         rows += evidence_rows(*(traj[c].to_numpy(np.float64) for c in EVIDENCE_COLS))
     return {"diagnostics.csv": ("metric_value_csv", rows)}
+
+
+def recording_map_file(
+    traj: pd.DataFrame | None,
+    tags: pd.DataFrame | None,
+    summary: Summary | None,
+    report: Any,
+    dataset: str,
+) -> ExportFiles | None:
+    """``map.png`` of a recording (not a query, whose ``report`` draws its own): its tags and
+    trajectory (or photos: camera views) seen from above, in the plane of ``report.plane``."""
+    if traj is None or tags is None or len(traj) < 2 or summary is not None:
+        return None
+    plane_name = str(getattr(report, "plane", "auto"))
+    P, R = poses(traj)
+    plane = reference_plane(plane_name, P, R)
+    std = tags["std_pos_m"].to_numpy(np.float64) if "std_pos_m" in tags else None
+    view = dict(
+        dataset=dataset,
+        plane_name=plane_name,
+        uv=plane.to_uv(P),
+        flip_v=plane.v_down(R),
+        tags_uv=plane.to_uv(tags[["x_m", "y_m", "z_m"]].to_numpy()),
+        tag_ids=tags["tag_id"].astype(int).tolist(),
+        weak_tags=poorly_constrained(np.full(len(tags), np.nan) if std is None else std),
+        tag_std_m=std,
+        ref_heading_rad=plane.heading(R),
+    )
+    return {"map.png": ("recording_map_png", view)}
