@@ -9,7 +9,6 @@ inputs give byte-identical files.
 from __future__ import annotations
 
 import json
-from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
@@ -17,7 +16,6 @@ import numpy as np
 import pandas as pd
 from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.figure import Figure
-from numpy.typing import ArrayLike
 
 from tagtrail.errors import SourceError, one_line
 from tagtrail.geometry.reference_path import reference_plane
@@ -115,63 +113,16 @@ def write_relocalization_png(path: Path, reloc: pd.DataFrame, title: str = "") -
     _save(timeline_figure(reloc, title), path)
 
 
-def write_point_png(
-    path: Path,
-    row: pd.Series,
-    ref_uv: ArrayLike,
-    query_uv: ArrayLike,
-    query_heading_rad: ArrayLike,
-    axis_names: tuple[str, str] = ("u", "v"),
-    flip_v: bool = False,
-    title: str = "",
-) -> None:
-    """``relocalization.png`` of point mode: the close-up of :func:`reloc_plots.point_figure`."""
-    _save(point_figure(row, ref_uv, query_uv, query_heading_rad, axis_names, flip_v, title), path)
+def write_point_png(path: Path, *args: Any, **kwargs: Any) -> None:
+    """``relocalization.png`` of point mode: :func:`reloc_plots.point_figure` of ``args`` and
+    ``kwargs`` (the close-up of the parked pose against the reference)."""
+    _save(point_figure(*args, **kwargs), path)
 
 
-def write_map_png(
-    path: Path,
-    ref_uv: ArrayLike,
-    query_uv: ArrayLike,
-    reloc: pd.DataFrame,
-    tags_uv: ArrayLike | None = None,
-    tag_ids: Sequence[int] = (),
-    axis_names: tuple[str, str] = ("u", "v"),
-    flip_v: bool = False,
-    title: str = "",
-    weak_tags: ArrayLike | None = None,
-    tag_std_m: ArrayLike | None = None,
-    ref_heading_rad: ArrayLike | None = None,
-    photos: bool | None = None,
-) -> None:
-    """``map.png``: the plane seen from above, (u, v) in m.
-
-    ``ref_uv (N, 2)`` reference path (or photos: drawn as separate camera views with their
-    headings ``ref_heading_rad (N,)``; ``photos`` None = decided by
-    :func:`reloc_plots.is_photo_set`); ``query_uv (M, 2)`` every (aligned) query pose; ``reloc``
-    the report rows (evaluated poses, headings, nearest reference points → links); ``tags_uv
-    (K, 2)`` with ``tag_ids``; ``weak_tags (K,)`` (bool) are drawn apart as poorly constrained,
-    labelled with their position standard deviation ``tag_std_m (K,)``. ``flip_v`` draws v
-    downwards (when the normal points down, so that the picture is seen from above rather than
-    from below).
-    """
-    _save(
-        map_figure(
-            ref_uv,
-            query_uv,
-            reloc,
-            tags_uv,
-            tag_ids,
-            axis_names,
-            flip_v,
-            title,
-            weak_tags,
-            tag_std_m,
-            ref_heading_rad,
-            photos,
-        ),
-        path,
-    )
+def write_map_png(path: Path, *args: Any, **kwargs: Any) -> None:
+    """``map.png``: :func:`reloc_plots.map_figure` of ``args`` and ``kwargs`` (the plane seen
+    from above)."""
+    _save(map_figure(*args, **kwargs), path)
 
 
 def plane_axis_names(plane_name: str) -> tuple[str, str]:

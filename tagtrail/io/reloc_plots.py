@@ -16,6 +16,7 @@ its artists); the writers in :mod:`tagtrail.io.reloc_files` save it.
 from __future__ import annotations
 
 from collections.abc import Sequence
+from typing import Any
 
 import numpy as np
 import pandas as pd
@@ -60,6 +61,20 @@ def _arrows(
     )
 
 
+def _plane_axes(ax: Axes, axis_names: tuple[str, str], flip_v: bool) -> None:
+    """The plane's axes named, v drawn downwards with ``flip_v`` (seen from above), a grid."""
+    if flip_v:
+        ax.invert_yaxis()
+    ax.set_xlabel(f"{axis_names[0]} [m]")
+    ax.set_ylabel(f"{axis_names[1]} [m]" + (" (pointing down: seen from above)" if flip_v else ""))
+    ax.grid(alpha=0.3)
+
+
+def _dot(ax: Axes, p: np.ndarray, color: str, size: float, label: str, **kw: Any) -> None:
+    """One labelled point ``p (2,)``."""
+    ax.plot(*p, marker="o", color=color, markersize=size, linestyle="", label=label, **kw)
+
+
 def map_figure(
     ref_uv: ArrayLike,
     query_uv: ArrayLike,
@@ -74,9 +89,15 @@ def map_figure(
     ref_heading_rad: ArrayLike | None = None,
     photos: bool | None = None,
 ) -> Figure:
-    """``map.png``'s figure; arguments as :func:`tagtrail.io.reloc_files.write_map_png`, plus
-    ``ref_heading_rad (N,)`` (camera headings, drawn for photos) and ``photos`` (None: decided
-    by :func:`is_photo_set`)."""
+    """``map.png``'s figure: the plane seen from above, (u, v) in m.
+
+    ``ref_uv (N, 2)`` reference path (or photos: drawn as separate camera views with their
+    headings ``ref_heading_rad (N,)``; ``photos`` None = decided by :func:`is_photo_set`);
+    ``query_uv (M, 2)`` every (aligned) query pose; ``reloc`` the report rows (evaluated poses,
+    headings, nearest reference points → links); ``tags_uv (K, 2)`` with ``tag_ids``;
+    ``weak_tags (K,)`` (bool) are drawn apart as poorly constrained, labelled with their position
+    standard deviation ``tag_std_m (K,)``. ``flip_v`` draws v downwards (when the normal points
+    down, so that the picture is seen from above rather than from below)."""
     ref = np.asarray(ref_uv, dtype=np.float64).reshape(-1, 2)
     qry = np.asarray(query_uv, dtype=np.float64).reshape(-1, 2)
     pq = reloc[["query_u", "query_v"]].to_numpy(np.float64)
@@ -158,22 +179,8 @@ def map_figure(
             ax.scatter(
                 qry[:, 0], qry[:, 1], s=6, color="tab:blue", alpha=0.5, label="query samples"
             )
-        ax.plot(
-            *pq[0],
-            marker="o",
-            color="tab:blue",
-            markersize=9,
-            linestyle="",
-            label="query (parked, median)",
-        )
-        ax.plot(
-            *pr[0],
-            marker="o",
-            color="tab:red",
-            markersize=7,
-            linestyle="",
-            label="nearest on reference",
-        )
+        _dot(ax, pq[0], "tab:blue", 9, "query (parked, median)")
+        _dot(ax, pr[0], "tab:red", 7, "nearest on reference")
     elif len(qry):
         ax.scatter(qry[:, 0], qry[:, 1], s=6, color="tab:blue", alpha=0.5, label="query poses")
     if len(pq):
@@ -194,11 +201,7 @@ def map_figure(
         _arrows(ax, pq[::every], hq, 0.08 * span, "tab:blue")
         _arrows(ax, pr[::every], hr, 0.08 * span, "tab:red")
     ax.set_aspect("equal", adjustable="datalim")
-    if flip_v:
-        ax.invert_yaxis()
-    ax.set_xlabel(f"{axis_names[0]} [m]")
-    ax.set_ylabel(f"{axis_names[1]} [m]" + (" (pointing down: seen from above)" if flip_v else ""))
-    ax.grid(alpha=0.3)
+    _plane_axes(ax, axis_names, flip_v)
     if ax.get_legend_handles_labels()[0]:
         ax.legend(loc="best", fontsize=8)
     ax.set_title(title or "reference path and query (seen from above)")
@@ -309,24 +312,8 @@ def point_figure(
         zorder=5,
         label=f"D = {d:.4f} m (cross-track {float(row['cross_track_m']):+.4f} m, > 0: left)",
     )
-    ax.plot(
-        *pq,
-        marker="o",
-        color="tab:blue",
-        markersize=10,
-        linestyle="",
-        zorder=6,
-        label="parked pose (median position)",
-    )
-    ax.plot(
-        *pr,
-        marker="o",
-        color="tab:red",
-        markersize=8,
-        linestyle="",
-        zorder=6,
-        label="nearest point of the reference",
-    )
+    _dot(ax, pq, "tab:blue", 10, "parked pose (median position)", zorder=6)
+    _dot(ax, pr, "tab:red", 8, "nearest point of the reference", zorder=6)
     arrow = 0.45 * half
     hq, hr = np.radians(row["query_heading_deg"]), np.radians(row["ref_heading_deg"])
     for p, h, color, name in (
@@ -346,11 +333,7 @@ def point_figure(
     ax.set_xlim(centre[0] - half, centre[0] + half)
     ax.set_ylim(centre[1] - half, centre[1] + half)
     ax.set_aspect("equal", adjustable="box")
-    if flip_v:
-        ax.invert_yaxis()
-    ax.set_xlabel(f"{axis_names[0]} [m]")
-    ax.set_ylabel(f"{axis_names[1]} [m]" + (" (pointing down: seen from above)" if flip_v else ""))
-    ax.grid(alpha=0.3)
+    _plane_axes(ax, axis_names, flip_v)
     ax.legend(loc="upper left", bbox_to_anchor=(1.02, 1.0), fontsize=8, borderaxespad=0)
     ax.set_title(
         title or f"parked pose: D {d:.4f} m, phi {phi:+.2f} deg (vs the segment)", fontsize=10

@@ -14,6 +14,7 @@ from pydantic import BaseModel, ConfigDict, ValidationError
 
 from tagtrail.errors import ArtifactError
 from tagtrail.geometry.camera import CameraModel
+from tagtrail.geometry.joint.drive import DriveReport
 from tagtrail.geometry.joint.settings import JointSettings
 
 
@@ -89,24 +90,6 @@ class TagGraph(Document):
     """Ambiguous observations kept (down-weighted) because without them the graph splits."""
 
 
-class DriveSummary(Document):
-    """The wheeled-drive prior (``optimize.report.bundle.ground.drive``, geometry.joint.drive): the
-    mode, whether it was applied, the strain that decided ``auto`` (the prior's robust chi^2 per
-    step in the solution solved with it, in its variance factor; wheeled below 2; NaN without
-    steps), then, of that solution, the camera's lever
-    arm ahead of the centre of rotation (m) and its yaw from the robot's forward axis (deg,
-    positive to the left), the RMS sideways velocity beyond the lever arm (m/s) and the steps
-    beyond the robust loss's scale."""
-
-    mode: Literal["auto", "wheeled"]
-    applied: bool
-    strain: float
-    lever_m: float
-    camera_yaw_deg: float
-    lateral_rms_mps: float
-    steps_off: int
-
-
 class GroundSummary(Document):
     """The ground-plane prior (``optimize.report.bundle.ground``, geometry.joint.ground): the mode,
     whether it was applied, the planarity figure that decided ``auto`` (median normalised
@@ -123,7 +106,9 @@ class GroundSummary(Document):
     height_rms_m: float
     tilt_rms_deg: float
     frames_off: int
-    drive: DriveSummary | None = None
+    drive: DriveReport | None = None
+    """The wheeled-drive prior on top of it (geometry.joint.drive.DriveReport: the model is the
+    document)."""
     note: str = ""
     """Why ``auto`` was not decided on this dataset (a parked or few-second one), in words."""
 

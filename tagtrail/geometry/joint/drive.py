@@ -33,9 +33,10 @@ from __future__ import annotations
 from collections.abc import Mapping
 from dataclasses import dataclass
 from functools import cached_property
-from typing import Any
+from typing import Any, Literal
 
 import numpy as np
+from pydantic import BaseModel, ConfigDict
 
 from tagtrail.geometry.arrays import F64, I64
 from tagtrail.geometry.joint.ground import Plane
@@ -233,15 +234,19 @@ def strain(q: F64, prior: DrivePrior, variance_factor: float) -> float:
     return float(np.mean(q * q * w)) / max(variance_factor, 1e-12)
 
 
-@dataclass(frozen=True)
-class DriveReport:
+class DriveReport(BaseModel):
     """What the wheeled-drive prior decided and found, of the solution solved with it: the
-    mode, whether it was applied, the strain that decided ``auto`` (:func:`strain`), the
-    camera's lever arm (m) and its yaw from the robot's forward axis (deg, about the plane's
-    normal, positive to the left), the RMS lateral velocity beyond the lever arm (m/s) and the
-    steps the robust loss let go (beyond its scale)."""
+    mode, whether it was applied, the strain that decided ``auto`` (:func:`strain`: the prior's
+    robust chi^2 per step in the solution solved with it, in its variance factor; wheeled below
+    :data:`WHEELED_BOUND`; NaN without steps), the camera's lever arm ahead of the centre of
+    rotation (m) and its yaw from the robot's forward axis (deg, about the plane's normal,
+    positive to the left), the RMS lateral velocity beyond the lever arm (m/s) and the steps the
+    robust loss let go (beyond its scale). A pydantic model: it is also the report's document
+    (``optimize.report.bundle.ground.drive``), unknown keys refused, immutable."""
 
-    mode: str
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+    mode: Literal["auto", "wheeled"]
     applied: bool
     strain: float
     lever_m: float
