@@ -92,13 +92,7 @@ def posed_rms_px(
     order = np.argsort(rows.t_ns[first], kind="stable")
     where = np.searchsorted(frame_idx, frames[order])  # ob's frames are in time order
     cam_T_world = inv(T_from_xyz_quat(pose[where, :3], pose[where, 3:]))
-    res = observation_rms_px(
-        cam_T_world[:, :3, :3],
-        cam_T_world[:, :3, 3],
-        W_map[:, :3, :3],
-        W_map[:, :3, 3],
-        ob,
-        camera.focal_px,
-    )
+    R_cam, t_cam = cam_T_world[:, :3, :3], cam_T_world[:, :3, 3]
+    res = observation_rms_px(R_cam, t_cam, W_map[:, :3, :3], W_map[:, :3, 3], ob, camera.focal_px)
     rms[where] = frame_rms_px(res, ob.frame, len(where))
     return rms
