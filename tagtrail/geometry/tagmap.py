@@ -38,7 +38,7 @@ from scipy.sparse.csgraph import connected_components
 from tagtrail.geometry.arrays import F64, I64
 from tagtrail.geometry.camera import CameraModel
 from tagtrail.geometry.ippe import map_branches
-from tagtrail.geometry.joint.mapping import MapRefinement, choose_rivals, refine_map
+from tagtrail.geometry.joint.mapping import MapRefinement, choose_hypotheses, refine_map
 from tagtrail.geometry.joint.problem import CornerRows
 from tagtrail.geometry.joint.settings import JointSettings
 from tagtrail.geometry.posegraph import PoseGraph, PoseGraphResult, relative_residuals, solve
@@ -291,7 +291,7 @@ def build_map(
     """The tag map of one connected tag graph: the pose graph of the edges of hypothesis 0;
     with ``check``, up to 3 rounds of the map's branch check (:func:`map_checked_edges`; the
     pairs ``skip`` left to the rival search), each solved again; with ``joint``, the rival
-    pairs decided (:func:`~tagtrail.geometry.joint.choose_rivals`) and the joint solve on the
+    pairs decided (:func:`~tagtrail.geometry.joint.choose_hypotheses`) and the joint solve on the
     corners (:func:`~tagtrail.geometry.joint.refine_map`) when ``min_frames`` frames or more see
     a mapped tag."""
     tags = edges.tags
@@ -322,7 +322,7 @@ def build_map(
         def solve_graph(u: np.ndarray) -> PoseGraphResult:
             return gs.solve(final, u, anchor_id)
 
-        use, res, flipped = choose_rivals(
+        use, res, flipped = choose_hypotheses(
             joint.rows.take(np.isin(joint.rows.tag_id, tags)),
             tags,
             anchor,

@@ -18,7 +18,7 @@
 - :mod:`.track` -- the cameras against a fixed map (:func:`solve_track`, for ``trajectory``;
   :func:`posed_rms_px`, the corner error of poses found frame by frame);
 - :mod:`.mapping` -- the map's joint solve from the pose graph (:func:`refine_map`: tags linked
-  through the trajectory, the report block; :func:`choose_rivals`: rival hypotheses decided).
+  through the trajectory, the report block; :func:`choose_hypotheses`: rival hypotheses decided).
 """
 
 from __future__ import annotations
@@ -32,7 +32,7 @@ from tagtrail.geometry.joint.evidence import (
     frame_evidence,
 )
 from tagtrail.geometry.joint.ground import GroundPlane, GroundPrior, GroundReport, Plane
-from tagtrail.geometry.joint.mapping import MapRefinement, choose_rivals, refine_map
+from tagtrail.geometry.joint.mapping import MapRefinement, choose_hypotheses, refine_map
 from tagtrail.geometry.joint.motion import MotionPrior
 from tagtrail.geometry.joint.problem import (
     CornerObservations,
@@ -74,7 +74,7 @@ __all__ = [
     "Terms",
     "Travel",
     "WheeledDrive",
-    "choose_rivals",
+    "choose_hypotheses",
     "corner_observations",
     "corner_problem",
     "corner_sigma",

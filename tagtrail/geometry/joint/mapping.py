@@ -2,7 +2,7 @@
 
 :func:`refine_map` links the tags the pose graph left out through the trajectory
 (:func:`~.start.link_tags`), solves the tags and cameras jointly (:func:`~.setup.solve_on_corners`)
-and assembles the report block; :func:`choose_rivals` decides the tag pairs with a close rival
+and assembles the report block; :func:`choose_hypotheses` decides the tag pairs with a close rival
 hypothesis by which pose graph the joint solve from there fits better.
 """
 
@@ -105,7 +105,7 @@ def refine_map(
     return MapRefinement(ids, res.R_tag, res.t_tag, std, linked, out, block)
 
 
-def choose_rivals(
+def choose_hypotheses(
     rows: CornerRows,
     tags: I64,
     anchor: int,
