@@ -21,6 +21,7 @@ from tagtrail.errors import SpecError
 from tagtrail.geometry.arrays import F64
 from tagtrail.geometry.camera import CameraModel
 from tagtrail.sim.camera import limo_camera
+from tagtrail.sim.odometry import Slip
 from tagtrail.sim.render import Realism, tag_bits
 from tagtrail.sim.scene import (
     EPOCH_NS,
@@ -80,6 +81,9 @@ class SimOptions:
     max_range_m: float = 3.5  # detections/observations: farthest tag reported
     max_incidence_deg: float = 65.0
     realism: Realism = Realism()
+    odom: bool | None = None  # write /odom + /tf_static; None: yes for bags, no for observations
+    odom_scale_error: float | None = None  # both wheels' scale error; None: drawn 1-3 % per wheel
+    odom_slip: tuple[float, float, float] | None = None  # (start_s, duration_s, fraction)
     force: bool = False
     progress: bool = False
 
@@ -97,12 +101,20 @@ class SimOptions:
             "corner-noise": self.corner_noise_px >= 0,
             "max-range": self.max_range_m > 0,
             "max-incidence": 0 < self.max_incidence_deg < 90,
+            "odom-scale-error": self.odom_scale_error is None
+            or abs(self.odom_scale_error) < 0.5,  # NaN fails too
         }
         bad = [k for k, ok in checks.items() if not ok]
         if bad:
             raise SpecError(f"invalid simulate option(s): {', '.join('--' + b for b in bad)}")
         if self.compressed and self.detections:
             raise SpecError("--compressed and --detections exclude each other")
+        if self.odom_slip is not None:
+            Slip(*self.odom_slip)  # raises SpecError
+
+    def slip(self) -> Slip | None:
+        """The ``--odom-slip`` stretch, if any."""
+        return None if self.odom_slip is None else Slip(*self.odom_slip)
 
     def to_dict(self) -> dict[str, Any]:
         return {
@@ -121,6 +133,9 @@ class SimOptions:
             "max_incidence_deg": self.max_incidence_deg,
             "mount": {"height_m": self.mount.height_m, "forward_m": self.mount.forward_m},
             "realism": {k: float(v) for k, v in vars(self.realism).items()},
+            "odom": self.odom,
+            "odom_scale_error": self.odom_scale_error,
+            "odom_slip": None if self.odom_slip is None else list(self.odom_slip),
         }
 
 
