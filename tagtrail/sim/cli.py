@@ -20,6 +20,8 @@ scenarios (recordings written under OUT):
   room          loop in a room + 3 parked test poses (the demo)          -> reference, query_1..3
   corridor      long path, one or two tags in view at a time             -> corridor
   hall          sparse: tags flat on both walls, 1-3 in view, U-turn    -> hall
+  corridor_gap  the corridor with a blank wall: ~5 s without a tag      -> corridor_gap
+  room_blank_turn  the room's loop, a turn at a bare wall: ~2 s without a tag -> room_blank_turn
   observations  cam_T_tag observations from rigid transforms (+ noise)  -> observations
   follow        closed loop: simulated LIMO + stream localize/relocalize/follow over zenoh
                 on 127.0.0.1 -> follow.csv, follow_summary.json, follow.png, ground_truth/
