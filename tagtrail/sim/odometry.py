@@ -70,8 +70,26 @@ class Slip:
         return 1.0 + self.fraction if inside else 1.0
 
 
+@dataclass(kw_only=True)
+class Planar:
+    """A planar pose ``(x, y, yaw)`` moving at speed ``v`` and yaw rate ``omega``."""
+
+    x: float = 0.0
+    y: float = 0.0
+    yaw: float = 0.0
+    v: float = 0.0
+    omega: float = 0.0
+
+    def advance(self, dt: float) -> None:
+        """Move by ``dt`` (s) at the current ``v``, ``omega`` (the mid-point heading)."""
+        mid = self.yaw + 0.5 * self.omega * dt
+        self.x += self.v * math.cos(mid) * dt
+        self.y += self.v * math.sin(mid) * dt
+        self.yaw += self.omega * dt
+
+
 @dataclass
-class WheelOdometry:
+class WheelOdometry(Planar):
     """Dead reckoning from wheel speeds with the error model of the module docstring.
 
     ``scale_error``: both wheels read ``1 + scale_error`` times their speed (None: each wheel's
@@ -83,11 +101,6 @@ class WheelOdometry:
     scale_r: float = field(init=False)
     drift_rps: float = field(init=False)
     slip_per_mps2: float = SLIP_PER_MPS2
-    x: float = 0.0
-    y: float = 0.0
-    yaw: float = 0.0
-    v: float = 0.0
-    omega: float = 0.0
 
     def __post_init__(self) -> None:
         sign = self.rng.choice([-1.0, 1.0], 2)
@@ -105,10 +118,7 @@ class WheelOdometry:
         self.omega = (mr - ml) / TRACK_M * (
             1.0 + self.slip_per_mps2 * abs(v * omega)
         ) + self.drift_rps
-        mid = self.yaw + 0.5 * self.omega * dt
-        self.x += self.v * math.cos(mid) * dt
-        self.y += self.v * math.sin(mid) * dt
-        self.yaw += self.omega * dt
+        self.advance(dt)
 
     def message(self, stamp_ns: int) -> bytes:
         """CDR ``nav_msgs/msg/Odometry`` (frame odom → base_link), stamped ``stamp_ns``."""
