@@ -58,7 +58,7 @@ class MountDoc(Document):
     CameraInfo's (else the detections' or images') ``header.frame_id``; ``base_T_camera``: the
     camera's pose in the base frame, ``[x, y, z, qx, qy, qz, qw]`` (m), composed from the
     recording's ``/tf_static`` (``source: tf_static``), or null when no chain links the two
-    frames (``source`` null: solve for it, or give it). ``odometry_topic``: the topic read
+    frames (``source`` null: solve for it, or give it). ``topic``: the odometry topic read
     (null: none); ``covariance``: what its pose covariance is worth -- ``varying`` (it changes
     along the recording), ``constant`` (one value throughout: a placeholder, like the LIMO's),
     ``unusable`` (all zero or not finite: the variances are NaN), null without odometry."""
@@ -68,7 +68,7 @@ class MountDoc(Document):
     camera_frame: str | None = None
     base_T_camera: Annotated[list[float], Field(min_length=7, max_length=7)] | None = None
     source: Literal["tf_static"] | None = None
-    odometry_topic: str | None = None
+    topic: str | None = None
     covariance: Literal["varying", "constant", "unusable"] | None = None
 
 

@@ -244,7 +244,7 @@ def odometry_outputs(src: Source) -> dict[str, Any]:
             camera_frame=frames.camera_frame,
             base_T_camera=base_T_camera,
             source="tf_static" if base_T_camera is not None else None,
-            odometry_topic=odo.topic,
+            topic=odo.topic,
             covariance=covariance_kind(rows),
         ),
     }

@@ -147,7 +147,7 @@ def test_simulated_odometry_read_as_recorded(sim_bag: Path) -> None:
         "base_link",
         FRAME_ID,
     )
-    assert mount.source == "tf_static" and mount.odometry_topic == "/odom"
+    assert mount.source == "tf_static" and mount.topic == "/odom"
     assert mount.covariance == "constant"  # the LIMO's placeholder
     scene = yaml.safe_load((sim_bag / "ground_truth" / "scene.yaml").read_text())
     assert mount.base_T_camera is not None
