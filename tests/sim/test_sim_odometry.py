@@ -200,3 +200,18 @@ def test_observations_have_no_odometry_and_bad_options_are_one_line(
     obs = ["simulate", "observations", "--out", str(tmp_path / "o"), "--odom"]
     assert main(obs) == 2
     assert "observations scenario writes no bag" in capsys.readouterr().err
+
+
+def test_twist_integrates_to_the_pose(corridor: Path) -> None:
+    """Each message's twist is the step that led to its pose (mid-point rule over 20 ms)."""
+    rows = []
+    for _, m in read_topic(corridor, "/odom"):
+        p, q = m.pose.pose.position, m.pose.pose.orientation
+        tw = m.twist.twist
+        rows.append((p.x, p.y, 2 * np.arctan2(q.z, q.w), tw.linear.x, tw.angular.z))
+    x, y, yaw, v, w = np.array(rows).T
+    dt = 0.02
+    mid = yaw[:-1] + 0.5 * w[1:] * dt
+    np.testing.assert_allclose(np.diff(x), v[1:] * np.cos(mid) * dt, atol=1e-12)
+    np.testing.assert_allclose(np.diff(y), v[1:] * np.sin(mid) * dt, atol=1e-12)
+    np.testing.assert_allclose(wrap_angle(np.diff(yaw)), w[1:] * dt, atol=1e-12)
