@@ -487,26 +487,28 @@ class BagSource(Source):
 
     def odometry(self) -> Odometry | None:
         """The odometry topic's messages as ``extract.odometry`` rows (:func:`odometry_rows`);
-        None when the bag has none (or the dataset turned it off)."""
+        None when the bag has none (or the dataset turned it off). A message that does not
+        deserialize is left out and counted (``Odometry.unreadable``), never an error."""
         if self.odometry_topic is None:
             return None
-        frame = child = ""
+        frame = child = None
         recs: list[tuple[Any, ...]] = []
+        unreadable = 0
         with self._reader(keep=True) as reader:
             conns = [c for c in reader.connections if c.topic == self.odometry_topic]
-            idx = 0
-            try:
-                for conn, t_recv, raw in reader.messages(connections=conns):
+            for conn, t_recv, raw in reader.messages(connections=conns):
+                try:
                     msg: Any = reader.deserialize(raw, conn.msgtype)
-                    if idx == 0:
-                        frame, child = str(msg.header.frame_id), str(msg.child_frame_id)
-                    recs.append(odometry_record(msg, int(t_recv)))
-                    idx += 1
-            except Exception as err:
-                raise SourceError(
-                    f"{self.path}: cannot read message {idx} of {self.odometry_topic}: {err}"
-                ) from err
-        return Odometry(self.odometry_topic, frame, child, odometry_rows(recs))
+                    rec = odometry_record(msg, int(t_recv))
+                except Exception:  # noqa: BLE001 - a damaged message: counted, the rest kept
+                    unreadable += 1
+                    continue
+                if frame is None:
+                    frame, child = str(msg.header.frame_id), str(msg.child_frame_id)
+                recs.append(rec)
+        return Odometry(
+            self.odometry_topic, frame or "", child or "", odometry_rows(recs), unreadable
+        )
 
     def static_frames(self) -> StaticFrames:
         """The camera's frame (CameraInfo's, else the first frame message's ``frame_id``) and
@@ -524,21 +526,26 @@ class BagSource(Source):
                 for c in reader.connections
                 if c.topic == TF_STATIC_TOPIC and c.msgtype == TF_MESSAGE
             ]
-            if conns:
+            bad = 0
+            for conn, _, raw in reader.messages(connections=conns) if conns else ():
                 try:
-                    for conn, _, raw in reader.messages(connections=conns):
-                        tf_msg: Any = reader.deserialize(raw, conn.msgtype)
-                        for tf in tf_msg.transforms:
-                            tr, q = tf.transform.translation, tf.transform.rotation
-                            vals = (tr.x, tr.y, tr.z, q.x, q.y, q.z, q.w)
-                            child = str(tf.child_frame_id).lstrip("/")
-                            tfs[child] = StaticTransform(
-                                str(tf.header.frame_id).lstrip("/"),
-                                child,
-                                cast("Any", tuple(float(v) for v in vals)),
-                            )
-                except Exception as err:
-                    raise SourceError(f"{self.path}: cannot read {TF_STATIC_TOPIC}: {err}") from err
+                    tf_msg: Any = reader.deserialize(raw, conn.msgtype)
+                except Exception:  # noqa: BLE001 - a damaged message: the others still count
+                    bad += 1
+                    continue
+                for tf in tf_msg.transforms:
+                    tr, q = tf.transform.translation, tf.transform.rotation
+                    vals = (tr.x, tr.y, tr.z, q.x, q.y, q.z, q.w)
+                    child = str(tf.child_frame_id).lstrip("/")
+                    tfs[child] = StaticTransform(
+                        str(tf.header.frame_id).lstrip("/"),
+                        child,
+                        cast("Any", tuple(float(v) for v in vals)),
+                    )
+            if bad:
+                log.warning(
+                    "%s: %d %s message(s) do not decode: left out", self.path, bad, TF_STATIC_TOPIC
+                )
         camera = self._camera_frame.lstrip("/") if self._camera_frame else None
         return StaticFrames(camera, tuple(tfs.values()))
 

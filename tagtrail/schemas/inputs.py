@@ -21,12 +21,14 @@ class Odometry:
     """A recording's wheel odometry (``nav_msgs/msg/Odometry``), as read: ``topic``, its
     ``frame_id`` (e.g. ``odom``) and ``child_frame_id`` (e.g. ``base_link``, the first message's),
     and ``rows`` with the columns of ``extract.odometry`` (schemas.artifacts; one row per message
-    in bag order, nothing dropped or repaired: the stage counts what is wrong)."""
+    in bag order, nothing dropped or repaired: the stage counts what is wrong); ``unreadable``:
+    messages that did not deserialize (left out)."""
 
     topic: str
     frame_id: str
     child_frame_id: str
     rows: pd.DataFrame
+    unreadable: int = 0
 
 
 @dataclass(frozen=True)

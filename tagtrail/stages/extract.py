@@ -212,7 +212,7 @@ def odometry_outputs(src: Source) -> dict[str, Any]:
     if odo is None:
         return {"odometry": empty_odometry(), "mount": MountDoc()}
     rows = odo.rows[ODOMETRY_COLS].reset_index(drop=True)
-    report_odometry(src, odo.topic, rows)
+    report_odometry(src, odo.topic, rows, odo.unreadable)
     frames = src.static_frames()
     base_T_camera = None
     if frames.camera_frame is not None and odo.child_frame_id:
@@ -281,12 +281,15 @@ def odometry_problems(rows: pd.DataFrame) -> dict[str, int]:
     }
 
 
-def report_odometry(src: Source, topic: str, rows: pd.DataFrame) -> dict[str, int]:
-    """One warning naming the topic when odometry rows have problems (:func:`odometry_problems`);
-    they are kept. Returns the counts."""
-    counts = odometry_problems(rows)
+def report_odometry(
+    src: Source, topic: str, rows: pd.DataFrame, unreadable: int = 0
+) -> dict[str, int]:
+    """One warning naming the topic when odometry rows have problems (:func:`odometry_problems`;
+    kept) or messages did not decode (``unreadable``, left out by the source). Returns the
+    counts."""
+    counts = {"unreadable (left out)": unreadable, **odometry_problems(rows)}
     bad = {k: v for k, v in counts.items() if v}
-    if not rows.empty and bad:
+    if bad and (not rows.empty or unreadable):
         what = ", ".join(k if k == "a single message" else f"{v} {k}" for k, v in bad.items())
         log.warning(
             "%s: odometry %s (%d messages): %s; kept as recorded (the odometry prior decides)",

@@ -15,6 +15,7 @@ import pytest
 import yaml
 from rosbags.highlevel import AnyReader
 from rosbags.rosbag1 import Writer as Writer1
+from rosbags.rosbag2 import Writer
 
 from tagtrail.cli import main
 from tagtrail.errors import SourceError
@@ -82,17 +83,33 @@ def tf_msg(edges: list[tuple[str, str, list[float]]], t_ns: int = T0) -> Any:
     return t["tf2_msgs/msg/TFMessage"](transforms=out)
 
 
-def frames_bag(path: Path, extra: list[tuple[str, int, Any]], n: int = 5) -> Path:
+def frames_bag(
+    path: Path, extra: list[tuple[str, int, Any]], n: int = 5, garbage: tuple[int, ...] = ()
+) -> Path:
     """A detections bag (``n`` frames at 10 Hz, one tag, CameraInfo frame ``camera``) plus
-    ``extra`` messages."""
+    ``extra`` messages; the ``/odom`` messages at the indices ``garbage`` (of ``extra``) are
+    written as bytes that do not deserialize."""
     cam = limo_camera()
     corners = np.array([[300.0, 200.0], [340.0, 200.0], [340.0, 240.0], [300.0, 240.0]])
-    msgs_: list[tuple[str, int, Any]] = []
+    out: list[tuple[str, int, Any]] = []
     for k in range(n):
         t = T0 + k * 100_000_000
-        msgs_.append(("/camera_info", t, bags.camera_info_msg(cam, t)))
-        msgs_.append(("/detections", t, bags.detections_msg(t, [(0, 0, 80.0, corners)])))
-    return bags.write_bag(path, sorted(msgs_ + extra, key=lambda m: m[1]))
+        out.append(("/camera_info", t, bags.camera_info_msg(cam, t)))
+        out.append(("/detections", t, bags.detections_msg(t, [(0, 0, 80.0, corners)])))
+    bad = {id(extra[i][2]) for i in garbage}
+    ts = msgs.typestore()
+    with Writer(path, version=9) as w:
+        conns: dict[str, Any] = {}
+        for topic, t, msg in sorted(out + extra, key=lambda m: m[1]):
+            if topic not in conns:
+                conns[topic] = w.add_connection(topic, msg.__msgtype__, typestore=ts)
+            raw = (
+                b"\x00\x01\x00\x00\x07"
+                if id(msg) in bad
+                else ts.serialize_cdr(msg, msg.__msgtype__)
+            )
+            w.write(conns[topic], t, raw)
+    return path
 
 
 def odoms(topic: str, n: int = 10, child: str = "base_link") -> list[tuple[str, int, Any]]:
@@ -244,6 +261,7 @@ def _warnings(caplog: pytest.LogCaptureFixture) -> list[str]:
         ("single", "a single message"),
         ("zero_cov", "10 no usable covariance"),
         ("unknown_cov", "10 no usable covariance"),
+        ("garbage", "2 unreadable (left out)"),
     ],
 )
 def test_bad_odometry_one_warning_no_crash(
@@ -258,14 +276,17 @@ def test_bad_odometry_one_warning_no_crash(
         rows[8] = ("/odom", rows[8][1], odom_msg(rows[7][1]))
     elif case == "single":
         rows = rows[:1]
+    elif case == "garbage":
+        pass
     else:
         cov = np.zeros(36) if case == "zero_cov" else np.diag([1e6] * 6).reshape(-1)
         rows = [(tp, t, odom_msg(t, cov=cov)) for tp, t, _ in rows]
-    bag = frames_bag(tmp_path / case, rows)
+    garbage = (2, 5) if case == "garbage" else ()
+    bag = frames_bag(tmp_path / case, rows, garbage=garbage)
     with caplog.at_level(logging.INFO):
         out = extract_from(bag)
     odo = out["odometry"]
-    assert len(odo) == len(rows)  # kept: the prior decides
+    assert len(odo) == len(rows) - len(garbage)  # kept: the prior decides
     warns = [w for w in _warnings(caplog) if "odometry" in w]
     assert len(warns) == 1 and "/odom" in warns[0] and expect in warns[0], warns
     if case in ("zero_cov", "unknown_cov"):
