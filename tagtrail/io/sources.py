@@ -41,6 +41,8 @@ from tagtrail.io import msgs
 from tagtrail.io.bags import BAG_FILE_SUFFIXES, open_bag
 from tagtrail.io.camera_files import read_camera_file, split_camera_path
 from tagtrail.io.layouts import integer_column, read_csv_table, read_stamped_poses, tag_ids
+from tagtrail.schemas.artifacts import columns
+from tagtrail.schemas.inputs import Odometry, StaticFrames, StaticTransform
 from tagtrail.schemas.pipeline import DatasetConfig
 from tagtrail.vision.detector import TagDetection
 from tagtrail.vision.images import RawImage
@@ -53,6 +55,12 @@ log = logging.getLogger("tagtrail.sources")
 Kind = Literal["images", "detections", "observations"]
 IMAGE_EXTS = (".jpg", ".jpeg", ".png")
 IMAGE_TYPES = (msgs.IMAGE, msgs.COMPRESSED_IMAGE)
+ODOMETRY = "nav_msgs/msg/Odometry"
+TF_MESSAGE = "tf2_msgs/msg/TFMessage"
+TF_STATIC_TOPIC = "/tf_static"
+ODOM_TOPIC = "/odom"  # preferred when a bag has several Odometry topics
+ODOMETRY_COLS = columns("extract.odometry")
+UNKNOWN_VARIANCE = 1e3  # a variance this large (m², rad²) is ROS' "unknown" marker, not a value
 FOLDER_PERIOD_NS = 100_000_000  # image folders without stamps.csv: 10 Hz from t = 0
 MAX_CORNER_PX = 1e6  # a detection corner farther out is a corrupt message
 STAMPS_HEADER = ["file", "stamp_sec", "stamp_nanosec"]
@@ -105,6 +113,14 @@ class Source:
 
     def describe(self) -> str:
         return f"{self.kind} source {self.path}"
+
+    def odometry(self) -> Odometry | None:
+        """The recording's wheel odometry (None: it has none; only bags can)."""
+        return None
+
+    def static_frames(self) -> StaticFrames:
+        """The camera's frame and the ``/tf_static`` transforms (none outside bags)."""
+        return StaticFrames()
 
     def frame_name(self, frame_idx: int, t_ns: int) -> str:
         """How messages name a frame (a file name for image folders)."""
@@ -263,6 +279,34 @@ def raw_image_from_msg(msg: Any, msgtype: str) -> RawImage:
     )
 
 
+def odometry_record(msg: Any, t_recv: int) -> tuple[Any, ...]:
+    """One ``nav_msgs/Odometry`` as ``(t_ns, x, y, z, qx, qy, qz, qw, vx, vy, wz, var_x,
+    var_y, var_yaw, covariance set)``: the header stamp (``t_recv`` when zero), raw values."""
+    p, q = msg.pose.pose.position, msg.pose.pose.orientation
+    lin, ang = msg.twist.twist.linear, msg.twist.twist.angular
+    cov = np.asarray(msg.pose.covariance, dtype=np.float64).reshape(-1)
+    t_ns = _stamp_ns(msg.header.stamp) or t_recv
+    var = (cov[0], cov[7], cov[35]) if cov.size == 36 else (np.nan,) * 3
+    filled = bool(cov.size == 36 and np.any(cov != 0) and np.isfinite(cov).all())
+    return (t_ns, p.x, p.y, p.z, q.x, q.y, q.z, q.w, lin.x, lin.y, ang.z, *var, filled)
+
+
+def odometry_rows(recs: list[tuple[Any, ...]]) -> pd.DataFrame:
+    """``extract.odometry`` rows of :func:`odometry_record` tuples. A variance is NaN when the
+    message's pose covariance is not filled (all zero, or a value not finite) or the variance
+    itself is not positive or at least :data:`UNKNOWN_VARIANCE` (ROS' "unknown" marker): a
+    weight from it would be meaningless. Everything else is kept as recorded (NaN poses,
+    stamps going back): what to do with them is the consumer's decision."""
+    arr = np.array([r[:-1] for r in recs], dtype=np.float64).reshape(-1, 14)
+    filled = np.array([r[-1] for r in recs], dtype=bool)
+    var = arr[:, 11:14]
+    ok = filled[:, None] & (var > 0) & (var < UNKNOWN_VARIANCE)
+    arr[:, 11:14] = np.where(ok, var, np.nan)
+    df = pd.DataFrame(arr[:, 1:], columns=ODOMETRY_COLS[1:])
+    df.insert(0, "t_ns", np.array([int(r[0]) for r in recs], dtype=np.int64))
+    return df
+
+
 class BagSource(Source):
     """A rosbag2 folder (MCAP or sqlite3) or a ROS 1 ``.bag``, read with rosbags' AnyReader."""
 
@@ -289,6 +333,8 @@ class BagSource(Source):
                     kind.convention(),
                     "; in the rectified image" * kind.rectified,
                 )
+            self.odometry_topic = self._choose_odometry(cfg)
+            self._camera_frame: str | None = None
             self.camera_info_topic: str | None = None
             self._camera = camera
             if camera is not None:
@@ -414,10 +460,94 @@ class BagSource(Source):
         conns = [c for c in reader.connections if c.topic == self.camera_info_topic]
         for conn, _, raw in reader.messages(connections=conns):
             try:
-                return CameraModel.from_camera_info(reader.deserialize(raw, conn.msgtype))
+                info: Any = reader.deserialize(raw, conn.msgtype)
+                self._camera_frame = str(info.header.frame_id) or None
+                return CameraModel.from_camera_info(info)
             except Exception as err:  # a bad calibration or an undecodable message
                 raise SourceError(f"{self.path}: topic {conn.topic}: {err}") from err
         return None
+
+    def _choose_odometry(self, cfg: DatasetConfig) -> str | None:
+        """The odometry topic (Topics.odometry): named, off, or the one the bag has
+        (``/odom`` among several; several others: one error saying how to choose)."""
+        if cfg.topics.odometry_off():
+            return None
+        if cfg.topics.odometry is not None:
+            return self._topic_of(cfg.topics.odometry, "odometry", (ODOMETRY,))
+        cands = sorted(t for t, m in self._types.items() if m == ODOMETRY)
+        if len(cands) > 1 and ODOM_TOPIC in cands:
+            return ODOM_TOPIC
+        if len(cands) > 1:
+            raise SourceError(
+                f"{self.path}: several odometry topics: {self._listing((ODOMETRY,))}; choose "
+                f"one with `topics: {{odometry: {cands[0]}}}` for this dataset in pipeline.yaml "
+                "(or `odometry: none` to read none)"
+            )
+        return cands[0] if cands else None
+
+    def odometry(self) -> Odometry | None:
+        """The odometry topic's messages as ``extract.odometry`` rows (:func:`odometry_rows`);
+        None when the bag has none (or the dataset turned it off). A message that does not
+        deserialize is left out and counted (``Odometry.unreadable``), never an error."""
+        if self.odometry_topic is None:
+            return None
+        frame = child = None
+        recs: list[tuple[Any, ...]] = []
+        unreadable = 0
+        with self._reader(keep=True) as reader:
+            conns = [c for c in reader.connections if c.topic == self.odometry_topic]
+            for conn, t_recv, raw in reader.messages(connections=conns):
+                try:
+                    msg: Any = reader.deserialize(raw, conn.msgtype)
+                    rec = odometry_record(msg, int(t_recv))
+                except Exception:  # noqa: BLE001 - a damaged message: counted, the rest kept
+                    unreadable += 1
+                    continue
+                if frame is None:
+                    frame, child = str(msg.header.frame_id), str(msg.child_frame_id)
+                recs.append(rec)
+        return Odometry(
+            self.odometry_topic, frame or "", child or "", odometry_rows(recs), unreadable
+        )
+
+    def static_frames(self) -> StaticFrames:
+        """The camera's frame (CameraInfo's, else the first frame message's ``frame_id``) and
+        every ``tf2_msgs/TFMessage`` transform on ``/tf_static`` (the last one per child)."""
+        tfs: dict[str, StaticTransform] = {}
+        with self._reader(keep=True) as reader:
+            if self._camera_frame is None:
+                conns = [c for c in reader.connections if c.topic == self.topic]
+                for conn, _, raw in reader.messages(connections=conns):
+                    msg: Any = reader.deserialize(raw, conn.msgtype)
+                    self._camera_frame = str(msg.header.frame_id) or None
+                    break
+            conns = [
+                c
+                for c in reader.connections
+                if c.topic == TF_STATIC_TOPIC and c.msgtype == TF_MESSAGE
+            ]
+            bad = 0
+            for conn, _, raw in reader.messages(connections=conns) if conns else ():
+                try:
+                    tf_msg: Any = reader.deserialize(raw, conn.msgtype)
+                except Exception:  # noqa: BLE001 - a damaged message: the others still count
+                    bad += 1
+                    continue
+                for tf in tf_msg.transforms:
+                    tr, q = tf.transform.translation, tf.transform.rotation
+                    vals = (tr.x, tr.y, tr.z, q.x, q.y, q.z, q.w)
+                    child = str(tf.child_frame_id).lstrip("/")
+                    tfs[child] = StaticTransform(
+                        str(tf.header.frame_id).lstrip("/"),
+                        child,
+                        cast("Any", tuple(float(v) for v in vals)),
+                    )
+            if bad:
+                log.warning(
+                    "%s: %d %s message(s) do not decode: left out", self.path, bad, TF_STATIC_TOPIC
+                )
+        camera = self._camera_frame.lstrip("/") if self._camera_frame else None
+        return StaticFrames(camera, tuple(tfs.values()))
 
     def camera(self) -> CameraModel | None:
         return self._camera

@@ -48,6 +48,21 @@ SCHEMAS: dict[str, pa.Schema] = {
         ]
     ),
     "extract.observations": pa.schema([("t_ns", I64), ("frame_idx", I32), ("tag_id", I32), *POSE]),
+    # wheel odometry, one row per nav_msgs/Odometry message in bag order: header stamp (the
+    # host's publication time on the LIMO), odom_T_base, the twist (base frame), and the pose
+    # covariance's x, y, yaw variances -- NaN where unusable (stages.extract.odometry_table)
+    "extract.odometry": pa.schema(
+        [
+            ("t_ns", I64),
+            *POSE,
+            ("vx_mps", F64),
+            ("vy_mps", F64),
+            ("wz_rps", F64),
+            ("var_x_m2", F64),
+            ("var_y_m2", F64),
+            ("var_yaw_rad2", F64),
+        ]
+    ),
     "pnp.observations": pa.schema(
         [
             ("t_ns", I64),

@@ -8,9 +8,9 @@ The serialised form of every document is ``model_dump(mode="json")`` (keys sorte
 
 from __future__ import annotations
 
-from typing import Any, Literal
+from typing import Annotated, Any, Literal
 
-from pydantic import BaseModel, ConfigDict, ValidationError
+from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
 from tagtrail.errors import ArtifactError
 from tagtrail.geometry.camera import CameraModel
@@ -51,6 +51,26 @@ class CameraDoc(Document):
     @classmethod
     def of(cls, camera: CameraModel) -> CameraDoc:
         return cls.model_validate(camera.to_dict())
+
+
+class MountDoc(Document):
+    """``extract.mount``: the frames of the robot that carries the camera. ``odom_frame`` /
+    ``base_frame``: the odometry's ``frame_id`` / ``child_frame_id``; ``camera_frame``: the
+    CameraInfo's (else the detections' or images') ``header.frame_id``; ``base_T_camera``: the
+    camera's pose in the base frame, ``[x, y, z, qx, qy, qz, qw]`` (m), composed from the
+    recording's ``/tf_static`` (``source: tf_static``), or null when no chain links the two
+    frames (``source`` null: solve for it, or give it). ``topic``: the odometry topic read
+    (null: none); ``covariance``: what its pose covariance is worth -- ``varying`` (it changes
+    along the recording), ``constant`` (one value throughout: a placeholder, like the LIMO's),
+    ``unusable`` (all zero or not finite: the variances are NaN), null without odometry."""
+
+    odom_frame: str | None = None
+    base_frame: str | None = None
+    camera_frame: str | None = None
+    base_T_camera: Annotated[list[float], Field(min_length=7, max_length=7)] | None = None
+    source: Literal["tf_static"] | None = None
+    topic: str | None = None
+    covariance: Literal["varying", "constant", "unusable"] | None = None
 
 
 class DroppedTag(Document):
@@ -278,6 +298,7 @@ class Summary(Document):
 
 DOCUMENTS: dict[str, type[Document]] = {
     "extract.camera": CameraDoc,
+    "extract.mount": MountDoc,
     "edges.graph": TagGraph,
     "optimize.report": OptimizeReport,
     "eval.evaluation": Evaluation,

@@ -62,12 +62,22 @@ def check_dataset_name(name: object) -> str:
 
 
 class Topics(BaseModel):
-    """Bag topics; ``None`` = found automatically when unambiguous."""
+    """Bag topics; ``None`` = found automatically when unambiguous.
+
+    ``odometry``: the wheel odometry (``nav_msgs/msg/Odometry``) that ``extract`` reads; None:
+    the bag's one Odometry topic, ``/odom`` when there are several (the LIMO's, or its
+    ``/wheel/odom`` remap when that is the only one); ``""`` or ``none``: do not read odometry.
+    """
 
     model_config = ConfigDict(extra="forbid", frozen=True)
     image: str | None = None
     camera_info: str | None = None
     detections: str | None = None
+    odometry: str | None = None
+
+    def odometry_off(self) -> bool:
+        """The dataset turns odometry off (``odometry: ""`` or ``none``)."""
+        return self.odometry is not None and self.odometry.strip().lower() in ("", "none")
 
 
 class DatasetConfig(BaseModel):

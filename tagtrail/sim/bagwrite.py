@@ -3,8 +3,11 @@
 Topics: images ``/camera/color/image_raw`` (rgb8) or ``/camera/color/image_raw/compressed``
 (jpeg) with ``/camera/color/camera_info``; or, as the LIMO workflow records, ``/detections``
 (apriltag_msgs) with ``/camera_info``. Always ``/ground_truth/camera_pose`` (PoseStamped,
-frame ``map`` = world = the anchor tag's frame, world_T_cam). Detection corners follow
-apriltag_ros: detector order (corner i = SPEC tag corner i) and +0.5 px from OpenCV's convention.
+frame ``map`` = world = the anchor tag's frame, world_T_cam). With odometry (the default):
+``/odom`` (nav_msgs/Odometry, 50 Hz, :mod:`tagtrail.sim.odometry`) and ``/tf_static`` (base_link →
+the camera frame, transient local), written in stamp order among the frames. Detection corners
+follow apriltag_ros: detector order (corner i = SPEC tag corner i) and +0.5 px from OpenCV's
+convention.
 """
 
 from __future__ import annotations
@@ -21,7 +24,9 @@ from tagtrail.geometry.arrays import F64
 from tagtrail.geometry.se3 import R_from_rotvec, make_T, xyz_quat_from_T
 from tagtrail.io import msgs
 from tagtrail.io.layouts import atomic_write_text, tag_name
+from tagtrail.sim import odometry
 from tagtrail.sim.camera import FRAME_ID, Visibility, tag_visibility
+from tagtrail.sim.odometry import OdomSample
 from tagtrail.sim.render import Renderer
 from tagtrail.sim.scenarios import SimOptions
 from tagtrail.sim.scene import Scene
@@ -132,15 +137,43 @@ class _Bag:
     def __exit__(self, *exc: object) -> None:
         self.writer.close()
 
-    def write(self, topic: str, t_ns: int, msg: Any) -> None:
+    def write(self, topic: str, t_ns: int, msg: Any, qos: list[Any] | None = None) -> None:
         mt = msg.__msgtype__
         if topic not in self.conns:
-            self.conns[topic] = self.writer.add_connection(topic, mt, typestore=msgs.typestore())
+            self.conns[topic] = self.writer.add_connection(
+                topic, mt, typestore=msgs.typestore(), offered_qos_profiles=qos or ()
+            )
         self.writer.write(self.conns[topic], int(t_ns), msgs.typestore().serialize_cdr(msg, mt))
 
 
-def write_bag(folder: Path, scene: Scene, opts: SimOptions, rng: np.random.Generator) -> None:
-    """Render (or synthesise detections for) every frame of ``scene`` into the bag ``folder``."""
+class _Odometry:
+    """Writes ``/tf_static`` once, then each ``/odom`` sample up to a frame's stamp."""
+
+    def __init__(self, bag: _Bag, scene: Scene, opts: SimOptions, samples: list[OdomSample]):
+        self.bag, self.samples, self.k = bag, samples, 0
+        if samples:
+            t0 = int(scene.t_ns[0])
+            tf = odometry.tf_static_msg(odometry.base_T_cam(opts.mount), t0, FRAME_ID)
+            bag.write(odometry.TF_STATIC_TOPIC, t0, tf, odometry.tf_static_qos())
+
+    def until(self, t_ns: float) -> None:
+        """Write the samples stamped at or before ``t_ns`` (all: ``inf``)."""
+        while self.k < len(self.samples) and self.samples[self.k].stamp_ns <= t_ns:
+            s = self.samples[self.k]
+            self.bag.write(odometry.ODOM_TOPIC, s.stamp_ns, s.msg)
+            self.k += 1
+
+
+def write_bag(
+    folder: Path,
+    scene: Scene,
+    opts: SimOptions,
+    rng: np.random.Generator,
+    odom: list[OdomSample] | None = None,
+) -> None:
+    """Render (or synthesise detections for) every frame of ``scene`` into the bag ``folder``;
+    ``odom``: the ``/odom`` samples to interleave (and ``/tf_static``), drawn by the caller from
+    its own generator so that the frames' draws from ``rng`` stay the same with or without."""
     world_T_cam = scene.world_T_cam()
     fid = FRAME_ID
     frames = tqdm(
@@ -151,19 +184,23 @@ def write_bag(folder: Path, scene: Scene, opts: SimOptions, rng: np.random.Gener
         disable=not opts.progress,
     )
     with _Bag(folder, opts.storage) as bag:
+        od = _Odometry(bag, scene, opts, odom or [])
         if opts.detections:
             vis, corners, margins = synth_detections(scene, opts, rng)
             for i in frames:
                 t, sel = int(scene.t_ns[i]), vis.visible[i]
+                od.until(t)
                 msg = detections_msg(t, fid, scene.tag_ids[sel], corners[i, sel], margins[i, sel])
                 bag.write(DETECTIONS_TOPIC, t, msg)
                 bag.write(DETECTIONS_INFO_TOPIC, t, camera_info_msg(scene, t))
                 bag.write(GT_TOPIC, t, pose_msg(world_T_cam[i], t))
+            od.until(np.inf)
             return
         renderer = Renderer(scene, opts.realism, seed=int(rng.integers(2**31)))
         gains = renderer.gains(len(scene.t_ns), rng)
         for i in frames:
             t = int(scene.t_ns[i])
+            od.until(t)
             rgb = renderer.render(scene.scene_T_cam[i], rng, float(gains[i]))
             if opts.compressed:
                 ok, buf = cv2.imencode(
@@ -191,6 +228,7 @@ def write_bag(folder: Path, scene: Scene, opts: SimOptions, rng: np.random.Gener
                 bag.write(IMAGE_TOPIC, t, msg)
             bag.write(INFO_TOPIC, t, camera_info_msg(scene, t))
             bag.write(GT_TOPIC, t, pose_msg(world_T_cam[i], t))
+        od.until(np.inf)
 
 
 def write_observations(

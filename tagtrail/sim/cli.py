@@ -20,6 +20,8 @@ scenarios (recordings written under OUT):
   room          loop in a room + 3 parked test poses (the demo)          -> reference, query_1..3
   corridor      long path, one or two tags in view at a time             -> corridor
   hall          sparse: tags flat on both walls, 1-3 in view, U-turn    -> hall
+  corridor_gap  the corridor with a blank wall: ~5 s without a tag      -> corridor_gap
+  room_blank_turn  the room's loop, a turn at a bare wall: ~2 s without a tag -> room_blank_turn
   observations  cam_T_tag observations from rigid transforms (+ noise)  -> observations
   follow        closed loop: simulated LIMO + stream localize/relocalize/follow over zenoh
                 on 127.0.0.1 -> follow.csv, follow_summary.json, follow.png, ground_truth/
@@ -29,6 +31,7 @@ examples:
   tagtrail simulate room --out sim --detections --storage sqlite3
   tagtrail simulate circle --out sim --frames 300 --compressed --seed 7
   tagtrail simulate observations --out sim --noise-t 0.10 --noise-r-deg 2
+  tagtrail simulate corridor --out sim --odom-scale-error 0.02 --odom-slip 5,1,0.2
   tagtrail simulate follow --out runs/eight --start-offset 0.3 --start-heading 30
   tagtrail simulate follow --out runs/blackout --blackout 2
 """
@@ -134,6 +137,26 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         metavar="M",
         help="detections/observations: farthest tag reported, m (%(default)s)",
     )
+    g = parser.add_argument_group("wheel odometry (/odom, /tf_static; tagtrail.sim.odometry)")
+    g.add_argument(
+        "--odom",
+        action=argparse.BooleanOptionalAction,
+        default=None,
+        help="write /odom (50 Hz) and /tf_static base_link -> camera (default: yes for bags)",
+    )
+    g.add_argument(
+        "--odom-scale-error",
+        type=float,
+        default=None,
+        metavar="REL",
+        help="both wheels' scale error, e.g. 0.02 (default: drawn 1-3 %% per wheel, either sign)",
+    )
+    g.add_argument(
+        "--odom-slip",
+        metavar="START,DUR,FRAC",
+        help="a stretch of wheel slip: from START s for DUR s, the wheels over-read by FRAC "
+        "(5,1,0.2: 1 s of 20 %% slip)",
+    )
     r = Realism()
     f = parser.add_argument_group("follow (closed loop; docs/FOLLOW.md)")
     f.add_argument(
@@ -212,6 +235,15 @@ def _int_list(text: str) -> tuple[int, ...]:
     return tuple(out)
 
 
+def _slip(text: str) -> tuple[float, float, float]:
+    parts = text.split(",")
+    try:
+        start, dur, frac = (float(p) for p in parts)
+    except ValueError as err:
+        raise SpecError(f"--odom-slip: cannot parse {text[:80]!r} (use e.g. 5,1,0.2)") from err
+    return start, dur, frac
+
+
 def _sizes(text: str) -> dict[int, float]:
     try:
         pairs = [p.split("=") for p in text.split(",") if p.strip()]
@@ -243,6 +275,7 @@ RANGES: tuple[tuple[str, float, float], ...] = (  # a value outside: one error l
     ("--exposure", 0.0, 100.0),
     ("--contrast", 0.0, 100.0),
     ("--exposure-jitter", 0.0, 10.0),
+    ("--odom-scale-error", -0.5, 0.5),
 )
 
 
@@ -289,6 +322,9 @@ def options_from_args(args: argparse.Namespace) -> dict[str, Any]:
         "realism": Realism(
             args.image_noise, args.blur, args.exposure, args.contrast, args.exposure_jitter
         ),
+        "odom": args.odom,
+        "odom_scale_error": args.odom_scale_error,
+        "odom_slip": _slip(args.odom_slip) if args.odom_slip else None,
     }
 
 

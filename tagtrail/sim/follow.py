@@ -360,7 +360,7 @@ def run(
                     pending[0] = time.monotonic()
             if t_sim >= next_odo:
                 next_odo += 0.02
-                lag_ns = int(rng.uniform(2e6, 8e6))  # stamp = publication time
+                lag_ns = limo.latency_ns(rng)  # stamp = publication time
                 pubs["odom"].put(odo.message(wall_ns + lag_ns))
                 with lock:
                     s = dict(state)

@@ -4,9 +4,12 @@
 simulation experiment. ``room``: a closed loop in a 5 x 4 m room with 18 wall tags (``reference``)
 plus three parked queries ``query_1..3``. ``corridor``: a 15 m corridor with tags on boards,
 one or two in view at a time. ``hall``: a 14 x 2.4 m hall with tags flat on both walls (seen
-obliquely, one to three at a time), driven out and back with a U-turn. ``observations``: the
-circle's tags and path, written as camera-to-tag observations instead of images. The anchor
-(default: the first tag) is upright on a wall/board, so the floor is the x–z plane of ``world``.
+obliquely, one to three at a time), driven out and back with a U-turn. ``corridor_gap``: the
+corridor with a blank stretch of wall (~5 s without a tag in view); ``room_blank_turn``: the
+room's loop with a bare west wall (~2 s without a tag while turning): odometry's test scenes.
+``observations``: the circle's tags and path, written as camera-to-tag observations instead of
+images. The anchor (default: the first tag) is upright on a wall/board, so the floor is the x–z
+plane of ``world``.
 """
 
 from __future__ import annotations
@@ -21,6 +24,7 @@ from tagtrail.errors import SpecError
 from tagtrail.geometry.arrays import F64
 from tagtrail.geometry.camera import CameraModel
 from tagtrail.sim.camera import limo_camera
+from tagtrail.sim.odometry import Slip
 from tagtrail.sim.render import Realism, tag_bits
 from tagtrail.sim.scene import (
     EPOCH_NS,
@@ -39,12 +43,22 @@ from tagtrail.sim.scene import (
 )
 from tagtrail.stages import pnp
 
-SCENARIOS = ("circle", "room", "corridor", "hall", "observations")
+SCENARIOS = (
+    "circle",
+    "room",
+    "corridor",
+    "hall",
+    "corridor_gap",
+    "room_blank_turn",
+    "observations",
+)
 RECORDINGS = {
     "circle": ("circle",),
     "room": ("reference", "query_1", "query_2", "query_3"),
     "corridor": ("corridor",),
     "hall": ("hall",),
+    "corridor_gap": ("corridor_gap",),
+    "room_blank_turn": ("room_blank_turn",),
     "observations": ("observations",),
 }
 # Parked test poses of the room: (fraction of the loop, offset to the left m, turn deg).
@@ -53,6 +67,20 @@ QUERY_EPOCH_STEP_NS = 3600 * 1_000_000_000  # queries are "later sessions", an h
 # The room loop's straight-arc junctions are eased over this arc length (the robot's yaw rate
 # ramps up in ~0.7 s at 0.3 m/s instead of jumping): see scene.ease_curvature.
 ROOM_CURVATURE_RAMP_M = 0.2
+# corridor_gap: the first board after the blank stretch (the last before it is at 7.6 m).
+GAP_NEXT_X_M = 11.8
+# ... and its boards are turned less towards the robot than the corridor's 50°: seen from afar
+# too obliquely to be detected, they come into view at ~3 m (no stray far detection in the gap).
+GAP_TURN_DEG = 15.0
+# The stretches without a tag in view, (start, end) s after the first frame at the default
+# options (0.3 m/s, 30 fps, seed 0). Measured with the renderer and the pipeline's extract
+# (quad_decimate 2): corridor_gap 5.57 s of frames with no detection from 20.83 s, then sparse
+# far detections; room_blank_turn 2.23 s from 17.83 s (the heading turns ~55° in it). With
+# --detections (the visibility model: 3.5 m, 65°) the same stretches are 7.7 s and 2.2 s.
+BLANK_STRETCH_S = {"corridor_gap": (20.9, 26.2), "room_blank_turn": (17.9, 20.0)}
+# room_blank_turn: where the north (y = 4) and south (y = 0) walls carry their tags.
+BLANK_TURN_NORTH_X_M = (4.1, 3.1, 2.1, 1.1, 0.15)
+BLANK_TURN_SOUTH_X_M = (0.8, 1.8, 2.8, 3.8, 4.7)
 
 
 @dataclass(frozen=True)
@@ -80,6 +108,9 @@ class SimOptions:
     max_range_m: float = 3.5  # detections/observations: farthest tag reported
     max_incidence_deg: float = 65.0
     realism: Realism = Realism()
+    odom: bool | None = None  # write /odom + /tf_static; None: yes for bags, no for observations
+    odom_scale_error: float | None = None  # both wheels' scale error; None: drawn 1-3 % per wheel
+    odom_slip: tuple[float, float, float] | None = None  # (start_s, duration_s, fraction)
     force: bool = False
     progress: bool = False
 
@@ -97,12 +128,20 @@ class SimOptions:
             "corner-noise": self.corner_noise_px >= 0,
             "max-range": self.max_range_m > 0,
             "max-incidence": 0 < self.max_incidence_deg < 90,
+            "odom-scale-error": self.odom_scale_error is None
+            or abs(self.odom_scale_error) < 0.5,  # NaN fails too
         }
         bad = [k for k, ok in checks.items() if not ok]
         if bad:
             raise SpecError(f"invalid simulate option(s): {', '.join('--' + b for b in bad)}")
         if self.compressed and self.detections:
             raise SpecError("--compressed and --detections exclude each other")
+        if self.odom_slip is not None:
+            Slip(*self.odom_slip)  # raises SpecError
+
+    def slip(self) -> Slip | None:
+        """The ``--odom-slip`` stretch, if any."""
+        return None if self.odom_slip is None else Slip(*self.odom_slip)
 
     def to_dict(self) -> dict[str, Any]:
         return {
@@ -121,6 +160,9 @@ class SimOptions:
             "max_incidence_deg": self.max_incidence_deg,
             "mount": {"height_m": self.mount.height_m, "forward_m": self.mount.forward_m},
             "realism": {k: float(v) for k, v in vars(self.realism).items()},
+            "odom": self.odom,
+            "odom_scale_error": self.odom_scale_error,
+            "odom_slip": None if self.odom_slip is None else list(self.odom_slip),
         }
 
 
@@ -263,6 +305,56 @@ def corridor(opts: SimOptions) -> list[Scene]:
     return [_moving("corridor", poly, False, tags, walls, anchor, opts, info)]
 
 
+def _corridor_tag(x: float, side: float, turn_deg: float = 50.0) -> F64:
+    """A corridor board tag at ``x`` on the ``side`` (+1 left, -1 right) wall, turned
+    ``turn_deg`` from the wall towards the oncoming robot."""
+    beta = np.radians(turn_deg)
+    normal = np.cos(beta) * np.array([0.0, -side]) + np.sin(beta) * np.array([-1.0, 0.0])
+    return upright_pose(np.array([x, 0.9 * side, 0.32]), normal)
+
+
+def corridor_gap(opts: SimOptions) -> list[Scene]:
+    """Odometry across a gap: the corridor's boards (1.4 m apart, alternating sides) with a blank
+    stretch of wall mid-corridor: 5 tags from x = 2 m, none from 7.6 m to GAP_NEXT_X_M, 5 more
+    after it (turned GAP_TURN_DEG); the robot drives ~16 m with the corridor's weave. At 0.3 m/s
+    no tag is in view for about 5 s (1.5 m; measured with the renderer and the default extract;
+    BLANK_STRETCH_S) — what wheel odometry must bridge; the tags after the gap test that the
+    map stays whole."""
+    xs = [2.0 + 1.4 * i for i in range(5)] + [GAP_NEXT_X_M + 1.4 * i for i in range(5)]
+    poses = [
+        _corridor_tag(x, 1.0 if i % 2 == 0 else -1.0, 50.0 if i < 5 else GAP_TURN_DEG)
+        for i, x in enumerate(xs)
+    ]
+    tags, anchor = _tags(poses, opts)
+    end = xs[-1] - 1.5
+    walls = box_walls(-0.5, -1.0, xs[-1] + 1.5, 1.0, height_m=2.5)
+    x = np.linspace(0.0, end, int(end * 100))
+    poly = np.stack([x, 0.04 * np.sin(2 * np.pi * x / 6.0)], -1)
+    info = {"scenario": "corridor_gap", "corridor_m": [xs[-1] + 2.0, 2.0], "gap_m": [xs[4], xs[5]]}
+    return [_moving("corridor_gap", poly, False, tags, walls, anchor, opts, info)]
+
+
+def room_blank_turn(opts: SimOptions) -> list[Scene]:
+    """Odometry through a turn at a blank wall: the room's loop (5 x 4 m, the same path), 14 tags
+    on the east, north and south walls and none on the west one; the north wall's tags sit
+    towards the west corner, the south wall's towards the east, so that in the north-west corner
+    the camera turns towards the bare west wall and no tag is in view for about 2 s (measured
+    with the renderer and the default extract; BLANK_STRETCH_S: the stretch)."""
+    width, depth = 5.0, 4.0
+    spots = [((width, depth * (j + 0.5) / 4), (-1.0, 0.0)) for j in range(4)]
+    spots += [((x, depth), (0.0, -1.0)) for x in BLANK_TURN_NORTH_X_M]
+    spots += [((x, 0.0), (0.0, 1.0)) for x in BLANK_TURN_SOUTH_X_M]
+    poses = [
+        upright_pose(np.array([x, y, 0.30 + 0.08 * (k % 3)]), np.array(n))
+        for k, ((x, y), n) in enumerate(spots)
+    ]
+    tags, anchor = _tags(poses, opts)
+    walls = box_walls(0.0, 0.0, width, depth, height_m=2.5)
+    poly = ease_curvature(rounded_rect(1.0, 1.0, 4.0, 3.0, 0.5), True, ROOM_CURVATURE_RAMP_M)
+    info = {"scenario": "room_blank_turn", "room_m": [width, depth], "blank_wall": "west (x = 0)"}
+    return [_moving("room_blank_turn", poly, True, tags, walls, anchor, opts, info)]
+
+
 def hall(opts: SimOptions) -> list[Scene]:
     """The sparse scene of issue 12: a 14 x 2.4 m hall, 28 tags flat on its walls (0.8 m apart on
     each wall from x = 2.2 m, staggered by 0.4 m across, 0.30/0.36 m high), so a forward-looking
@@ -309,6 +401,10 @@ def build(scenario: str, opts: SimOptions) -> list[Scene]:
         return corridor(opts)
     if scenario == "hall":
         return hall(opts)
+    if scenario == "corridor_gap":
+        return corridor_gap(opts)
+    if scenario == "room_blank_turn":
+        return room_blank_turn(opts)
     if scenario == "observations":
         scene = circle(opts, name="observations")[0]
         return [replace(scene, info={**scene.info, "scenario": "observations"})]

@@ -20,7 +20,12 @@ Outputs (columns as docs/ARCHITECTURE.md): ``frames`` (every frame of the camera
 without tags), ``detections`` (corners in px, detector order, OpenCV convention — pixel centres
 at integers —, in the raw, distorted image), ``camera`` (the ``CameraModel``; None
 for observation sources), ``observations`` (cam_T_tag given by the source). Rows sorted by
-(frame_idx, tag_id).
+(frame_idx, tag_id). ``odometry``: the recording's wheel odometry (``nav_msgs/Odometry``, the
+topic ``topics.odometry`` names or the one the bag has), one row per message as recorded --
+empty without odometry; bad messages (NaN values, stamps going back, a single message, an
+unusable covariance) are kept and counted in one warning naming the topic: the odometry prior
+decides what to use. ``mount``: the odometry's frames, the camera's frame and ``base_T_camera``
+composed from ``/tf_static`` (null when no chain links base and camera).
 """
 
 from __future__ import annotations
@@ -39,8 +44,11 @@ from pydantic import Field, field_validator
 
 from tagtrail.errors import SourceError
 from tagtrail.geometry.camera import CameraModel
+from tagtrail.geometry.frames import chain
+from tagtrail.geometry.se3 import T_from_xyz_quat, xyz_quat_from_T
 from tagtrail.pool import map_tasks
 from tagtrail.schemas.artifacts import CORNER_COLS, POSE_COLS, columns
+from tagtrail.schemas.documents import MountDoc
 from tagtrail.schemas.inputs import Frame, Source
 from tagtrail.schemas.ranges import TagId
 from tagtrail.stages.base import StageParams
@@ -49,9 +57,10 @@ from tagtrail.vision.detector import FILTERS, DetectorConfig, explain_drops, fil
 log = logging.getLogger("tagtrail.extract")
 
 INPUTS = {"source": "source"}
-OUTPUTS = ("frames", "detections", "camera", "observations")
+OUTPUTS = ("frames", "detections", "camera", "observations", "odometry", "mount")
 PRIMARY = "detections"  # what `tagtrail show extract --csv` exports
 OBSERVATION_COLS = columns("extract.observations")
+ODOMETRY_COLS = columns("extract.odometry")
 AUTO_HAMMING = {"images": 0, "detections": 2}  # max_hamming: auto (its description says why)
 
 
@@ -156,6 +165,7 @@ def run(source: Source, params: Params) -> dict[str, Any]:
             "detections": _detections_table(*_empty_detections()),
             "camera": None,
             "observations": _typed(obs, OBSERVATION_COLS),
+            **odometry_outputs(src),
         }
     camera = src.camera()
     if camera is None:
@@ -189,7 +199,108 @@ def run(source: Source, params: Params) -> dict[str, Any]:
         "detections": _detections_table(*det),
         "camera": camera,
         "observations": _typed(obs, OBSERVATION_COLS),
+        **odometry_outputs(src),
     }
+
+
+# --- odometry ----------------------------------------------------------------------------------
+
+
+def odometry_outputs(src: Source) -> dict[str, Any]:
+    """``{"odometry": table, "mount": MountDoc}`` of the source (module docstring)."""
+    odo = src.odometry()
+    if odo is None:
+        return {"odometry": empty_odometry(), "mount": MountDoc()}
+    rows = odo.rows[ODOMETRY_COLS].reset_index(drop=True)
+    report_odometry(src, odo.topic, rows, odo.unreadable)
+    frames = src.static_frames()
+    base_T_camera = None
+    if frames.camera_frame is not None and odo.child_frame_id:
+        edges = []
+        for tf in frames.transforms:
+            v = np.asarray(tf.xyz_q_xyzw, dtype=np.float64)
+            if np.isfinite(v).all() and np.linalg.norm(v[3:]) > 1e-9:
+                edges.append((tf.parent, tf.child, T_from_xyz_quat(v[:3], v[3:])))
+        T = chain(edges, odo.child_frame_id, frames.camera_frame)
+        if T is not None:
+            xyz, q = xyz_quat_from_T(T)
+            base_T_camera = [float(x) for x in (*xyz, *q)]
+    log.info(
+        "%s: odometry %s, %d messages, %s -> %s; base_T_camera %s",
+        src.describe(),
+        odo.topic,
+        len(rows),
+        odo.frame_id or "?",
+        odo.child_frame_id or "?",
+        "from /tf_static"
+        if base_T_camera is not None
+        else f"not recorded (no /tf_static chain {odo.child_frame_id} -> {frames.camera_frame})",
+    )
+    return {
+        "odometry": rows,
+        "mount": MountDoc(
+            odom_frame=odo.frame_id or None,
+            base_frame=odo.child_frame_id or None,
+            camera_frame=frames.camera_frame,
+            base_T_camera=base_T_camera,
+            source="tf_static" if base_T_camera is not None else None,
+            topic=odo.topic,
+            covariance=covariance_kind(rows),
+        ),
+    }
+
+
+def empty_odometry() -> pd.DataFrame:
+    """``extract.odometry`` without rows (the source has no odometry)."""
+    df = pd.DataFrame({c: np.zeros(0, np.float64) for c in ODOMETRY_COLS})
+    df["t_ns"] = df["t_ns"].astype(np.int64)
+    return df
+
+
+def covariance_kind(rows: pd.DataFrame) -> Literal["varying", "constant", "unusable"]:
+    """``unusable``: no finite variance; ``constant``: each variance one value throughout (a
+    placeholder); ``varying`` otherwise."""
+    var = rows[ODOMETRY_COLS[-3:]].to_numpy(np.float64)
+    if not np.isfinite(var).any():
+        return "unusable"
+    same = [np.unique(c[np.isfinite(c)]).size <= 1 for c in var.T]
+    return "constant" if all(same) and np.isfinite(var).all() else "varying"
+
+
+def odometry_problems(rows: pd.DataFrame) -> dict[str, int]:
+    """What is wrong with odometry rows: messages with a value not finite (pose or twist),
+    stamps not after the previous one, a lone message, messages without a usable covariance."""
+    vals = rows[ODOMETRY_COLS[1:-3]].to_numpy(np.float64)
+    var = rows[ODOMETRY_COLS[-3:]].to_numpy(np.float64)
+    t = rows["t_ns"].to_numpy(np.int64)
+    return {
+        "not finite": int((~np.isfinite(vals)).any(axis=1).sum()),
+        "stamps going back": int((np.diff(t) <= 0).sum()),
+        "a single message": int(len(rows) == 1),
+        "no usable covariance": int((~np.isfinite(var)).any(axis=1).sum()),
+    }
+
+
+def report_odometry(
+    src: Source, topic: str, rows: pd.DataFrame, unreadable: int = 0
+) -> dict[str, int]:
+    """One warning naming the topic when odometry rows have problems (:func:`odometry_problems`;
+    kept) or messages did not decode (``unreadable``, left out by the source). Returns the
+    counts."""
+    counts = {"unreadable (left out)": unreadable, **odometry_problems(rows)}
+    bad = {k: v for k, v in counts.items() if v}
+    if bad and (not rows.empty or unreadable):
+        what = ", ".join(k if k == "a single message" else f"{v} {k}" for k, v in bad.items())
+        log.warning(
+            "%s: odometry %s (%d messages): %s; kept as recorded (the odometry prior decides)",
+            src.describe(),
+            topic,
+            len(rows),
+            what,
+        )
+    elif rows.empty:
+        log.warning("%s: odometry %s has no messages", src.describe(), topic)
+    return counts
 
 
 # --- detection sources -------------------------------------------------------------------------

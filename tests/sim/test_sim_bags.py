@@ -94,8 +94,13 @@ def _mcap_messages(bag: Path) -> dict[str, list[object]]:
     return out
 
 
+ODOM_TOPICS = ("/odom", "/tf_static")  # tests/sim/test_sim_odometry.py checks them
+
+
 def test_mcap_reads_images_and_detections(room_mcap: dict[str, Path], tmp_path: Path) -> None:
     msgs = _mcap_messages(room_mcap["query_2"])
+    assert set(ODOM_TOPICS) <= set(msgs) and len(msgs["/tf_static"]) == 1
+    msgs = {k: v for k, v in msgs.items() if k not in ODOM_TOPICS}
     assert {len(v) for v in msgs.values()} == {SMALL["query_frames"]}
     img = msgs[IMAGE][0]
     assert (img.width, img.height, img.encoding) == (640, 480, "rgb8")  # type: ignore[attr-defined]
@@ -103,7 +108,7 @@ def test_mcap_reads_images_and_detections(room_mcap: dict[str, Path], tmp_path: 
     assert msgs[GT][0].header.frame_id == "map"  # type: ignore[attr-defined]
     det = simulate("circle", tmp_path, frames=8, detections=True)["circle"]
     msgs = _mcap_messages(det)
-    assert set(msgs) == {"/detections", "/camera_info", GT}
+    assert set(msgs) == {"/detections", "/camera_info", GT, *ODOM_TOPICS}
     d = msgs["/detections"][0].detections[0]  # type: ignore[attr-defined]
     assert d.family == "36h11" and len(d.corners) == 4 and d.hamming == 0
 

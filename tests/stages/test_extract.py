@@ -74,7 +74,7 @@ def upenn_unrefined(upenn_bag: Path) -> dict:
 
 
 def check_tables(out: dict) -> None:
-    assert set(out) == {"frames", "detections", "camera", "observations"}
+    assert set(out) == {"frames", "detections", "camera", "observations", "odometry", "mount"}
     assert list(out["frames"].columns) == FRAME_COLS
     assert list(out["detections"].columns) == DET_COLS
     assert list(out["observations"].columns) == OBS_COLS
