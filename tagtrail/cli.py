@@ -6,6 +6,7 @@ import argparse
 import json
 import logging
 import os
+import select
 import sys
 import tempfile
 import time
@@ -275,12 +276,17 @@ def run_command(command: Callable[[], int]) -> int:
     """Run ``command`` and return its exit code; every entry point (``tagtrail …`` and the
     standalone ``python -m`` modules) goes through here. A :class:`TagtrailError` is one
     ``error:`` line and its exit code (2 user error, 1 failure), a refused write (full disk,
-    read-only) one line and 2, Ctrl-C 130 and ``interrupted`` (:mod:`tagtrail.signals`),
-    anything else one line plus a traceback file, 1."""
+    read-only) one line and 2, Ctrl-C 130 and ``interrupted`` (:mod:`tagtrail.signals`), a
+    closed stdout pipe (``| head``) nothing and 141, anything else one line plus a traceback
+    file, 1."""
     try:
-        return int(command())
+        code = int(command())
+        sys.stdout.flush()  # now, not at exit: a reader that has gone is handled below
+        return code
     except TagtrailError as err:
         return report(err)
+    except BrokenPipeError as err:  # `tagtrail show optimize | head -1`: the reader has gone
+        return closed_stdout() if stdout_reader_gone() else _unexpected(err)
     except OSError as err:
         refused = storage_error(err)
         if refused is None:
@@ -290,6 +296,32 @@ def run_command(command: Callable[[], int]) -> int:
         return signals.report(err)
     except Exception as err:  # noqa: BLE001 - unexpected: full traceback to a file, one line out
         return _unexpected(err)
+
+
+SIGPIPE_EXIT = 128 + 13  # 141: what a shell reports for a process a closed pipe ended
+
+
+def stdout_reader_gone() -> bool:
+    """True when stdout is a pipe whose reading end is closed (Linux polls it ``POLLERR``)."""
+    try:
+        fd = sys.stdout.fileno()
+    except (AttributeError, OSError, ValueError):  # replaced by an in-memory stream (tests)
+        return False
+    poller = select.poll()
+    poller.register(fd, select.POLLOUT)
+    return any(events & select.POLLERR for _, events in poller.poll(0))
+
+
+def closed_stdout() -> int:
+    """End quietly after the reader of stdout went away, as Unix tools do: what is still
+    buffered goes to /dev/null (the interpreter's last flush would fail again and print
+    ``Exception ignored … BrokenPipeError``), and the exit code is SIGPIPE's 141."""
+    devnull = os.open(os.devnull, os.O_WRONLY)
+    try:
+        os.dup2(devnull, sys.stdout.fileno())
+    finally:
+        os.close(devnull)
+    return SIGPIPE_EXIT
 
 
 def _unexpected(err: BaseException) -> int:
