@@ -53,10 +53,13 @@ import contextvars
 import importlib
 import importlib.util
 import logging
+import multiprocessing.util
 import os
 import pickle
+import signal
 import socket
 import sys
+import threading
 import time
 import uuid
 from collections.abc import Callable, Iterable, Iterator
@@ -66,7 +69,7 @@ from pathlib import Path
 from types import ModuleType
 from typing import Any, TypeVar
 
-from tagtrail import faults, pool
+from tagtrail import faults, pool, signals
 from tagtrail.errors import SpecError
 from tagtrail.runner.cache import Store
 from tagtrail.runner.inputs import resolve
@@ -266,6 +269,39 @@ def _port_free(port: int) -> bool:
     return True
 
 
+def dask_setup(worker: Any) -> None:
+    """Run by each worker process of the local cluster as it starts (dask's ``preload``): it
+    ignores SIGINT. Ctrl-C at a terminal signals the whole foreground process group; the
+    command handles it and ends the cluster (:meth:`DaskSession.kill_workers`), where a worker
+    of its own would die of it printing a traceback after the command's ``interrupted``."""
+    del worker
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    from tqdm import tqdm
+
+    # tqdm's default lock holds a multiprocessing semaphore, which a killed worker would leave
+    # to multiprocessing's resource tracker (a warning); its bars are this process's alone
+    tqdm.set_lock(threading.RLock())
+
+
+_LOCAL: list[DaskSession] = []  # the sessions whose LocalCluster is running
+
+
+def _kill_local_workers() -> None:
+    """At the exit of an interrupted command (``os._exit``, :mod:`tagtrail.signals`): the local
+    clusters' workers are killed and the semaphores of their nannies' queues released, as
+    multiprocessing's exit handler would (else its resource tracker warns of them)."""
+    for session in list(_LOCAL):
+        session.kill_workers()
+    finalizers: Callable[[int], None] | None = getattr(
+        multiprocessing.util, "_run_finalizers", None
+    )
+    if finalizers is not None:
+        finalizers(0)  # priority >= 0: what multiprocessing runs first at exit (its locks)
+
+
+signals.at_exit(_kill_local_workers)  # an interrupted process ends without unwinding
+
+
 class DaskSession:
     """A ``dask.distributed`` client: to ``scheduler``, or to a ``LocalCluster`` of ``workers``
     processes on 127.0.0.1 it starts (and stops). Prints one line with the dashboard link."""
@@ -280,6 +316,7 @@ class DaskSession:
         self.workers = max(1, workers)
         self.echo = echo or (lambda s: None)
         self.client: Any = None
+        self._cluster: Any = None
         self._stack = ExitStack()
 
     def __enter__(self) -> DaskSession:
@@ -302,8 +339,12 @@ class DaskSession:
                         dashboard_address=f"127.0.0.1:{port}",
                         silence_logs=logging.CRITICAL,
                         env=dict.fromkeys(BLAS_VARS, "1"),
+                        preload=[__name__],  # dask_setup: Ctrl-C is for this process
                     )
                 )
+                self._cluster = cluster
+                _LOCAL.append(self)
+                stack.callback(_LOCAL.remove, self)
                 client = stack.enter_context(distributed.Client(cluster))
                 where = f"a local cluster of {self.workers} worker processes"
             else:
@@ -337,9 +378,20 @@ class DaskSession:
         self._check_blas()
         return self
 
-    def __exit__(self, *exc: object) -> None:
-        self.client = None
+    def __exit__(self, exc_type: type[BaseException] | None, *rest: object) -> None:
+        if exc_type is not None and issubclass(exc_type, KeyboardInterrupt):
+            self.kill_workers()  # not the cluster's orderly close: seconds, and its workers'
+        self.client = None  # shutdown chatter (tracebacks, warnings) after `interrupted`
         self._stack.close()
+
+    def kill_workers(self) -> None:
+        """SIGKILL the worker processes of the local cluster (Ctrl-C): their task is abandoned,
+        as the local executor abandons its threads; the store keeps no partial entry."""
+        for nanny in getattr(self._cluster, "workers", {}).values():
+            pid = getattr(getattr(nanny, "process", None), "pid", None)
+            if pid:
+                with contextlib.suppress(OSError):
+                    os.kill(pid, signal.SIGKILL)
 
     def _check_blas(self) -> None:
         envs: dict[str, dict[str, str | None]] = self.client.run(_blas_env)
