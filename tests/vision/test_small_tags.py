@@ -21,6 +21,11 @@ MODES = {
     "default": {},
 }
 Dets = dict[str, list[tuple[Any, Any]]]
+# The swatbotics photos (72 of them, ~8 s of detection in three modes) and the ray-traced scenes
+# (~11 s of rendering) are heavy: their cases run in `make test-all`; Duckietown's real frames
+# (~2 s) keep every check in the fast tier.
+SWATBOTICS = pytest.param("swatbotics", marks=pytest.mark.slow)
+RENDERED = pytest.param("rendered", marks=pytest.mark.slow)
 
 
 def _detect_all(frames: list[np.ndarray]) -> Dets:
@@ -108,7 +113,7 @@ def test_default_finds_what_full_resolution_finds(frames: str, request: Any) -> 
         assert len(set(ints[:, 0])) == len(ints)
 
 
-@pytest.mark.parametrize("frames", ["swatbotics", "duckietown"])
+@pytest.mark.parametrize("frames", [SWATBOTICS, "duckietown"])
 def test_default_finds_no_false_ids(frames: str, request: Any) -> None:
     res, truth = request.getfixturevalue(frames)
     for ints, _ in res["default"] + res["full"]:
@@ -117,6 +122,7 @@ def test_default_finds_no_false_ids(frames: str, request: Any) -> None:
         assert set(ints[:, 0].tolist()) <= ids
 
 
+@pytest.mark.slow
 def test_rendered_small_tags_are_where_they_are_drawn(
     rendered: tuple[Dets, list[dict[int, np.ndarray]]],
 ) -> None:
@@ -133,7 +139,7 @@ def test_rendered_small_tags_are_where_they_are_drawn(
     assert max(errors) < 1.0
 
 
-@pytest.mark.parametrize("frames", ["swatbotics", "duckietown", "rendered"])
+@pytest.mark.parametrize("frames", [SWATBOTICS, "duckietown", RENDERED])
 def test_redetected_corners_agree_with_full_resolution(frames: str, request: Any) -> None:
     """Tags of the decimated pass keep its corners exactly; tags re-detected in a crop get the
     corners full resolution gives them (the crop starts on the C library's 4-px threshold grid,
