@@ -18,22 +18,16 @@ from __future__ import annotations
 
 import argparse
 import statistics
+import sys
 import tempfile
 import time
 from pathlib import Path
 from typing import Any, NamedTuple
 
-PIPELINE = """datasets:
-  reference: {source: bags/reference}
-  query_1:
-    source: bags/query_1
-    inputs:
-      trajectory.tag_map: reference:optimize.tag_map
-      trajectory.map_report: reference:optimize.report
-      align.tag_map: reference:optimize.tag_map
-stages:
-  pnp: {tag_size: 0.16}
-"""
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+
+from tests.cli_helpers import ROOM_QUERY_PIPELINE as PIPELINE  # noqa: E402
 
 
 class Msg(NamedTuple):

@@ -8,6 +8,20 @@ import pytest
 
 from tagtrail.sim import simulate
 
+# The `room` recordings under bags/ (a test copies them there): the reference, and query_1 parked
+# and localized against the reference's map.
+ROOM_QUERY_PIPELINE = """datasets:
+  reference: {source: bags/reference}
+  query_1:
+    source: bags/query_1
+    inputs:
+      trajectory.tag_map: reference:optimize.tag_map
+      trajectory.map_report: reference:optimize.report
+      align.tag_map: reference:optimize.tag_map
+stages:
+  pnp: {tag_size: 0.16}
+"""
+
 
 def detection_bags(root: Path) -> Path:
     """The `room` recordings (reference + parked queries) as sqlite3 detection bags in ``root``."""

@@ -4,6 +4,7 @@ need it skip when it is absent (a user's clone), except under CI=true, where abs
 from __future__ import annotations
 
 import os
+from collections.abc import Iterator
 from pathlib import Path
 
 import pytest
@@ -23,8 +24,19 @@ def realdata() -> Path:
     return REALDATA
 
 
+def _listing(root: Path) -> dict[str, tuple[int, int]]:
+    return {
+        str(p.relative_to(root)): (p.lstat().st_size, p.lstat().st_mtime_ns)
+        for p in root.rglob("*")
+    }
+
+
 @pytest.fixture(scope="session")
-def room_bags(tmp_path_factory: pytest.TempPathFactory) -> Path:
+def room_bags(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Path]:
     """The `room` recordings (reference + parked queries) as sqlite3 detection bags, simulated
-    once per session and shared: tests read them and never write into the folder."""
-    return detection_bags(tmp_path_factory.mktemp("room_bags"))
+    once per session and shared: tests read them or copy them (``shutil.copytree``, 3 ms) and
+    never write into the folder, which the session's end checks."""
+    root = detection_bags(tmp_path_factory.mktemp("room_bags"))
+    before = _listing(root)
+    yield root
+    assert _listing(root) == before, f"a test wrote into the shared {root}: copy it first"

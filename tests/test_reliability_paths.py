@@ -20,7 +20,7 @@ import yaml
 from tagtrail.cli import main
 from tagtrail.io.layouts import atomic_write_text, remove_stale_temps
 from tagtrail.runner.paths import OUTPUT_FILES
-from tests.cli_helpers import detection_bags, one_error_line
+from tests.cli_helpers import one_error_line
 
 QUERY_INPUTS = {
     "trajectory.tag_map": "reference:optimize.tag_map",
@@ -83,8 +83,8 @@ def last_error_line(capsys: pytest.CaptureFixture[str]) -> str:
 
 
 @pytest.fixture(scope="module")
-def bags(tmp_path_factory: pytest.TempPathFactory) -> Path:
-    return detection_bags(tmp_path_factory.mktemp("bags"))
+def bags(room_bags: Path) -> Path:
+    return room_bags  # read, never written (the pipelines point at it)
 
 
 @pytest.fixture(scope="module")

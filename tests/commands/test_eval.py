@@ -21,7 +21,6 @@ from tagtrail.io.layouts import read_tag_map, read_trajectory
 from tagtrail.runner.execute import Runner
 from tagtrail.runner.spec import load_pipeline
 from tagtrail.schemas.artifacts import POSE_COLS
-from tagtrail.sim import simulate
 from tagtrail.stages import REGISTRY
 from tests.cli_helpers import one_error_line
 
@@ -36,10 +35,10 @@ stages:
 
 
 @pytest.fixture(scope="module")
-def project(tmp_path_factory: pytest.TempPathFactory) -> Path:
+def project(tmp_path_factory: pytest.TempPathFactory, room_bags: Path) -> Path:
     """The `room` detection recordings, mapped and evaluated by ``tagtrail run eval``."""
     root = tmp_path_factory.mktemp("eval")
-    simulate("room", root / "bags", frames=40, query_frames=5, detections=True, storage="sqlite3")
+    shutil.copytree(room_bags, root / "bags")
     (root / "pipeline.yaml").write_text(PIPELINE)
     assert tagtrail.cli.main(["run", "eval", "-p", str(root / "pipeline.yaml")]) == 0
     return root

@@ -25,20 +25,10 @@ from tagtrail.runner.execute import Runner
 from tagtrail.runner.spec import load_pipeline
 from tagtrail.sim import simulate
 from tagtrail.stages import REGISTRY
-from tests.cli_helpers import one_error_line
+from tests.cli_helpers import ROOM_QUERY_PIPELINE, one_error_line
 
 Capsys = pytest.CaptureFixture[str]
-PIPELINE = """datasets:
-  reference: {source: bags/reference}
-  query_1:
-    source: bags/query_1
-    inputs:
-      trajectory.tag_map: reference:optimize.tag_map
-      trajectory.map_report: reference:optimize.report
-      align.tag_map: reference:optimize.tag_map
-stages:
-  pnp: {tag_size: 0.16}
-"""
+PIPELINE = ROOM_QUERY_PIPELINE
 STATIC = {
     "/tag_map": "visualization_msgs/msg/MarkerArray",
     "/tf_static": "tf2_msgs/msg/TFMessage",
@@ -47,10 +37,10 @@ STATIC = {
 
 
 @pytest.fixture(scope="module")
-def project(tmp_path_factory: pytest.TempPathFactory) -> Path:
+def project(tmp_path_factory: pytest.TempPathFactory, room_bags: Path) -> Path:
     """The `room` detection recordings (reference + parked query_1), run end to end."""
     root = tmp_path_factory.mktemp("export_mcap")
-    simulate("room", root / "bags", frames=40, query_frames=5, detections=True, storage="sqlite3")
+    shutil.copytree(room_bags, root / "bags")  # a test moves a recording
     (root / "pipeline.yaml").write_text(PIPELINE)
     assert tagtrail.cli.main(["run", "-p", str(root / "pipeline.yaml")]) == 0
     return root

@@ -13,12 +13,12 @@ import pytest
 import yaml
 
 from tagtrail.cli import main
-from tests.cli_helpers import detection_bags, one_error_line
+from tests.cli_helpers import one_error_line
 
 
 @pytest.fixture(scope="module")
-def bags(tmp_path_factory: pytest.TempPathFactory) -> Path:
-    return detection_bags(tmp_path_factory.mktemp("newcomer_bags"))
+def bags(room_bags: Path) -> Path:
+    return room_bags  # read, never written
 
 
 def test_init_without_a_tag_size_stops_naming_the_flag(

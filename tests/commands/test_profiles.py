@@ -3,6 +3,7 @@
 
 from __future__ import annotations
 
+import shutil
 from pathlib import Path
 
 import pytest
@@ -17,13 +18,13 @@ from tagtrail.sim.simulate import simulate
 from tagtrail.stages import REGISTRY
 from tagtrail.stream import cli as stream_cli
 from tagtrail.stream.params import stage_params
-from tests.cli_helpers import detection_bags, one_error_line
+from tests.cli_helpers import one_error_line
 
 
 @pytest.fixture(scope="module")
-def bags(tmp_path_factory: pytest.TempPathFactory) -> Path:
+def bags(tmp_path_factory: pytest.TempPathFactory, room_bags: Path) -> Path:
     root = tmp_path_factory.mktemp("profile_bags")
-    detection_bags(root / "det")
+    shutil.copytree(room_bags, root / "det")
     simulate("room", root / "jpeg", frames=20, query_frames=4, compressed=True)
     return root
 
