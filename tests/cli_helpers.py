@@ -1,12 +1,20 @@
-"""Shared by the CLI tests: a small simulated detections recording, the one-error-line check."""
+"""Shared by the CLI tests: a small simulated detections recording, the one-error-line check,
+``tagtrail`` as a subprocess, and what a killed or interrupted command may leave behind."""
 
 from __future__ import annotations
 
+import os
+import re
+import subprocess
+import sys
 from pathlib import Path
 
 import pytest
 
 from tagtrail.sim import simulate
+
+REPO = Path(__file__).resolve().parents[1]
+TEMP = re.compile(r"^\..+\.[a-z0-9_]{8}$")  # mkstemp's names: a killed atomic write's leftovers
 
 # The `room` recordings under bags/ (a test copies them there): the reference, and query_1 parked
 # and localized against the reference's map.
@@ -34,3 +42,61 @@ def one_error_line(capsys: pytest.CaptureFixture[str]) -> str:
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and err[0].startswith("error: "), err
     return err[0]
+
+
+def cli_env(fault: str | None = None) -> dict[str, str]:
+    """The environment of a ``tagtrail`` subprocess: this checkout first on PYTHONPATH, and
+    ``TAGTRAIL_FAULT`` (``tagtrail/faults.py``) set to ``fault`` alone."""
+    env = {k: v for k, v in os.environ.items() if k != "TAGTRAIL_FAULT"}
+    env["PYTHONPATH"] = os.pathsep.join([str(REPO), *filter(None, [env.get("PYTHONPATH")])])
+    if fault:
+        env["TAGTRAIL_FAULT"] = fault
+    return env
+
+
+def tagtrail(
+    cwd: Path, *args: str, fault: str | None = None, timeout: float = 300
+) -> subprocess.CompletedProcess[str]:
+    """``tagtrail ARGS`` run in ``cwd`` by a fresh interpreter (the console script's entry)."""
+    return subprocess.run(
+        [sys.executable, "-m", "tagtrail.cli", *args],
+        cwd=cwd,
+        env=cli_env(fault),
+        capture_output=True,
+        text=True,
+        timeout=timeout,
+    )
+
+
+def files(root: Path) -> dict[str, bytes]:
+    """Every file below ``root`` with its bytes."""
+    return {
+        str(p.relative_to(root)): p.read_bytes() for p in sorted(root.rglob("*")) if p.is_file()
+    }
+
+
+def stray(project: Path) -> list[str]:
+    """Temporary files and folders a killed or failed write may leave behind."""
+    left = [str(p.relative_to(project)) for p in project.rglob("*") if TEMP.match(p.name)]
+    tmp = project / "artifacts" / "tmp"
+    return left + ([str(p) for p in tmp.iterdir()] if tmp.is_dir() else [])
+
+
+def children(pid: int) -> list[int]:
+    """The child processes of ``pid`` (Linux ``/proc``)."""
+    out: list[int] = []
+    for task in Path(f"/proc/{pid}/task").glob("*/children"):
+        try:
+            out += [int(c) for c in task.read_text().split()]
+        except OSError:  # the thread ended meanwhile
+            continue
+    return out
+
+
+def alive(pid: int) -> bool:
+    """``pid`` runs (a zombie, ended but not yet reaped, does not)."""
+    try:
+        stat = Path(f"/proc/{pid}/stat").read_text()
+    except OSError:
+        return False
+    return stat.rsplit(")", 1)[1].split()[0] != "Z"

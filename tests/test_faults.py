@@ -12,7 +12,6 @@ import re
 import shutil
 import signal
 import subprocess
-import sys
 from pathlib import Path
 
 import pytest
@@ -20,41 +19,11 @@ import pytest
 from tagtrail.commands.demo import template
 from tagtrail.sim import simulate
 from tagtrail.stages import REGISTRY
+from tests.cli_helpers import TEMP, files, stray, tagtrail
 
 pytestmark = pytest.mark.slow  # the crash suite: kill -9 everywhere, a full disk (make test-all)
 
 EXPORTS = [e.name for m in REGISTRY.values() for e in getattr(m, "EXPORTS", ())]
-
-TEMP = re.compile(r"^\..+\.[a-z0-9_]{8}$")  # mkstemp's names
-
-
-def tagtrail(
-    cwd: Path, *args: str, fault: str | None = None, timeout: float = 300
-) -> subprocess.CompletedProcess[str]:
-    env = {k: v for k, v in os.environ.items() if k != "TAGTRAIL_FAULT"}
-    if fault:
-        env["TAGTRAIL_FAULT"] = fault
-    return subprocess.run(
-        [sys.executable, "-m", "tagtrail.cli", *args],
-        cwd=cwd,
-        env=env,
-        capture_output=True,
-        text=True,
-        timeout=timeout,
-    )
-
-
-def files(root: Path) -> dict[str, bytes]:
-    return {
-        str(p.relative_to(root)): p.read_bytes() for p in sorted(root.rglob("*")) if p.is_file()
-    }
-
-
-def stray(project: Path) -> list[str]:
-    """Temporary files and folders a killed or failed write may leave behind."""
-    left = [str(p.relative_to(project)) for p in project.rglob("*") if TEMP.match(p.name)]
-    tmp = project / "artifacts" / "tmp"
-    return left + ([str(p) for p in tmp.iterdir()] if tmp.is_dir() else [])
 
 
 def new_project(folder: Path, data: Path) -> Path:

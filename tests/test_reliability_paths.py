@@ -20,7 +20,7 @@ import yaml
 from tagtrail.cli import main
 from tagtrail.io.layouts import atomic_write_text, remove_stale_temps
 from tagtrail.runner.paths import OUTPUT_FILES
-from tests.cli_helpers import one_error_line
+from tests.cli_helpers import one_error_line, tagtrail
 
 QUERY_INPUTS = {
     "trajectory.tag_map": "reference:optimize.tag_map",
@@ -58,20 +58,6 @@ def write_pipeline(folder: Path, bags: Path, names: tuple[str, str] = ("referenc
     }
     folder.mkdir(parents=True, exist_ok=True)
     (folder / "pipeline.yaml").write_text(yaml.safe_dump(doc))
-
-
-def tagtrail(cwd: Path, *args: str, fault: str | None = None) -> subprocess.CompletedProcess[str]:
-    env = {k: v for k, v in os.environ.items() if k != "TAGTRAIL_FAULT"}
-    if fault:
-        env["TAGTRAIL_FAULT"] = fault
-    return subprocess.run(
-        [sys.executable, "-m", "tagtrail.cli", *args],
-        cwd=cwd,
-        env=env,
-        capture_output=True,
-        text=True,
-        timeout=300,
-    )
 
 
 def last_error_line(capsys: pytest.CaptureFixture[str]) -> str:

@@ -13,7 +13,6 @@ to an undisturbed run's.
 from __future__ import annotations
 
 import os
-import re
 import signal
 import subprocess
 import sys
@@ -24,33 +23,11 @@ import pytest
 import yaml
 
 from tagtrail.sim import simulate
+from tests.cli_helpers import alive, children, cli_env, files, stray, tagtrail
 
 pytestmark = pytest.mark.slow  # signals sent to real runs at every point (make test-all)
 
-REPO = Path(__file__).resolve().parents[1]
 STOP_S = 1.0  # the promise: a signal ends any command within a second
-TEMP = re.compile(r"^\..+\.[a-z0-9_]{8}$")  # mkstemp's names
-
-
-def env(fault: str | None = None) -> dict[str, str]:
-    out = {k: v for k, v in os.environ.items() if k != "TAGTRAIL_FAULT"}
-    out["PYTHONPATH"] = os.pathsep.join([str(REPO), *filter(None, [out.get("PYTHONPATH")])])
-    if fault:
-        out["TAGTRAIL_FAULT"] = fault
-    return out
-
-
-def tagtrail(
-    cwd: Path, *args: str, fault: str | None = None, timeout: float = 300
-) -> subprocess.CompletedProcess[str]:
-    return subprocess.run(
-        [sys.executable, "-m", "tagtrail.cli", *args],
-        cwd=cwd,
-        env=env(fault),
-        capture_output=True,
-        text=True,
-        timeout=timeout,
-    )
 
 
 def start(cwd: Path, *args: str) -> subprocess.Popen[str]:
@@ -58,19 +35,12 @@ def start(cwd: Path, *args: str) -> subprocess.Popen[str]:
     return subprocess.Popen(
         [sys.executable, "-m", "tagtrail.cli", *args],
         cwd=cwd,
-        env=env(),
+        env=cli_env(),
         stdout=subprocess.PIPE,
         stderr=subprocess.PIPE,
         text=True,
         start_new_session=True,
     )
-
-
-def children(pid: int) -> list[int]:
-    out: list[int] = []
-    for task in Path(f"/proc/{pid}/task").glob("*/children"):
-        out += [int(c) for c in task.read_text().split()]
-    return out
 
 
 def cmdline(pid: int) -> str:
@@ -89,14 +59,6 @@ def detector_workers(pid: int, timeout: float = 120) -> list[int]:
             return found
         time.sleep(0.02)
     raise AssertionError("extract never started its detector workers")
-
-
-def alive(pid: int) -> bool:
-    try:
-        stat = Path(f"/proc/{pid}/stat").read_text()
-    except OSError:
-        return False
-    return stat.rsplit(")", 1)[1].split()[0] != "Z"
 
 
 def interrupt(proc: subprocess.Popen[str], sig: int = signal.SIGINT) -> tuple[float, str, str]:
@@ -118,18 +80,6 @@ def check_one_line(rc: int, err: str, sig: int = signal.SIGINT) -> None:
     assert lines and lines[-1] == line, err
     assert sum(ln.startswith("interrupted") for ln in lines) == 1, err
     assert "Traceback" not in err and "error:" not in err, err
-
-
-def files(root: Path) -> dict[str, bytes]:
-    return {
-        str(p.relative_to(root)): p.read_bytes() for p in sorted(root.rglob("*")) if p.is_file()
-    }
-
-
-def stray(project: Path) -> list[str]:
-    left = [str(p.relative_to(project)) for p in project.rglob("*") if TEMP.match(p.name)]
-    tmp = project / "artifacts" / "tmp"
-    return left + ([str(p) for p in tmp.iterdir()] if tmp.is_dir() else [])
 
 
 def new_project(folder: Path, bags: Path) -> Path:

@@ -8,11 +8,8 @@ from __future__ import annotations
 
 import importlib.util
 import json
-import os
 import re
 import signal
-import subprocess
-import sys
 from pathlib import Path
 from typing import Any
 
@@ -32,7 +29,8 @@ from tagtrail.runner.sweep import (
 )
 from tagtrail.sim import simulate
 from tagtrail.stages import REGISTRY
-from tests.cli_helpers import one_error_line
+from tests.cli_helpers import TEMP, one_error_line
+from tests.cli_helpers import tagtrail as cli
 
 Capsys = pytest.CaptureFixture[str]
 GRID = ["-S", "optimize.loss=linear,soft_l1,huber", "-S", "optimize.f_scale=0.05,0.1,0.2"]
@@ -40,7 +38,6 @@ NAME = "optimize.loss-optimize.f_scale"
 DATASETS = ["reference", "query_1", "query_2", "query_3"]
 FIRST = "trajectory.rmse_m[reference]"
 KEY = re.compile(r"^[0-9a-f]{64}$")
-TEMP = re.compile(r"^\..+\.[a-z0-9_]{8}$")  # mkstemp's names: a killed atomic write's leftovers
 
 
 @pytest.fixture(scope="module")
@@ -62,20 +59,6 @@ def sweep(project: Path, capsys: Capsys, *argv: str) -> tuple[int, str, str]:
     rc = sweep_cmd.main(["-p", str(project / "pipeline.yaml"), *argv])
     out, err = capsys.readouterr()
     return rc, out, err
-
-
-def cli(project: Path, *argv: str, fault: str | None = None) -> subprocess.CompletedProcess[str]:
-    env = {k: v for k, v in os.environ.items() if k != "TAGTRAIL_FAULT"}
-    if fault:
-        env["TAGTRAIL_FAULT"] = fault
-    return subprocess.run(
-        [sys.executable, "-m", "tagtrail.cli", *argv],
-        cwd=project,
-        env=env,
-        capture_output=True,
-        text=True,
-        timeout=300,
-    )
 
 
 def run_log(project: Path, name: str = NAME) -> list[dict[str, Any]]:

@@ -21,6 +21,7 @@ import pytest
 
 from tagtrail.commands.demo import template
 from tagtrail.sim import simulate
+from tests.cli_helpers import REPO, alive, children
 
 pytestmark = [
     pytest.mark.slow,  # a Dask cluster (make test-all)
@@ -30,27 +31,18 @@ pytestmark = [
     ),
 ]
 
-REPO = Path(__file__).resolve().parents[2]
-
 
 def descendants(pid: int) -> set[int]:
     out: set[int] = set()
-    for task in Path(f"/proc/{pid}/task").glob("*/children"):
-        try:
-            kids = [int(c) for c in task.read_text().split()]
-        except OSError:
-            continue
-        for kid in kids:
-            out |= {kid, *descendants(kid)}
+    for kid in children(pid):
+        out |= {kid, *descendants(kid)}
     return out
 
 
-def alive(pid: int) -> bool:
-    try:
-        stat = Path(f"/proc/{pid}/stat").read_text()
-    except OSError:
-        return False
-    return stat.rsplit(")", 1)[1].split()[0] != "Z"
+def terminal_sigint() -> None:
+    """SIGINT handled as under a terminal, also when this test runs where it is ignored (a
+    background job of a non-interactive shell): tagtrail keeps an ignored signal ignored."""
+    signal.signal(signal.SIGINT, signal.SIG_DFL)
 
 
 @pytest.fixture(scope="module")
@@ -75,6 +67,7 @@ def test_ctrl_c_under_dask_ends_with_one_line_and_no_worker_output(
         stderr=subprocess.PIPE,
         text=True,
         start_new_session=True,
+        preexec_fn=terminal_sigint,
     )
     assert proc.stdout is not None
     seen = []

@@ -40,6 +40,11 @@ def loopback(port: int) -> str:
     return f"tcp/127.0.0.1:{port}"
 
 
+def client_args(port: int) -> list[str]:
+    """A node's options to connect, as a zenoh client, to the router on 127.0.0.1:``port``."""
+    return ["--mode", "client", "--connect", loopback(port)]
+
+
 class Proc:
     """A ``python -m tagtrail.stream.cli …`` child whose output lines are collected."""
 
@@ -194,8 +199,14 @@ def localize_replayed(
 
 def router(port: int) -> zenoh.Session:
     """A zenoh router on 127.0.0.1:``port`` only (no scouting): the bridge's stand-in."""
+    return listening(port, "router")
+
+
+def listening(port: int, mode: str) -> zenoh.Session:
+    """A zenoh session in ``mode`` (router, peer) listening on 127.0.0.1:``port`` only, with
+    scouting off and no endpoint to connect to: the others connect to it."""
     cfg = zenoh.Config()
-    cfg.insert_json5("mode", '"router"')
+    cfg.insert_json5("mode", json.dumps(mode))
     cfg.insert_json5("scouting/multicast/enabled", "false")
     cfg.insert_json5("scouting/gossip/enabled", "false")
     cfg.insert_json5("listen/endpoints", json.dumps([loopback(port)]))

@@ -15,12 +15,10 @@ import sqlite3
 import subprocess
 import sys
 import time
-from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
 import pytest
-import zenoh
 
 from tagtrail.errors import SourceError, SpecError
 from tagtrail.io import msgs
@@ -29,24 +27,10 @@ from tagtrail.schemas.profiles import PROFILES
 from tagtrail.sim.simulate import simulate
 from tagtrail.stream.bagwriter import TAIL, recover
 from tagtrail.stream.record import normalize_type, parse_size, parse_topic, resolve_topics
-from tests.stream.helpers import REPO, Proc, free_port, loopback, router
+from tests.stream.helpers import REPO, Proc, client_args
 
 IMAGE, INFO = "/camera/color/image_raw", "/camera/color/camera_info"
 DET, DET_INFO = "/detections", "/camera_info"
-
-
-@pytest.fixture()
-def bridge() -> Iterator[tuple[zenoh.Session, int]]:
-    port = free_port()
-    session = router(port)
-    try:
-        yield session, port
-    finally:
-        session.close()  # type: ignore[no-untyped-call]
-
-
-def client(port: int) -> list[str]:
-    return ["--mode", "client", "--connect", loopback(port)]
 
 
 def source_messages(bag: Path, topics: list[str]) -> dict[str, list[bytes]]:
@@ -85,24 +69,17 @@ def read_rosbags(bag: Path) -> tuple[dict[str, list[bytes]], dict[str, list[int]
 
 
 def record(out: Path, port: int, *args: str) -> Proc:
-    return Proc(["record", str(out), *client(port), "--stats-period", "1", *args])
+    return Proc(["record", str(out), *client_args(port), "--stats-period", "1", *args])
 
 
 def replay(bag: Path, port: int, topics: list[str], rate: str = "1") -> list[str]:
-    return ["replay", str(bag), "--topics", *topics, *client(port), "--rate", rate]
+    return ["replay", str(bag), "--topics", *topics, *client_args(port), "--rate", rate]
 
 
 @pytest.fixture(scope="module")
 def images(tmp_path_factory: pytest.TempPathFactory) -> Path:
     """10 s of 640x480 rgb8 images + camera_info at 30 Hz (the LIMO camera), 300 frames."""
     return simulate("circle", tmp_path_factory.mktemp("rec_src"), frames=300, fps=30.0)["circle"]
-
-
-@pytest.fixture(scope="module")
-def detections(tmp_path_factory: pytest.TempPathFactory) -> Path:
-    return simulate("circle", tmp_path_factory.mktemp("rec_det"), frames=240, detections=True)[
-        "circle"
-    ]
 
 
 @pytest.mark.slow

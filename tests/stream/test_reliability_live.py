@@ -9,7 +9,6 @@ Real processes on 127.0.0.1: ``tagtrail stream record`` / ``relocalize`` / ``loc
 
 from __future__ import annotations
 
-import json
 import math
 import os
 import re
@@ -27,46 +26,15 @@ import zenoh
 
 from tagtrail.io import msgs
 from tagtrail.io.bags import open_bag
-from tagtrail.sim.simulate import simulate
 from tagtrail.stream import codec
 from tagtrail.stream.bagwriter import recover
 from tagtrail.stream.session import wait_matching
 from tests.stream.cases import synthetic_case
 from tests.stream.helpers import REPO, Collector, Proc, free_port, loopback, running
+from tests.stream.helpers import client_args as _client
 
 DET, DET_INFO = "/detections", "/camera_info"
 FAR_FUTURE = 2**31 - 1  # s: the largest stamp a builtin_interfaces/Time holds
-
-
-def _router(port: int) -> zenoh.Session:
-    cfg = zenoh.Config()
-    cfg.insert_json5("mode", '"router"')
-    cfg.insert_json5("scouting/multicast/enabled", "false")
-    cfg.insert_json5("scouting/gossip/enabled", "false")
-    cfg.insert_json5("listen/endpoints", json.dumps([loopback(port)]))
-    cfg.insert_json5("connect/endpoints", "[]")
-    return zenoh.open(cfg)
-
-
-@pytest.fixture()
-def bridge() -> Iterator[tuple[zenoh.Session, int]]:
-    port = free_port()
-    session = _router(port)
-    try:
-        yield session, port
-    finally:
-        session.close()  # type: ignore[no-untyped-call]
-
-
-@pytest.fixture(scope="module")
-def detections(tmp_path_factory: pytest.TempPathFactory) -> Path:
-    return simulate("circle", tmp_path_factory.mktemp("rel_det"), frames=240, detections=True)[
-        "circle"
-    ]
-
-
-def _client(port: int) -> list[str]:
-    return ["--mode", "client", "--connect", loopback(port)]
 
 
 def _counts(bag: Path) -> dict[str, int]:

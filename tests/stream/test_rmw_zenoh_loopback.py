@@ -29,7 +29,7 @@ from rosbags.typesys import Stores, get_typestore
 from tagtrail.io.bags import open_bag
 from tagtrail.sim.simulate import simulate
 from tests.stream.cases import synthetic_case
-from tests.stream.helpers import REPO, Proc, free_port, loopback
+from tests.stream.helpers import REPO, Proc, free_port, listening, loopback
 
 HUMBLE = get_typestore(Stores.ROS2_HUMBLE)
 QOS = "::,10:,:,:,,"  # rclcpp's QoS(10) as rmw_zenoh's qos_to_keyexpr writes it
@@ -149,20 +149,10 @@ class Publisher:
             time.sleep(0.02)
 
 
-def listening_session(port: int) -> zenoh.Session:
-    cfg = zenoh.Config()
-    cfg.insert_json5("mode", '"peer"')
-    cfg.insert_json5("scouting/multicast/enabled", "false")
-    cfg.insert_json5("scouting/gossip/enabled", "false")
-    cfg.insert_json5("listen/endpoints", json.dumps([loopback(port)]))
-    cfg.insert_json5("connect/endpoints", "[]")
-    return zenoh.open(cfg)
-
-
 @pytest.fixture()
 def peer() -> Iterator[tuple[RosPeer, int]]:
     port = free_port()
-    p = RosPeer(listening_session(port), "robot")
+    p = RosPeer(listening(port, "peer"), "robot")
     try:
         yield p, port
     finally:
