@@ -11,6 +11,7 @@ from pathlib import Path
 
 import pytest
 
+from tagtrail.commands.demo import template
 from tagtrail.sim import simulate
 
 REPO = Path(__file__).resolve().parents[1]
@@ -35,6 +36,14 @@ def detection_bags(root: Path) -> Path:
     """The `room` recordings (reference + parked queries) as sqlite3 detection bags in ``root``."""
     simulate("room", root, frames=40, query_frames=5, detections=True, storage="sqlite3")
     return root
+
+
+def demo_project(folder: Path, data: Path) -> Path:
+    """``folder`` with the demo's pipeline.yaml (a reference and three parked queries) reading
+    the `room` recordings in ``data``."""
+    folder.mkdir(parents=True, exist_ok=True)
+    (folder / "pipeline.yaml").write_text(template().replace("source: data/", f"source: {data}/"))
+    return folder
 
 
 def one_error_line(capsys: pytest.CaptureFixture[str]) -> str:

@@ -9,6 +9,7 @@ from pathlib import Path
 
 import pytest
 
+from tagtrail.sim import simulate
 from tests.cli_helpers import detection_bags
 
 REPO = Path(__file__).resolve().parents[1]
@@ -22,6 +23,15 @@ def realdata() -> Path:
             pytest.fail(f"real data folder {REALDATA} is missing (required under CI=true)")
         pytest.skip(f"real data folder {REALDATA} not present")
     return REALDATA
+
+
+@pytest.fixture(scope="session")
+def room_images(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """The `room` recordings rendered as compressed images (reference 90 frames, parked queries
+    8), simulated once per session: read, never written (the crash tests' input)."""
+    root = tmp_path_factory.mktemp("room_images")
+    simulate("room", root, compressed=True, frames=90, query_frames=8)
+    return root
 
 
 def _listing(root: Path) -> dict[str, tuple[int, int]]:

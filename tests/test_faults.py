@@ -16,33 +16,23 @@ from pathlib import Path
 
 import pytest
 
-from tagtrail.commands.demo import template
-from tagtrail.sim import simulate
 from tagtrail.stages import REGISTRY
-from tests.cli_helpers import TEMP, files, stray, tagtrail
+from tests.cli_helpers import TEMP, demo_project, files, stray, tagtrail
 
 pytestmark = pytest.mark.slow  # the crash suite: kill -9 everywhere, a full disk (make test-all)
 
 EXPORTS = [e.name for m in REGISTRY.values() for e in getattr(m, "EXPORTS", ())]
 
 
-def new_project(folder: Path, data: Path) -> Path:
-    folder.mkdir(parents=True, exist_ok=True)
-    (folder / "pipeline.yaml").write_text(template().replace("source: data/", f"source: {data}/"))
-    return folder
-
-
 @pytest.fixture(scope="module")
-def data(tmp_path_factory: pytest.TempPathFactory) -> Path:
-    root = tmp_path_factory.mktemp("room")
-    simulate("room", root, compressed=True, frames=90, query_frames=8)
-    return root
+def data(room_images: Path) -> Path:
+    return room_images
 
 
 @pytest.fixture(scope="module")
 def good(tmp_path_factory: pytest.TempPathFactory, data: Path) -> dict[str, bytes]:
     """The outputs of an undisturbed run."""
-    project = new_project(tmp_path_factory.mktemp("good"), data)
+    project = demo_project(tmp_path_factory.mktemp("good"), data)
     done = tagtrail(project, "run")
     assert done.returncode == 0, done.stderr
     return files(project / "outputs")
@@ -51,7 +41,7 @@ def good(tmp_path_factory: pytest.TempPathFactory, data: Path) -> dict[str, byte
 @pytest.fixture(scope="module")
 def project(tmp_path_factory: pytest.TempPathFactory, data: Path) -> Path:
     """A project whose first run was killed while the store wrote extract's entry."""
-    project = new_project(tmp_path_factory.mktemp("faults"), data)
+    project = demo_project(tmp_path_factory.mktemp("faults"), data)
     killed = tagtrail(project, "run", fault="kill@store:extract")
     assert killed.returncode == -signal.SIGKILL, killed.stderr
     assert not (project / "outputs").exists()
@@ -138,7 +128,7 @@ def test_full_disk_fails_in_one_line_and_keeps_nothing_partial(tmp_path, data, g
             pytest.fail("CI runs as root and must be able to mount a tmpfs")
         pytest.skip("cannot mount a tmpfs here (not root)")
     try:
-        project = new_project(mnt / "p", data)
+        project = demo_project(mnt / "p", data)
         full = tagtrail(project, "run")
         if full.returncode == 0:
             pytest.fail(f"{size_kb} kB was enough; the test wants a disk that fills")

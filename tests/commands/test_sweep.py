@@ -17,7 +17,6 @@ import pytest
 
 import tagtrail.cli
 from tagtrail.commands import sweep as sweep_cmd
-from tagtrail.commands.demo import template
 from tagtrail.runner.execute import Runner
 from tagtrail.runner.spec import load_pipeline
 from tagtrail.runner.sweep import (
@@ -29,7 +28,7 @@ from tagtrail.runner.sweep import (
 )
 from tagtrail.sim import simulate
 from tagtrail.stages import REGISTRY
-from tests.cli_helpers import TEMP, one_error_line
+from tests.cli_helpers import TEMP, demo_project, one_error_line
 from tests.cli_helpers import tagtrail as cli
 
 Capsys = pytest.CaptureFixture[str]
@@ -42,16 +41,11 @@ KEY = re.compile(r"^[0-9a-f]{64}$")
 
 @pytest.fixture(scope="module")
 def data(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """The room detections with a 60-frame reference: its points' D differ beyond the noise
+    (on room_bags' 40 frames no point is "best")."""
     root = tmp_path_factory.mktemp("room")
     simulate("room", root, frames=60, query_frames=5, detections=True)
     return root
-
-
-def new_project(folder: Path, data: Path) -> Path:
-    """The demo pipeline (reference + three parked queries, all with ground truth) on ``data``."""
-    folder.mkdir(parents=True, exist_ok=True)
-    (folder / "pipeline.yaml").write_text(template().replace("source: data/", f"source: {data}/"))
-    return folder
 
 
 def sweep(project: Path, capsys: Capsys, *argv: str) -> tuple[int, str, str]:
@@ -91,7 +85,7 @@ def strip(rows: list[dict[str, str]]) -> list[dict[str, str]]:
 def swept(tmp_path_factory: pytest.TempPathFactory, data: Path) -> tuple[Path, str, str]:
     """A fresh project (nothing cached) after the 3×3 optimize sweep; its stdout and stderr.
     Its run log is kept as ``runs.first.json`` (later tests sweep again)."""
-    project = new_project(tmp_path_factory.mktemp("sweep"), data)
+    project = demo_project(tmp_path_factory.mktemp("sweep"), data)
     out = cli(project, "sweep", *GRID)
     assert out.returncode == 0, out.stderr
     folder = project / "sweeps" / NAME
@@ -242,7 +236,7 @@ def test_a_sweep_on_a_2_worker_dask_cluster_matches_the_local_one(
     """`sweep --executor dask`: every point on one LocalCluster, the same keys and metrics as
     the local sweep's points (nothing cached in the fresh project)."""
     project, _, _ = swept
-    fresh = new_project(tmp_path / "dask", data)
+    fresh = demo_project(tmp_path / "dask", data)
     rc, _, err = sweep(
         fresh,
         capsys,
@@ -305,7 +299,7 @@ def test_rerun_of_a_finished_sweep_runs_nothing(
 
 @pytest.mark.slow
 def test_a_killed_sweep_resumes_without_redoing_finished_points(data: Path, tmp_path: Path) -> None:
-    project = new_project(tmp_path / "killed", data)
+    project = demo_project(tmp_path / "killed", data)
     # Killed between points: after point 3's row was written.
     killed = cli(project, "sweep", *GRID, fault="kill@sweep:point-3")
     assert killed.returncode == -signal.SIGKILL, killed.stderr

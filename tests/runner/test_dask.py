@@ -19,14 +19,13 @@ from typing import Any
 import pytest
 
 from tagtrail.cli import main
-from tagtrail.commands.demo import template
 from tagtrail.errors import SpecError
 from tagtrail.runner import executors
 from tagtrail.runner.execute import Runner
 from tagtrail.runner.spec import load_pipeline
 from tagtrail.sim import simulate
 from tagtrail.stages import REGISTRY
-from tests.cli_helpers import one_error_line
+from tests.cli_helpers import demo_project, one_error_line
 from tests.runner.project import ALL, executed, write_project
 from tests.runner.toy import copy_stages, load_registry
 
@@ -48,9 +47,8 @@ def data(tmp_path_factory: pytest.TempPathFactory) -> Path:
 
 
 def project(folder: Path, data: Path) -> Path:
-    folder.mkdir()
-    (folder / "pipeline.yaml").write_text(template().replace("source: data/", f"source: {data}/"))
-    return folder
+    folder.mkdir()  # a new one
+    return demo_project(folder, data)
 
 
 def tagtrail(cwd: Path, *args: str, **env: str) -> subprocess.CompletedProcess[str]:

@@ -11,21 +11,16 @@ from pathlib import Path
 
 import pytest
 
-from tagtrail.commands.demo import template
-from tagtrail.sim import simulate
+from tests.cli_helpers import demo_project, files
 
 
 @pytest.fixture(scope="module")
-def data(tmp_path_factory: pytest.TempPathFactory) -> Path:
-    root = tmp_path_factory.mktemp("room")
-    simulate("room", root, compressed=True, frames=90, query_frames=8)
-    return root
+def data(room_images: Path) -> Path:
+    return room_images
 
 
 def project(folder: Path, data: Path) -> Path:
-    folder.mkdir()
-    (folder / "pipeline.yaml").write_text(template().replace("source: data/", f"source: {data}/"))
-    return folder
+    return demo_project(folder, data)
 
 
 def tagtrail(cwd: Path, *args: str) -> subprocess.Popen[str]:
@@ -36,12 +31,6 @@ def tagtrail(cwd: Path, *args: str) -> subprocess.Popen[str]:
         stderr=subprocess.PIPE,
         text=True,
     )
-
-
-def files(root: Path) -> dict[str, bytes]:
-    return {
-        str(p.relative_to(root)): p.read_bytes() for p in sorted(root.rglob("*")) if p.is_file()
-    }
 
 
 @pytest.mark.slow
