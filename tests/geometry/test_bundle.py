@@ -6,6 +6,7 @@ from __future__ import annotations
 import dataclasses
 
 import numpy as np
+import pytest
 
 from tagtrail.geometry.camera import CameraModel
 from tagtrail.geometry.fusion import tag_corners
@@ -143,6 +144,7 @@ def test_noise_and_an_outlier_detection() -> None:
     assert shift["huber"] < 0.5 * shift["linear"]
 
 
+@pytest.mark.slow  # 24 noise draws, each a full bundle adjustment (~7 s): make test-all
 def test_standard_deviations_match_the_scatter_over_noise_draws() -> None:
     """The reported per-tag and per-frame standard deviations agree with the spread of the
     solutions over 24 independent 0.5 px noise draws (within the sampling error of 24 draws),

@@ -5,6 +5,7 @@ solve."""
 from __future__ import annotations
 
 import numpy as np
+import pytest
 
 from tagtrail.geometry.fusion import tag_corners
 from tagtrail.geometry.joint import (
@@ -218,6 +219,7 @@ def test_drive_prior_holds_a_wheeled_camera_to_its_heading() -> None:
     assert across_rms(driven, W, C) < 0.8 * across_rms(grounded, W, C)  # 6.0 vs 8.5 mm
 
 
+@pytest.mark.slow  # five joint solves of two drives (~10 s): make test-all
 def test_auto_leaves_a_sliding_robot_and_a_panning_camera_alone() -> None:
     """A mecanum base sliding sideways at up to 20 cm/s, and the ring's camera that pans +-15
     deg as it goes round: the prior would cost every step several times the corners' variance

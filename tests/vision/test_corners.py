@@ -58,6 +58,7 @@ def test_refit_is_several_times_closer_to_the_truth(camera: CameraModel) -> None
     assert e[:, 1].max() < 0.06
 
 
+@pytest.mark.slow  # 10 rendered views with sensor noise (~5 s): make test-all
 def test_refit_with_sensor_noise() -> None:
     e = detect_and_refit(LIMO, noise=2.0, n=10, seed=2)
     raw, fit = np.sqrt(np.mean(e**2, axis=0))
