@@ -338,6 +338,12 @@ def _unexpected(err: BaseException) -> int:
     return 1
 
 
+def _kill_dask_workers() -> None:
+    executors = sys.modules.get("tagtrail.runner.executors")  # imported only if a run was
+    if executors is not None:
+        executors.kill_local_workers()
+
+
 def main_entry() -> None:
     # Stages parallelise across processes and datasets; a multi-threaded BLAS on top of that
     # oversubscribes small machines (measured 2x slower optimize on 2 cores). Set before numpy.
@@ -347,6 +353,7 @@ def main_entry() -> None:
 
     signals.install()
     signals.at_exit(pool.kill_workers)  # interrupted: the detector workers go with the process
+    signals.at_exit(_kill_dask_workers)  # and a local Dask cluster's
     try:
         code = main()
     except KeyboardInterrupt as err:  # outside run_command: parsing arguments, importing

@@ -69,7 +69,7 @@ from pathlib import Path
 from types import ModuleType
 from typing import Any, TypeVar
 
-from tagtrail import faults, pool, signals
+from tagtrail import faults, pool
 from tagtrail.errors import SpecError
 from tagtrail.runner.cache import Store
 from tagtrail.runner.inputs import resolve
@@ -286,10 +286,11 @@ def dask_setup(worker: Any) -> None:
 _LOCAL: list[DaskSession] = []  # the sessions whose LocalCluster is running
 
 
-def _kill_local_workers() -> None:
-    """At the exit of an interrupted command (``os._exit``, :mod:`tagtrail.signals`): the local
-    clusters' workers are killed and the semaphores of their nannies' queues released, as
-    multiprocessing's exit handler would (else its resource tracker warns of them)."""
+def kill_local_workers() -> None:
+    """At the exit of an interrupted command (``os._exit``, :mod:`tagtrail.signals`; the CLI
+    registers it): the local clusters' workers are killed and the semaphores of their nannies'
+    queues released, as multiprocessing's exit handler would (else its resource tracker warns
+    of them)."""
     for session in list(_LOCAL):
         session.kill_workers()
     finalizers: Callable[[int], None] | None = getattr(
@@ -297,9 +298,6 @@ def _kill_local_workers() -> None:
     )
     if finalizers is not None:
         finalizers(0)  # priority >= 0: what multiprocessing runs first at exit (its locks)
-
-
-signals.at_exit(_kill_local_workers)  # an interrupted process ends without unwinding
 
 
 class DaskSession:
