@@ -39,6 +39,7 @@ def table_files() -> set[str]:
     return names
 
 
+@pytest.mark.slow  # the README's commands on a real photo set (~7 s): make test-all
 def test_own_recording_block_runs_on_real_photos(tmp_path: Path) -> None:
     if not PHOTOS.is_dir():
         if os.environ.get("CI") == "true":

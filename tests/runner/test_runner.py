@@ -130,16 +130,41 @@ def test_bad_specs_raise_spec_errors(project, tmp_path: Path) -> None:
 
 
 def _cli(stages_dir: Path, cwd: Path, *args: str, **kw) -> subprocess.CompletedProcess[str]:
-    env = {**os.environ, "PYTHONPATH": str(Path(__file__).resolve().parents[2])}
     return subprocess.run(
         [sys.executable, str(DRIVER), str(stages_dir), *args],
         cwd=cwd,
-        env=env,
+        env=_cli_env(),
         capture_output=True,
         text=True,
         timeout=120,
         **kw,
     )
+
+
+def _cli_env() -> dict[str, str]:
+    return {**os.environ, "PYTHONPATH": str(Path(__file__).resolve().parents[2])}
+
+
+def _cli_at_once(
+    stages_dir: Path, cwd: Path, argvs: list[tuple[str, ...]]
+) -> list[subprocess.CompletedProcess[str]]:
+    """``_cli`` of each of ``argvs``, all started before any is waited for."""
+    procs = [
+        subprocess.Popen(
+            [sys.executable, str(DRIVER), str(stages_dir), *argv],
+            cwd=cwd,
+            env=_cli_env(),
+            stdout=subprocess.PIPE,
+            stderr=subprocess.PIPE,
+            text=True,
+        )
+        for argv in argvs
+    ]
+    done = []
+    for proc in procs:
+        out, err = proc.communicate(timeout=120)
+        done.append(subprocess.CompletedProcess(proc.args, proc.returncode, out, err))
+    return done
 
 
 @pytest.mark.parametrize(
@@ -176,19 +201,22 @@ def test_cli_run_status_dag_show(project, tmp_path: Path) -> None:
     res = _cli(project.stages_dir, cwd, "run")
     assert res.returncode == 0, res.stderr
     assert "scale [reference]" in res.stdout and "ran" in res.stdout
-    res = _cli(project.stages_dir, cwd, "run", "-S", "scale.factor=5", "--dry-run")
-    assert "would run" in res.stdout and "factor: 2.0 → 5" in res.stdout
-    res = _cli(project.stages_dir, cwd, "status")
-    assert res.returncode == 0 and "out of date" not in res.stdout
-    res = _cli(project.stages_dir, cwd, "dag", "--mermaid")
-    assert res.stdout.startswith("flowchart LR") and "-->" in res.stdout
     out = tmp_path / "scale.csv"
-    res = _cli(project.stages_dir, cwd, "show", "scale", "--dataset", "query", "--csv", str(out))
-    assert res.returncode == 0, res.stderr
-    assert "rows: 2" in res.stdout
+    reads = [  # commands that only read the finished run: started at once, then checked
+        ("run", "-S", "scale.factor=5", "--dry-run"),
+        ("status",),
+        ("dag", "--mermaid"),
+        ("show", "scale", "--dataset", "query", "--csv", str(out)),
+        ("show", "scael"),
+    ]
+    dry, status, dag, show, typo = _cli_at_once(project.stages_dir, cwd, reads)
+    assert "would run" in dry.stdout and "factor: 2.0 → 5" in dry.stdout
+    assert status.returncode == 0 and "out of date" not in status.stdout
+    assert dag.stdout.startswith("flowchart LR") and "-->" in dag.stdout
+    assert show.returncode == 0, show.stderr
+    assert "rows: 2" in show.stdout
     assert out.read_text() == "value\n8.0\n10.0\n"
-    res = _cli(project.stages_dir, cwd, "show", "scael")
-    assert res.returncode == 2 and "did you mean 'scale'" in res.stderr
+    assert typo.returncode == 2 and "did you mean 'scale'" in typo.stderr
 
 
 def test_stage_failure_names_stage_and_keeps_finished_artifacts(project) -> None:

@@ -150,6 +150,7 @@ def test_rgb8_mcap_bag_and_folder_agree(upenn_bag_out: dict, upenn_dir, tmp_path
     )  # same JPEG bytes, same result
 
 
+@pytest.mark.slow  # 72 real photos (~3 s): make test-all
 def test_swatbotics_ids_vs_groundtruth(realdata: Path) -> None:
     folder = realdata / "swatbotics_mapping_feb_2014"
     out = extract_from(folder / "images", extract.Params())

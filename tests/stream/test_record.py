@@ -178,6 +178,7 @@ def tagtrail(cwd: Path, *args: str) -> subprocess.CompletedProcess[str]:
     )
 
 
+@pytest.mark.slow  # a crash test (kill -9 mid-recording, ~4 s): make test-all
 def test_kill_9_leaves_a_readable_bag(detections: Path, bridge: Any, tmp_path: Path) -> None:
     """kill -9 mid-recording: the bag reads as it is (rosbags, mcap), up to the last flush, a
     prefix of what was sent; --recover then counts every complete chunk into metadata.yaml."""
@@ -297,6 +298,7 @@ def test_topics_discovered_from_the_bridge_admin_space(bridge: Any, tmp_path: Pa
     assert types == {"/tag_only_pose": msgs.POSE_STAMPED} and data["/tag_only_pose"] == sent
 
 
+@pytest.mark.slow  # a full disk (tmpfs) under the recorder (~5 s): make test-all
 def test_full_disk_keeps_the_bag_up_to_its_last_flush(
     detections: Path, bridge: Any, tmp_path: Path
 ) -> None:
