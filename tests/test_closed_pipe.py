@@ -67,7 +67,6 @@ def start(cwd: Path, argv: list[str], read_first_line: bool) -> tuple[subprocess
 # failed write and exits 0; a user error keeps its one line on stderr and exit 2
 CASES = [
     (["show", "optimize"], SIGPIPE_EXIT),
-    (["status"], SIGPIPE_EXIT),
     (["run"], SIGPIPE_EXIT),
     (["--help"], 0),
     (["show", "optimise"], 2),

@@ -7,6 +7,7 @@ import os
 import subprocess
 import sys
 from pathlib import Path
+from subprocess import PIPE
 
 import pytest
 import yaml
@@ -245,17 +246,23 @@ def test_status_and_show_in_a_read_only_project(bags, tmp_path) -> None:
     project.mkdir()
     write_pipeline(project, {"reference": {"source": str(bags / "reference")}})
     cli = [sys.executable, "-m", "tagtrail.cli"]
-    subprocess.run([*cli, "run", "edges"], cwd=project, check=True, capture_output=True)
+    assert main(["run", "edges", "-p", str(project / "pipeline.yaml")]) == 0
     before = tree(project)
     make_ro, undo = _read_only(project)
     subprocess.run(make_ro, check=True)
-    try:
-        st = subprocess.run([*cli, "status"], cwd=project, capture_output=True, text=True)
+    try:  # the three commands started at once, then checked
+        procs = [
+            subprocess.Popen([*cli, *argv], cwd=project, stdout=PIPE, stderr=PIPE, text=True)
+            for argv in (["status"], ["show", "edges"], ["run"])
+        ]
+        outputs = [p.communicate(timeout=300) for p in procs]
+        st, sh, run = [
+            subprocess.CompletedProcess(p.args, p.returncode, *out)
+            for p, out in zip(procs, outputs, strict=True)
+        ]
         assert st.returncode == 0, st.stderr
         assert "extract [reference]" in st.stdout and "up to date" in st.stdout
-        sh = subprocess.run([*cli, "show", "edges"], cwd=project, capture_output=True, text=True)
         assert sh.returncode == 0, sh.stderr
-        run = subprocess.run([*cli, "run"], cwd=project, capture_output=True, text=True)
         assert run.returncode == 2
         lines = run.stderr.strip().splitlines()
         assert len(lines) == 1 and lines[0].startswith("error: ") and "cannot write" in lines[0]
