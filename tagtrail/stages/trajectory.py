@@ -171,8 +171,8 @@ def joint_trajectory(
     for line in [] if ground is None else ground.lines():
         log.info("trajectory: %s", line)
     if tr.solved.odometry is not None:
-        for note in tr.solved.odometry.notes:
-            log.warning("trajectory: %s", note)
+        for note in tr.solved.odometry.notes:  # optimize warned of it: one warning a dataset
+            log.info("trajectory: %s", note)
         log.info("trajectory: %s", tr.solved.odometry.line())
     if not res.converged:
         log.warning(
