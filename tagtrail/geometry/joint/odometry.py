@@ -73,10 +73,9 @@ ODOM_BOUND = 2.0  # the prior's robust chi^2 per degree of freedom, in the varia
 # What the odometry's errors are before the data says otherwise (weak priors on the unknowns,
 # so a straight drive, which cannot tell a turn's scale, leaves it near 1 instead of anywhere):
 # wheel scales within a few %, the yaw per metre of two wheels a few % apart over a 0.175 m
-# track, a gyro's or wheels' drift under a degree a second, a latency of a few ms to tens of
-# ms (what a drive cannot tell -- a circle at constant speed -- stays near 0).
+# track, a gyro's or wheels' drift under a degree a second, a latency well under a second.
 SCALE_SIGMA, YAW_SCALE_SIGMA, YAW_PER_M_SIGMA = 0.05, 0.05, 0.5
-DRIFT_SIGMA_RPS, OFFSET_SIGMA_S = 0.01, 0.05
+DRIFT_SIGMA_RPS, OFFSET_SIGMA_S = 0.01, 0.2
 # A recorded mount (/tf_static) holds the solved one within 2 cm and 2 deg unless the motion
 # says otherwise: a straight drive, which cannot tell the lever arm, keeps the recorded one.
 MOUNT_LEVER_SIGMA_M, MOUNT_YAW_SIGMA_RAD = 0.02, float(np.radians(2.0))
