@@ -272,7 +272,7 @@ def test_ground_plane_and_wheels_keep_a_corridor_of_tags_level_and_straight(
     runner = Runner(load_pipeline(tmp_path / "pipeline.yaml", REGISTRY))
     ground = artifact(runner, "optimize", "report", "reference")["bundle"]["ground"]
     assert ground["mode"] == "auto" and ground["applied"] and ground["planarity"] < 2.0
-    assert ground["drive"]["mode"] == "auto" and ground["drive"]["applied"]
+    assert ground["drive"].mode == "auto" and ground["drive"].applied  # a DriveReport (pydantic)
     ev = artifact(runner, "eval", "evaluation", "reference")["gauge_free"]
 
     def other(*overrides: str) -> Any:
