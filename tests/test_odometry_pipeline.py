@@ -24,8 +24,6 @@ from tagtrail.sim import simulate
 from tagtrail.sim.scenarios import BLANK_STRETCH_S
 from tagtrail.stages import REGISTRY
 
-pytestmark = pytest.mark.slow  # a 30 s drive mapped twice (about 40 s on 2 cores)
-
 SCENE = "room_blank_turn"
 
 
@@ -69,6 +67,7 @@ def _errors(project: Path, traj: Any) -> tuple[np.ndarray, np.ndarray]:
     return np.linalg.norm(P @ R.T + tr - G, axis=1), (t - int(gt["t_ns"].min())) * 1e-9
 
 
+@pytest.mark.slow  # a 30 s drive mapped twice (about 15 s on 2 cores)
 def test_every_frame_is_posed_and_the_blank_wall_turn_stays_within_5_cm(
     project: Path, monkeypatch: pytest.MonkeyPatch, caplog: pytest.LogCaptureFixture
 ) -> None:
