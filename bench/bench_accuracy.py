@@ -79,6 +79,11 @@ METHODS = {
     "pairwise": ["-S", "optimize.method=pairwise", "-S", "trajectory.method=lsq"],
 }
 REALDATA_MARKER = "<!-- realdata -->"  # bench_realdata_tables.py's part of ACCURACY.md follows
+ODOMETRY_MARKER = "<!-- odometry -->"  # --odometry's part (between two of these)
+# --odometry: the scenes with and without the wheel-odometry prior (issue 27): the existing ones
+# (never worse with it by more than 5 %) and those with a stretch without a tag in view
+ODOM_SCENARIOS = ("circle", "room", "hall", "corridor", "corridor_gap", "room_blank_turn")
+ODOM_FLAGS = ["--detections", "--corner-noise", "0.3", "--odom-scale-error", "0.02"]
 
 
 @dataclass
@@ -372,6 +377,144 @@ def table_4_2(work: Path) -> str:
     return "\n".join(lines) + "\n"
 
 
+def stretch(scenario: str) -> tuple[float, float] | None:
+    """The scenario's stretch without a tag in view (s from its first frame), if it has one."""
+    from tagtrail.sim import scenarios
+
+    return getattr(scenarios, "BLANK_STRETCH_S", {}).get(scenario)
+
+
+def odometry_rows(work: Path, scenario: str, quick: bool) -> list[dict[str, Any]]:
+    """One recording from detections (0.3 px) with /odom at 2 % wheel-scale error, run without
+    and with the odometry prior (``optimize.joint.odometry`` off / auto): frames posed of all
+    frames, the trajectory's error (the ``trajectory`` stage's, after the best rigid fit of the
+    posed positions to the truth), its largest in the stretch without a tag, the tags' error
+    (``tagtrail eval``, gauge-free), the run time and what the odometry prior reported."""
+    from tagtrail.geometry.registration import umeyama
+
+    project = work / f"odom-{scenario}"
+    project.mkdir(parents=True)
+    n = natural_frames(scenario)
+    frames = max(60, n // 3) if quick else n
+    tagtrail(
+        "simulate",
+        scenario,
+        "--out",
+        "sim",
+        "--frames",
+        str(frames),
+        "--query-frames",
+        "2",
+        "--no-progress",
+        *ODOM_FLAGS,
+        cwd=project,
+    )
+    rec = RECORDING.get(scenario, scenario)
+    tagtrail("init", "--reference", f"sim/{rec}", "--tag-size", "0.16", cwd=project)
+    gt_dir = project / "sim" / rec / "ground_truth"
+    gt_traj = read_trajectory(gt_dir / "trajectory.csv")
+    gt = dict(zip(gt_traj["t_ns"].to_numpy(np.int64), poses(gt_traj)[:, :3, 3], strict=True))
+    gt_tags, _ = read_tag_map(gt_dir / "tag_map.yaml")
+    rows = []
+    for label, extra in (("off", ["-S", "optimize.joint.odometry=off"]), ("auto", [])):
+        t0 = time.perf_counter()
+        tagtrail("run", "--force", *extra, cwd=project)
+        run_s = time.perf_counter() - t0
+        doc = json.loads(tagtrail("eval", "--json", *extra, cwd=project))["evaluation"]
+        tags = (doc["gauge_free"] or {}).get("tags") or doc["tags"]
+        runner = Runner(load_pipeline(project / "pipeline.yaml", REGISTRY, extra[1::2]))
+        all_frames = artifact(runner, "extract", "frames")
+        traj = artifact(runner, "trajectory", "trajectory")
+        report = artifact(runner, "optimize", "report")
+        tag_map = artifact(runner, "optimize", "tag_map")
+        t = traj["t_ns"].to_numpy(np.int64)
+        ok = np.isin(t, list(gt))
+        P = traj[POSE_COLS[:3]].to_numpy(np.float64)[ok]
+        G = np.stack([gt[x] for x in t[ok]])
+        _, R, tr = umeyama(P, G, with_scale=False)
+        e = np.linalg.norm(P @ R.T + tr - G, axis=1)
+        blind = stretch(scenario)
+        ts = (t[ok] - int(all_frames["t_ns"].min())) * 1e-9
+        inb = (ts >= blind[0]) & (ts < blind[1]) if blind else np.zeros(len(ts), bool)
+        n_blind = 0
+        if blind:
+            fs = (all_frames["t_ns"].to_numpy(np.int64) - int(all_frames["t_ns"].min())) * 1e-9
+            n_blind = int(((fs >= blind[0]) & (fs < blind[1])).sum())
+        odo = (report.bundle.odometry if report.bundle is not None else None) or None
+        rows.append(
+            dict(
+                scenario=scenario,
+                odometry=label,
+                posed=len(t),
+                frames=len(all_frames),
+                blind=f"{int(inb.sum())}/{n_blind}" if blind else "–",
+                mean=float(e.mean()),
+                max=float(e.max()),
+                blind_max=float(e[inb].max()) if inb.any() else None,
+                tags_mean=tags["position_m"]["mean"],
+                tags_max=tags["position_m"]["max"],
+                tags=f"{int(tag_map['tag_id'].isin(gt_tags['tag_id']).sum())}/"
+                f"{gt_tags['tag_id'].nunique()}",
+                run_s=run_s,
+                prior=(
+                    "–"
+                    if odo is None
+                    else (
+                        f"on: {odo.offset_ms:.0f} ms, x{odo.scale:.3f}, lever {odo.lever_m:.3f} m"
+                        if odo.applied
+                        else f"off: {odo.why}"
+                    )
+                ),
+            )
+        )
+    return rows
+
+
+def odometry_table(rows: list[dict[str, Any]]) -> str:
+    head = (
+        "| scenario | odometry | frames posed | blind stretch posed | traj mean / max (cm) | "
+        "blind max (cm) | tags mean / max (cm) | tags | run (s) | the prior |"
+    )
+    lines = [head, "|" + "---|" * 10]
+    for r in rows:
+        lines.append(
+            f"| {r['scenario']} | {r['odometry']} | {r['posed']}/{r['frames']} "
+            f"({100 * r['posed'] / max(r['frames'], 1):.1f}%) | {r['blind']} | "
+            f"{cm(r['mean'])} / {cm(r['max'])} | {cm(r['blind_max'])} | "
+            f"{cm(r['tags_mean'])} / {cm(r['tags_max'])} | {r['tags']} | {r['run_s']:.1f} | "
+            f"{r['prior']} |"
+        )
+    return "\n".join(lines)
+
+
+def write_odometry(out: Path, md: str, quick: bool) -> None:
+    """Put the odometry table between its markers in ``out`` (after the main table, before the
+    real-data part), the rest kept."""
+    old = out.read_text() if out.exists() else ""
+    block = (
+        f"{ODOMETRY_MARKER}\n## The wheel-odometry prior (issue 27)\n\n"
+        f"Machine: {machine()}. Mode: {'quick' if quick else 'full'}. Produced by "
+        "`bench/bench_accuracy.py --odometry` (`odometry_rows`: detections at 0.3 px, /odom at "
+        "2 % wheel-scale error; each recording run with `optimize.joint.odometry: off` and with "
+        "the default `auto`). Frames posed: of all the recording's frames; trajectory: the "
+        "`trajectory` stage's, after the best rigid fit of its positions to the truth; blind: "
+        "the stretch with no tag in view (`tagtrail.sim.scenarios.BLANK_STRETCH_S`); tags: "
+        "`tagtrail eval`, gauge-free. Targets: >= 99 % of the frames posed where odometry "
+        "exists, the blind stretch within 5 cm, no existing scene worse with odometry by more "
+        "than 5 %.\n\n" + md + f"\n{ODOMETRY_MARKER}\n"
+    )
+    if old.count(ODOMETRY_MARKER) >= 2:
+        a = old.index(ODOMETRY_MARKER)
+        b = old.index(ODOMETRY_MARKER, a + 1) + len(ODOMETRY_MARKER) + 1
+        new = old[:a] + block + old[b:]
+    elif REALDATA_MARKER in old:
+        a = old.index(REALDATA_MARKER)
+        new = old[:a] + block + "\n" + old[a:]
+    else:
+        new = old + "\n" + block
+    out.write_text(new)
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--quick", action="store_true", help="a third of the frames")
@@ -379,6 +522,12 @@ def main() -> None:
     ap.add_argument("--sources", default="images,detections")
     ap.add_argument("--levels", default="low,high")
     ap.add_argument("--keep", type=Path, help="work in DIR and keep the projects")
+    ap.add_argument(
+        "--odometry",
+        action="store_true",
+        help="only the wheel-odometry rows (ODOM_SCENARIOS, or --scenarios), written to their "
+        "part of bench/ACCURACY.md",
+    )
     ap.add_argument(
         "--no-paper", dest="paper", action="store_false", help="leave out the paper's Table 4.2 run"
     )
@@ -391,6 +540,21 @@ def main() -> None:
     scenarios = args.scenarios.split(",")
     sources, levels = args.sources.split(","), args.levels.split(",")
     work = args.keep or Path(tempfile.mkdtemp(prefix="tagtrail-bench-accuracy-"))
+    if args.odometry:
+        chosen = ODOM_SCENARIOS if args.scenarios == ",".join(SCENARIOS) else scenarios
+        t0 = time.perf_counter()
+        orows: list[dict[str, Any]] = []
+        try:
+            for scenario in chosen:
+                orows += odometry_rows(work, scenario, args.quick)
+                print(f"{scenario}: {time.perf_counter() - t0:.0f} s", file=sys.stderr, flush=True)
+        finally:
+            if args.keep is None:
+                shutil.rmtree(work, ignore_errors=True)
+        md = odometry_table(orows)
+        print(md)
+        write_odometry(args.out or REPO / "bench" / "ACCURACY.md", md, args.quick)
+        return
     rows: list[Row] = []
     t0 = time.perf_counter()
     try:
@@ -430,7 +594,8 @@ def main() -> None:
     out = args.out or (REPO / "bench" / "ACCURACY.md" if full else None)
     if out is not None:
         old = out.read_text() if out.exists() else ""
-        tail = old[old.index(REALDATA_MARKER) :] if REALDATA_MARKER in old else ""
+        keep = next((m for m in (ODOMETRY_MARKER, REALDATA_MARKER) if m in old), None)
+        tail = old[old.index(keep) :] if keep else ""  # the odometry and real-data parts
         out.write_text(
             "# Accuracy benchmark (issue 12)\n\n"
             f"Machine: {machine()}.\n"

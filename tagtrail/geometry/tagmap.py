@@ -39,6 +39,7 @@ from tagtrail.geometry.arrays import F64, I64
 from tagtrail.geometry.camera import CameraModel
 from tagtrail.geometry.ippe import map_branches
 from tagtrail.geometry.joint.mapping import MapRefinement, choose_hypotheses, refine_map
+from tagtrail.geometry.joint.odometry import OdometryData
 from tagtrail.geometry.joint.problem import CornerRows
 from tagtrail.geometry.joint.settings import JointSettings
 from tagtrail.geometry.posegraph import PoseGraph, PoseGraphResult, relative_residuals, solve
@@ -206,7 +207,8 @@ class JointInputs:
     """What the joint solve from the pose graph needs: the corner ``rows`` of every observed
     tag, the camera, the settings, whether the stamps are capture times, the frames needed
     (``min_frames``), the rival pair keys to try in order (None: no rival search) and the
-    iterations each is scored by."""
+    iterations each is scored by; ``odometry``: the wheel-odometry prior's data (None:
+    none)."""
 
     rows: CornerRows
     camera: CameraModel
@@ -215,6 +217,7 @@ class JointInputs:
     min_frames: int
     rivals: list[int] | None
     rival_max_iter: int
+    odometry: OdometryData | None = None
 
 
 @dataclass(frozen=True)
@@ -269,15 +272,19 @@ class MapBuild:
             ]
         if refined.linked:
             out.append(f"tags {refined.linked} linked to the map through the trajectory")
-        ground = refined.solved.ground
-        return out + ([] if ground is None else ground.lines())
+        ground, odo = refined.solved.ground, refined.solved.odometry
+        return (
+            out + ([] if ground is None else ground.lines()) + ([] if odo is None else [odo.line()])
+        )
 
     def warnings(self) -> list[str]:
         """What went wrong, after :meth:`lines` (for the log)."""
         res = None if self.refined is None else self.refined.solved.res
+        odo = None if self.refined is None else self.refined.solved.odometry
+        notes = [] if odo is None else list(odo.notes)
         if res is None or res.converged:
-            return []
-        return [f"the joint solve stopped after {res.iters} iterations before converging"]
+            return notes
+        return [*notes, f"the joint solve stopped after {res.iters} iterations before converging"]
 
 
 def build_map(
@@ -343,7 +350,15 @@ def build_map(
         n_frames = int(np.unique(joint.rows.frame_idx[np.isin(joint.rows.tag_id, tags)]).size)
     if joint is not None and n_frames >= joint.min_frames:
         refined = refine_map(
-            res.R, res.t, tags, anchor, joint.rows, joint.camera, joint.settings, joint.timed
+            res.R,
+            res.t,
+            tags,
+            anchor,
+            joint.rows,
+            joint.camera,
+            joint.settings,
+            joint.timed,
+            joint.odometry,
         )
         sel = np.searchsorted(refined.ids, tags)
         g = edges.graph(use, anchor_id, gs.rot_weight_m)

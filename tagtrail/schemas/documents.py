@@ -133,6 +133,37 @@ class GroundSummary(Document):
     """Why ``auto`` was not decided on this dataset (a parked or few-second one), in words."""
 
 
+class OdometrySummary(Document):
+    """The wheel-odometry prior (``optimize.report.bundle.odometry``, geometry.joint.odometry):
+    the mode, whether it was applied and why (plain words), the topic, the time offset it
+    solved (ms; the odometry's stamps later than the frames' by it), the distance scale, turn
+    scale, yaw per metre (deg/m) and yaw drift (deg/s) it found, the camera's mount (lever arm
+    ahead of the base m, yaw from the robot's forward axis deg, where it came from), the strain
+    that decided ``auto`` (its robust chi^2 per degree of freedom in the solution's variance
+    factor; agreeing below 2), the fraction of steps down-weighted as slip (beyond the robust
+    loss's scale), the steps it tied and the frames with no tag in view it posed, and notes
+    (a warning line: the odometry unusable, a recorded mount the motion disagrees with). NaN:
+    not found (the prior off)."""
+
+    mode: Literal["auto", "on", "off"]
+    applied: bool
+    why: str
+    topic: str
+    offset_ms: float
+    scale: float
+    yaw_scale: float
+    yaw_per_m_deg: float
+    yaw_drift_dps: float
+    lever_m: float
+    camera_yaw_deg: float
+    mount_source: str
+    strain: float
+    down_weighted: float
+    steps: int
+    frames_odometry_only: int
+    notes: list[str] = []
+
+
 class BundleSummary(Document):
     """The joint solve's figures (``optimize.report.bundle``): frames posed (of them with a single
     tag, and held by the motion prior), frames started from a tag's second IPPE solution, tags
@@ -157,6 +188,7 @@ class BundleSummary(Document):
     rms_px: float
     p95_px: float
     ground: GroundSummary | None = None
+    odometry: OdometrySummary | None = None
 
 
 class SurveyTag(Document):

@@ -8,7 +8,7 @@ tag fixed at the identity) and its check of each observation's IPPE solution
 says so) then the tag and camera poses jointly on the corners, held in time by the priors of
 :mod:`tagtrail.geometry.joint` (settings ``joint``, which ``trajectory`` takes too), the tags the
 pose graph left out linked through the trajectory, close rival pairs decided
-(``rival_search``). Each tag gets its standard deviation (``std_pos_m``, ``std_rot_deg``; the
+(``branch_check``). Each tag gets its standard deviation (``std_pos_m``, ``std_rot_deg``; the
 anchor 0); the edge residuals and per-tag RMS are those of the final map. ``"pairwise"``: the
 paper's pose graph alone, also what observation-only datasets get. With ``survey``, the map is
 put in the surveyed world (:mod:`tagtrail.geometry.survey`). Old parameter names are refused
@@ -26,7 +26,7 @@ from pydantic import Field, model_validator
 
 from tagtrail.errors import DataError
 from tagtrail.geometry.camera import CameraModel
-from tagtrail.geometry.joint import JointSettings
+from tagtrail.geometry.joint import JointSettings, OdometryData, odometry_input
 from tagtrail.geometry.joint.settings import JOINT_OLD_KEYS
 from tagtrail.geometry.robust import LossName
 from tagtrail.geometry.se3 import R_from_quat_xyzw, make_T, quat_xyzw_from_R
@@ -48,7 +48,7 @@ from tagtrail.schemas.artifacts import (
     sightings,
     timed,
 )
-from tagtrail.schemas.documents import OptimizeReport, PlacedComponent, TagGraph
+from tagtrail.schemas.documents import MountDoc, OptimizeReport, PlacedComponent, TagGraph
 from tagtrail.schemas.pipeline import SurveyConfig
 from tagtrail.schemas.recording_files import diagnostics_file, recording_map_file
 from tagtrail.stages.base import Export, ExportFiles, Metric, StageParams, refuse_old_keys
@@ -76,6 +76,8 @@ OLD_KEYS = {
     "max_nfev": "the pose graph stops after 100 evaluations, fixed",
     "rival_max_pairs": "the 16 closest rival pairs are tried, fixed",
     "rival_max_iter": "each rival is scored by 10 iterations of the joint solve, fixed",
+    "rival_search": "use optimize.branch_check (no_rivals: the map's check without the rival "
+    "pairs' decision)",
     "link_tags": "tags are always linked through the trajectory (stamps that are capture times)",
     **{k: v.format(joint="optimize.joint") for k, v in JOINT_OLD_KEYS.items()},
 }
@@ -90,21 +92,22 @@ class Params(StageParams):
     """Robust loss on each edge's residual norm (Eq. 3.7): linear, soft_l1, huber, cauchy."""
     f_scale: float = Field(0.1, ge=1e-6, le=100.0)
     """Residual norm (m) where the robust loss turns from quadratic to sub-quadratic."""
-    branch_check: Literal["map", "none"] = "map"
+    branch_check: Literal["map", "no_rivals", "none"] = "map"
     """``map`` (default): after the pose graph's solve, each observation takes the IPPE solution
     the map agrees with in its frame (geometry.ippe.map_branches), the edges it changes are
     rebuilt and the graph solved again (a small, far tag's mirrored solution can look
-    unambiguous and bend a map its pair's one or two frames cannot check); ``none``: the
-    edges as ``edges`` chose them."""
-    rival_search: bool = True
-    """Joint solve: decide the tag pairs with a close rival hypothesis (``edges.rival_pairs``)
-    by the frames' continuity (``choose_hypotheses``)."""
+    unambiguous and bend a map its pair's one or two frames cannot check); then the joint
+    solve decides the tag pairs with a close rival hypothesis (``edges.rival_pairs``) by the
+    frames' continuity (``choose_hypotheses``). ``no_rivals``: the map's check without the
+    rival pairs' decision; ``none``: the edges as ``edges`` chose them (the rival pairs still
+    decided by the frames)."""
     joint_min_frames: int = Field(30, ge=1, le=10_000_000)
     """Frames seeing a mapped tag needed for the joint solve; with fewer, the pose graph is
     kept (module docstring)."""
     joint: JointSettings = JointSettings()
     """The joint solve's settings (geometry.joint.settings): corner noise, motion prior, gap,
-    ground plane, wheeled drive. ``trajectory`` takes the map's (``optimize.report.joint``)."""
+    ground plane, wheeled drive, wheel odometry. ``trajectory`` takes the map's
+    (``optimize.report.joint``)."""
 
     survey: SurveyConfig | None = None
     """A surveyed world: known tag poses (a ``tagslam.yaml``, a WPILib/PhotonVision field
@@ -120,6 +123,8 @@ class Params(StageParams):
 
 
 INPUTS = {
+    "odometry": "extract.odometry",
+    "mount": "extract.mount",
     "edges": "edges.edges",
     "graph": "edges.graph",
     "observations": "pnp.observations",
@@ -166,8 +171,12 @@ def run(
     detections: pd.DataFrame | None = None,
     camera: CameraModel | None = None,
     frames: pd.DataFrame | None = None,
+    odometry: pd.DataFrame | None = None,
+    mount: MountDoc | None = None,
 ) -> dict[str, Any]:
-    """Tag map (``TAG_MAP_COLS``), per-edge residuals (``RESIDUAL_COLS``) and a report dict.
+    """Tag map (``TAG_MAP_COLS``), per-edge residuals (``RESIDUAL_COLS``) and a report dict;
+    ``odometry``/``mount``: ``extract.odometry`` and ``extract.mount`` (the wheel-odometry
+    prior of the joint solve, when the dataset has odometry).
 
     A tag graph of several components (``edges.on_disconnected: keep``): the anchor's is solved
     as one graph; with a surveyed world, each other component is solved on its own (its most
@@ -189,8 +198,13 @@ def run(
             f"with anchor tag {graph.anchor_id} (the edges and graph artifacts disagree; re-run "
             "the edges stage)"
         )
+    blind = None
+    if frames is not None and len(frames):
+        seen = observations["frame_idx"]
+        blind = frames.loc[~frames["frame_idx"].isin(seen), "t_ns"].to_numpy(np.int64)
+    odo = odometry_input(odometry, mount, blind)
     if len(comps) == 1:
-        return _solve(edges, graph, observations, detections, params, camera, frames)
+        return _solve(edges, graph, observations, detections, params, camera, frames, odo)
     if params.survey is None:
         log.warning(
             "optimize: tags %s are not linked to anchor tag %d by co-observations and "
@@ -214,7 +228,7 @@ def run(
             obs = obs[obs["tag_id"].isin(tags).to_numpy()]
             dets = None if dets is None else dets[dets["tag_id"].isin(tags).to_numpy()]
         e = edges[edges["tag_i"].isin(tags).to_numpy()]
-        return _solve(e, g, obs, dets, params, camera, frames)
+        return _solve(e, g, obs, dets, params, camera, frames, odo if obs_all else None)
 
     out = part(comps[0], graph.anchor_id, True)
     if params.survey is None:
@@ -258,9 +272,10 @@ def _solve(
     params: Params,
     camera: CameraModel | None = None,
     frames: pd.DataFrame | None = None,
+    odometry: OdometryData | None = None,
 ) -> dict[str, Any]:
     """:func:`run` on one connected tag graph (geometry.tagmap.build_map): the tables and the
-    report."""
+    report; ``odometry``: the wheel-odometry prior's data (the anchor's graph only)."""
     tags = np.asarray(sorted(int(t) for t in graph.get("tags", [])), dtype=np.int64)
     joint, is_timed = None, timed(frames)
     has_pix = detections is not None and len(detections) > 0 and camera is not None
@@ -275,10 +290,11 @@ def _solve(
             params.joint,
             is_timed,
             params.joint_min_frames,
-            rivals if params.rival_search and is_timed else None,
+            rivals if params.branch_check != "no_rivals" and is_timed else None,
             RIVAL_MAX_ITER,
+            odometry,
         )
-    check = sightings(observations, tags) if params.branch_check == "map" else None
+    check = sightings(observations, tags) if params.branch_check != "none" else None
     skip = np.array([int(pair_key(r.tag_i, r.tag_j)) for r in graph.rival_pairs], np.int64)
     gs = GraphSettings(params.loss, params.f_scale, MAX_NFEV, ROT_WEIGHT_M)
     E = edge_arrays(edges, tags)

@@ -9,7 +9,10 @@ reference recording it is the joint solution's trajectory. On data too short or 
 decide the ground-plane and wheeled-drive priors on (a parked query), the map's decisions are
 taken. Each frame starts from the IPPE solution its neighbours agree with; a single-tag
 frame is held by its neighbours; frames further apart than ``max_gap_s`` are not linked, and
-frames without a tag get no pose. Rows carry ``std_pos_m`` / ``std_rot_deg`` (the frame's
+frames without a tag get no pose -- unless the dataset's wheel odometry covers them (the map's
+``joint.odometry``, geometry.joint.odometry): then they are posed by it (``n_tags`` 0, their
+standard deviation growing away from the tags, no evidence), up to 10 s from a tag. Rows
+carry ``std_pos_m`` / ``std_rot_deg`` (the frame's
 standard deviation given the map), ``motion_prior`` (True: the smoother adds nothing) and the
 frame's evidence (:class:`tagtrail.geometry.joint.FrameEvidence`): ``reproj_px`` (its RMS
 corner error), ``alone_reproj_px`` (that of the frame on its own corners, the per-frame
@@ -46,7 +49,7 @@ from tagtrail.errors import DataError
 from tagtrail.geometry.camera import CameraModel
 from tagtrail.geometry.fusion import frame_poses
 from tagtrail.geometry.ippe import map_branches
-from tagtrail.geometry.joint import JointSettings
+from tagtrail.geometry.joint import JointSettings, OdometryData, odometry_input
 from tagtrail.geometry.joint.settings import JOINT_OLD_KEYS
 from tagtrail.geometry.joint.track import posed_rms_px, solve_track
 from tagtrail.geometry.robust import LossName
@@ -64,7 +67,7 @@ from tagtrail.schemas.artifacts import (
     per_frame,
     timed,
 )
-from tagtrail.schemas.documents import OptimizeReport
+from tagtrail.schemas.documents import MountDoc, OptimizeReport
 from tagtrail.stages.base import Export, ExportFiles, StageParams, refuse_old_keys
 
 log = logging.getLogger(__name__)
@@ -111,6 +114,8 @@ INPUTS = {
     "tag_map": "optimize.tag_map",
     "map_report": "optimize.report",
     "frames": "extract.frames",
+    "odometry": "extract.odometry",
+    "mount": "extract.mount",
 }
 OUTPUTS = ("trajectory",)
 SCOPE = "all"
@@ -152,15 +157,23 @@ def joint_trajectory(
     is_timed: bool,
     fallback: tuple[bool, bool] | None,
     priors: bool = True,
+    odometry: OdometryData | None = None,
 ) -> pd.DataFrame:
     """The ``joint`` method (geometry.joint.track.solve_track) on ``corner_rows`` of the mapped
     tags ``ids`` (map ``W_map``) under the map's ``settings``; ``fallback``: the map's
     ground-plane and drive decisions, for data too short or too still to decide on; ``priors``
-    False: each frame on its own corners."""
-    tr = solve_track(corner_arrays(rows), ids, W_map, camera, settings, is_timed, fallback, priors)
+    False: each frame on its own corners; ``odometry``: the wheel-odometry prior's data (the
+    frames with no tag it covers posed too, ``n_tags`` 0)."""
+    tr = solve_track(
+        corner_arrays(rows), ids, W_map, camera, settings, is_timed, fallback, priors, odometry
+    )
     res, ground = tr.solved.res, tr.solved.ground
     for line in [] if ground is None else ground.lines():
         log.info("trajectory: %s", line)
+    if tr.solved.odometry is not None:
+        for note in tr.solved.odometry.notes:  # optimize warned of it: one warning a dataset
+            log.info("trajectory: %s", note)
+        log.info("trajectory: %s", tr.solved.odometry.line())
     if not res.converged:
         log.warning(
             "trajectory: the joint solve stopped after %d iterations before converging", res.iters
@@ -230,9 +243,13 @@ def run(
     params: Params,
     frames: pd.DataFrame | None = None,
     map_report: OptimizeReport | None = None,
+    odometry: pd.DataFrame | None = None,
+    mount: MountDoc | None = None,
 ) -> dict[str, Any]:
-    """One ``world_T_cam`` per frame with a mapped tag: ``TRAJ_COLS``. ``map_report``: the
-    map's ``optimize.report`` (its joint settings and decisions; None: the defaults)."""
+    """One ``world_T_cam`` per frame with a mapped tag (``TRAJ_COLS``), and with ``odometry``
+    (``extract.odometry``, ``extract.mount``) the frames without one it covers (``n_tags`` 0).
+    ``map_report``: the map's ``optimize.report`` (its joint settings and decisions; None: the
+    defaults)."""
     settings = (
         JointSettings() if map_report is None or map_report.joint is None else map_report.joint
     )
@@ -269,6 +286,10 @@ def run(
         log.warning("trajectory: no frame sees a mapped tag; the trajectory is empty")
         return {"trajectory": _empty()}
     obs = obs.sort_values(["frame_idx", "tag_id"], kind="stable")
+    blind = None
+    if frames is not None and len(frames):
+        blind = frames.loc[~frames["frame_idx"].isin(obs["frame_idx"]), "t_ns"].to_numpy(np.int64)
+    odo = odometry_input(odometry, mount, blind)
     has_pix = detections is not None and len(detections) > 0 and camera is not None
     parts = []
     rows = corner_rows(obs, detections, ids) if has_pix else pd.DataFrame(columns=["frame_idx"])
@@ -277,7 +298,15 @@ def run(
         if len(rows):
             parts.append(
                 joint_trajectory(
-                    rows, ids, W_map, camera, settings, is_timed, fallback, params.priors == "map"
+                    rows,
+                    ids,
+                    W_map,
+                    camera,
+                    settings,
+                    is_timed,
+                    fallback,
+                    params.priors == "map",
+                    odo,
                 )
             )
             # frames without usable corners fall back to the frame-by-frame fusion

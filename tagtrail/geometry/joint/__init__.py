@@ -3,8 +3,9 @@
 - :mod:`.problem` -- what is observed (:class:`CornerObservations`), how corners are weighed
   (:class:`Corners`), what a prior gives the solver (:class:`Terms`, :class:`Prior`), the
   :class:`JointResult`;
-- :mod:`.motion`, :mod:`.ground`, :mod:`.drive` -- the priors (constant velocity, ground plane,
-  wheeled drive), each with its residuals, Jacobians, own unknowns and report;
+- :mod:`.motion`, :mod:`.ground`, :mod:`.drive`, :mod:`.odometry` -- the priors (constant
+  velocity, ground plane, wheeled drive, wheel odometry), each with its residuals, Jacobians,
+  own unknowns and report;
 - :mod:`.solver` -- :func:`solve_joint`, Levenberg-Marquardt over the corners and a list of
   priors;
 - :mod:`.decide` -- the ground plane's and wheeled drive's ``auto`` decisions
@@ -34,6 +35,13 @@ from tagtrail.geometry.joint.evidence import (
 from tagtrail.geometry.joint.ground import GroundPlane, GroundPrior, GroundReport, Plane
 from tagtrail.geometry.joint.mapping import MapRefinement, choose_hypotheses, refine_map
 from tagtrail.geometry.joint.motion import MotionPrior
+from tagtrail.geometry.joint.odometry import (
+    Odometry,
+    OdometryData,
+    OdometryPrior,
+    OdometryReport,
+    OdometryState,
+)
 from tagtrail.geometry.joint.problem import (
     CornerObservations,
     CornerRows,
@@ -47,7 +55,14 @@ from tagtrail.geometry.joint.problem import (
     observation_rms_px,
 )
 from tagtrail.geometry.joint.settings import JointSettings
-from tagtrail.geometry.joint.setup import CornerProblem, Solved, corner_problem, solve_on_corners
+from tagtrail.geometry.joint.setup import (
+    CornerProblem,
+    Solved,
+    bridge,
+    corner_problem,
+    odometry_input,
+    solve_on_corners,
+)
 from tagtrail.geometry.joint.solver import solve_joint
 from tagtrail.geometry.joint.start import initial_cameras, link_tags
 
@@ -68,6 +83,11 @@ __all__ = [
     "MapRefinement",
     "MotionPrior",
     "Mount",
+    "Odometry",
+    "OdometryData",
+    "OdometryPrior",
+    "OdometryReport",
+    "OdometryState",
     "Plane",
     "Prior",
     "Solved",
@@ -75,6 +95,7 @@ __all__ = [
     "Travel",
     "WheeledDrive",
     "choose_hypotheses",
+    "bridge",
     "corner_observations",
     "corner_problem",
     "corner_sigma",
@@ -84,6 +105,7 @@ __all__ = [
     "initial_cameras",
     "link_tags",
     "observation_rms_px",
+    "odometry_input",
     "refine_map",
     "solve_grounded",
     "solve_joint",

@@ -17,9 +17,10 @@ import numpy as np
 
 from tagtrail.geometry.arrays import F64, I64
 from tagtrail.geometry.camera import CameraModel
+from tagtrail.geometry.joint.odometry import OdometryData
 from tagtrail.geometry.joint.problem import CornerRows
 from tagtrail.geometry.joint.settings import JointSettings
-from tagtrail.geometry.joint.setup import Solved, corner_problem, solve_on_corners
+from tagtrail.geometry.joint.setup import Solved, bridge, corner_problem, solve_on_corners
 from tagtrail.geometry.joint.start import link_tags
 from tagtrail.geometry.posegraph import PoseGraphResult
 from tagtrail.geometry.se3 import make_T
@@ -50,11 +51,13 @@ def refine_map(
     camera: CameraModel,
     settings: JointSettings,
     timed: bool,
+    odometry: OdometryData | None = None,
 ) -> MapRefinement:
     """The joint solve from the pose-graph map ``R (T, 3, 3)``, ``t (T, 3)`` of the sorted ids
     ``tags`` (``anchor``: the gauge tag's index) on the corner ``rows`` of every observed tag;
     ``timed``: the stamps are capture times (else no prior and no tag linked through the
-    trajectory)."""
+    trajectory); ``odometry``: the wheel-odometry prior's data (tags beyond a stretch without
+    tags linked by the wheels' dead reckoning, the prior in the solve)."""
     ids = np.union1d(tags, rows.tag_id)
     W = np.full((len(ids), 4, 4), np.nan)
     W[np.searchsorted(ids, tags)] = make_T(R, t)
@@ -71,6 +74,7 @@ def refine_map(
             pb.t_s,
             px_per_unit=camera.focal_px,
             max_gap_s=pb.max_gap_s,
+            **bridge(odometry, settings, int(pb.t_ns[0])),
         )
         linked = ids[now & ~known].tolist()
         known = now
@@ -80,8 +84,8 @@ def refine_map(
     pb = corner_problem(rows, k, camera, settings, timed)
     a = int(np.searchsorted(ids, tags[anchor]))
     free = (np.arange(len(ids)) != a) & (np.bincount(k, minlength=len(ids)) > 0)
-    out = solve_on_corners(pb, W, free, settings)
-    res = out.res
+    out = solve_on_corners(pb, W, free, settings, odometry=odometry)
+    res, pb = out.res, out.pb  # pb: with the frames the odometry posed
     n_tags = np.bincount(pb.ob.frame, minlength=len(pb.t_ns))
     block = {
         "frames": int(len(pb.t_ns)),
@@ -98,6 +102,7 @@ def refine_map(
         "rms_px": float(np.sqrt(np.mean(res.res_px**2))),
         "p95_px": float(np.percentile(res.res_px, 95)),
         "ground": None if out.ground is None else dataclasses.asdict(out.ground),
+        "odometry": None if out.odometry is None else dataclasses.asdict(out.odometry),
     }
     assert res.tag_std is not None
     fixed = np.where(np.arange(len(ids)) == a, 0.0, np.nan)[:, None]  # the anchor; unobserved

@@ -37,6 +37,9 @@ MOTION_ACC, MOTION_ANG_DEG = 0.1, 30.0
 GROUND_HEIGHT_SIGMA_M, GROUND_TILT_SIGMA_DEG = 0.01, 1.0
 # The wheeled drive: 1 cm/s/sqrt(Hz) of sideways slip beyond the lever arm (1 cm over a second).
 DRIVE_LATERAL_SIGMA = 0.01
+# The wheel odometry: 1 cm of slip per sqrt(metre) driven, beyond the wheel scale and yaw errors
+# the prior solves for (geometry.joint.odometry; the LIMO's wheels on an office floor).
+ODOMETRY_SIGMA_M = 0.01
 
 
 class JointSettings(BaseModel):
@@ -69,6 +72,13 @@ class JointSettings(BaseModel):
     lever arm and the camera's yaw on the robot solved with the rest); ``auto`` (default): the
     same when it costs the corners little (strain below 2), not for a base or camera that
     moves sideways (mecanum, omni wheels, a panning camera); ``free``: no such prior."""
+    odometry: Literal["auto", "on", "off"] = "auto"
+    """Wheel-odometry prior (geometry.joint.odometry; the dataset's ``extract.odometry``): ties
+    consecutive frames by the robot base's motion the wheels measured, solving the time offset
+    of its stamps, its scale and yaw errors and the camera's mount; frames with no tag in view
+    get a pose from it (up to 10 s from a tag). ``auto`` (default): on when the dataset has
+    usable odometry and it agrees with the tags (strain below 2); ``on``: whenever usable;
+    ``off``: not used."""
 
     @field_validator("motion", mode="before")
     @classmethod
@@ -83,6 +93,12 @@ class JointSettings(BaseModel):
                 f"m/s^2/sqrt(Hz)) or none, not {v!r}"
             )
         return v
+
+    @field_validator("odometry", mode="before")
+    @classmethod
+    def _odometry_word(cls, v: object) -> object:
+        """YAML reads a bare ``on`` / ``off`` as true / false: those are the words."""
+        return {True: "on", False: "off"}.get(v, v) if isinstance(v, bool) else v
 
     def motion_sigmas(self) -> tuple[float, float] | None:
         """The motion prior's ``(acc_sigma m/s^2/sqrt(Hz), ang_sigma rad/s^2/sqrt(Hz))``; None

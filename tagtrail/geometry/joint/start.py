@@ -4,6 +4,8 @@ place, placed through the trajectory (:func:`link_tags`)."""
 
 from __future__ import annotations
 
+from collections.abc import Callable
+
 import numpy as np
 
 from tagtrail.geometry.arrays import F64, I64
@@ -137,14 +139,19 @@ def link_tags(
     px_per_unit: float,
     max_gap_s: float,
     sightings: int = 3,
+    odometry: Callable[[float, float], F64] | None = None,
+    reach_s: float = 0.0,
 ) -> tuple[F64, np.ndarray]:
     """Place tags the pose graph could not (never seen together with a mapped tag without
     ambiguity) through the trajectory: one sweep in time, each frame posed from its known tags
     (the candidate that reprojects them best) or, with none, by constant-velocity extrapolation
     from the last two posed frames -- never across more than ``max_gap_s`` -- and an unknown tag
     placed once it has ``sightings`` posed sightings (or at its last), at the IPPE solution they
-    agree on. Returns the map ``(T, 4, 4)`` and the known mask ``(T,)``; the joint solve then
-    refines it all."""
+    agree on. With ``odometry`` (``cam_a_T_cam_b`` (4, 4) between two times, s, by the wheels'
+    dead reckoning) a frame with no known tag is posed from the last posed frame by it, up to
+    ``reach_s`` after the last frame posed from known tags: tags beyond a stretch with no tag in
+    view are linked too. Returns the map ``(T, 4, 4)`` and the known mask ``(T,)``; the joint
+    solve then refines it all."""
     world_T_tag, known = world_T_tag.copy(), np.asarray(known, bool).copy()
     n_f = len(t_s)
     order = np.lexsort((ob.tag, ob.frame))
@@ -152,16 +159,28 @@ def link_tags(
     last_sighting = np.full(len(known), -1)
     np.maximum.at(last_sighting, ob.tag, ob.frame)
     pending: dict[int, list[F64]] = {}
+    original = known.copy()  # with odometry, tags linked on the way are provisional (below)
+    seen: dict[int, list[F64]] = {}  # a provisional tag's sightings from posed frames
     posed: list[tuple[float, F64]] = []  # (t, world_T_cam) of the last two posed frames
     t_known = -np.inf  # when a frame was last posed from known tags
     for fr in range(n_f):
         obs = order[starts[fr] : starts[fr + 1]]
         k = known[ob.tag[obs]]
         pose = None
-        if k.any():
-            pose = _best_candidate(world_T_tag, cam_T_tag, ob, obs[k], px_per_unit)
-            if pose is not None:
+        pred = None
+        if odometry is not None and posed and t_s[fr] - t_known <= reach_s:
+            pred = posed[-1][1] @ odometry(posed[-1][0], float(t_s[fr]))
+        # within the odometry's reach a frame is posed from the map's own tags when they agree
+        # with it (a newly linked tag may be a far one's mirrored solution), else by it
+        use = k & original[ob.tag[obs]] if pred is not None else k
+        if use.any():
+            pose = _best_candidate(world_T_tag, cam_T_tag, ob, obs[use], px_per_unit)
+            if pose is not None and pred is not None and not _agree(pose, pred, posed[-1][1]):
+                pose = pred
+            elif pose is not None:
                 t_known = float(t_s[fr])
+        elif pred is not None:
+            pose = pred
         elif len(posed) == 2 and t_s[fr] - t_known <= max_gap_s:
             (t1, T1), (t2, T2) = posed
             a = (t_s[fr] - t2) / max(t2 - t1, 1e-9)
@@ -170,16 +189,34 @@ def link_tags(
             pose[:3, 3] = T2[:3, 3] + a * (T2[:3, 3] - T1[:3, 3])
         if pose is None:
             continue
-        if posed and t_s[fr] - posed[-1][0] > max_gap_s:
+        if posed and t_s[fr] - posed[-1][0] > max_gap_s and odometry is None:
             posed = []
         posed = [*posed[-1:], (float(t_s[fr]), pose)]
-        for o in obs[~k]:
+        for o in obs:
             tag = int(ob.tag[o])
-            pending.setdefault(tag, []).append(pose @ cam_T_tag[o])
-            if len(pending[tag]) >= sightings or fr >= last_sighting[tag]:
-                world_T_tag[tag] = _medoid(np.stack(pending.pop(tag)))
-                known[tag] = True
+            if tag in seen:  # provisional: placed again from its last 30 sightings
+                seen[tag] = [*seen[tag][-29:], pose @ cam_T_tag[o]]
+                world_T_tag[tag] = _medoid(np.stack(seen[tag]))
+            elif not known[tag]:
+                pending.setdefault(tag, []).append(pose @ cam_T_tag[o])
+                if len(pending[tag]) >= sightings or fr >= last_sighting[tag]:
+                    got = pending.pop(tag)
+                    world_T_tag[tag] = _medoid(np.stack(got))
+                    known[tag] = True
+                    if odometry is not None:
+                        seen[tag] = got
     return world_T_tag, known
+
+
+def _agree(pose: F64, pred: F64, last: F64) -> bool:
+    """Whether a frame's pose from its known tags ``pose`` agrees with the odometry's ``pred``
+    (both ``world_T_cam``): within 0.2 m plus 10 % of the way from the last posed frame
+    ``last``, and 10 deg plus 10 % of its turn."""
+    way = float(np.linalg.norm(pred[:3, 3] - last[:3, 3]))
+    turn = float(np.linalg.norm(log_so3((last[:3, :3].T @ pred[:3, :3])[None])[0]))
+    d = float(np.linalg.norm(pose[:3, 3] - pred[:3, 3]))
+    a = float(np.linalg.norm(log_so3((pred[:3, :3].T @ pose[:3, :3])[None])[0]))
+    return d <= 0.2 + 0.1 * way and a <= np.radians(10.0) + 0.1 * turn
 
 
 def _best_candidate(

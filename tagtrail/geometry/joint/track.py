@@ -11,6 +11,7 @@ import numpy as np
 from tagtrail.geometry.arrays import F64, I64
 from tagtrail.geometry.camera import CameraModel
 from tagtrail.geometry.joint.evidence import FrameEvidence, frame_evidence
+from tagtrail.geometry.joint.odometry import OdometryData
 from tagtrail.geometry.joint.problem import CornerRows, frame_rms_px, observation_rms_px
 from tagtrail.geometry.joint.settings import JointSettings
 from tagtrail.geometry.joint.setup import Solved, corner_problem, solve_on_corners
@@ -54,13 +55,23 @@ def solve_track(
     timed: bool,
     fallback: tuple[bool, bool] | None,
     priors: bool = True,
+    odometry: OdometryData | None = None,
 ) -> Track:
     """The cameras of the corner ``rows`` of the mapped tags ``ids`` (sorted; map ``W_map``,
     fixed) under the map's ``settings``; ``fallback``: the map's ground-plane and drive
     decisions, for data too short or too still to decide on; ``priors`` False: each frame on
-    its own corners (then its own evidence)."""
+    its own corners (then its own evidence); ``odometry``: the wheel-odometry prior's data
+    (frames with no tag it covers are posed, ``n_tags`` 0, no evidence)."""
     pb = corner_problem(rows, np.searchsorted(ids, rows.tag_id), camera, settings, timed, priors)
-    solved = solve_on_corners(pb, W_map, np.zeros(len(ids), bool), settings, fallback=fallback)
+    solved = solve_on_corners(
+        pb,
+        W_map,
+        np.zeros(len(ids), bool),
+        settings,
+        fallback=fallback,
+        odometry=odometry if priors else None,
+    )
+    pb = solved.pb  # with the frames the odometry posed
     res, n_f = solved.res, len(pb.t_ns)
     alone = None
     if pb.motion is not None:
@@ -74,6 +85,8 @@ def solve_track(
             reproj_px=rms, alone_reproj_px=rms, shift_m=zero, shift_deg=zero, shift_sigma=zero
         )
     n_tags = np.bincount(pb.ob.frame, minlength=n_f)
+    for c in EVIDENCE:  # a frame posed by the odometry alone has no corners to show
+        evidence[c] = np.where(n_tags == 0, np.nan, evidence[c])
     pose = _pose_of(res.R_cam, res.t_cam)
     return Track(pb.t_ns, pose, n_tags, res.cam_std, pb.motion is not None, evidence, alone, solved)
 
