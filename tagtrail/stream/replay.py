@@ -4,7 +4,8 @@ Sources: a trajectory file or folder in tagtrail's or the original tool's layout
 :func:`tagtrail.io.layouts.read_trajectory`: ``trajectory.csv``, ``trajetoria_camera.csv``, TUM),
 or a bag (rosbag2 folder / ``.mcap`` / ``.db3``, ROS 1 ``.bag``) with a pose topic of type
 ``geometry_msgs/msg/PoseStamped`` (also ``PoseWithCovarianceStamped``, ``nav_msgs/msg/Odometry``:
-their pose is sent). Stamps are the recorded ones; the pause between two poses is their stamp
+their pose is sent; without ``--topic`` a bag's wheel odometry is taken only when it is its one
+pose topic). Stamps are the recorded ones; the pause between two poses is their stamp
 difference divided by ``rate`` (``0``: as fast as possible; a stamp going back: no pause).
 
 Before publishing, replay waits (``--wait``) for a subscriber on every key: zenoh drops samples
@@ -93,6 +94,10 @@ def _read_bag(path: Path, topic: str | None) -> tuple[list[int], list[list[float
         listing = ", ".join(f"{t} ({m})" for t, m in sorted(types.items())) or "none"
         if topic is None:
             cands = sorted(t for t, m in types.items() if m in POSE_MSGTYPES)
+            # a robot's bag also has its wheel odometry (odom frame, not a map pose): a pose
+            # topic of another type comes first; odometry is taken only when alone
+            posed = [t for t in cands if types[t] != "nav_msgs/msg/Odometry"]
+            cands = posed or cands
             if len(cands) != 1:
                 raise SourceError(
                     f"{bag}: {'several' if cands else 'no'} pose topics; name one "
