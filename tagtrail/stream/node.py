@@ -2,8 +2,8 @@
 
 A handler is a plain function ``handler(payload: bytes) -> [(key, payload), ...]`` that knows
 nothing of zenoh (so the same code runs on bag messages and in tests). :class:`Node` calls it
-from the subscriber's callback under a lock (messages are handled one at a time, in arrival
-order), publishes what it returns, and turns every failure into a counted, rate-limited drop:
+on a worker thread under a lock (messages are handled one at a time, in arrival order across
+keys), publishes what it returns, and turns every failure into a counted, rate-limited drop:
 :class:`~tagtrail.stream.stats.DropError` for bad input, anything else as ``error``. The main
 thread only waits (for SIGINT/SIGTERM, ``--duration``, ``--count``), runs periodic tasks and logs
 a stats line; on the way out every entity is undeclared and the session closed, within a
@@ -21,6 +21,7 @@ import logging
 import sys
 import threading
 import time
+from collections import deque
 from collections.abc import Callable, Iterable
 from typing import Any
 
@@ -33,6 +34,7 @@ from tagtrail.stream.wire import RmwPublisher, Wire
 log = logging.getLogger("tagtrail.stream")
 Handler = Callable[[bytes], Iterable[tuple[str, bytes]]]
 Payload = bytes | zenoh.ZBytes
+QUEUE_MAX = 1000  # samples waiting for the ordered worker; more: the receiving thread waits
 CONGESTION = {"block": zenoh.CongestionControl.BLOCK, "drop": zenoh.CongestionControl.DROP}
 
 
@@ -80,6 +82,9 @@ class Node:
         self._bg: dict[str, zenoh.Publisher] = {}
         self._periodic: list[list[Any]] = []  # [period_s, fn, next_due]
         self._lock = threading.Lock()
+        self._queue: deque[tuple[str, Handler, zenoh.Sample, int]] = deque()
+        self._ready = threading.Condition()
+        self._worker: threading.Thread | None = None
         self._closed = False
         self.clean = True  # False once a shutdown left a blocked put or an unclosed session
 
@@ -115,17 +120,31 @@ class Node:
         """Handle every sample of ``key`` (of ``msgtype``, default ``types[key]``) with
         ``handler`` and publish its outputs.
 
+        Samples of every key subscribed this way are handled one at a time by one worker
+        thread, in their order of arrival across keys (a CameraInfo published before a
+        detection is handled before it, as on the wire; zenoh-python's own per-subscriber
+        threads would not keep that order: under a flood, many detections were handled before
+        the first CameraInfo).
+
         ``latest_only`` (slow handlers, e.g. image detection): samples are handled on a worker
-        thread, and a sample still waiting when a newer one arrives is skipped (counted as
-        ``skipped``), so latency never builds up.
+        thread of their own, and a sample still waiting when a newer one arrives is skipped
+        (counted as ``skipped``), so latency never builds up.
         """
         msgtype = msgtype or self.types.get(key)
         if not latest_only:
 
             def callback(sample: zenoh.Sample) -> None:
-                self._handle(key, handler, sample, time.perf_counter_ns())
+                t_recv = time.perf_counter_ns()
+                with self._ready:
+                    while len(self._queue) >= QUEUE_MAX and not self._closed:
+                        self._ready.wait(0.05)  # backpressure: the sender's link slows down
+                    self._queue.append((key, handler, sample, t_recv))
+                    self._ready.notify_all()
 
-            self._entities.append(self.wire.declare_subscriber(key, msgtype, callback))
+            if self._worker is None:
+                self._worker = threading.Thread(target=self._work, name="handle", daemon=True)
+                self._worker.start()
+            self._entities.append(self.wire.declare_subscriber(key, msgtype, callback, True))
             return
         slot: list[Any] = []
         ready = threading.Condition()
@@ -148,7 +167,17 @@ class Node:
                 self._handle(key, handler, sample, t_recv)
 
         threading.Thread(target=worker, name=f"handle {key}", daemon=True).start()
-        self._entities.append(self.wire.declare_subscriber(key, msgtype, enqueue))
+        self._entities.append(self.wire.declare_subscriber(key, msgtype, enqueue, True))
+
+    def _work(self) -> None:
+        """The worker of the ordered subscriptions: their samples, oldest first."""
+        while not self._closed:
+            with self._ready:
+                if not self._queue and not self._ready.wait(0.1):
+                    continue
+                key, handler, sample, t_recv = self._queue.popleft()
+                self._ready.notify_all()
+            self._handle(key, handler, sample, t_recv)
 
     def _handle(self, key: str, handler: Handler, sample: zenoh.Sample, t_recv: int) -> None:
         stats = self.stats

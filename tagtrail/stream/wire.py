@@ -62,6 +62,14 @@ _ATTACHMENT = struct.Struct(f"<qqB{GID_SIZE}s")  # 33 bytes
 Callback = Callable[[zenoh.Sample], None]
 
 
+def handler(callback: Callback, direct: bool) -> Any:
+    """``callback`` as a subscriber's handler. zenoh-python calls a plain callable on a thread
+    of its own per subscriber (``indirect``), so samples of two keys lose their arrival order;
+    ``direct``: called on zenoh's receiving thread, in arrival order across keys (it must only
+    hand the sample on, never block nor call zenoh)."""
+    return zenoh.handlers.Callback(callback, indirect=False) if direct else callback
+
+
 @dataclass(frozen=True)
 class QoS:
     """The QoS of an endpoint as the RMW enums give it (``rmw/types.h``): reliability 1 reliable,
@@ -238,8 +246,10 @@ class Wire:
     def declare_publisher(self, topic: str, msgtype: str | None, **options: Any) -> Any:
         return self.session.declare_publisher(self.key(topic, msgtype), **options)
 
-    def declare_subscriber(self, topic: str, msgtype: str | None, callback: Callback) -> Any:
-        return self.session.declare_subscriber(self.key(topic, msgtype), callback)
+    def declare_subscriber(
+        self, topic: str, msgtype: str | None, callback: Callback, direct: bool = False
+    ) -> Any:
+        return self.session.declare_subscriber(self.key(topic, msgtype), handler(callback, direct))
 
     def discover(self, timeout_s: float = 2.0) -> dict[str, str]:
         """``{topic: type}`` of the publishers announced on the network."""
@@ -356,7 +366,9 @@ class RmwZenohWire(Wire):
         pub = self.session.declare_publisher(self.key(topic, msgtype), **options)
         return RmwPublisher(pub, self.session.liveliness().declare_token(token), gid_of(token))
 
-    def declare_subscriber(self, topic: str, msgtype: str | None, callback: Callback) -> Any:
+    def declare_subscriber(
+        self, topic: str, msgtype: str | None, callback: Callback, direct: bool = False
+    ) -> Any:
         """Subscribe to ``topic`` of ``msgtype`` with any type hash (a definition that differs
         from the robot's must not silence a topic: the first message is checked against its
         type where it matters, e.g. by ``stream record``); ``msgtype`` None: any type."""
@@ -364,7 +376,7 @@ class RmwZenohWire(Wire):
         if msgtype is not None and msgtype != JSON:
             key = key.rsplit("/", 1)[0] + "/*"
         if msgtype == JSON:
-            return self.session.declare_subscriber(key, callback)
+            return self.session.declare_subscriber(key, handler(callback, direct))
         expect = key.count("/") if "*" in key else None
 
         def on_sample(sample: zenoh.Sample) -> None:
@@ -373,9 +385,9 @@ class RmwZenohWire(Wire):
             self._check(sample.attachment)
             callback(sample)
 
-        sub = self.session.declare_subscriber(key, on_sample)
+        sub = self.session.declare_subscriber(key, handler(on_sample, direct))
         if msgtype is None:  # any type (echo): a JSON document on the bare key too
-            bare = self.session.declare_subscriber(self.key(topic, JSON), callback)
+            bare = self.session.declare_subscriber(self.key(topic, JSON), handler(callback, direct))
             return _Entity(sub, bare)
         token = self.session.liveliness().declare_token(
             self.token("MS", next(self._ids), topic, msgtype)

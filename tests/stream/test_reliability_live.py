@@ -296,11 +296,6 @@ def _edit_id(msg: Any) -> None:
     msg.detections[0].id = -3
 
 
-@pytest.mark.xfail(
-    reason="open defect: after the merges localize poses ~157 of 235 "
-    "flooded detection messages (closing note)",
-    strict=False,
-)
 def test_outlier_stamp_in_localize(detections: Path, tmp_path: Path) -> None:
     """Item 7, localize: detection messages with one stamp far in the future and one zero among
     240 in order: 2 outliers, none out of order. Item 13's class live: a NaN corner, a negative
