@@ -769,7 +769,8 @@ def _localize(ns: argparse.Namespace) -> int:
     node.count = ns.count
     try:
         node.publisher(ns.pose_key)
-        node.subscribe(ns.camera_info_key, loc.on_camera_info)
+        # its outputs: the inputs kept until the first CameraInfo
+        node.subscribe(ns.camera_info_key, teed(fox, loc.on_camera_info))
         if ns.image_key:
             node.subscribe(
                 ns.image_key, teed(fox, lambda b: loc.on_image(b, ns.image_type)), latest_only=True

@@ -24,7 +24,9 @@ stage's frame-by-frame poses (tests/stream/test_live_offline.py).
 from __future__ import annotations
 
 import logging
-from collections import Counter
+import time
+from collections import Counter, deque
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any, Literal
 
@@ -45,7 +47,7 @@ from tagtrail.stages import extract as extract_stage
 from tagtrail.stages import pnp as pnp_stage
 from tagtrail.stages import trajectory as trajectory_stage
 from tagtrail.stream import codec
-from tagtrail.stream.stats import DropError, Stats
+from tagtrail.stream.stats import Deferred, DropError, Stats
 from tagtrail.vision.detector import filter_detections
 from tagtrail.vision.images import frame_size
 
@@ -53,6 +55,9 @@ log = logging.getLogger("tagtrail.stream")
 F64 = NDArray[np.float64]
 IMAGE_TYPES = {"compressed": msgs.COMPRESSED_IMAGE, "raw": msgs.IMAGE}
 MAX_IMAGE_SIDE = 8192  # px: larger images are dropped before decoding (8192² gray = 64 MiB)
+WAIT_S = 1.0  # inputs that arrive before the first CameraInfo are kept this long …
+WAIT_N = 30  # … at most this many (1 s of a 30 Hz camera) …
+WAIT_BYTES = 64 << 20  # … and at most this much payload
 
 
 @dataclass(frozen=True)
@@ -87,6 +92,7 @@ class Localizer:
         pose_key: str = "tag_only_pose",
         frame_id: str = "map",
         stats: Stats | None = None,
+        clock: Callable[[], float] = time.monotonic,
     ) -> None:
         if len(tag_map) == 0:
             raise DataError("localize: the tag map is empty")
@@ -109,6 +115,9 @@ class Localizer:
         self.camera: CameraModel | None = None
         self.pose_key = pose_key
         self.stats = stats
+        self.clock = clock
+        # inputs before the first CameraInfo: (handler, arrival clock, perf_counter_ns, bytes)
+        self.waiting: deque[tuple[Callable[[], list[tuple[str, bytes]]], float, int, int]] = deque()
         self._enc = codec.PoseStampedEncoder(frame_id)
         method = self.params.trajectory.method
         self.method: Literal["auto", "avg", "lsq", "pnp"] = "auto" if method == "joint" else method
@@ -172,9 +181,48 @@ class Localizer:
         if self.camera is None or not cam.same_as(self.camera):
             log.info("localize: camera %dx%d %s", cam.width, cam.height, cam.distortion_model)
             self.camera = cam
-        return []
+        return self._release()
+
+    def _hold(self, handle: Callable[[], list[tuple[str, bytes]]], size: int) -> None:
+        """Keep an input that arrived before the first CameraInfo (:class:`Deferred`): the
+        last :data:`WAIT_N` (:data:`WAIT_BYTES`) of them, for :data:`WAIT_S`; an input pushed
+        out is dropped as ``no_camera_info``."""
+        self.waiting.append((handle, self.clock(), time.perf_counter_ns(), size))
+        while len(self.waiting) > WAIT_N or sum(w[3] for w in self.waiting) > WAIT_BYTES:
+            self.waiting.popleft()
+            self._count(DropError("no_camera_info", f"more than {WAIT_N} inputs before it"))
+        raise Deferred
+
+    def _release(self) -> list[tuple[str, bytes]]:
+        """Handle the inputs kept until the first CameraInfo, oldest first (those older than
+        :data:`WAIT_S`: dropped as ``no_camera_info``); each is counted here."""
+        out: list[tuple[str, bytes]] = []
+        now = self.clock()
+        while self.waiting:
+            handle, t, t_perf, _ = self.waiting.popleft()
+            try:
+                if now - t > WAIT_S:
+                    raise DropError("no_camera_info", f"waited {now - t:.2f} s for CameraInfo")
+                out += handle()
+            except DropError as err:
+                self._count(err)
+                continue
+            except Exception as err:  # noqa: BLE001 - as the node's own handling of a message
+                self._count(DropError("error", f"{type(err).__name__}: {err}"))
+                continue
+            if self.stats is not None:
+                self.stats.done(t_perf)
+        return out
+
+    def _count(self, err: DropError) -> None:
+        if self.stats is not None:
+            self.stats.drop(err.reason, str(err))
 
     def on_detections(self, data: bytes) -> list[tuple[str, bytes]]:
+        """The pose of one detection message (before the first CameraInfo: kept, see
+        :meth:`_hold`)."""
+        if self.camera is None:
+            self._hold(lambda: self.on_detections(data), len(data))
         msg = self._decode(data, msgs.DETECTIONS)
         # the extract stage's conversion (−0.5 px) and filters, so live = offline
         assert self.camera is not None
@@ -193,6 +241,8 @@ class Localizer:
         it is decoded (:meth:`check_size`): a bad or oversized image costs no memory."""
         from tagtrail.vision.apriltag import detect  # pupil-apriltags only where images are used
 
+        if self.camera is None:
+            self._hold(lambda: self.on_image(data, kind), len(data))
         msg = self._decode(data, IMAGE_TYPES[kind])
         raw = raw_image_from_msg(msg, IMAGE_TYPES[kind])
         assert isinstance(raw.data, bytes)  # a message's image: bytes, not a file path
@@ -228,8 +278,6 @@ class Localizer:
             )
 
     def _decode(self, data: bytes, msgtype: str) -> Any:
-        if self.camera is None:
-            raise DropError("no_camera_info", "no CameraInfo received yet")
         try:
             msg = codec.deserialize(data, msgtype)
         except codec.CodecError as err:

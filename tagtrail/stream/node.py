@@ -28,7 +28,7 @@ from typing import Any
 import zenoh
 
 from tagtrail.stream.session import close_all
-from tagtrail.stream.stats import DropError, Stats
+from tagtrail.stream.stats import Deferred, DropError, Stats
 from tagtrail.stream.wire import RmwPublisher, Wire
 
 log = logging.getLogger("tagtrail.stream")
@@ -192,6 +192,8 @@ class Node:
                     raise DropError("delete", f"{key}: a DELETE sample")
                 self.publish(handler(sample.payload.to_bytes()))
                 stats.done(t_recv)
+            except Deferred:
+                pass  # kept by the handler, counted when it is handled
             except DropError as err:
                 stats.drop(err.reason, f"{key}: {err}")
             except Exception as err:  # noqa: BLE001 - a bad message must never stop the node

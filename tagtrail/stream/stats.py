@@ -86,6 +86,11 @@ class DropError(Exception):
         self.reason = reason
 
 
+class Deferred(Exception):
+    """A message kept to be handled later (e.g. a detection waiting for the first CameraInfo):
+    received, neither processed nor dropped yet; its handler counts it when it is."""
+
+
 class Stats:
     """What a node did: messages received/processed, drops by reason, latency of the last ones.
 

@@ -266,9 +266,6 @@ def test_localize_serves_its_poses(tmp_path: Path) -> None:
                 c = channels["/tag_only_pose"]
                 assert (c["schemaName"], c["encoding"]) == ("geometry_msgs/msg/PoseStamped", "cdr")
                 sub_of = _subscribe(ws, channels, ["/tag_only_pose"])
-                # at the recording's own rate, as a robot publishes: a flood (--rate 0) on two
-                # keys has no order across them, and detections before the first CameraInfo
-                # are dropped (counted)
                 with running(
                     [
                         "replay",
@@ -279,12 +276,12 @@ def test_localize_serves_its_poses(tmp_path: Path) -> None:
                         "--connect",
                         loopback(port),
                         "--rate",
-                        "1",
+                        "0",
                     ]
                 ) as (rep,):
                     assert rep.p.wait(30) == 0, rep.output
-                # the first detection may precede the first CameraInfo (dropped, counted)
-                on_zenoh = zsub.wait("tag_only_pose", n_frames - 1)
+                # a detection before the first CameraInfo is kept until it comes: every frame
+                on_zenoh = zsub.wait("tag_only_pose", n_frames)
                 time.sleep(0.5)
                 on_zenoh = zsub.wait("tag_only_pose", len(on_zenoh))
                 got: Got = {"/tag_only_pose": []}
