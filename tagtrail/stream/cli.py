@@ -813,9 +813,9 @@ def _follow(ns: argparse.Namespace) -> int:
     )
     over = {n: getattr(ns, n) for n in names} | {"cmd_key": ns.cmd_key}
     limits, gains, cmd_key = with_profile(Limits(), Gains(), ns.profile, over)
-    length = ns.path_length
+    length, closed = ns.path_length, False
     if ns.reference is not None and length is None:
-        length = _path_length(ns)
+        length, closed = _path_length(ns)
     fol = Follower(
         limits,
         gains,
@@ -826,6 +826,7 @@ def _follow(ns: argparse.Namespace) -> int:
         not ns.no_stamp_check,
         ns.plane_normal == "down",
         ns.max_jump,
+        closed=closed,
     )
     session = open_session(config_from_args(ns, "connect"))
     try:
@@ -842,9 +843,10 @@ def _follow(ns: argparse.Namespace) -> int:
     return 0
 
 
-def _path_length(ns: argparse.Namespace) -> float:
-    """Planar arc length of ``--reference`` in its plane (relocalize's ``progress_m`` scale)."""
-    from tagtrail.geometry.association import arc_length
+def _path_length(ns: argparse.Namespace) -> tuple[float, bool]:
+    """Planar arc length of ``--reference`` in its plane (relocalize's ``progress_m`` scale) and
+    whether relocalize's tracker takes it for a loop (its progress wraps)."""
+    from tagtrail.geometry.association import PathTracker
     from tagtrail.geometry.reference_path import ReferencePath, reference_plane
     from tagtrail.io.layouts import read_trajectory
     from tagtrail.schemas.artifacts import poses
@@ -857,8 +859,8 @@ def _path_length(ns: argparse.Namespace) -> float:
         assert isinstance(report, report_stage.Params)
         plane = report.plane
     P, R = poses(read_trajectory(ns.reference))
-    path = ReferencePath(P, reference_plane(plane, P, R))
-    return float(arc_length(path.uv)[-1])
+    tracker = PathTracker(ReferencePath(P, reference_plane(plane, P, R)))
+    return float(tracker.s[-1]), tracker.closed
 
 
 def _record(ns: argparse.Namespace) -> int:

@@ -34,9 +34,12 @@ and ramping down to the path's end. Limits (:class:`Limits`, ``--profile limo`` 
 v_max. A zero Twist (stop, not rate-limited) when the last good state is older than
 ``--timeout`` (0.5 s; by arrival, and by its stamp unless ``--no-stamp-check``), ``lost``, or
 at the path's end (s ≥ length − ``--end-tolerance``). NaN/garbage states are counted (stats
-``dropped``) and dropped, and so is a cross-track that jumps more than ``--max-jump`` (0.1 m,
-plus v_max·dt) from the last good one within ``--timeout`` (a bad pose: a robot cannot jump;
-``jump``). On SIGINT/SIGTERM: a zero Twist, then the node closes.
+``dropped``) and dropped, and so is a cross-track or a progress that jumps more than
+``--max-jump`` (0.1 m, plus v_max·dt) from the last good one within ``--timeout`` (a bad pose: a
+robot cannot jump; ``jump``; a closed path's progress may wrap from its end to its start). The
+progress gate keeps one bad pose re-acquired onto the path's end (a figure eight's end lies
+0.4 m from its start) from stopping the robot for good mid-path. On SIGINT/SIGTERM: a zero
+Twist, then the node closes.
 """
 
 from __future__ import annotations
@@ -144,6 +147,7 @@ class Follower:
         normal_down: bool = True,
         max_jump_m: float = 0.1,
         clock: Callable[[], float] = time.monotonic,
+        closed: bool = False,
         wall_ns: Callable[[], int] = time.time_ns,
     ) -> None:
         self.limits, self.gains = limits, gains
@@ -160,7 +164,9 @@ class Follower:
         self.lock = threading.Lock()
         self.clock, self.wall_ns = clock, wall_ns
         self.max_jump = max_jump_m
+        self.closed = closed  # a loop: progress wraps from length to 0
         self.last_e = math.nan
+        self.last_s = math.nan
 
     def parse(self, data: bytes, now_wall_ns: int) -> dict[str, Any]:
         """The state document, checked; :class:`DropError` (counted) for anything else."""
@@ -192,7 +198,7 @@ class Follower:
         now = self.clock()
         s = self.parse(data, self.wall_ns())
         with self.lock:
-            self._gate(now, s["cross_track_m"])
+            self._gate(now, s["cross_track_m"], s["progress_m"])
             self.t_last_good = now
             if s["lost"]:
                 return self._stop(now, "lost")
@@ -202,16 +208,22 @@ class Follower:
                 return self._stop(now, "end")
             return self._drive(now, s)
 
-    def _gate(self, now: float, e: float) -> None:
-        """Drop a cross-track that jumps more than ``max_jump`` (+ what the robot can move) from
-        the last good one — a bad pose, not a motion; after ``timeout_s`` anything goes."""
+    def _gate(self, now: float, e: float, s: float) -> None:
+        """Drop a cross-track or progress that jumps more than ``max_jump`` (+ what the robot can
+        move) from the last good one — a bad pose, not a motion; after ``timeout_s`` anything
+        goes."""
         if self.max_jump > 0 and self.t_last_good is not None and math.isfinite(self.last_e):
             dt = now - self.t_last_good
-            if dt <= self.timeout_s and abs(e - self.last_e) > (
-                self.max_jump + self.limits.max_speed_mps * dt
-            ):
-                raise DropError("jump", f"cross-track {self.last_e:.3f} -> {e:.3f} m")
-        self.last_e = e
+            bound = self.max_jump + self.limits.max_speed_mps * dt
+            ds = abs(s - self.last_s)
+            if self.closed and self.length is not None:
+                ds = min(ds, abs(self.length - ds))  # a loop: its end meets its start
+            if dt <= self.timeout_s:
+                if abs(e - self.last_e) > bound:
+                    raise DropError("jump", f"cross-track {self.last_e:.3f} -> {e:.3f} m")
+                if ds > bound:
+                    raise DropError("jump", f"progress {self.last_s:.3f} -> {s:.3f} m")
+        self.last_e, self.last_s = e, s
 
     def _drive(self, now: float, s: dict[str, Any]) -> Command:
         lim, kappa = self.limits, s["curvature_1pm"]

@@ -152,9 +152,11 @@ def test_stops_lost_end_stale_garbage() -> None:
     assert fol.watchdog() is None
     clock.t += 0.45
     assert fol.watchdog() is not None  # 0.45 s after the last good pose: stop
+    clock.t += 0.1  # the last good state is older than the timeout: any progress goes
     c = fol.on_state(state(s=4.96, stamp_ns=clock.wall_ns()))
     assert (c.v, c.omega, c.reason) == (0.0, 0.0, "end")
-    assert fol.on_state(state(s=1.0, stamp_ns=clock.wall_ns())).reason == "end"  # stays done
+    clock.t += 0.033
+    assert fol.on_state(state(s=4.9, stamp_ns=clock.wall_ns())).reason == "end"  # stays done
 
 
 def test_a_jumping_cross_track_is_dropped_until_the_timeout() -> None:
@@ -284,3 +286,28 @@ def test_node_on_the_rmw_zenoh_wire() -> None:
             s.close()
         assert all(a is not None and len(a) == 33 for _, a in got)
         assert node.stop(sig=signal.SIGINT) == 0, node.output
+
+
+def test_one_bad_pose_at_the_paths_end_does_not_end_the_run() -> None:
+    """Defect b: a bad pose re-acquired onto the path's end (a figure eight's end is 0.4 m from
+    its start) with a plausible cross-track used to latch ``end``: the robot stopped for good
+    mid-path. A progress jump is dropped as one; on a loop progress may wrap end → start."""
+    clock = Clock()
+    limits, gains, _ = PROFILES["limo"]
+
+    def step(fol: Follower, s: float) -> str:
+        clock.t += 0.033
+        return fol.on_state(state(0.01, s=s, stamp_ns=clock.wall_ns())).reason
+
+    fol = Follower(limits, gains, 0.3, path_length_m=9.0, clock=clock, wall_ns=clock.wall_ns)
+    assert [step(fol, s) for s in (0.30, 0.31, 0.32)] == ["drive"] * 3
+    try:
+        step(fol, 8.99)
+        raise AssertionError("accepted")
+    except DropError as err:
+        assert err.reason == "jump" and "progress" in str(err)
+    assert step(fol, 0.33) == "drive" and not fol.finished
+    loop = Follower(
+        limits, gains, 0.3, path_length_m=9.0, clock=clock, wall_ns=clock.wall_ns, closed=True
+    )
+    assert [step(loop, s) for s in (8.88, 8.91, 8.94, 0.0, 0.03)] == ["drive"] * 5
