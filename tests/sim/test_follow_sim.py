@@ -58,11 +58,6 @@ def test_figure_eight_crosses_itself() -> None:
     assert mid.any() and np.hypot(*(xy[0] - xy[-1])) > 0.3  # an open path with an end
 
 
-@pytest.mark.xfail(
-    reason="open defect: after the merges the loop converges (RMS 1.2 cm) "
-    "but does not complete the path (closing note)",
-    strict=False,
-)
 def test_closed_loop_figure_eight(tmp_path: Path, capsys: object) -> None:
     out = tmp_path / "eight"
     assert (
