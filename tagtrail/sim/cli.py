@@ -194,6 +194,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         help="stream follow's control law (%(default)s)",
     )
     f.add_argument(
+        "--smooth",
+        action="store_true",
+        help="stream localize --smooth with the LIMO's /odom (dead reckoning between frames "
+        "and through a blackout) instead of each frame on its own",
+    )
+    f.add_argument(
         "--images",
         action="store_true",
         help="render 640x480 images (stream localize detects the tags) instead of "
@@ -363,6 +369,7 @@ def _follow(args: argparse.Namespace) -> int:
         seed=args.seed,
         law=args.law,
         images=args.images,
+        smooth=args.smooth,
     )
     keys = ("converged_s", "cross_track_rms_m", "cross_track_max_m", "completed")
     print(json.dumps({k: s[k] for k in keys}))

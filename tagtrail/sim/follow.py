@@ -197,6 +197,7 @@ def run(
     law: str = "stanley",
     images: bool = False,
     max_time_s: float | None = None,
+    smooth: bool = False,
 ) -> dict[str, Any]:
     """Run the closed loop (module docstring); returns the summary written to
     ``out/follow_summary.json``."""
@@ -264,6 +265,9 @@ def run(
             if images
             else []
         )
+        if smooth:  # the live smoother, the LIMO's odometry and its camera's lever arm
+            forward = str(opts.mount.forward_m)
+            inputs += ["--smooth", "--odom-key", "odom", "--camera-forward", forward]
         procs.append(
             _Proc(
                 [
@@ -421,6 +425,7 @@ def run(
         "reference": str(ref),
         "plane": PLANE,
         "input": "images" if images else "detections",
+        "smooth": smooth,
     }
     summary = dict(_rounded(summary))
     np.savetxt(out / "follow.csv", data, delimiter=",", header=COLUMNS, comments="", fmt="%.6f")

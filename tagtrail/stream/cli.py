@@ -338,6 +338,47 @@ def add_arguments(parser: argparse.ArgumentParser) -> argparse.ArgumentParser:
         metavar="N",
         help="drop detections with more corrected bits (default: extract.max_hamming)",
     )
+    g = p.add_argument_group("continuity (docs/LIVE.md)")
+    g.add_argument(
+        "--smooth",
+        action=argparse.BooleanOptionalAction,
+        default=False,
+        help="pose each frame by a fixed-lag smoother over the last --window seconds with the "
+        "offline joint model's priors (motion, ground plane), publishing "
+        "<prefix>/pose_with_covariance, <prefix>/fix_age_s and <prefix>/state too "
+        "(default: off, each frame on its own)",
+    )
+    g.add_argument(
+        "--window",
+        type=POSITIVE,
+        default=1.0,
+        metavar="S",
+        help="the smoother's window (s; at most 30 frames; default 1)",
+    )
+    g.add_argument(
+        "--odom-key",
+        default=None,
+        metavar="KEY",
+        help="with --smooth: nav_msgs/Odometry of the base (e.g. odom); between frames and "
+        "without tags, the last fix dead-reckoned at its rate (default: none)",
+    )
+    g.add_argument(
+        "--odom-latency",
+        type=NON_NEGATIVE,
+        default=0.005,
+        metavar="S",
+        help="odometry stamps are publication times: the state is this much older (default 0.005)",
+    )
+    g.add_argument(
+        "--camera-forward",
+        type=NON_NEGATIVE,
+        default=0.0,
+        metavar="M",
+        help="the camera ahead of the base's turning centre (m; LIMO 0.084; default 0)",
+    )
+    g.add_argument(
+        "--prefix", default="localize", help="prefix of the --smooth outputs (default: %(default)s)"
+    )
     _common(p, "stop after N input messages", express=True)
     _foxglove(p)
     _record_arguments(sub, fmt)
@@ -747,7 +788,13 @@ def _localize(ns: argparse.Namespace) -> int:
     loc = Localizer(tags, localize_params(ns), ns.pose_key, ns.frame_id, stats)
     cv2_threads()
     # the Foxglove server (if asked for) first, as relocalize: a busy port fails before zenoh
-    fox = foxglove_server(ns, "localize", {ns.pose_key: msgs.POSE_STAMPED})
+    channels = {ns.pose_key: msgs.POSE_STAMPED}
+    if ns.smooth:
+        channels[f"{ns.prefix}/pose_with_covariance"] = (
+            "geometry_msgs/msg/PoseWithCovarianceStamped"
+        )
+        channels[f"{ns.prefix}/fix_age_s"] = "std_msgs/msg/Float64"
+    fox = foxglove_server(ns, "localize", channels)
     session = open_session(config_from_args(ns, "connect"))
     try:
         wire = _wire(ns, session, "localize")
@@ -767,8 +814,24 @@ def _localize(ns: argparse.Namespace) -> int:
             msgs.COMPRESSED_IMAGE if ns.image_type == "compressed" else msgs.IMAGE
         )
     node.count = ns.count
+    live = None
+    if ns.smooth:
+        from tagtrail.stream.continuity import DeadReckoning, LivePoses, Smoother, SmootherSettings
+
+        live = LivePoses(
+            Smoother(loc.world_T_tag, loc.size_m, SmootherSettings(window_s=ns.window)),
+            DeadReckoning(latency_s=ns.odom_latency, camera_forward_m=ns.camera_forward),
+            ns.pose_key,
+            ns.prefix,
+            ns.frame_id,
+        )
+        loc.smooth(live)
+        node.types.update(live.keys())
     try:
         node.publisher(ns.pose_key)
+        if live is not None and ns.odom_key:
+            node.types[ns.odom_key] = "nav_msgs/msg/Odometry"
+            node.subscribe(ns.odom_key, teed(fox, live.on_odometry))
         # its outputs: the inputs kept until the first CameraInfo
         node.subscribe(ns.camera_info_key, teed(fox, loc.on_camera_info))
         if ns.image_key:

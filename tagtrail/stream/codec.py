@@ -173,6 +173,23 @@ class PoseStampedEncoder:
         )
 
 
+class PoseWithCovarianceEncoder:
+    """``geometry_msgs/msg/PoseWithCovarianceStamped`` with a fixed ``frame_id``, packed
+    directly: the pose and its 6x6 covariance (row-major; x, y, z, then rotations about the
+    frame's x, y, z axes, as ROS orders it)."""
+
+    def __init__(self, frame_id: str) -> None:
+        raw, pad = _frame_bytes(frame_id)
+        self.frame_id = frame_id
+        self._s = struct.Struct(f"<4siII{len(raw)}s{pad}x43d")
+        self._raw = raw
+
+    def __call__(
+        self, sec: int, nanosec: int, xyz_q: Sequence[float], cov: Sequence[float]
+    ) -> bytes:
+        return self._s.pack(CDR_LE, sec, nanosec, len(self._raw), self._raw, *xyz_q, *cov)
+
+
 # --- templates -------------------------------------------------------------------------------
 
 _STAMP_SENTINEL = (0x7E5A3C01, 0x3C5A7E02)

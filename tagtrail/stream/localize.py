@@ -119,6 +119,8 @@ class Localizer:
         # inputs before the first CameraInfo: (handler, arrival clock, perf_counter_ns, bytes)
         self.waiting: deque[tuple[Callable[[], list[tuple[str, bytes]]], float, int, int]] = deque()
         self._enc = codec.PoseStampedEncoder(frame_id)
+        self.live: Any = None  # the live smoother (smooth()); None: each frame on its own
+        self._last_obs: tuple[NDArray[np.int64], F64] | None = None
         method = self.params.trajectory.method
         self.method: Literal["auto", "avg", "lsq", "pnp"] = "auto" if method == "joint" else method
         if method == "joint":
@@ -140,6 +142,7 @@ class Localizer:
         twice = _duplicated(ids)  # offline, the detections table has no corners for these
         keep = np.flatnonzero(np.isin(ids, self.ids))
         keep = keep[np.argsort(ids[keep], kind="stable")]  # the trajectory stage's order
+        self._last_obs = None
         if not len(keep):
             return None, 0
         k = np.searchsorted(self.ids, ids[keep])
@@ -150,6 +153,7 @@ class Localizer:
             return None, 0
         sel = keep[good]
         corners = np.where(twice[sel, None, None], np.nan, px[sel])
+        self._last_obs = (k[good][~twice[sel]], px[sel][~twice[sel]])  # the smoother's corners
         p = self.params.trajectory
         res = frame_poses(
             self.world_T_tag[k[good]],
@@ -293,15 +297,21 @@ class Localizer:
         if not np.isfinite(px).all():
             raise DropError("non_finite", "detection corners are not finite")
         T, _ = self.frame_pose(px, ids)
+        sec, nsec = int(stamp.sec), int(stamp.nanosec)
+        if self.live is not None:
+            out: list[tuple[str, bytes]] = self.live.on_frame(
+                sec * 1_000_000_000 + nsec, T, self._last_obs, self.camera
+            )
+            return out
         if T is None or not np.isfinite(T).all():
             raise DropError("no_pose", "no mapped tag in the frame")
         xyz, q = xyz_quat_from_T(T)
-        return [
-            (
-                self.pose_key,
-                self._enc(int(stamp.sec), int(stamp.nanosec), *xyz.tolist(), *q.tolist()),
-            )
-        ]
+        return [(self.pose_key, self._enc(sec, nsec, *xyz.tolist(), *q.tolist()))]
+
+    def smooth(self, live: Any) -> None:
+        """Pose frames by the live smoother ``live`` (:class:`~tagtrail.stream.continuity.
+        LivePoses`) instead of each on its own."""
+        self.live = live
 
 
 def cv2_threads() -> None:

@@ -1,0 +1,412 @@
+"""Live poses with continuity: the offline joint model's priors as a fixed-lag smoother, and
+wheel-odometry dead reckoning between tag fixes.
+
+:class:`Smoother` keeps the last frames (``window_s``, at most ``max_frames``) with their tag
+corners and re-solves them per new frame with :func:`tagtrail.geometry.joint.solve_joint`
+against the fixed map — the corners under the offline model's weights and loss, the
+constant-velocity motion prior and, once the camera has travelled far enough to tell its plane,
+the ground-plane prior with that plane held fixed (fitted to the smoothed history) — warm
+started from the last solution (the new frame from its own pose, or from the motion's
+extrapolation when its own disagrees: an IPPE flip), at most ``max_iter`` iterations. The
+answer is the newest frame's pose and its covariance (the smoother's filtered estimate).
+
+:class:`DeadReckoning` carries the last fix forward by the base's odometry (``nav_msgs/Odometry``
+whose stamps are publication times: the state they describe is ``latency_s`` older), the camera
+``camera_forward_m`` ahead of the base's turning centre, turning about the plane's normal.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from collections import deque
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+from tagtrail.geometry.arrays import F64, I64
+from tagtrail.geometry.camera import CameraModel
+from tagtrail.geometry.fusion import tag_corners
+from tagtrail.geometry.joint.ground import (
+    GroundPrior,
+    Plane,
+    fit_plane,
+    plane_terms,
+    robust_weights,
+)
+from tagtrail.geometry.joint.motion import MotionPrior
+from tagtrail.geometry.joint.problem import CornerObservations, Corners, Terms, corner_sigma
+from tagtrail.geometry.joint.settings import (
+    CORNER_F_SCALE_PX,
+    CORNER_LOSS,
+    GROUND_HEIGHT_SIGMA_M,
+    GROUND_TILT_SIGMA_DEG,
+    JointSettings,
+)
+from tagtrail.geometry.joint.solver import solve_joint
+from tagtrail.geometry.rotations import log_so3
+from tagtrail.geometry.se3 import R_from_rotvec, xyz_quat_from_T
+from tagtrail.stream import codec
+from tagtrail.stream.stats import DropError
+
+GROUND = GroundPrior.of(GROUND_HEIGHT_SIGMA_M, GROUND_TILT_SIGMA_DEG)
+
+
+@dataclass(frozen=True)
+class SmootherSettings:
+    """The live smoother: the window (s, frames), iterations per frame, the gate (m) beyond which
+    a frame's own pose is not taken as its start, the travel (m) after which the ground plane is
+    fitted, and the joint model's settings (``optimize.joint``)."""
+
+    window_s: float = 1.0
+    max_frames: int = 30
+    max_iter: int = 2
+    start_gate_m: float = 0.15
+    plane_after_m: float = 1.0
+    joint: JointSettings = field(default_factory=JointSettings)
+
+
+@dataclass(frozen=True)
+class FixedGround:
+    """The ground-plane prior with its plane held fixed (a :class:`~tagtrail.geometry.joint.
+    Prior` without unknowns): a short window cannot tell the plane, the history can."""
+
+    prior: GroundPrior
+    plane: Plane
+
+    name = "ground_fixed"
+    n_params = 0
+    start = None
+    uses: tuple[str, ...] = ()
+
+    def terms(self, R_cam: F64, t_cam: F64, values: Any) -> Terms:
+        p, Jc, _ = plane_terms(R_cam, t_cam, self.plane, self.prior)
+        val, w = robust_weights(p, self.prior)
+        s = np.sqrt(w)
+        return Terms(
+            float(val.sum()),
+            p * s[:, None],
+            np.arange(len(R_cam)),
+            (Jc * s[:, None, None])[:, None],
+            None,
+            3 * len(R_cam),
+        )
+
+    def update(self, value: Any, step: F64, values: Any) -> Any:
+        return None
+
+
+@dataclass
+class _Frame:
+    t_ns: int
+    tag: I64  # map indices
+    corners_px: F64  # (k, 4, 2)
+    R: F64  # cam_T_world
+    t: F64
+
+
+class Smoother:
+    """Fixed-lag smoother of one camera against a fixed map (module docstring)."""
+
+    def __init__(
+        self, world_T_tag: F64, size_m: F64, settings: SmootherSettings | None = None
+    ) -> None:
+        self.s = settings or SmootherSettings()
+        self.R_tag = np.ascontiguousarray(world_T_tag[:, :3, :3])
+        self.t_tag = np.ascontiguousarray(world_T_tag[:, :3, 3])
+        self.pts = tag_corners(np.asarray(size_m, np.float64))
+        self.frames: deque[_Frame] = deque()
+        self.history: deque[tuple[F64, F64]] = deque(maxlen=600)  # smoothed (R, t), 20 s
+        self.plane: Plane | None = None
+        self._travel = 0.0
+        self.iters = 0
+
+    def reset(self) -> None:
+        self.frames.clear()
+
+    def _extrapolate(self, t_ns: int) -> tuple[F64, F64] | None:
+        """The pose at ``t_ns`` by constant velocity from the last two frames (None: < 2)."""
+        if len(self.frames) < 2:
+            return None
+        a, b = self.frames[-2], self.frames[-1]
+        h, g = (b.t_ns - a.t_ns) * 1e-9, (t_ns - b.t_ns) * 1e-9
+        if h <= 0 or g > self.s.joint.max_gap_s:
+            return None
+        Rab = b.R @ a.R.T  # cam_R_world: b = Rab a (left increment)
+        w = log_so3(Rab[None])[0] * (g / h)
+        dR = R_from_rotvec(w[None])[0]
+        ca, cb = -a.R.T @ a.t, -b.R.T @ b.t
+        c = cb + (cb - ca) * (g / h)
+        R = dR @ b.R
+        return R, -R @ c
+
+    def add(
+        self, t_ns: int, tag: I64, corners_px: F64, start: F64 | None, camera: CameraModel
+    ) -> tuple[F64, F64] | None:
+        """Add a frame (map tag indices ``tag (k,)``, distorted corners ``(k, 4, 2)`` px, its own
+        pose ``start`` = world_T_cam (4, 4) or None) and re-solve the window: the newest frame's
+        ``world_T_cam (4, 4)`` and covariance ``(6, 6)`` of ``[position ; rotation]`` (world
+        axes, ROS's order). None when the frame has no start and nothing to extrapolate from."""
+        if self.frames and (
+            t_ns <= self.frames[-1].t_ns
+            or (t_ns - self.frames[-1].t_ns) * 1e-9 > self.s.joint.max_gap_s
+        ):
+            self.reset()  # a gap (or stamps back in time): start over
+        guess = self._extrapolate(t_ns)
+        own = None
+        if start is not None and np.isfinite(start).all():
+            Rw = start[:3, :3].T
+            own = (Rw, -Rw @ start[:3, 3])
+        init: tuple[F64, F64] | None = own if own is not None else guess
+        if guess is not None and own is not None:
+            cg, co = -guess[0].T @ guess[1], -own[0].T @ own[1]
+            init = own if np.linalg.norm(cg - co) <= self.s.start_gate_m else guess
+        if init is None:
+            return None
+        self.frames.append(_Frame(t_ns, np.asarray(tag, np.int64), corners_px, *init))
+        t_cut = t_ns - int(self.s.window_s * 1e9)
+        while len(self.frames) > self.s.max_frames or self.frames[0].t_ns < t_cut:
+            self.frames.popleft()
+        return self._solve(camera)
+
+    def _solve(self, camera: CameraModel) -> tuple[F64, F64]:
+        fr = list(self.frames)
+        n_f = len(fr)
+        tag_all = np.concatenate([f.tag for f in fr])
+        used, tag_local = np.unique(tag_all, return_inverse=True)
+        frame = np.repeat(np.arange(n_f), [len(f.tag) for f in fr])
+        px = np.concatenate([f.corners_px for f in fr]).reshape(-1, 4, 2)
+        ob = CornerObservations(frame, tag_local, self.pts[tag_all], camera.undistort(px))
+        js = self.s.joint
+        corners = Corners(
+            camera.focal_px,
+            corner_sigma(px, js.corner_sigma_px),
+            CORNER_LOSS,
+            CORNER_F_SCALE_PX,
+            False,
+        )
+        priors: list[Any] = []
+        sig = js.motion_sigmas()
+        t_s = np.array([(f.t_ns - fr[0].t_ns) * 1e-9 for f in fr])
+        if sig is not None and n_f >= 3:
+            priors.append(MotionPrior(t_s, *sig, js.max_gap_s))
+        if self.plane is not None and js.ground != "none":
+            priors.append(FixedGround(GROUND, self.plane))
+        res = solve_joint(
+            self.R_tag[used],
+            self.t_tag[used],
+            np.stack([f.R for f in fr]),
+            np.stack([f.t for f in fr]),
+            ob,
+            np.zeros(len(used), bool),
+            corners,
+            priors,
+            max_iter=self.s.max_iter,
+            covariance="last",
+        )
+        self.iters = res.iters
+        for i, f in enumerate(fr):
+            f.R, f.t = res.R_cam[i], res.t_cam[i]
+        R, t = res.R_cam[-1], res.t_cam[-1]
+        self._note(R, t)
+        T = np.eye(4)
+        T[:3, :3] = R.T
+        T[:3, 3] = -R.T @ t
+        cov = np.full((6, 6), np.nan)
+        if res.cam_cov is not None:
+            J = np.zeros((6, 6))  # [w ; v] of cam_T_world -> [dc ; dtheta] in the world
+            J[:3, 3:] = -R.T
+            J[3:, :3] = -R.T
+            cov = J @ res.cam_cov[-1] @ J.T
+        return T, cov
+
+    def _note(self, R: F64, t: F64) -> None:
+        """Keep the smoothed pose; fit the ground plane once the camera has travelled enough."""
+        if self.history:
+            Rp, tp = self.history[-1]
+            self._travel += float(np.linalg.norm(-R.T @ t + Rp.T @ tp))
+        self.history.append((R, t))
+        if self._travel >= self.s.plane_after_m and len(self.history) >= 10:
+            if self.plane is None or len(self.history) % 30 == 0:
+                Rs = np.stack([h[0] for h in self.history])
+                ts = np.stack([h[1] for h in self.history])
+                self.plane = fit_plane(Rs, ts, GROUND)
+
+
+@dataclass
+class DeadReckoning:
+    """The last fix carried forward by wheel odometry (module docstring): odometry samples
+    ``(t_ns of the state, x, y, yaw)`` of the base in its odom frame (z up)."""
+
+    latency_s: float = 0.005
+    camera_forward_m: float = 0.0
+    max_age_s: float = 5.0
+    odo: deque[tuple[int, float, float, float]] = field(default_factory=lambda: deque(maxlen=500))
+    fix: tuple[int, F64] | None = None  # (t_ns, world_T_cam)
+    up: F64 | None = None  # the plane's normal pointing up (world)
+
+    def add_odometry(self, stamp_ns: int, x: float, y: float, yaw: float) -> int:
+        """One odometry message (stamp = publication time); the state's time (ns)."""
+        t = stamp_ns - int(self.latency_s * 1e9)
+        if self.odo and t <= self.odo[-1][0]:
+            return t
+        self.odo.append((t, x, y, yaw))
+        return t
+
+    def _at(self, t_ns: int) -> tuple[float, float, float] | None:
+        """The odometry pose at ``t_ns`` (linear in x, y, yaw; None outside the samples)."""
+        o = self.odo
+        if not o or t_ns > o[-1][0] or t_ns < o[0][0]:
+            return None
+        ts = [s[0] for s in o]
+        j = int(np.searchsorted(ts, t_ns))
+        if ts[j] == t_ns or j == 0:
+            return o[j][1:]
+        a, b = o[j - 1], o[j]
+        f = (t_ns - a[0]) / (b[0] - a[0])
+        dyaw = math.atan2(math.sin(b[3] - a[3]), math.cos(b[3] - a[3]))
+        return a[1] + f * (b[1] - a[1]), a[2] + f * (b[2] - a[2]), a[3] + f * dyaw
+
+    def pose(self, t_ns: int) -> F64 | None:
+        """world_T_cam (4, 4) at ``t_ns`` from the last fix and the odometry since (None: no
+        fix, no odometry covering both times, or the fix older than ``max_age_s``)."""
+        if self.fix is None:
+            return None
+        t_fix, T = self.fix
+        if not 0 <= (t_ns - t_fix) * 1e-9 <= self.max_age_s:
+            return None
+        a, b = self._at(t_fix), self._at(t_ns)
+        if a is None or b is None:
+            return None
+        # the base's motion in its own frame at the fix
+        c, s = math.cos(a[2]), math.sin(a[2])
+        dx, dy = c * (b[0] - a[0]) + s * (b[1] - a[1]), -s * (b[0] - a[0]) + c * (b[1] - a[1])
+        dyaw = math.atan2(math.sin(b[2] - a[2]), math.cos(b[2] - a[2]))
+        R = T[:3, :3]
+        up = self.up if self.up is not None else -R[:, 1]
+        up = up / np.linalg.norm(up)
+        fwd = R[:, 2] - (R[:, 2] @ up) * up
+        fwd = fwd / max(float(np.linalg.norm(fwd)), 1e-12)
+        left = np.cross(up, fwd)
+        d = self.camera_forward_m
+        Rz = R_from_rotvec((up * dyaw)[None])[0]
+        base = T[:3, 3] - d * fwd + dx * fwd + dy * left
+        out = np.eye(4)
+        out[:3, :3] = Rz @ R
+        out[:3, 3] = base + d * (Rz @ fwd)
+        return out
+
+
+class LivePoses:
+    """The localize node's outputs with continuity (module docstring): per camera frame the
+    smoothed pose; per odometry message after a fix the dead-reckoned one. Each as
+    ``PoseStamped`` on ``pose_key`` and ``PoseWithCovarianceStamped`` on
+    ``<prefix>/pose_with_covariance``, with the age of the last tag fix (s) on
+    ``<prefix>/fix_age_s`` (``Float64``) and in ``<prefix>/state`` (JSON)."""
+
+    def __init__(
+        self,
+        smoother: Smoother,
+        dead: DeadReckoning,
+        pose_key: str,
+        prefix: str,
+        frame_id: str,
+    ) -> None:
+        self.smoother, self.dead = smoother, dead
+        self.pose_key = pose_key
+        self.cov_key = f"{prefix}/pose_with_covariance"
+        self.age_key = f"{prefix}/fix_age_s"
+        self.state_key = f"{prefix}/state"
+        self._pose = codec.PoseStampedEncoder(frame_id)
+        self._cov = codec.PoseWithCovarianceEncoder(frame_id)
+        self.t_out = -1  # the last stamp published (ns): poses leave in time order
+        self.fix_cov = np.full((6, 6), np.nan)
+        self.counts = {"tags": 0, "odometry": 0}
+
+    def keys(self) -> dict[str, str]:
+        """Output key → message type."""
+        return {
+            self.pose_key: codec.POSE_STAMPED,
+            self.cov_key: codec.POSE_TYPES["pose_with_covariance"],
+            self.age_key: "std_msgs/msg/Float64",
+            self.state_key: "json",
+        }
+
+    def on_frame(
+        self,
+        t_ns: int,
+        own: F64 | None,
+        obs: tuple[I64, F64] | None,
+        camera: CameraModel | None,
+    ) -> list[tuple[str, bytes]]:
+        """A camera frame: its own pose ``own`` (or None) and its mapped tags' corners."""
+        if obs is None or not len(obs[0]) or camera is None:
+            raise DropError("no_pose", "no mapped tag in the frame")
+        got = self.smoother.add(t_ns, obs[0], obs[1], own, camera)
+        if got is None or not np.isfinite(got[0]).all():
+            raise DropError("no_pose", "no start for the frame")
+        T, cov = got
+        self.dead.fix = (t_ns, T)
+        self.fix_cov = cov
+        if self.smoother.plane is not None:
+            self.dead.up = self.smoother.plane.n  # fit_plane's n points up (against camera y)
+        self.counts["tags"] += 1
+        return self._out(t_ns, T, cov, 0.0, "tags")
+
+    def on_odometry(self, data: bytes) -> list[tuple[str, bytes]]:
+        """One ``nav_msgs/Odometry``: the pose dead-reckoned from the last fix (nothing before
+        a fix, or when it is older than the dead reckoning's bound)."""
+        try:
+            p = codec.decode_pose(data, "odometry")
+        except codec.CodecError as err:
+            raise DropError("malformed", str(err)) from err
+        vals = (p.x, p.y, p.qx, p.qy, p.qz, p.qw)
+        if not all(math.isfinite(v) for v in vals):
+            raise DropError("non_finite", "odometry pose is not finite")
+        yaw = math.atan2(2 * (p.qw * p.qz + p.qx * p.qy), 1 - 2 * (p.qy**2 + p.qz**2))
+        t = self.dead.add_odometry(p.sec * 1_000_000_000 + p.nanosec, p.x, p.y, yaw)
+        if self.dead.fix is None or t <= self.t_out:
+            return []
+        T = self.dead.pose(t)
+        if T is None:
+            return []
+        age = (t - self.dead.fix[0]) * 1e-9
+        cov = self.fix_cov.copy()
+        # odometry's own error: 3 % of the distance and 0.3 deg/s (the LIMO's), growing with it
+        dist = float(np.linalg.norm(T[:3, 3] - self.dead.fix[1][:3, 3]))
+        cov[:3, :3] += np.eye(3) * (0.03 * dist + 1e-4) ** 2
+        cov[3:, 3:] += np.eye(3) * (math.radians(0.3) * age) ** 2
+        self.counts["odometry"] += 1
+        return self._out(t, T, cov, age, "odometry")
+
+    def _out(self, t_ns: int, T: F64, cov: F64, age: float, source: str) -> list[tuple[str, bytes]]:
+        if t_ns <= self.t_out:
+            return []
+        self.t_out = t_ns
+        sec, nsec = divmod(t_ns, 1_000_000_000)
+        xyz, q = xyz_quat_from_T(T)
+        pq = [*xyz.tolist(), *q.tolist()]
+        state = {
+            "stamp_sec": sec,
+            "stamp_nanosec": nsec,
+            "fix_age_s": age,
+            "source": source,
+            "position_std_m": _std(cov[:3, :3]),
+            "rotation_std_deg": _std(cov[3:, 3:], math.degrees(1.0)),
+            "window_frames": len(self.smoother.frames),
+            "iterations": self.smoother.iters,
+        }
+        return [
+            (self.pose_key, self._pose(sec, nsec, *pq)),
+            (self.cov_key, self._cov(sec, nsec, pq, np.nan_to_num(cov, nan=-1.0).ravel().tolist())),
+            (self.age_key, codec.encode_float64(age)),
+            (self.state_key, json.dumps(state).encode()),
+        ]
+
+
+def _std(c: F64, unit: float = 1.0) -> float | None:
+    """RMS over the axes of the standard deviations of covariance ``c (3, 3)``, times ``unit``
+    (None: unknown)."""
+    v = float(np.trace(c) / 3)
+    return math.sqrt(v) * unit if math.isfinite(v) and v >= 0 else None

@@ -1,0 +1,254 @@
+"""Live localization with continuity (``stream localize --smooth``): the fixed-lag smoother with
+the offline joint model's priors, dead reckoning on wheel odometry between fixes and through a
+blackout, PoseWithCovarianceStamped and the age of the last fix. Checked against the
+simulator's ground truth (which the code under test did not produce)."""
+
+from __future__ import annotations
+
+import json
+import math
+import threading
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+import zenoh
+
+from tagtrail.geometry.joint import JointSettings, corner_problem, solve_on_corners
+from tagtrail.io.layouts import read_tag_map, read_trajectory
+from tagtrail.sim import limo
+from tagtrail.sim.follow import eight_scene
+from tagtrail.sim.scenarios import SimOptions
+from tagtrail.sim.simulate import simulate
+from tagtrail.stream import codec
+from tagtrail.stream.continuity import DeadReckoning, LivePoses, Smoother, SmootherSettings
+from tagtrail.stream.localize import Localizer
+from tagtrail.stream.replay import bag_messages
+from tagtrail.stream.session import wait_matching
+from tests.stream.helpers import Collector, free_port, loopback, running
+
+N_FRAMES = 300
+
+
+@pytest.fixture(scope="module")
+def noisy(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    return simulate(
+        "circle",
+        tmp_path_factory.mktemp("cont"),
+        frames=N_FRAMES,
+        detections=True,
+        corner_noise_px=0.3,
+        seed=5,
+    )["circle"]
+
+
+def _live(loc: Localizer, **kw: float) -> LivePoses:
+    return LivePoses(
+        Smoother(loc.world_T_tag, loc.size_m, SmootherSettings()),
+        DeadReckoning(**kw),
+        "tag_only_pose",
+        "localize",
+        "map",
+    )
+
+
+def _err(payload: bytes, gt: object) -> float:
+    q = codec.decode_pose(payload)
+    row = gt.loc[q.sec * 10**9 + q.nanosec]  # type: ignore[attr-defined]
+    return float(np.linalg.norm([q.x - row.x_m, q.y - row.y_m, q.z - row.z_m]))
+
+
+def test_smoothed_poses_beat_per_frame_and_approach_offline(noisy: Path) -> None:
+    """Every frame posed; the smoothed poses' error is below the per-frame poses' and within
+    3x the offline joint solve's on the same frames (measured: 3.4 mm vs 5.0 mm per frame vs
+    1.2 mm offline, bench/LIVE_POSE.md; the issue's goal 1.2x is not met yet)."""
+    gt = read_trajectory(noisy / "ground_truth" / "trajectory.csv").set_index("t_ns")
+    tags = read_tag_map(noisy / "ground_truth" / "tag_map.yaml")[0]
+    m = bag_messages(noisy, ["/camera_info", "/detections"])
+    loc = Localizer(tags)
+    live = _live(loc)
+    e_frame, e_live, obs = [], [], []
+    info = m.payloads[m.keys.index("camera_info")]
+    loc.on_camera_info(info)
+    for k, p in zip(m.keys, m.payloads, strict=True):
+        if k != "detections":
+            continue
+        loc.live = None
+        single = loc.on_detections(p)
+        assert loc._last_obs is not None
+        q = codec.decode_pose(single[0][1])
+        obs.append((q.sec * 10**9 + q.nanosec, *loc._last_obs))
+        loc.smooth(live)
+        out = dict(loc.on_detections(p))
+        assert set(out) == set(live.keys())
+        cov = codec.deserialize(
+            out["localize/pose_with_covariance"], codec.POSE_TYPES["pose_with_covariance"]
+        )
+        c = np.asarray(cov.pose.covariance).reshape(6, 6)
+        assert np.all(np.linalg.eigvalsh(0.5 * (c + c.T)) > 0)  # a covariance, no placeholder
+        state = json.loads(out["localize/state"])
+        assert state["source"] == "tags" and state["fix_age_s"] == 0.0
+        assert struct_f64(out["localize/fix_age_s"]) == 0.0
+        e_frame.append(_err(single[0][1], gt))
+        e_live.append(_err(out["tag_only_pose"], gt))
+    assert len(e_live) == N_FRAMES
+    rms = {k: float(np.sqrt(np.mean(np.square(v)))) for k, v in (("f", e_frame), ("l", e_live))}
+    # the offline joint solve on the same corners, the same map fixed
+    frame_idx = np.concatenate([[i] * len(o[1]) for i, o in enumerate(obs)])
+    t_all = np.concatenate([[o[0]] * len(o[1]) for o in obs])
+    tag = np.concatenate([o[1] for o in obs])
+    px = np.concatenate([o[2] for o in obs]).reshape(-1, 4, 2)
+    from tagtrail.geometry.ippe import solve_ippe
+
+    assert loc.camera is not None
+    ippe, _ = solve_ippe(px, loc.size_m[tag], loc.camera)
+    st = JointSettings()
+    pb = corner_problem(frame_idx, t_all, tag, px, loc.size_m[tag], ippe, loc.camera, st, True)
+    sol = solve_on_corners(pb, loc.world_T_tag, np.zeros(len(loc.ids), bool), st)
+    c_off = -np.einsum("fji,fj->fi", sol.res.R_cam, sol.res.t_cam)
+    g = gt.loc[pb.t_ns][["x_m", "y_m", "z_m"]].to_numpy()
+    rms_off = float(np.sqrt(np.mean(np.sum((c_off - g) ** 2, axis=1))))
+    assert rms["l"] < 0.8 * rms["f"], rms
+    assert rms["l"] < 3.0 * rms_off, (rms, rms_off)
+
+
+def struct_f64(payload: bytes) -> float:
+    return float(np.frombuffer(payload[4:12], "<f8")[0])
+
+
+def test_dead_reckoning_is_exact_on_true_odometry() -> None:
+    """The LIMO's camera (0.084 m ahead of the base) on a curve: the fix carried 0.5 s forward
+    by error-free odometry lands on the true pose (both the lever arm and the turn)."""
+    opts = SimOptions()
+    scene = eight_scene(opts)
+    W = scene.world_T_scene
+    x = y = yaw = 0.0
+    poses, odo = [], []
+    for i in range(60):
+        poses.append(W @ limo.camera_pose(scene, x, y, yaw))
+        odo.append((i * 10_000_000, x, y, yaw))
+        x += 0.3 * math.cos(yaw) * 0.01
+        y += 0.3 * math.sin(yaw) * 0.01
+        yaw += 1.0 * 0.01
+    up = -poses[0][:3, 1]  # the camera's y points down
+    for lever, exact in ((opts.mount.forward_m, True), (0.0, False)):
+        d = DeadReckoning(latency_s=0.0, camera_forward_m=lever)
+        for o in odo:
+            d.add_odometry(*o)
+        d.fix, d.up = (odo[5][0], poses[5]), up
+        T = d.pose(odo[55][0])
+        assert T is not None
+        err = float(np.linalg.norm(T[:3, 3] - poses[55][:3, 3]))
+        assert (err < 1e-9) if exact else (err > 0.01), err
+    d.fix = (odo[5][0], poses[5])
+    assert d.pose(odo[55][0] + 10**9) is None  # beyond the odometry: nothing invented
+    d.max_age_s = 0.2
+    assert d.pose(odo[55][0]) is None  # the fix too old
+
+
+def test_odometry_stamps_are_publication_times() -> None:
+    d = DeadReckoning(latency_s=0.005)
+    assert d.add_odometry(1_000_000_000, 0.0, 0.0, 0.0) == 995_000_000
+    assert d.add_odometry(990_000_000, 1.0, 0.0, 0.0) == 985_000_000  # older: not kept
+    assert len(d.odo) == 1
+
+
+@pytest.mark.slow
+def test_node_publishes_per_frame_and_between_frames_with_odometry(tmp_path: Path) -> None:
+    """A real ``stream localize --smooth --odom-key odom`` process: the LIMO's detections at
+    30 Hz and odometry at 50 Hz over zenoh; a pose per frame and per odometry message after
+    the first fix, in time order, PoseWithCovarianceStamped beside PoseStamped; through 1 s
+    without tags the odometry carries the pose (fix age grows to ~1 s, error < 5 cm)."""
+    opts = SimOptions(speed_mps=0.3, detections=True, seed=0)
+    scene = eight_scene(opts)
+    from tagtrail.sim.simulate import write_ground_truth
+
+    gt = tmp_path / "gt"
+    write_ground_truth(gt, scene, "follow", opts)
+    rng = np.random.default_rng(0)
+    odo = limo.WheelOdometry(rng)
+    port = free_port()
+    args = [
+        "localize",
+        "--map",
+        str(gt),
+        "--tag-size",
+        str(opts.tag_size_m),
+        "--smooth",
+        "--odom-key",
+        "odom",
+        "--camera-forward",
+        str(opts.mount.forward_m),
+        "--listen",
+        loopback(port),
+        "--duration",
+        "60",
+        "--stats-period",
+        "0",
+    ]
+    keys = ["tag_only_pose", "localize/pose_with_covariance", "localize/state"]
+    truth: dict[int, np.ndarray] = {}
+    n_frames, n_odo = 90, 150  # 3 s; tags hidden from 1.5 s to 2.5 s
+    with running(args) as (node,):
+        node.wait_for("localize: ready")
+        sub = Collector(port, keys)
+        pubs = {
+            k: sub.session.declare_publisher(k, congestion_control=zenoh.CongestionControl.BLOCK)
+            for k in ("detections", "camera_info", "odom")
+        }
+        try:
+            for p in pubs.values():
+                assert wait_matching(p, 15, threading.Event())
+            t0 = 1_700_000_000_000_000_000
+            x = y = 0.0
+            yaw = 0.5
+            base = scene.scene_T_cam[0]
+            fwd = opts.mount.forward_m
+            y0 = math.atan2(base[1, 2], base[0, 2])
+            x, y, yaw = base[0, 3] - fwd * math.cos(y0), base[1, 3] - fwd * math.sin(y0), y0
+            dt = 0.002
+            for i in range(1500):  # 3 s in 2 ms steps
+                t = i * dt
+                stamp = t0 + int(round(t * 1e9))
+                T = limo.camera_pose(scene, x, y, yaw)
+                truth[stamp] = scene.world_T_scene @ T
+                if i % 16 == 0 and i // 16 < n_frames:  # ~31 Hz frames
+                    blind = 1.5 <= t < 2.5
+                    det, info, _ = limo.detections(scene, T, stamp, opts, rng, blind)
+                    pubs["camera_info"].put(info)
+                    pubs["detections"].put(det)
+                if i % 10 == 0 and i // 10 < n_odo:  # 50 Hz odometry, stamped 5 ms later
+                    pubs["odom"].put(odo.message(stamp + 5_000_000))
+                v, w = 0.3, 0.4
+                odo.step(v, w, dt)
+                x += v * math.cos(yaw + 0.5 * w * dt) * dt
+                y += v * math.sin(yaw + 0.5 * w * dt) * dt
+                yaw += w * dt
+            sub.wait_until("localize/state", lambda v: len(v) >= 150, timeout=40)
+            time.sleep(1.0)  # the rest of the flood
+            got = sub.wait("localize/state", 150)
+        finally:
+            for p in pubs.values():
+                p.undeclare()
+            sub.close()
+        assert node.stop() == 0, node.output
+    states = [json.loads(s) for s in got]
+    stamps = [s["stamp_sec"] * 10**9 + s["stamp_nanosec"] for s in states]
+    assert stamps == sorted(stamps) and len(set(stamps)) == len(stamps)
+    src = [s["source"] for s in states]
+    print({k: src.count(k) for k in ("tags", "odometry")}, len(states))
+    assert src.count("tags") >= 30 and src.count("odometry") >= 100
+    ages = np.array([s["fix_age_s"] for s in states])
+    assert 0.9 < ages.max() < 1.2  # the blackout, bridged
+    poses = sub.samples["tag_only_pose"]
+    covs = sub.samples["localize/pose_with_covariance"]
+    assert len(poses) == len(covs) >= len(states)
+    keys_t = np.array(sorted(truth))
+    errs = []
+    for raw in poses:
+        q = codec.decode_pose(raw)
+        s = q.sec * 10**9 + q.nanosec
+        G = truth[int(keys_t[np.argmin(np.abs(keys_t - s))])]
+        errs.append(float(np.linalg.norm([q.x - G[0, 3], q.y - G[1, 3], q.z - G[2, 3]])))
+    assert max(errs) < 0.05, max(errs)
