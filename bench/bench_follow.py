@@ -4,11 +4,12 @@ blackout.
 Runs :func:`tagtrail.sim.follow.run` (simulated LIMO + ``stream localize`` → ``relocalize`` →
 ``follow`` processes over zenoh on 127.0.0.1, real time) from 0.3 m and 30° off the figure
 eight at 0.3 m/s; the same with rendered 640x480 images instead of detections, and with
-``--blackout 2`` (no tag in view for 2 s from mid-path; ``stream localize`` has no odometry
-yet, so the follower stops after 0.5 s and waits). Latency = the simulator publishes a frame's
-detections (or image) → the first Twist back on ``cmd_vel``, one clock (three hops: localize,
-relocalize, follow). Prints one JSON line per case; ``--write`` puts the table into
-``bench/FOLLOW.md``.
+``--blackout 2`` (no tag in view for 2 s from mid-path): each case with ``stream localize``
+posing frames on their own (the follower stops after 0.5 s of blackout and waits) and with
+``--smooth`` on the LIMO's odometry (dead reckoning bridges it). Latency = the simulator
+publishes a frame's detections (or image) → the first Twist back on ``cmd_vel``, one clock
+(three hops: localize, relocalize, follow). Prints one JSON line per case; ``--write`` puts
+the table into ``bench/FOLLOW.md``.
 
     .venv/bin/python bench/bench_follow.py [--seeds 0 1] [--write]
 """
@@ -34,19 +35,29 @@ def main() -> None:
     ap.add_argument("--seeds", type=int, nargs="+", default=[0])
     ap.add_argument("--blackout", type=float, nargs="+", default=[0.0, 2.0])
     ap.add_argument("--no-images", action="store_true", help="skip the rendered-images case")
+    ap.add_argument(
+        "--smooth",
+        choices=["off", "on", "both"],
+        default="both",
+        help="stream localize --smooth with the LIMO's odometry (default: both)",
+    )
     ap.add_argument("--write", action="store_true")
     a = ap.parse_args()
     rows = []
-    cases = [(b, False) for b in a.blackout] + ([] if a.no_images else [(0.0, True)])
-    for blackout, images in cases:
+    smooths = {"off": [False], "on": [True], "both": [False, True]}[a.smooth]
+    cases = [(b, False, sm) for sm in smooths for b in a.blackout]
+    cases += [] if a.no_images else [(0.0, True, sm) for sm in smooths]
+    for blackout, images, smooth in cases:
         for seed in a.seeds:
             with tempfile.TemporaryDirectory() as tmp:
-                s = run(Path(tmp), blackout_s=blackout, seed=seed, images=images)
+                s = run(Path(tmp), blackout_s=blackout, seed=seed, images=images, smooth=smooth)
             inputs = "images" if images else "detections"
             lat = s[f"latency_{inputs}_to_twist_ms"]
             skipped = s["nodes"]["localize"]["stats"]["dropped"].get("skipped", 0)
             row = {
                 "input": inputs,
+                "smooth": smooth,
+                "load": os.getloadavg()[0],
                 "skipped": skipped,
                 "blackout_s": blackout,
                 "seed": seed,
@@ -74,17 +85,25 @@ def main() -> None:
             "Twist received (3 node hops: localize, relocalize, follow). Images: localize "
             "detects the tags and skips frames that arrive while it is busy.",
             "",
-            "| input | blackout s | seed | converged s | RMS cm | max cm | crossing max cm | "
-            "completed | duration s | latency p50 ms | p99 ms | frames skipped by localize |",
-            "|---|---|---|---|---|---|---|---|---|---|---|---|",
+            "`smooth`: `stream localize --smooth --odom-key odom` (the fixed-lag smoother and "
+            "dead reckoning on the LIMO's odometry: it bridges the blackout); without it each "
+            "frame is posed on its own and the follower stops in the blackout. Load: the "
+            "1-minute load average when the row finished (2 cores shared by 5 engineers: "
+            "latencies are pessimistic).",
+            "",
+            "| input | smooth | blackout s | seed | converged s | RMS cm | max cm | "
+            "crossing max cm | completed | duration s | latency p50 ms | p99 ms | "
+            "frames skipped by localize | load |",
+            "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|",
         ]
         for r in rows:
             lines.append(
-                f"| {r['input']} | {r['blackout_s']:g} | {r['seed']} | "
+                f"| {r['input']} | {'on' if r['smooth'] else 'off'} | {r['blackout_s']:g} | "
+                f"{r['seed']} | "
                 f"{r['converged_s']:.2f} | "
                 f"{r['rms_cm']:.2f} | {r['max_cm']:.2f} | {r['crossing_max_cm']:.2f} | "
                 f"{r['completed']} | {r['duration_s']:.1f} | {r['lat_p50_ms']:.1f} | "
-                f"{r['lat_p99_ms']:.1f} | {r['skipped']} |"
+                f"{r['lat_p99_ms']:.1f} | {r['skipped']} | {r['load']:.1f} |"
             )
         (ROOT / "bench" / "FOLLOW.md").write_text("\n".join(lines) + "\n", encoding="utf-8")
 

@@ -28,6 +28,7 @@ from tagtrail.io import msgs
 from tagtrail.sim import bagwrite
 from tagtrail.sim.camera import FRAME_ID
 from tagtrail.sim.odometry import TRACK_M as TRACK_M  # re-exported: the closed loop uses them
+from tagtrail.sim.odometry import Planar
 from tagtrail.sim.odometry import WheelOdometry as WheelOdometry
 from tagtrail.sim.odometry import latency_ns as latency_ns
 from tagtrail.sim.render import Renderer
@@ -40,14 +41,9 @@ WHEELBASE_M = 0.2
 
 
 @dataclass
-class Kinematics:
+class Kinematics(Planar):
     """The base's true state and its response to commands (module docstring)."""
 
-    x: float = 0.0
-    y: float = 0.0
-    yaw: float = 0.0
-    v: float = 0.0
-    omega: float = 0.0
     tau_s: float = 0.1
     cmd_timeout_s: float = 0.5
     cmd: tuple[float, float] = (0.0, 0.0)
@@ -70,12 +66,8 @@ class Kinematics:
         self.omega = max(
             -abs(self.v) / MIN_TURN_RADIUS_M, min(abs(self.v) / MIN_TURN_RADIUS_M, self.omega)
         )
-        mid = self.yaw + 0.5 * self.omega * dt
-        self.x += self.v * math.cos(mid) * dt
-        self.y += self.v * math.sin(mid) * dt
-        self.yaw = math.atan2(
-            math.sin(self.yaw + self.omega * dt), math.cos(self.yaw + self.omega * dt)
-        )
+        self.advance(dt)
+        self.yaw = math.atan2(math.sin(self.yaw), math.cos(self.yaw))
 
 
 def camera_pose(scene: Scene, x: float, y: float, yaw: float) -> F64:

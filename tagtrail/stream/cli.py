@@ -126,7 +126,8 @@ def _profile(p: argparse.ArgumentParser, what: str) -> None:
     )
 
 
-def _common(p: argparse.ArgumentParser, count_help: str, express: bool) -> None:
+def _run_group(p: argparse.ArgumentParser) -> Any:
+    """The session's arguments and the ``run`` group with ``--duration``."""
     add_session_arguments(p)
     g = p.add_argument_group("run")
     g.add_argument(
@@ -136,6 +137,11 @@ def _common(p: argparse.ArgumentParser, count_help: str, express: bool) -> None:
         metavar="S",
         help="stop after S seconds (default: run until SIGINT/SIGTERM)",
     )
+    return g
+
+
+def _common(p: argparse.ArgumentParser, count_help: str, express: bool) -> None:
+    g = _run_group(p)
     g.add_argument("--count", type=COUNT, default=None, metavar="N", help=count_help)
     g.add_argument(
         "--congestion",
@@ -570,15 +576,7 @@ def _record_arguments(sub: Any, fmt: type[argparse.HelpFormatter]) -> None:
         action="store_true",
         help="do not record: finish the bag OUT left by a killed recorder",
     )
-    add_session_arguments(p)
-    g = p.add_argument_group("run")
-    g.add_argument(
-        "--duration",
-        type=NON_NEGATIVE,
-        default=None,
-        metavar="S",
-        help="stop after S seconds (default: run until SIGINT/SIGTERM)",
-    )
+    g = _run_group(p)
     g.add_argument(
         "--stats-period",
         type=NON_NEGATIVE,

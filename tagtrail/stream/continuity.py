@@ -29,11 +29,10 @@ from tagtrail.geometry.arrays import F64, I64
 from tagtrail.geometry.camera import CameraModel
 from tagtrail.geometry.fusion import tag_corners
 from tagtrail.geometry.joint.ground import (
+    GroundPlane,
     GroundPrior,
     Plane,
     fit_plane,
-    plane_terms,
-    robust_weights,
 )
 from tagtrail.geometry.joint.motion import MotionPrior
 from tagtrail.geometry.joint.problem import CornerObservations, Corners, Terms, corner_sigma
@@ -81,17 +80,9 @@ class FixedGround:
     uses: tuple[str, ...] = ()
 
     def terms(self, R_cam: F64, t_cam: F64, values: Any) -> Terms:
-        p, Jc, _ = plane_terms(R_cam, t_cam, self.plane, self.prior)
-        val, w = robust_weights(p, self.prior)
-        s = np.sqrt(w)
-        return Terms(
-            float(val.sum()),
-            p * s[:, None],
-            np.arange(len(R_cam)),
-            (Jc * s[:, None, None])[:, None],
-            None,
-            3 * len(R_cam),
-        )
+        """:class:`GroundPlane`'s terms at the fixed plane, without its unknowns."""
+        t = GroundPlane(self.prior, self.plane).terms(R_cam, t_cam, {"ground": self.plane})
+        return Terms(t.cost, t.r, t.first, t.Jc, None, 3 * len(R_cam))
 
     def update(self, value: Any, step: F64, values: Any) -> Any:
         return None
