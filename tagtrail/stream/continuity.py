@@ -20,6 +20,7 @@ from __future__ import annotations
 import json
 import math
 from collections import deque
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -97,13 +98,26 @@ class _Frame:
     t: F64
 
 
+PriorOf = Callable[[F64, list[int]], Any]
+"""A further prior of the window: ``(t_s (F,), t_ns)`` of its frames -> a
+:class:`~tagtrail.geometry.joint.Prior` (or None). The seam for the offline odometry prior
+(``geometry/joint/odometry.py``, another branch): built on the odometry between the window's
+frames (:attr:`DeadReckoning.odo`), it joins the window's solve like the motion prior."""
+
+
 class Smoother:
-    """Fixed-lag smoother of one camera against a fixed map (module docstring)."""
+    """Fixed-lag smoother of one camera against a fixed map (module docstring); ``extra``:
+    further priors of each window (:data:`PriorOf`)."""
 
     def __init__(
-        self, world_T_tag: F64, size_m: F64, settings: SmootherSettings | None = None
+        self,
+        world_T_tag: F64,
+        size_m: F64,
+        settings: SmootherSettings | None = None,
+        extra: Sequence[PriorOf] = (),
     ) -> None:
         self.s = settings or SmootherSettings()
+        self.extra = tuple(extra)
         self.R_tag = np.ascontiguousarray(world_T_tag[:, :3, :3])
         self.t_tag = np.ascontiguousarray(world_T_tag[:, :3, 3])
         self.pts = tag_corners(np.asarray(size_m, np.float64))
@@ -184,6 +198,10 @@ class Smoother:
             priors.append(MotionPrior(t_s, *sig, js.max_gap_s))
         if self.plane is not None and js.ground != "none":
             priors.append(FixedGround(GROUND, self.plane))
+        for make in self.extra:
+            prior = make(t_s, [f.t_ns for f in fr])
+            if prior is not None:
+                priors.append(prior)
         res = solve_joint(
             self.R_tag[used],
             self.t_tag[used],

@@ -252,3 +252,31 @@ def test_node_publishes_per_frame_and_between_frames_with_odometry(tmp_path: Pat
         G = truth[int(keys_t[np.argmin(np.abs(keys_t - s))])]
         errs.append(float(np.linalg.norm([q.x - G[0, 3], q.y - G[1, 3], q.z - G[2, 3]])))
     assert max(errs) < 0.05, max(errs)
+
+
+def test_further_priors_join_each_window(noisy: Path) -> None:
+    """The seam for the odometry prior: each window's solve asks every ``extra`` factory for a
+    prior on its frames' stamps (the last 1 s, at most 30 frames), and takes what it gives."""
+    tags = read_tag_map(noisy / "ground_truth" / "tag_map.yaml")[0]
+    m = bag_messages(noisy, ["/camera_info", "/detections"])
+    loc = Localizer(tags)
+    seen: list[tuple[np.ndarray, list[int]]] = []
+
+    def pinned(t_s: np.ndarray, t_ns: list[int]) -> object:
+        seen.append((t_s, t_ns))
+        return None
+
+    sm = Smoother(loc.world_T_tag, loc.size_m, SmootherSettings(), extra=[pinned])
+    loc.smooth(LivePoses(sm, DeadReckoning(), "tag_only_pose", "localize", "map"))
+    loc.on_camera_info(m.payloads[m.keys.index("camera_info")])
+    n = 0
+    for k, p in zip(m.keys, m.payloads, strict=True):
+        if k == "detections" and n < 40:
+            loc.on_detections(p)
+            n += 1
+    assert len(seen) == 40
+    sizes = [len(t) for t, _ in seen]
+    assert sizes[:3] == [1, 2, 3] and max(sizes) == 30
+    for t_s, t_ns in seen:
+        assert t_s[0] == 0.0 and np.allclose(t_s, (np.array(t_ns) - t_ns[0]) * 1e-9)
+        assert t_s[-1] <= 1.0 + 1e-9
