@@ -1,14 +1,15 @@
 """Live poses with continuity: the offline joint model's priors as a fixed-lag smoother, and
 wheel-odometry dead reckoning between tag fixes.
 
-:class:`Smoother` keeps the last frames (``window_s``, at most ``max_frames``) with their tag
-corners and re-solves them per new frame with :func:`tagtrail.geometry.joint.solve_joint`
-against the fixed map — the corners under the offline model's weights and loss, the
-constant-velocity motion prior and, once the camera has travelled far enough to tell its plane,
-the ground-plane prior with that plane held fixed (fitted to the smoothed history) — warm
-started from the last solution (the new frame from its own pose, or from the motion's
-extrapolation when its own disagrees: an IPPE flip), at most ``max_iter`` iterations. The
-answer is the newest frame's pose and its covariance (the smoother's filtered estimate).
+:class:`Smoother` keeps the last frames (``window_s``, at most ``max_frames``, fewer while a
+solve overruns ``budget_ms``) with their tag corners and re-solves them per new frame with
+:func:`tagtrail.geometry.joint.solve_joint` against the fixed map — the corners under the
+offline model's weights and loss, the constant-velocity motion prior and, once the camera has
+travelled far enough to tell its plane, the ground-plane prior with that plane held fixed
+(fitted to the smoothed history) — warm started from the last solution (the new frame from its
+own pose, or from the motion's extrapolation when its own disagrees: an IPPE flip), at most
+``max_iter`` iterations. The answer is the newest frame's pose and its covariance (the
+smoother's filtered estimate).
 
 :class:`DeadReckoning` carries the last fix forward by the base's odometry (``nav_msgs/Odometry``
 whose stamps are publication times: the state they describe is ``latency_s`` older), the camera
@@ -19,6 +20,7 @@ from __future__ import annotations
 
 import json
 import math
+import time
 from collections import deque
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
@@ -61,6 +63,9 @@ class SmootherSettings:
 
     window_s: float = 1.0
     max_frames: int = 30
+    budget_ms: float = 15.0
+    """A solve that takes longer halves the window's frames (down to 5) for the next ones; one
+    under half of it lets the window grow back by a frame: a loaded machine keeps its rate."""
     max_iter: int = 2
     start_gate_m: float = 0.15
     plane_after_m: float = 1.0
@@ -115,9 +120,12 @@ class Smoother:
         size_m: F64,
         settings: SmootherSettings | None = None,
         extra: Sequence[PriorOf] = (),
+        clock: Callable[[], float] = time.perf_counter,
     ) -> None:
         self.s = settings or SmootherSettings()
         self.extra = tuple(extra)
+        self.clock = clock
+        self.n_max = self.s.max_frames  # the window's frames now (the time budget's)
         self.R_tag = np.ascontiguousarray(world_T_tag[:, :3, :3])
         self.t_tag = np.ascontiguousarray(world_T_tag[:, :3, 3])
         self.pts = tag_corners(np.asarray(size_m, np.float64))
@@ -171,9 +179,16 @@ class Smoother:
             return None
         self.frames.append(_Frame(t_ns, np.asarray(tag, np.int64), corners_px, *init))
         t_cut = t_ns - int(self.s.window_s * 1e9)
-        while len(self.frames) > self.s.max_frames or self.frames[0].t_ns < t_cut:
+        while len(self.frames) > self.n_max or self.frames[0].t_ns < t_cut:
             self.frames.popleft()
-        return self._solve(camera)
+        t0 = self.clock()
+        out = self._solve(camera)
+        took_ms = (self.clock() - t0) * 1e3
+        if took_ms > self.s.budget_ms:
+            self.n_max = max(5, self.n_max // 2)
+        elif took_ms < self.s.budget_ms / 2:
+            self.n_max = min(self.s.max_frames, self.n_max + 1)
+        return out
 
     def _solve(self, camera: CameraModel) -> tuple[F64, F64]:
         fr = list(self.frames)

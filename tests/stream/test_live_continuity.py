@@ -280,3 +280,29 @@ def test_further_priors_join_each_window(noisy: Path) -> None:
     for t_s, t_ns in seen:
         assert t_s[0] == 0.0 and np.allclose(t_s, (np.array(t_ns) - t_ns[0]) * 1e-9)
         assert t_s[-1] <= 1.0 + 1e-9
+
+
+def test_a_slow_solve_shrinks_the_window(noisy: Path) -> None:
+    """The time budget: solves that overrun it halve the window's frames (down to 5); fast
+    ones let it grow back by one a frame, up to max_frames."""
+    tags = read_tag_map(noisy / "ground_truth" / "tag_map.yaml")[0]
+    m = bag_messages(noisy, ["/camera_info", "/detections"])
+    loc = Localizer(tags)
+    step = [0.05]  # s a solve takes on this clock
+    now = [0.0]
+
+    def clock() -> float:
+        now[0] += step[0] / 2  # called before and after each solve
+        return now[0]
+
+    sm = Smoother(loc.world_T_tag, loc.size_m, SmootherSettings(budget_ms=15.0), clock=clock)
+    loc.smooth(LivePoses(sm, DeadReckoning(), "tag_only_pose", "localize", "map"))
+    loc.on_camera_info(m.payloads[m.keys.index("camera_info")])
+    dets = [p for k, p in zip(m.keys, m.payloads, strict=True) if k == "detections"]
+    for p in dets[:10]:
+        loc.on_detections(p)
+    assert sm.n_max == 5 and len(sm.frames) <= 5
+    step[0] = 0.001
+    for p in dets[10:50]:
+        loc.on_detections(p)
+    assert sm.n_max == 30 and len(sm.frames) == 30
