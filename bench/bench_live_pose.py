@@ -31,7 +31,12 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from tagtrail.geometry.ippe import solve_ippe  # noqa: E402
-from tagtrail.geometry.joint import JointSettings, corner_problem, solve_on_corners  # noqa: E402
+from tagtrail.geometry.joint import (  # noqa: E402
+    CornerRows,
+    JointSettings,
+    corner_problem,
+    solve_on_corners,
+)
 from tagtrail.geometry.se3 import T_from_xyz_quat  # noqa: E402
 from tagtrail.io.layouts import read_tag_map, read_trajectory  # noqa: E402
 from tagtrail.sim.simulate import simulate  # noqa: E402
@@ -124,7 +129,8 @@ def _case(rec: Path) -> dict[str, Any]:
     assert loc.camera is not None
     ippe, _ = solve_ippe(px, loc.size_m[tag], loc.camera)
     st = JointSettings()
-    pb = corner_problem(frame_idx, t_all, tag, px, loc.size_m[tag], ippe, loc.camera, st, True)
+    rows = CornerRows(frame_idx, t_all, loc.ids[tag], px, loc.size_m[tag], ippe)
+    pb = corner_problem(rows, tag, loc.camera, st, True)
     sol = solve_on_corners(pb, loc.world_T_tag, np.zeros(len(loc.ids), bool), st)
     R_off = np.swapaxes(sol.res.R_cam, 1, 2)
     c_off = -np.einsum("fij,fj->fi", R_off, sol.res.t_cam)

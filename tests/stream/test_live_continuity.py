@@ -15,7 +15,12 @@ import numpy as np
 import pytest
 import zenoh
 
-from tagtrail.geometry.joint import JointSettings, corner_problem, solve_on_corners
+from tagtrail.geometry.joint import (
+    CornerRows,
+    JointSettings,
+    corner_problem,
+    solve_on_corners,
+)
 from tagtrail.io.layouts import read_tag_map, read_trajectory
 from tagtrail.sim import limo
 from tagtrail.sim.follow import eight_scene
@@ -104,7 +109,8 @@ def test_smoothed_poses_beat_per_frame_and_approach_offline(noisy: Path) -> None
     assert loc.camera is not None
     ippe, _ = solve_ippe(px, loc.size_m[tag], loc.camera)
     st = JointSettings()
-    pb = corner_problem(frame_idx, t_all, tag, px, loc.size_m[tag], ippe, loc.camera, st, True)
+    rows = CornerRows(frame_idx, t_all, loc.ids[tag], px, loc.size_m[tag], ippe)
+    pb = corner_problem(rows, tag, loc.camera, st, True)
     sol = solve_on_corners(pb, loc.world_T_tag, np.zeros(len(loc.ids), bool), st)
     c_off = -np.einsum("fji,fj->fi", sol.res.R_cam, sol.res.t_cam)
     g = gt.loc[pb.t_ns][["x_m", "y_m", "z_m"]].to_numpy()
