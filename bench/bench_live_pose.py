@@ -61,9 +61,9 @@ NOTES = [
     "",
     "The smoother answers for its newest frame, which only the past constrains: on a curve the "
     "constant-velocity prior pulls it towards the straight extrapolation (a lag bias the "
-    "offline solve, with frames on both sides, has not), so live stays ~2.6-2.8x the offline "
+    "offline solve, with frames on both sides, has not), so live stays 2.2-2.8x the offline "
     "error (the issue's goal 1.2x is not met). The prior's density trades this against "
-    "outliers (measured on the same cases, --smooth with optimize.joint.motion 0.3: circle "
+    "outliers (measured on the same cases with a 1 s window, --smooth with optimize.joint.motion 0.3: circle "
     "detections 2.58x, corridor 3.51x (heading std 0.458 deg), rendered circle 1.38x; 1.0: "
     "3.17x, 7.14x (0.711 deg), 0.43x): the offline default 0.1 is kept. On the rendered "
     "circle (150 frames, twice the speed) each frame on its own is the most accurate; on the "
@@ -184,7 +184,7 @@ def main() -> None:
         "",
         f"{dt.date.today()}, load {os.getloadavg()[0]:.1f} on {os.cpu_count()} cores. "
         "`stream localize`'s handlers on every frame of a simulated recording: each frame on "
-        "its own (`frame`), `--smooth` (the fixed-lag smoother, 1 s / 30 frames, 2 "
+        "its own (`frame`), `--smooth` (the fixed-lag smoother, 2 s / 60 frames, 2 "
         "iterations; `live`) and the offline joint solve of the same corners against the same "
         "fixed map (`offline`). Error = camera position vs ground truth; heading = the optical "
         "axis in the floor plane, its error's standard deviation (on the corridor: a straight "

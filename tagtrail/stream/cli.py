@@ -357,9 +357,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> argparse.ArgumentParser:
     g.add_argument(
         "--window",
         type=POSITIVE,
-        default=1.0,
+        default=2.0,
         metavar="S",
-        help="the smoother's window (s; at most 30 frames; default 1)",
+        help="the smoother's window (s; at most 60 frames; default 2)",
     )
     g.add_argument(
         "--odom-key",

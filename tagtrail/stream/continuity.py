@@ -61,13 +61,13 @@ class SmootherSettings:
     a frame's own pose is not taken as its start, the travel (m) after which the ground plane is
     fitted, and the joint model's settings (``optimize.joint``)."""
 
-    window_s: float = 1.0
-    max_frames: int = 30
+    window_s: float = 2.0
+    max_frames: int = 60
     budget_ms: float = 15.0
     """A solve that takes longer halves the window's frames (down to 5) for the next ones; one
     under half of it lets the window grow back by a frame: a loaded machine keeps its rate."""
     max_iter: int = 2
-    start_gate_m: float = 0.15
+    start_gate_m: float = 0.05
     plane_after_m: float = 1.0
     joint: JointSettings = field(default_factory=JointSettings)
 

@@ -262,7 +262,7 @@ def test_node_publishes_per_frame_and_between_frames_with_odometry(tmp_path: Pat
 
 def test_further_priors_join_each_window(noisy: Path) -> None:
     """The seam for the odometry prior: each window's solve asks every ``extra`` factory for a
-    prior on its frames' stamps (the last 1 s, at most 30 frames), and takes what it gives."""
+    prior on its frames' stamps (here the last 1 s, at most 30 frames), and takes what it gives."""
     tags = read_tag_map(noisy / "ground_truth" / "tag_map.yaml")[0]
     m = bag_messages(noisy, ["/camera_info", "/detections"])
     loc = Localizer(tags)
@@ -272,7 +272,9 @@ def test_further_priors_join_each_window(noisy: Path) -> None:
         seen.append((t_s, t_ns))
         return None
 
-    sm = Smoother(loc.world_T_tag, loc.size_m, SmootherSettings(), extra=[pinned])
+    sm = Smoother(
+        loc.world_T_tag, loc.size_m, SmootherSettings(window_s=1.0, max_frames=30), extra=[pinned]
+    )
     loc.smooth(LivePoses(sm, DeadReckoning(), "tag_only_pose", "localize", "map"))
     loc.on_camera_info(m.payloads[m.keys.index("camera_info")])
     n = 0
@@ -301,7 +303,8 @@ def test_a_slow_solve_shrinks_the_window(noisy: Path) -> None:
         now[0] += step[0] / 2  # called before and after each solve
         return now[0]
 
-    sm = Smoother(loc.world_T_tag, loc.size_m, SmootherSettings(budget_ms=15.0), clock=clock)
+    settings = SmootherSettings(window_s=1.0, max_frames=30, budget_ms=15.0)
+    sm = Smoother(loc.world_T_tag, loc.size_m, settings, clock=clock)
     loc.smooth(LivePoses(sm, DeadReckoning(), "tag_only_pose", "localize", "map"))
     loc.on_camera_info(m.payloads[m.keys.index("camera_info")])
     dets = [p for k, p in zip(m.keys, m.payloads, strict=True) if k == "detections"]
