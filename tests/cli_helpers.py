@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import os
 import re
+import signal
 import subprocess
 import sys
 from pathlib import Path
@@ -53,6 +54,14 @@ def one_error_line(capsys: pytest.CaptureFixture[str]) -> str:
     return err[0]
 
 
+def terminal_signals() -> None:
+    """A child's ``preexec_fn``: SIGINT, SIGTERM and SIGHUP at their defaults, as under a
+    terminal, also when the tests run where they are ignored (a background job, ``nohup``):
+    tagtrail keeps an ignored signal ignored, so a signal test would see it do nothing."""
+    for sig in (signal.SIGINT, signal.SIGTERM, signal.SIGHUP):
+        signal.signal(sig, signal.SIG_DFL)
+
+
 def cli_env(fault: str | None = None) -> dict[str, str]:
     """The environment of a ``tagtrail`` subprocess: this checkout first on PYTHONPATH, and
     ``TAGTRAIL_FAULT`` (``tagtrail/faults.py``) set to ``fault`` alone."""
@@ -74,6 +83,7 @@ def tagtrail(
         capture_output=True,
         text=True,
         timeout=timeout,
+        preexec_fn=terminal_signals,
     )
 
 

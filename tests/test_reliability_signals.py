@@ -23,7 +23,7 @@ import pytest
 import yaml
 
 from tagtrail.sim import simulate
-from tests.cli_helpers import alive, children, cli_env, files, stray, tagtrail
+from tests.cli_helpers import alive, children, cli_env, files, stray, tagtrail, terminal_signals
 
 pytestmark = pytest.mark.slow  # signals sent to real runs at every point (make test-all)
 
@@ -40,6 +40,7 @@ def start(cwd: Path, *args: str) -> subprocess.Popen[str]:
         stderr=subprocess.PIPE,
         text=True,
         start_new_session=True,
+        preexec_fn=terminal_signals,
     )
 
 

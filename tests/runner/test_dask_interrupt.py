@@ -21,7 +21,7 @@ import pytest
 
 from tagtrail.commands.demo import template
 from tagtrail.sim import simulate
-from tests.cli_helpers import REPO, alive, children
+from tests.cli_helpers import REPO, alive, children, terminal_signals
 
 pytestmark = [
     pytest.mark.slow,  # a Dask cluster (make test-all)
@@ -37,12 +37,6 @@ def descendants(pid: int) -> set[int]:
     for kid in children(pid):
         out |= {kid, *descendants(kid)}
     return out
-
-
-def terminal_sigint() -> None:
-    """SIGINT handled as under a terminal, also when this test runs where it is ignored (a
-    background job of a non-interactive shell): tagtrail keeps an ignored signal ignored."""
-    signal.signal(signal.SIGINT, signal.SIG_DFL)
 
 
 @pytest.fixture(scope="module")
@@ -67,7 +61,7 @@ def test_ctrl_c_under_dask_ends_with_one_line_and_no_worker_output(
         stderr=subprocess.PIPE,
         text=True,
         start_new_session=True,
-        preexec_fn=terminal_sigint,
+        preexec_fn=terminal_signals,
     )
     assert proc.stdout is not None
     seen = []

@@ -23,6 +23,7 @@ from typing import Any
 import zenoh
 
 from tagtrail.stream.session import make_config
+from tests.cli_helpers import terminal_signals
 
 REPO = Path(__file__).resolve().parents[2]
 # Nodes run here, not in the repository: its pipeline.yaml (the demo's) would be their default
@@ -57,6 +58,7 @@ class Proc:
             stdout=subprocess.PIPE,
             stderr=subprocess.STDOUT,
             text=True,
+            preexec_fn=terminal_signals,
         )
         self.lines: list[str] = []
         self._t = threading.Thread(target=self._read, daemon=True)
