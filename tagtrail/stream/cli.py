@@ -344,6 +344,14 @@ def add_arguments(parser: argparse.ArgumentParser) -> argparse.ArgumentParser:
         metavar="N",
         help="drop detections with more corrected bits (default: extract.max_hamming)",
     )
+    g.add_argument(
+        "--refit-corners",
+        choices=["true", "edges", "false"],
+        default=None,
+        help="images: re-fit the corners to the tag's edges with the intensity-profile model "
+        "(true, ~3 ms a tag), by the gradient alone (edges, ~0.3 ms a tag: 30 Hz within a "
+        "frame's time; bench/FOLLOW.md) or not (false) (default: extract.refit_corners)",
+    )
     g = p.add_argument_group("continuity (docs/LIVE.md)")
     g.add_argument(
         "--smooth",
@@ -764,11 +772,17 @@ def localize_params(ns: argparse.Namespace) -> Any:
             {
                 "min_decision_margin": ("--min-decision-margin", ns.min_decision_margin),
                 "max_hamming": ("--max-hamming", ns.max_hamming),
+                "refit_corners": ("--refit-corners", _refit(ns.refit_corners)),
             },
         ),
         pnp=override(pn, {"tag_size": ("--tag-size", ns.tag_size)}),
         trajectory=override(tr, {"method": ("--method", ns.method)}),
     )
+
+
+def _refit(word: str | None) -> bool | str | None:
+    """``--refit-corners``'s word as ``extract.refit_corners``'s value."""
+    return {"true": True, "false": False}.get(word, word) if word is not None else None
 
 
 def _localize(ns: argparse.Namespace) -> int:

@@ -96,7 +96,9 @@ def detect(
     """
     ints, floats, _ = _detect_filtered(img, cfg)
     if cfg.refit_corners and len(floats):
-        floats[:, 1:] = refine_many([img], [floats[:, 1:]], camera)[0].reshape(-1, 8)
+        floats[:, 1:] = refine_many(
+            [img], [floats[:, 1:]], camera, model=cfg.refit_corners is True
+        )[0].reshape(-1, 8)
     return ints, floats
 
 
@@ -367,7 +369,9 @@ def detect_chunk(
             gray = imgs[k]
             assert gray is not None  # a frame with tags keeps its image
             grays.append(gray)
-        refined = refine_many(grays, [floats[k][:, 1:] for k in with_tags], camera)
+        refined = refine_many(
+            grays, [floats[k][:, 1:] for k in with_tags], camera, model=cfg.refit_corners is True
+        )
         for k, r in zip(with_tags, refined, strict=True):
             floats[k][:, 1:] = r.reshape(-1, 8)
     return {

@@ -33,7 +33,7 @@ class DetectorConfig:
     max_hamming: int
     min_decision_margin: float
     tag_ids: tuple[int, ...] | None
-    refit_corners: bool
+    refit_corners: bool | str  # True, "edges" (the gradient fit alone) or False
     keep_truncated: bool
     small_tags: str  # "redetect": re-detect small-tag candidates at full resolution; "off"
 

@@ -207,3 +207,17 @@ def test_parameter_errors_are_spec_errors(
     )
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and err[0].startswith("error: ") and "tag_siz" in err[0], err
+
+
+@pytest.mark.parametrize(("word", "value"), [("edges", "edges"), ("false", False), ("true", True)])
+def test_refit_corners_flag_over_the_pipeline(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch, word: str, value: object
+) -> None:
+    """``--refit-corners`` sets the images' corner re-fit over ``extract.refit_corners``."""
+    monkeypatch.chdir(tmp_path)
+    _pipeline(tmp_path / "pipeline.yaml", tmp_path, "  extract:\n    refit_corners: false\n")
+    ns = cli.build_parser().parse_args(["localize", "--map", "m.yaml"])
+    assert cli.localize_params(ns).extract.refit_corners is False
+    ns = cli.build_parser().parse_args(["localize", "--map", "m.yaml", "--refit-corners", word])
+    got = cli.localize_params(ns).extract
+    assert got.refit_corners == value and got.detector().refit_corners == value

@@ -255,3 +255,30 @@ def test_extract_drops_cut_tags_says_so_and_refits_the_rest(
     assert np.abs(corners - true_corners(LIMO, whole, SIZE)).max() < 0.03
     kept = extract_from(src, extract.Params(workers=1, keep_truncated=True))["detections"]
     assert sorted(kept["tag_id"].tolist()) == [3, 5]
+
+
+def test_edges_alone_refit_at_a_tenth_of_the_time() -> None:
+    """``refit_corners: edges`` (live nodes at frame rate): the gradient fit without the
+    intensity-profile model. On sharp renders it is as close to the truth as the full re-fit
+    (the model matters under blur: the test above) and far closer than the detector; it skips
+    the model's work (~90 % of the full re-fit's time, bench: 1.2 vs 17.7 ms a frame of ~5
+    tags)."""
+    rng = np.random.default_rng(5)
+    views = random_views(8, seed=3)
+    imgs, raws, truths = [], [], []
+    for cam_T_tag, tag_id in views:
+        img = render_tag(LIMO, cam_T_tag, SIZE, tag_id, rng)
+        found = [d for d in detector(2.0).detect(img) if d.tag_id == tag_id]
+        assert found
+        imgs.append(img)
+        raws.append(found[0].corners[None] - C_LIBRARY_PIXEL_OFFSET)
+        truths.append(true_corners(LIMO, cam_T_tag, SIZE))
+    full = refine_many(imgs, raws, LIMO)
+    edges = refine_many(imgs, raws, LIMO, model=False)
+    rms = {
+        name: float(np.sqrt(np.mean([(c[0] - t) ** 2 for c, t in zip(got, truths, strict=True)])))
+        for name, got in (("detector", raws), ("edges", edges), ("full", full))
+    }
+    print(f"\ncorner RMS px: {rms}")
+    assert rms["edges"] < 0.03 and rms["edges"] < rms["detector"] / 2.5
+    assert not all(np.array_equal(a, b) for a, b in zip(full, edges, strict=True))
