@@ -201,16 +201,23 @@ def frame_poses(
     has_pix = corners_px is not None and camera is not None
     if method == "auto":
         method = "pnp" if has_pix else "lsq"
-    if method == "avg":
-        T = fuse_mean(est, group, n_frames)
-    else:
-        T = fuse_robust(est, group, n_frames, loss=loss, f_scale=f_scale, rot_weight_m=rot_weight_m)
+    T = np.full((n_frames, 4, 4), np.nan)
     used = np.zeros(n_frames, dtype=bool)
     if method == "pnp" and corners_px is not None and camera is not None:
         size = np.full(len(group), np.nan) if size_m is None else np.asarray(size_m, np.float64)
         T, used = _pnp_frames(T, world_T_tag, group, corners_px, size, camera, ransac_px)
     elif method == "pnp":
         method = "lsq"
+    rest = ~used[group]  # the fusion only where PnP did not pose the frame (half the live time)
+    if rest.any():
+        g, e = group[rest], est[rest]
+        if method == "avg":
+            fused = fuse_mean(e, g, n_frames)
+        else:
+            fused = fuse_robust(
+                e, g, n_frames, loss=loss, f_scale=f_scale, rot_weight_m=rot_weight_m
+            )
+        T[~used] = fused[~used]
     n_tags = np.bincount(group, minlength=n_frames)
     T[n_tags == 0] = np.nan
     return FramePoses(T, n_tags, used, method)

@@ -139,7 +139,8 @@ class Smoother:
         self.frames.clear()
 
     def _extrapolate(self, t_ns: int) -> tuple[F64, F64] | None:
-        """The pose at ``t_ns`` by constant velocity from the last two frames (None: < 2)."""
+        """The pose at ``t_ns`` by a constant twist from the last two frames (the motion
+        prior's model; None: < 2)."""
         if len(self.frames) < 2:
             return None
         a, b = self.frames[-2], self.frames[-1]
@@ -150,7 +151,7 @@ class Smoother:
         w = log_so3(Rab[None])[0] * (g / h)
         dR = R_from_rotvec(w[None])[0]
         ca, cb = -a.R.T @ a.t, -b.R.T @ b.t
-        c = cb + (cb - ca) * (g / h)
+        c = cb + b.R.T @ (a.R @ (cb - ca)) * (g / h)  # a's step, seen from b
         R = dR @ b.R
         return R, -R @ c
 
@@ -210,7 +211,7 @@ class Smoother:
         sig = js.motion_sigmas()
         t_s = np.array([(f.t_ns - fr[0].t_ns) * 1e-9 for f in fr])
         if sig is not None and n_f >= 3:
-            priors.append(MotionPrior(t_s, *sig, js.max_gap_s))
+            priors.append(MotionPrior(t_s, *sig, js.max_gap_s, frame="camera"))
         if self.plane is not None and js.ground != "none":
             priors.append(FixedGround(GROUND, self.plane))
         for make in self.extra:

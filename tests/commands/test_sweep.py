@@ -366,7 +366,11 @@ def test_chosen_metrics_datasets_and_points_file(
     assert [r["map.rms_px[query_1]"] for r in rows] == ["", ""]  # 5 frames: no joint solve
     assert all(r["ran"] == "0" for r in rows)  # both points were in the 3×3 grid
     assert not any(c.endswith("[query_2]") for c in cols)  # query_2 neither ran nor was read
-    assert "best (lowest D.mean_m): point" in out
+    d = [float(r["D.mean_m[query_1]"]) for r in rows]  # the loss barely moves a parked D:
+    if within_noise(*d):  # the line names the best only beyond the metric's noise
+        assert "best: none: points 1, 2 give the same D.mean_m" in out
+    else:
+        assert "best (lowest D.mean_m): point" in out
     # An explicit list (YAML) crossed with a one-valued -S; a mapping value is one value.
     points = tmp_path / "points.yaml"
     points.write_text(

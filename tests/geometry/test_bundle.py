@@ -91,6 +91,43 @@ def test_motion_prior_is_zero_on_constant_velocity_motion() -> None:
     assert np.abs(m[:, :3]).max() < 1e-12 and np.abs(m[:, 3:]).max() < 1e-9
 
 
+def test_camera_frame_motion_prior_jacobian_matches_central_differences() -> None:
+    rng = np.random.default_rng(3)
+    n = 7
+    R, t = R_from_rotvec(rng.normal(size=(n, 3)) * 0.4), rng.normal(size=(n, 3))
+    t_s = np.cumsum(rng.uniform(0.02, 0.06, n))
+    pr = MotionPrior(t_s, 0.5, 0.7, 1.0, frame="camera")
+    _, J = pr.residuals(R, t)
+    eps = 1e-6
+    for f in range(n):
+        for c in range(6):
+            d = np.zeros((n, 6))
+            d[f, c] = eps
+            hi, lo = pr.residuals(*left_update(R, t, d))[0], pr.residuals(*left_update(R, t, -d))[0]
+            num = (hi - lo) / (2 * eps)
+            ana = sum(
+                np.where(((pr.k - 1 + i) == f)[:, None], J[:, i, :, c], 0.0) for i in range(3)
+            )
+            np.testing.assert_allclose(num, ana, rtol=1e-6, atol=1e-6)
+
+
+def test_camera_frame_motion_prior_is_zero_on_a_steady_arc() -> None:
+    """A robot driving a circle at constant speed and turn rate: no acceleration in the
+    camera's frame; the world-frame form sees its centripetal v w (the live lag on curves)."""
+    t_s = np.arange(6) / 30.0
+    yaw = 1.2 * t_s  # rad, 1.2 rad/s on a circle of 0.5 m: 0.6 m/s
+    xy = 0.5 * np.stack([np.sin(yaw), 1.0 - np.cos(yaw)], axis=1)
+    Rz = R_from_rotvec(np.stack([np.zeros(6), np.zeros(6), yaw], axis=1))
+    world_T_cam = make_T(Rz @ R_from_rotvec([np.pi / 2, 0.0, 0.0]), np.c_[xy, np.full(6, 0.2)])
+    cam_T_world = inv(world_T_cam)
+    R, t = cam_T_world[:, :3, :3], cam_T_world[:, :3, 3]
+    body = MotionPrior(t_s, 1.0, 1.0, 1.0, frame="camera").residuals(R, t)[0]
+    world = MotionPrior(t_s, 1.0, 1.0, 1.0).residuals(R, t)[0]
+    assert np.abs(body).max() < 1e-9
+    whitened = np.sqrt(0.75 * 2 / 30.0) * 0.6 * 1.2  # the centripetal 0.72 m/s^2, whitened
+    assert np.abs(np.linalg.norm(world[:, 3:], axis=1) - whitened).max() < 1e-3 * whitened
+
+
 def test_exact_poses_recovered_from_a_perturbed_start() -> None:
     ob, W, C, anchor, _ = corner_problem()
     W0 = perturbed(W, 1, 0.02, 0.03, keep=anchor)

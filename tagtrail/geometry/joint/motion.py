@@ -9,6 +9,21 @@ R_{j+1})`` the body-frame increment of ``world_R_cam``::
     alpha_k = 2 / (h1 + h2) * (w_k / h2 - w_{k-1} / h1)                         (rad/s^2)
     m_k     = sqrt(3 h / 2) * [alpha_k / ang_sigma ; a_k / acc_sigma],  h = (h1 + h2) / 2
 
+``frame="camera"`` takes the translation part in the camera's own frame instead (a constant
+twist), with ``q_j = R_j (c_{j+1} - c_j)`` the step to the next frame seen from camera ``j``
+(``R_j`` = cam_R_world)::
+
+    a_k     = 2 / (h1 + h2) * (q_k / h2 - q_{k-1} / h1)
+
+A robot driving an arc at constant speed and turn rate has zero residual there, where the
+world-frame second difference (its centripetal ``v w``) pulls each frame towards its
+neighbours' chord — and the newest frame of a live window, which only the past constrains,
+towards the straight extrapolation: the live smoother's lag on curves
+(``stream/continuity.py``; bench/LIVE_POSE.md: a rendered circle posed live to 0.36 mm
+instead of 5.2). Offline, with frames on both sides, the world frame stays: there the camera
+frame ties a wrong heading to the path (with 1 s of 20 % wheel slip in a 5 s stretch without
+tags: 26 cm against 4.3, tests/geometry/test_odometry_prior.py).
+
 White noise of density ``acc_sigma`` (m/s^2/sqrt(Hz)) on the acceleration gives the second
 difference a variance ``2 h^3 acc_sigma^2 / 3``, hence the scale. Single-tag frames are held by
 their neighbours, and tags never seen together are linked through the trajectory. A robust loss
@@ -22,14 +37,14 @@ from __future__ import annotations
 from collections.abc import Mapping
 from dataclasses import dataclass
 from functools import cached_property
-from typing import Any
+from typing import Any, Literal
 
 import numpy as np
 
 from tagtrail.geometry.arrays import F64, I64
 from tagtrail.geometry.joint.problem import Terms, centres
 from tagtrail.geometry.robust import LossName, rho
-from tagtrail.geometry.rotations import log_so3, right_jacobian_inv
+from tagtrail.geometry.rotations import hat, log_so3, right_jacobian_inv
 from tagtrail.geometry.smoothing import segment_triples
 
 
@@ -38,7 +53,8 @@ class MotionPrior:
     """Constant-velocity prior over frames stamped ``t_s (F,)`` (s, increasing): acceleration
     noise densities ``acc_sigma`` (m/s^2/sqrt(Hz)) and ``ang_sigma`` (rad/s^2/sqrt(Hz));
     stamps further apart than ``max_gap_s`` break the chain. ``loss`` acts on each frame's
-    whitened 6-vector with scale ``f_scale`` (standard deviations)."""
+    whitened 6-vector with scale ``f_scale`` (standard deviations); ``frame``: the velocity's
+    (module docstring)."""
 
     t_s: F64
     acc_sigma: float
@@ -46,6 +62,7 @@ class MotionPrior:
     max_gap_s: float
     loss: LossName = "cauchy"
     f_scale: float = 3.0
+    frame: Literal["world", "camera"] = "world"
 
     name = "motion"
     n_params = 0
@@ -82,7 +99,11 @@ class MotionPrior:
         E = R[:-1] @ np.swapaxes(R[1:], 1, 2)  # world_R_cam_j^T world_R_cam_{j+1}
         e = log_so3(E)
         Jinv = right_jacobian_inv(e)
-        a = np.einsum("mj,mji->mi", coef, np.stack([c[k - 1], c[k], c[k + 1]], axis=1))
+        if self.frame == "camera":
+            q = np.einsum("fij,fj->fi", R[:-1], c[1:] - c[:-1])  # step j -> j+1 from camera j
+            a = g[:, None] * (q[k] / h2[:, None] - q[k - 1] / h1[:, None])
+        else:
+            a = np.einsum("mj,mji->mi", coef, np.stack([c[k - 1], c[k], c[k + 1]], axis=1))
         alpha = g[:, None] * (e[k] / h2[:, None] - e[k - 1] / h1[:, None])
         m = np.concatenate([alpha * s_r[:, None], a * s_t[:, None]], axis=1)
         J = np.zeros((len(k), 3, 6, 6))
@@ -92,6 +113,14 @@ class MotionPrior:
             Jinv[k] @ np.swapaxes(E[k], 1, 2) / h2[:, None, None] + Jinv[k - 1] / h1[:, None, None]
         )
         J[:, 2, :3, :3] = -gr / h2[:, None, None] * Jinv[k]
+        if self.frame == "camera":  # d q_j / d w_j = -hat(q_j); d c / d v = -R^T
+            gt = (g * s_t)[:, None, None]
+            J[:, 0, 3:, :3] = gt / h1[:, None, None] * hat(q[k - 1])
+            J[:, 0, 3:, 3:] = -gt / h1[:, None, None] * np.eye(3)
+            J[:, 1, 3:, :3] = -gt / h2[:, None, None] * hat(q[k])
+            J[:, 1, 3:, 3:] = gt * (np.eye(3) / h2[:, None, None] + E[k - 1] / h1[:, None, None])
+            J[:, 2, 3:, 3:] = -gt / h2[:, None, None] * E[k]
+            return m, J
         for j, f in enumerate((k - 1, k, k + 1)):  # d c / d v = -world_R_cam = -R^T
             J[:, j, 3:, 3:] = -(coef[:, j] * s_t)[:, None, None] * np.swapaxes(R[f], 1, 2)
         return m, J
