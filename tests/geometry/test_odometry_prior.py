@@ -76,11 +76,12 @@ def test_a_time_offset_of_a_tenth_of_a_second_is_recovered() -> None:
 
 
 def test_frames_with_no_tag_in_view_are_posed_by_the_odometry() -> None:
-    """5 s with no tag in view (1.5 m driven) at 2 % wheel-scale error: every frame posed
-    (without odometry only those with a tag), the blind stretch within 5 cm of the truth
-    (measured 0.8 cm max), its uncertainty growing away from the tags and reported; the frames
-    with a tag no worse than without odometry by more than 5 % (mean)."""
-    d = drive(blind=(8.0, 13.0), scale=1.02)
+    """7 s with no tag in view (2.1 m driven: the issue's 2 m) at 2 % wheel-scale error: every
+    frame posed (without odometry only those with a tag), the blind stretch within 5 cm of the
+    truth (measured 0.76 cm max; 1.1 cm after 2.4 m), its uncertainty growing away from the
+    tags and reported; the frames with a tag no worse than without odometry by more than 5 %
+    (mean)."""
+    d = drive(blind=(8.0, 15.0), scale=1.02)
     without = _solve(d, odometry=False)
     s = _solve(d)
     seen = len(np.unique(d.frame))
@@ -91,7 +92,7 @@ def test_frames_with_no_tag_in_view_are_posed_by_the_odometry() -> None:
     assert s.odometry.scale == pytest.approx(1.02, abs=0.01)
     e, t = _errors(d, s)
     n = np.bincount(s.pb.ob.frame, minlength=len(s.pb.t_ns))
-    blind = (t >= 8.0) & (t < 13.0)
+    blind = (t >= 8.0) & (t < 15.0)
     assert (n[blind] == 0).all() and e[blind].max() <= 0.05
     assert s.res.cam_std is not None
     std = s.res.cam_std[:, 0]
