@@ -133,6 +133,7 @@ class Smoother:
         self.history: deque[tuple[F64, F64]] = deque(maxlen=600)  # smoothed (R, t), 20 s
         self.plane: Plane | None = None
         self._travel = 0.0
+        self._seen = 0
         self.iters = 0
 
     def reset(self) -> None:
@@ -252,8 +253,9 @@ class Smoother:
             Rp, tp = self.history[-1]
             self._travel += float(np.linalg.norm(-R.T @ t + Rp.T @ tp))
         self.history.append((R, t))
+        self._seen += 1
         if self._travel >= self.s.plane_after_m and len(self.history) >= 10:
-            if self.plane is None or len(self.history) % 30 == 0:
+            if self.plane is None or self._seen % 30 == 0:  # (the history stops at 600 poses)
                 Rs = np.stack([h[0] for h in self.history])
                 ts = np.stack([h[1] for h in self.history])
                 self.plane = fit_plane(Rs, ts, GROUND)
