@@ -4,12 +4,15 @@ wheel-odometry dead reckoning between tag fixes.
 :class:`Smoother` keeps the last frames (``window_s``, at most ``max_frames``, fewer while a
 solve overruns ``budget_ms``) with their tag corners and re-solves them per new frame with
 :func:`tagtrail.geometry.joint.solve_joint` against the fixed map — the corners under the
-offline model's weights and loss, the constant-velocity motion prior and, once the camera has
-travelled far enough to tell its plane, the ground-plane prior with that plane held fixed
-(fitted to the smoothed history) — warm started from the last solution (the new frame from its
-own pose, or from the motion's extrapolation when its own disagrees: an IPPE flip), at most
-``max_iter`` iterations. The answer is the newest frame's pose and its covariance (the
-smoother's filtered estimate).
+offline model's weights and loss, the constant-velocity motion prior (its velocity in the
+camera's own frame: a steady arc costs nothing) and, once the camera has travelled far enough to
+tell its plane, the ground-plane prior with that plane held fixed (fitted to the smoothed
+history, its outlier poses left out) and the wheeled-drive prior with the camera's mount held
+fixed (fitted on that plane; its lever arm only once the history has turned ``MIN_TURN_RAD``;
+kept while the history's steps leave it unstrained, as ``drive: auto`` offline) — warm
+started from the last solution (the new frame from its own pose, or from the motion's
+extrapolation when its own disagrees: an IPPE flip), at most ``max_iter`` iterations. The
+answer is the newest frame's pose and its covariance (the smoother's filtered estimate).
 
 :class:`DeadReckoning` carries the last fix forward by the base's odometry (``nav_msgs/Odometry``
 whose stamps are publication times: the state they describe is ``latency_s`` older), the camera
@@ -31,6 +34,15 @@ import numpy as np
 from tagtrail.geometry.arrays import F64, I64
 from tagtrail.geometry.camera import CameraModel
 from tagtrail.geometry.fusion import tag_corners
+from tagtrail.geometry.joint.drive import (
+    WHEELED_BOUND,
+    Mount,
+    drive_terms,
+    fit_mount,
+    robust_weights,
+    steps,
+    strain,
+)
 from tagtrail.geometry.joint.ground import (
     GroundPlane,
     GroundPrior,
@@ -42,17 +54,16 @@ from tagtrail.geometry.joint.problem import CornerObservations, Corners, Terms, 
 from tagtrail.geometry.joint.settings import (
     CORNER_F_SCALE_PX,
     CORNER_LOSS,
-    GROUND_HEIGHT_SIGMA_M,
-    GROUND_TILT_SIGMA_DEG,
     JointSettings,
 )
+from tagtrail.geometry.joint.setup import DRIVE, GROUND
 from tagtrail.geometry.joint.solver import solve_joint
 from tagtrail.geometry.rotations import log_so3
 from tagtrail.geometry.se3 import R_from_rotvec, xyz_quat_from_T
 from tagtrail.stream import codec
 from tagtrail.stream.stats import DropError
 
-GROUND = GroundPrior.of(GROUND_HEIGHT_SIGMA_M, GROUND_TILT_SIGMA_DEG)
+MIN_TURN_RAD = 0.5  # the yaw the history must have turned before the mount's lever arm is fitted
 
 
 @dataclass(frozen=True)
@@ -94,6 +105,40 @@ class FixedGround:
         return None
 
 
+@dataclass(frozen=True)
+class FixedDrive:
+    """The wheeled-drive prior with the plane and the camera's mount held fixed (fitted to the
+    history, like :class:`FixedGround`'s plane): the steps between the window's frames
+    stamped ``t_s`` within ``max_gap_s`` move along the robot's heading."""
+
+    plane: Plane
+    mount: Mount
+    t_s: F64
+    max_gap_s: float
+
+    name = "drive_fixed"
+    n_params = 0
+    start = None
+    uses: tuple[str, ...] = ()
+
+    def terms(self, R_cam: F64, t_cam: F64, values: Any) -> Terms:
+        j = steps(self.t_s, self.max_gap_s)
+        q, Jc, _ = drive_terms(R_cam, t_cam, self.t_s, j, self.plane, self.mount, DRIVE)
+        val, w = robust_weights(q, DRIVE)
+        sw = np.sqrt(w)
+        return Terms(
+            float(val.sum()),
+            (q * sw)[:, None],
+            j,
+            (Jc * sw[:, None, None])[:, :, None],
+            None,
+            len(j),
+        )
+
+    def update(self, value: Any, step: F64, values: Any) -> Any:
+        return None
+
+
 @dataclass
 class _Frame:
     t_ns: int
@@ -105,9 +150,10 @@ class _Frame:
 
 PriorOf = Callable[[F64, list[int]], Any]
 """A further prior of the window: ``(t_s (F,), t_ns)`` of its frames -> a
-:class:`~tagtrail.geometry.joint.Prior` (or None). The seam for the offline odometry prior
-(``geometry/joint/odometry.py``, another branch): built on the odometry between the window's
-frames (:attr:`DeadReckoning.odo`), it joins the window's solve like the motion prior."""
+:class:`~tagtrail.geometry.joint.Prior` (or None). The seam for the wheel-odometry prior
+(``geometry/joint/odometry.py``), not wired yet: held with its unknowns at their nominal values
+(scale 1, the latency taken off) it made live poses worse (bench_live_pose: 2.20 -> 2.66 mm on
+the circle), and a few seconds of history cannot solve them."""
 
 
 class Smoother:
@@ -132,6 +178,8 @@ class Smoother:
         self.frames: deque[_Frame] = deque()
         self.history: deque[tuple[F64, F64]] = deque(maxlen=600)  # smoothed (R, t), 20 s
         self.plane: Plane | None = None
+        self.mount: Mount | None = None
+        self.t_hist: deque[float] = deque(maxlen=600)
         self._travel = 0.0
         self._seen = 0
         self.iters = 0
@@ -215,6 +263,8 @@ class Smoother:
             priors.append(MotionPrior(t_s, *sig, js.max_gap_s, frame="camera"))
         if self.plane is not None and js.ground != "none":
             priors.append(FixedGround(GROUND, self.plane))
+            if self.mount is not None and js.drive != "free":
+                priors.append(FixedDrive(self.plane, self.mount, t_s, js.max_gap_s))
         for make in self.extra:
             prior = make(t_s, [f.t_ns for f in fr])
             if prior is not None:
@@ -235,7 +285,7 @@ class Smoother:
         for i, f in enumerate(fr):
             f.R, f.t = res.R_cam[i], res.t_cam[i]
         R, t = res.R_cam[-1], res.t_cam[-1]
-        self._note(R, t)
+        self._note(fr[-1].t_ns, R, t)
         T = np.eye(4)
         T[:3, :3] = R.T
         T[:3, 3] = -R.T @ t
@@ -247,18 +297,52 @@ class Smoother:
             cov = J @ res.cam_cov[-1] @ J.T
         return T, cov
 
-    def _note(self, R: F64, t: F64) -> None:
-        """Keep the smoothed pose; fit the ground plane once the camera has travelled enough."""
+    def _note(self, t_ns: int, R: F64, t: F64) -> None:
+        """Keep the smoothed pose; once the camera has travelled far enough, fit the ground
+        plane to the history (robustly: a lone frame's outlier pose does not tilt it) and, on
+        it, the camera's mount on a wheeled robot (every 30 frames). ``drive: auto`` keeps the
+        drive prior while the history's steps leave it unstrained
+        (:func:`~tagtrail.geometry.joint.drive.strain`, as offline)."""
         if self.history:
             Rp, tp = self.history[-1]
             self._travel += float(np.linalg.norm(-R.T @ t + Rp.T @ tp))
         self.history.append((R, t))
+        self.t_hist.append(t_ns * 1e-9)
         self._seen += 1
-        if self._travel >= self.s.plane_after_m and len(self.history) >= 10:
-            if self.plane is None or self._seen % 30 == 0:  # (the history stops at 600 poses)
-                Rs = np.stack([h[0] for h in self.history])
-                ts = np.stack([h[1] for h in self.history])
-                self.plane = fit_plane(Rs, ts, GROUND)
+        if self._travel < self.s.plane_after_m or len(self.history) < 10:
+            return
+        if self.plane is not None and self._seen % 30:  # (the history stops at 600 poses)
+            return
+        Rs = np.stack([h[0] for h in self.history])
+        ts = np.stack([h[1] for h in self.history])
+        t_s = np.asarray(self.t_hist) - self.t_hist[0]
+        keep = robust_plane_frames(Rs, ts)
+        Rs, ts, t_s = Rs[keep], ts[keep], t_s[keep]
+        self.plane = fit_plane(Rs, ts, GROUND)
+        js = self.s.joint
+        if js.ground == "none" or js.drive == "free":
+            return
+        j = steps(t_s, js.max_gap_s)
+        mount = fit_mount(Rs, ts, t_s, j, self.plane, MIN_TURN_RAD)
+        q = drive_terms(Rs, ts, t_s, j, self.plane, mount, DRIVE)[0]
+        wheeled = js.drive == "wheeled" or strain(q, DRIVE, 1.0) <= WHEELED_BOUND
+        self.mount = mount if wheeled else None
+
+
+def robust_plane_frames(R: F64, t: F64, rounds: int = 3) -> np.ndarray:
+    """Which frames ``(F,)`` bool a plane fit keeps: those within 3 robust standard deviations
+    (at least 2 cm) of the plane fitted to the ones kept before (from all)."""
+    keep = np.ones(len(R), bool)
+    c = -np.einsum("fji,fj->fi", R, t)
+    for _ in range(rounds):
+        p = fit_plane(R[keep], t[keep], GROUND)
+        h = c @ p.n - p.d
+        mad = float(np.median(np.abs(h[keep] - np.median(h[keep]))))
+        new = np.abs(h - np.median(h[keep])) <= max(3 * 1.4826 * mad, 0.02)
+        if new.sum() < 10 or (new == keep).all():
+            break
+        keep = new
+    return keep
 
 
 @dataclass

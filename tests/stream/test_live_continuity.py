@@ -66,8 +66,9 @@ def _err(payload: bytes, gt: object) -> float:
 
 def test_smoothed_poses_beat_per_frame_and_approach_offline(noisy: Path) -> None:
     """Every frame posed; the smoothed poses' error is below the per-frame poses' and within
-    3x the offline joint solve's on the same frames (measured: 3.4 mm vs 5.0 mm per frame vs
-    1.2 mm offline, bench/LIVE_POSE.md; the issue's goal 1.2x is not met yet)."""
+    2.5x the offline joint solve's on the same frames (measured: 2.2 mm vs 5.0 mm per frame vs
+    1.2 mm offline, bench/LIVE_POSE.md; with 0.3 px corner noise the issue's 1.2x is met only
+    on the rendered recording)."""
     gt = read_trajectory(noisy / "ground_truth" / "trajectory.csv").set_index("t_ns")
     tags = read_tag_map(noisy / "ground_truth" / "tag_map.yaml")[0]
     m = bag_messages(noisy, ["/camera_info", "/detections"])
@@ -116,7 +117,8 @@ def test_smoothed_poses_beat_per_frame_and_approach_offline(noisy: Path) -> None
     g = gt.loc[pb.t_ns][["x_m", "y_m", "z_m"]].to_numpy()
     rms_off = float(np.sqrt(np.mean(np.sum((c_off - g) ** 2, axis=1))))
     assert rms["l"] < 0.8 * rms["f"], rms
-    assert rms["l"] < 3.0 * rms_off, (rms, rms_off)
+    assert rms["l"] < 2.5 * rms_off, (rms, rms_off)
+    assert live.smoother.mount is not None  # a wheeled robot: the drive prior holds it
 
 
 def struct_f64(payload: bytes) -> float:
@@ -315,3 +317,66 @@ def test_a_slow_solve_shrinks_the_window(noisy: Path) -> None:
     for p in dets[10:50]:
         loc.on_detections(p)
     assert sm.n_max == 30 and len(sm.frames) == 30
+
+
+def _level_cameras(xy: np.ndarray, heading: np.ndarray, height: float = 0.2) -> np.ndarray:
+    """cam_T_world ``(F, 4, 4)`` of a level camera (y down, z along ``heading`` in the xy
+    plane, world z up) at ``xy``."""
+    out = []
+    for (x, y), h in zip(xy, heading, strict=True):
+        z = np.array([np.cos(h), np.sin(h), 0.0])
+        yy = np.array([0.0, 0.0, -1.0])
+        R_wc = np.stack([np.cross(yy, z), yy, z], axis=1)
+        T = np.eye(4)
+        T[:3, :3], T[:3, 3] = R_wc.T, -R_wc.T @ np.array([x, y, height])
+        out.append(T)
+    return np.stack(out)
+
+
+def test_the_live_plane_leaves_outlier_poses_out() -> None:
+    """A level camera's history with 5 % of its poses metres off (a lone far tag's mirror
+    pose): the plane fitted to the frames kept is the floor's (normal within 0.05 deg), the
+    plain fit to all of them is tilted by degrees."""
+    from tagtrail.geometry.joint.ground import fit_plane
+    from tagtrail.stream.continuity import GROUND, robust_plane_frames
+
+    rng = np.random.default_rng(4)
+    a = np.linspace(0, 4.0, 200)
+    C = _level_cameras(np.stack([np.cos(a), np.sin(a)], axis=1), a + np.pi / 2)
+    bad = rng.choice(200, 10, replace=False)
+    d = rng.uniform(-2.0, 2.0, (10, 3))  # the centres moved, off the floor's plane too
+    d[:, 2] = rng.choice([-1.0, 1.0], 10) * rng.uniform(0.3, 1.0, 10)
+    C[bad, :3, 3] -= np.einsum("fij,fj->fi", C[bad, :3, :3], d)
+    keep = robust_plane_frames(C[:, :3, :3], C[:, :3, 3])
+    assert not keep[bad].any() and keep.sum() == 190
+
+    def tilt_deg(sel: np.ndarray) -> float:
+        n = fit_plane(C[sel, :3, :3], C[sel, :3, 3], GROUND).n
+        return float(np.degrees(np.arccos(min(1.0, abs(n[2])))))
+
+    assert tilt_deg(keep) < 0.05 and tilt_deg(np.ones(200, bool)) > 1.0
+
+
+@pytest.mark.parametrize(("sideways", "kept"), [(False, True), (True, False)])
+def test_the_drive_prior_holds_a_wheeled_robot_only(sideways: bool, kept: bool) -> None:
+    """A robot weaving along (the camera 8 cm ahead of its turning centre): the smoother keeps
+    the wheeled-drive prior with the mount fitted on the history (lever arm 8 cm); a camera
+    that slides sideways as it goes (a mecanum base) strains it: dropped."""
+    tf = np.arange(150 * 30) / 900.0  # the base integrated at 900 Hz, the camera at 30
+    yaw_f = 0.6 * tf - 0.8 * np.cos(1.5 * tf)  # a weave: a steady arc cannot tell the lever
+    mid = 0.5 * (yaw_f[1:] + yaw_f[:-1])  # arm from the mount's yaw
+    step = 0.5 / 900.0 * np.stack([np.cos(mid), np.sin(mid)], axis=1)  # 0.5 m/s
+    base_f = np.concatenate([np.zeros((1, 2)), np.cumsum(step, axis=0)])
+    t, yaw, base = tf[::30], yaw_f[::30], base_f[::30]
+    fwd = np.stack([np.cos(yaw), np.sin(yaw)], axis=1)
+    xy = base + 0.08 * fwd
+    if sideways:
+        xy = xy + 0.3 * np.stack([-np.sin(yaw), np.cos(yaw)], axis=1) * np.sin(3 * t)[:, None]
+    C = _level_cameras(xy, yaw)
+    sm = Smoother(np.eye(4)[None], np.array([0.16]), SmootherSettings())
+    for k in range(len(t)):
+        sm._note(int(t[k] * 1e9), C[k, :3, :3], C[k, :3, 3])
+    assert sm.plane is not None
+    assert (sm.mount is not None) == kept
+    if kept:
+        assert sm.mount is not None and sm.mount.lever_m == pytest.approx(0.08, abs=1e-3)
