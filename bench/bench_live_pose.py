@@ -63,18 +63,19 @@ NOTES = [
     "prior takes the velocity in the camera's own frame (geometry/joint/motion.py, "
     "frame='camera'): a steady arc costs nothing there, where the offline world-frame form "
     "pulls the newest frame towards the straight extrapolation. Once the camera has travelled "
-    "1 m it holds the ground plane (fitted to the history, outlier poses left out) and the "
-    "wheeled-drive prior (the mount fitted on it; dropped where the history strains it). "
-    "Before (2026-12-03: world-frame motion, plane fitted to every pose, no drive): circle "
-    "detections 3.42 mm, 2.81x; corridor 11.58 mm, 2.18x, heading std 0.246 deg; rendered "
-    "circle 5.22 mm, 2.61x. On the rendered circle (150 frames, twice the speed) live is now "
-    "better than the offline solve, whose world-frame prior has the chord bias from both "
-    "sides (2.0 mm; each frame on its own 0.73 mm). With 0.3 px corner noise live stays "
-    "1.6-1.8x the offline error: a filter's estimate of the newest frame against a smoother's "
-    "with frames on both sides (the issue's 1.2x is met on the rendered recording only). "
-    "Offline keeps the world frame: with the camera frame, a stretch without tags and 1 s of "
-    "wheel slip bent 26 cm (against 4.3). The wheel-odometry prior is not in the window yet: "
-    "held at its nominal unknowns it made these cases worse (circle 2.20 -> 2.66 mm).",
+    "1 m it holds the ground plane (fitted to the history, outlier poses left out), the "
+    "wheeled-drive prior (the mount fitted on it; dropped where the history strains it) and "
+    "the wheel odometry (its unknowns held: scale and turn scale from the history, no offset "
+    "or drift). Before (2026-12-03: world-frame motion, plane fitted to every pose, no drive, "
+    "no odometry): circle detections 3.42 mm, 2.81x; corridor 11.58 mm, 2.18x, heading std "
+    "0.246 deg; rendered circle 5.22 mm, 2.61x. On the rendered circle (150 frames, twice the "
+    "speed) live is better than the offline solve, whose world-frame prior has the chord bias "
+    "from both sides (2.0 mm; each frame on its own 0.73 mm); there the odometry costs a "
+    "little (fast turns, where the LIMO model's wheels slip). With 0.3 px corner "
+    "noise and a tag or two in view (corridor) the odometry brings live to 1.2x the offline "
+    "error; on the circle it stays 1.8x: a filter's estimate of the newest frame against a "
+    "smoother's with frames on both sides. Offline keeps the world frame: with the camera "
+    "frame, a stretch without tags and 1 s of wheel slip bent 26 cm (against 4.3).",
 ]
 
 
@@ -97,20 +98,27 @@ def _case(rec: Path) -> dict[str, Any]:
         if image
         else ["/camera_info", "/detections"]
     )
-    m = bag_messages(rec, topics)
+    m = bag_messages(rec, [*topics, "/odom"])  # the simulator's wheel odometry
     loc = Localizer(tags)
-    live = LivePoses(
-        Smoother(loc.world_T_tag, loc.size_m, SmootherSettings()),
-        DeadReckoning(),
-        "tag_only_pose",
-        "localize",
-        "map",
-    )
-    got: dict[str, list[Any]] = {"frame": [], "live": []}
+
+    def smoother() -> LivePoses:
+        return LivePoses(
+            Smoother(loc.world_T_tag, loc.size_m, SmootherSettings()),
+            DeadReckoning(),
+            "tag_only_pose",
+            "localize",
+            "map",
+        )
+
+    live, blind = smoother(), smoother()  # with the odometry (--odom-key), without
+    got: dict[str, list[Any]] = {"frame": [], "live": [], "no_odom": []}
     obs, cpu = [], []
     for k, p in zip(m.keys, m.payloads, strict=True):
         if k.endswith("camera_info"):
             loc.on_camera_info(p)
+            continue
+        if k.endswith("odom"):
+            live.on_odometry(p)
             continue
         loc.live = None
         try:
@@ -128,6 +136,8 @@ def _case(rec: Path) -> dict[str, Any]:
         cpu.append(time.thread_time() - t0)
         got["frame"].append(single[0][1])
         got["live"].append(dict(out)["tag_only_pose"])
+        no = blind.on_frame(t_ns, own, loc._last_obs, loc.camera)
+        got["no_odom"].append(dict(no)["tag_only_pose"])
     frame_idx = np.concatenate([[i] * len(o[1]) for i, o in enumerate(obs)])
     t_all = np.concatenate([[o[0]] * len(o[1]) for o in obs])
     tag = np.concatenate([o[1] for o in obs])
@@ -190,23 +200,27 @@ def main() -> None:
         "",
         f"{dt.date.today()}, load {os.getloadavg()[0]:.1f} on {os.cpu_count()} cores. "
         "`stream localize`'s handlers on every frame of a simulated recording: each frame on "
-        "its own (`frame`), `--smooth` (the fixed-lag smoother, 2 s / 60 frames, 2 "
-        "iterations; `live`) and the offline joint solve of the same corners against the same "
-        "fixed map (`offline`). Error = camera position vs ground truth; heading = the optical "
+        "its own (`frame`), `--smooth --odom-key odom` (the fixed-lag smoother, 2 s / 60 "
+        "frames, 2 iterations, with the recording's wheel odometry; `live`), the same without "
+        "the odometry (`no odom`) and the offline joint solve of the same corners against the "
+        "same fixed map (`offline`, no odometry). Error = camera position vs ground truth; "
+        "heading = the optical "
         "axis in the floor plane, its error's standard deviation (on the corridor: a straight "
         "drive, phi's spread there). CPU = the smoother's thread time per frame (the per-frame "
-        "pose comes on top, ~2.5 ms).",
+        "pose comes on top, ~1.8 ms).",
         "",
-        "| case | frames | frame RMS / max mm | live RMS / max mm | offline RMS / max mm | "
+        "| case | frames | frame RMS / max mm | live RMS / max mm | no odom RMS / max mm | "
+        "offline RMS / max mm | "
         "live / offline | heading std deg frame / live / offline | live CPU ms p50 / p99 | "
         "load |",
-        "|---|---|---|---|---|---|---|---|---|",
+        "|---|---|---|---|---|---|---|---|---|---|",
     ]
     for r in rows:
-        f, li, o = r["frame"], r["live"], r["offline"]
+        f, li, no, o = r["frame"], r["live"], r["no_odom"], r["offline"]
         lines.append(
             f"| {r['case']} | {r['frames']} | {f['rms_mm']:.2f} / {f['max_mm']:.1f} | "
-            f"{li['rms_mm']:.2f} / {li['max_mm']:.1f} | {o['rms_mm']:.2f} / {o['max_mm']:.1f} | "
+            f"{li['rms_mm']:.2f} / {li['max_mm']:.1f} | {no['rms_mm']:.2f} / {no['max_mm']:.1f} | "
+            f"{o['rms_mm']:.2f} / {o['max_mm']:.1f} | "
             f"{r['live_over_offline']:.2f} | {f['heading_std_deg']:.3f} / "
             f"{li['heading_std_deg']:.3f} / {o['heading_std_deg']:.3f} | "
             f"{r['live_cpu_ms_p50']:.1f} / {r['live_cpu_ms_p99']:.1f} | {r['load']:.1f} |"

@@ -7,9 +7,10 @@ solve overruns ``budget_ms``) with their tag corners and re-solves them per new 
 offline model's weights and loss, the constant-velocity motion prior (its velocity in the
 camera's own frame: a steady arc costs nothing) and, once the camera has travelled far enough to
 tell its plane, the ground-plane prior with that plane held fixed (fitted to the smoothed
-history, its outlier poses left out) and the wheeled-drive prior with the camera's mount held
+history, its outlier poses left out), the wheeled-drive prior with the camera's mount held
 fixed (fitted on that plane; its lever arm only once the history has turned ``MIN_TURN_RAD``;
-kept while the history's steps leave it unstrained, as ``drive: auto`` offline) — warm
+kept while the history's steps leave it unstrained, as ``drive: auto`` offline) and, with
+odometry, the wheel-odometry prior with its unknowns held (:class:`LiveOdometry`) — warm
 started from the last solution (the new frame from its own pose, or from the motion's
 extrapolation when its own disagrees: an IPPE flip), at most ``max_iter`` iterations. The
 answer is the newest frame's pose and its covariance (the smoother's filtered estimate).
@@ -50,10 +51,12 @@ from tagtrail.geometry.joint.ground import (
     fit_plane,
 )
 from tagtrail.geometry.joint.motion import MotionPrior
+from tagtrail.geometry.joint.odometry import Odometry, OdometryPrior, OdometryState, covered_steps
 from tagtrail.geometry.joint.problem import CornerObservations, Corners, Terms, corner_sigma
 from tagtrail.geometry.joint.settings import (
     CORNER_F_SCALE_PX,
     CORNER_LOSS,
+    ODOMETRY_SIGMA_M,
     JointSettings,
 )
 from tagtrail.geometry.joint.setup import DRIVE, GROUND
@@ -150,10 +153,8 @@ class _Frame:
 
 PriorOf = Callable[[F64, list[int]], Any]
 """A further prior of the window: ``(t_s (F,), t_ns)`` of its frames -> a
-:class:`~tagtrail.geometry.joint.Prior` (or None). The seam for the wheel-odometry prior
-(``geometry/joint/odometry.py``), not wired yet: held with its unknowns at their nominal values
-(scale 1, the latency taken off) it made live poses worse (bench_live_pose: 2.20 -> 2.66 mm on
-the circle), and a few seconds of history cannot solve them."""
+:class:`~tagtrail.geometry.joint.Prior` (or None): :class:`LiveOdometry` (which
+:class:`LivePoses` adds), or a student's own."""
 
 
 class Smoother:
@@ -409,6 +410,118 @@ class DeadReckoning:
         return out
 
 
+@dataclass(frozen=True)
+class FixedOdometry:
+    """The wheel-odometry prior with its unknowns (mount, time offset, scales, drift) held
+    fixed: the odometry's motion of the base between the window's frames."""
+
+    prior: OdometryPrior
+
+    name = "odometry_fixed"
+    n_params = 0
+    start = None
+    uses: tuple[str, ...] = ()
+
+    def terms(self, R_cam: F64, t_cam: F64, values: Any) -> Terms:
+        pr, st, j = self.prior, self.prior.start, self.prior.j
+        u, meas = pr.plane.u, pr.measured(st.offset_s)
+        Ra, ta, Rb, tb = R_cam[j], t_cam[j], R_cam[j + 1], t_cam[j + 1]
+        q = pr.raw(Ra, ta, Rb, tb, u, st, meas)
+        val, w = pr.weights(q)
+        sw = np.sqrt(w)
+        Jc = pr.camera_jacobians(Ra, ta, Rb, tb, u, st, meas)
+        return Terms(
+            float(val.sum()),
+            q * sw[:, None],
+            self.prior.j,
+            Jc * sw[:, None, None, None],
+            None,
+            3 * len(self.prior.j),
+        )
+
+    def update(self, value: Any, step: F64, values: Any) -> Any:
+        return None
+
+
+class LiveOdometry:
+    """The offline odometry prior (:mod:`tagtrail.geometry.joint.odometry`) in the smoother's
+    window (a :data:`PriorOf`), its unknowns held: the time offset 0 (:class:`DeadReckoning`
+    takes the latency off the stamps), no drift, the wheel scale and turn scale read against
+    the smoothed history (medians of the steps' ratios, refreshed every ``REFRESH`` frames,
+    within ``SCALE_BOUNDS``), through the camera's mount (the drive prior's, fitted on the
+    history's plane; else the camera looking along the floor ``camera_forward_m`` ahead of
+    the base). Seconds of live history cannot solve the offline prior's seven unknowns (a
+    steady arc cannot tell a turn's scale from a drift, a straight drive the lever arm); held,
+    the tags correct what the odometry gets wrong, and its robust loss drops slip."""
+
+    REFRESH = 30
+    SCALE_BOUNDS = (0.8, 1.25)
+
+    def __init__(self, smoother: Smoother, dead: DeadReckoning) -> None:
+        self.smoother, self.dead = smoother, dead
+        self.scales = (1.0, 1.0)
+        self._at = -self.REFRESH
+
+    def _odometry(self, t0_ns: int) -> Odometry | None:
+        """The odometry received, its times (s) from ``t0_ns``; None before 2 messages."""
+        o = self.dead.odo
+        if len(o) < 2:
+            return None
+        a = np.array(o, np.float64)
+        t = ((np.array([s[0] for s in o], np.int64) - t0_ns) * 1e-9).astype(np.float64)
+        return Odometry(t, a[:, 1], a[:, 2], np.unwrap(a[:, 3]))
+
+    def _refresh(self) -> None:
+        sm = self.smoother
+        if sm._seen - self._at < self.REFRESH or len(sm.history) < 30 or sm.plane is None:
+            return
+        self._at = sm._seen
+        Rs = np.stack([h[0] for h in sm.history])
+        ts = np.stack([h[1] for h in sm.history])
+        t_ns = (np.asarray(sm.t_hist) * 1e9).astype(np.int64)
+        odo = self._odometry(int(t_ns[0]))
+        if odo is None:
+            return
+        t = (t_ns - t_ns[0]) * 1e-9
+        ok = odo.covers(t[:-1]) & odo.covers(t[1:]) & (np.diff(t) <= sm.s.joint.max_gap_s)
+        o = odo.relative(t[:-1][ok], t[1:][ok])
+        c = -np.einsum("fji,fj->fi", Rs, ts)
+        d = np.linalg.norm(np.diff(c, axis=0)[ok], axis=1)
+        E = Rs[:-1][ok] @ np.swapaxes(Rs[1:][ok], 1, 2)
+        yaw = np.einsum("pi,pi->p", log_so3(E), Rs[:-1][ok] @ sm.plane.n)
+        lo, hi = self.SCALE_BOUNDS
+        moved, turned = d > 2e-3, np.abs(yaw) > 2e-3
+        scale = (
+            float(np.median(np.hypot(o[moved, 0], o[moved, 1]) / d[moved]))
+            if moved.sum() >= 20
+            else 1.0
+        )
+        turn = float(np.median(o[turned, 2] / yaw[turned])) if turned.sum() >= 20 else 1.0
+        self.scales = (
+            scale if lo <= scale <= hi else 1.0,
+            turn if lo <= turn <= hi else 1.0,
+        )
+
+    def __call__(self, t_s: F64, t_ns: list[int]) -> FixedOdometry | None:
+        sm = self.smoother
+        if sm.plane is None:
+            return None
+        odo = self._odometry(t_ns[0])
+        if odo is None:
+            return None
+        j = covered_steps(t_s, odo, sm.s.joint.max_gap_s, 0.0)
+        if not len(j):
+            return None
+        self._refresh()
+        mount = sm.mount
+        if mount is None:
+            u = sm.plane.u / np.linalg.norm(sm.plane.u)
+            fwd = np.array([0.0, 0.0, 1.0]) - u[2] * u  # the optical axis along the floor
+            mount = Mount(fwd / np.linalg.norm(fwd), self.dead.camera_forward_m)
+        state = OdometryState(mount, scale=self.scales[0], yaw_scale=self.scales[1])
+        return FixedOdometry(OdometryPrior(odo, t_s, j, ODOMETRY_SIGMA_M, state, sm.plane))
+
+
 class LivePoses:
     """The localize node's outputs with continuity (module docstring): per camera frame the
     smoothed pose; per odometry message after a fix the dead-reckoned one. Each as
@@ -425,6 +538,7 @@ class LivePoses:
         frame_id: str,
     ) -> None:
         self.smoother, self.dead = smoother, dead
+        smoother.extra = (*smoother.extra, LiveOdometry(smoother, dead))
         self.pose_key = pose_key
         self.cov_key = f"{prefix}/pose_with_covariance"
         self.age_key = f"{prefix}/fix_age_s"
