@@ -86,7 +86,8 @@ def main() -> None:
             "detects the tags, re-fits their corners by the gradient alone (--refit-corners "
             "edges: the intensity-profile model would add ~3 ms a tag) and skips frames that "
             "arrive while it is busy. Issue 28's targets: images p99 <= 33 ms and detections "
-            "p99 <= 5 ms, met per frame; the smoother adds ~8 ms (its window's solve), so "
+            "p99 <= 5 ms, met per frame; the smoother adds ~10 ms (its window's solve with the "
+            "ground, drive and odometry priors), so "
             "detections --smooth stays above 5 ms. The 2 s blackout's p99 without --smooth is "
             "the first frames after it (the follower stopped; relocalize re-acquires).",
             "",
