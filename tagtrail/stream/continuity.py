@@ -51,7 +51,13 @@ from tagtrail.geometry.joint.ground import (
     fit_plane,
 )
 from tagtrail.geometry.joint.motion import MotionPrior
-from tagtrail.geometry.joint.odometry import Odometry, OdometryPrior, OdometryState, covered_steps
+from tagtrail.geometry.joint.odometry import (
+    MAX_DEAD_RECKONING_S,
+    Odometry,
+    OdometryPrior,
+    OdometryState,
+    covered_steps,
+)
 from tagtrail.geometry.joint.problem import CornerObservations, Corners, Terms, corner_sigma
 from tagtrail.geometry.joint.settings import (
     CORNER_F_SCALE_PX,
@@ -353,7 +359,7 @@ class DeadReckoning:
 
     latency_s: float = 0.005
     camera_forward_m: float = 0.0
-    max_age_s: float = 5.0
+    max_age_s: float = MAX_DEAD_RECKONING_S  # the offline bound (10 s from the last tag)
     odo: deque[tuple[int, float, float, float]] = field(default_factory=lambda: deque(maxlen=500))
     fix: tuple[int, F64] | None = None  # (t_ns, world_T_cam)
     up: F64 | None = None  # the plane's normal pointing up (world)
