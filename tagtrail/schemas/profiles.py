@@ -19,6 +19,7 @@ IMAGE = "sensor_msgs/msg/Image"
 COMPRESSED_IMAGE = "sensor_msgs/msg/CompressedImage"
 CAMERA_INFO = "sensor_msgs/msg/CameraInfo"
 DETECTIONS = "apriltag_msgs/msg/AprilTagDetectionArray"
+ODOMETRY = "nav_msgs/msg/Odometry"
 
 
 class LiveKeys(BaseModel):
@@ -30,10 +31,12 @@ class LiveKeys(BaseModel):
     image_key: str | None = None  # set: detect tags in images on this key
     image_type: str = "compressed"
     pose_key: str = "tag_only_pose"
+    odom_key: str | None = None  # the base's odometry for `stream localize --smooth`
 
 
 class Profile(BaseModel):
-    """One profile (module docstring); ``record`` = ``(topic, ROS type)`` pairs."""
+    """One profile (module docstring); ``record`` = ``(topic, ROS type)`` pairs, of which the
+    ``optional`` topics (the wheel odometry) are recorded and replayed when present."""
 
     model_config = ConfigDict(extra="forbid", frozen=True)
     name: str
@@ -41,6 +44,7 @@ class Profile(BaseModel):
     topics: dict[str, str]
     record: tuple[tuple[str, str], ...]
     stages: dict[str, dict[str, Any]]
+    optional: tuple[str, ...] = ()
     live: LiveKeys
 
 
@@ -56,23 +60,36 @@ PROFILES: dict[str, Profile] = {
         Profile(
             name="limo",
             description="the real LIMO, the original workflow: apriltag_ros on the robot publishes "
-            "/detections with /camera_info",
+            "/detections with /camera_info (and its wheel odometry /odom)",
             topics={"detections": "/detections", "camera_info": "/camera_info"},
-            record=(("/detections", DETECTIONS), ("/camera_info", CAMERA_INFO)),
+            record=(
+                ("/detections", DETECTIONS),
+                ("/camera_info", CAMERA_INFO),
+                ("/odom", ODOMETRY),
+            ),
+            optional=("/odom",),
             stages=_LIMO_STAGES,
-            live=LiveKeys(detections_key="detections", camera_info_key="camera_info"),
+            live=LiveKeys(
+                detections_key="detections", camera_info_key="camera_info", odom_key="odom"
+            ),
         ),
         Profile(
             name="limo-images",
             description="the real LIMO's camera driver: raw 640x480 images on "
             "/camera/color/image_raw with /camera/color/camera_info (tags detected by tagtrail)",
             topics={"image": "/camera/color/image_raw", "camera_info": "/camera/color/camera_info"},
-            record=(("/camera/color/image_raw", IMAGE), ("/camera/color/camera_info", CAMERA_INFO)),
+            record=(
+                ("/camera/color/image_raw", IMAGE),
+                ("/camera/color/camera_info", CAMERA_INFO),
+                ("/odom", ODOMETRY),
+            ),
+            optional=("/odom",),
             stages=_LIMO_STAGES,
             live=LiveKeys(
                 image_key="camera/color/image_raw",
                 image_type="raw",
                 camera_info_key="camera/color/camera_info",
+                odom_key="odom",
             ),
         ),
         Profile(

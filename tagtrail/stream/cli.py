@@ -373,8 +373,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> argparse.ArgumentParser:
         "--odom-key",
         default=None,
         metavar="KEY",
-        help="with --smooth: nav_msgs/Odometry of the base (e.g. odom); between frames and "
-        "without tags, the last fix dead-reckoned at its rate (default: none)",
+        help="with --smooth: nav_msgs/Odometry of the base (e.g. odom): a prior of the "
+        "smoother's window and, between frames and without tags, the last fix dead-reckoned "
+        "at its rate (default: the profile's, limo: odom; else none)",
     )
     g.add_argument(
         "--odom-latency",
@@ -628,6 +629,7 @@ _BUILTIN_KEYS = {
     "camera_info_key": "camera_info",
     "image_key": None,
     "image_type": "compressed",
+    "odom_key": None,
 }
 
 
@@ -646,6 +648,7 @@ def with_profile(ns: argparse.Namespace) -> argparse.Namespace:
         src = Path(out.source)
         if src.suffix in (".mcap", ".db3", ".bag") or (src / "metadata.yaml").is_file():
             out.topics = [t for t, _ in profile.record]
+            out.optional_topics = list(profile.optional)
     return out
 
 
@@ -720,7 +723,7 @@ def _replay(ns: argparse.Namespace) -> int:
     from tagtrail.stream.session import close_all, leave_now, stop_on_signals
 
     if ns.topics:
-        messages = bag_messages(ns.source, ns.topics)
+        messages = bag_messages(ns.source, ns.topics, getattr(ns, "optional_topics", ()))
     else:
         messages = pose_messages(load_poses(ns.source, ns.topic, ns.frame_id), ns.key)
     session = open_session(config_from_args(ns, "connect"))

@@ -46,10 +46,12 @@ SKIP_TOPICS = {"/rosout", "/parameter_events"}
 
 @dataclass(frozen=True)
 class TopicSpec:
-    """A topic to record: ROS ``topic`` (``/…``), its ROS 2 ``msgtype``, zenoh ``key``."""
+    """A topic to record: ROS ``topic`` (``/…``), its ROS 2 ``msgtype``, zenoh ``key``;
+    ``optional``: recorded when it comes, never waited for (a profile's wheel odometry)."""
 
     topic: str
     msgtype: str
+    optional: bool = False
 
     @property
     def key(self) -> str:
@@ -146,7 +148,8 @@ def resolve_topics(
     for name, typ in specs.items():
         if name in bridge and bridge[name] != typ:
             raise SpecError(f"{name}: the bridge publishes it as {bridge[name]}, not {typ}")
-    return [TopicSpec(n, t) for n, t in specs.items()]
+    optional = set(profile.optional) if profile and not given else set()
+    return [TopicSpec(n, t, n in optional) for n, t in specs.items()]
 
 
 def parse_size(text: str) -> int:
@@ -350,7 +353,7 @@ class Recorder:
                 if duration_s is not None and now - t0 >= duration_s:
                     self.reason = f"--duration {duration_s:g} s"
                     break
-                silent = [t for t in self.topics.values() if t.count == 0]
+                silent = [t for t in self.topics.values() if t.count == 0 and not t.spec.optional]
                 if self.wait_s > 0 and now - t0 >= self.wait_s and silent and not self._queue:
                     self.failure = SourceError(
                         f"no message on {', '.join(t.spec.key for t in silent)} after "

@@ -23,6 +23,7 @@ from __future__ import annotations
 import logging
 import threading
 import time
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -161,13 +162,14 @@ def pose_messages(poses: Poses, key: str) -> Messages:
     return Messages(poses.t_ns, [key] * len(out), out, {key: msgs.POSE_STAMPED})
 
 
-def bag_messages(source: Path, topics: list[str]) -> Messages:
-    """The messages of ``topics`` in a bag, unchanged CDR, keyed by topic without ``/``."""
+def bag_messages(source: Path, topics: list[str], optional: Sequence[str] = ()) -> Messages:
+    """The messages of ``topics`` in a bag, unchanged CDR, keyed by topic without ``/``
+    (``optional`` ones only when the bag has them)."""
     bag = bag_path(source)
     reader = open_bag(bag)
     try:
         have = {c.topic for c in reader.connections}
-        missing = [t for t in topics if t not in have]
+        missing = [t for t in topics if t not in have and t not in optional]
         if missing:
             raise SourceError(
                 f"{bag}: no topic {', '.join(missing)} (topics: "

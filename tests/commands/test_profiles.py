@@ -170,3 +170,20 @@ def test_live_nodes_take_the_profile(tmp_path: Path, monkeypatch: pytest.MonkeyP
     assert ns.pose_key == "tag_only_pose"
     with pytest.raises(Exception, match="unknown profile"):
         get_profile("limo2")
+
+
+def test_limo_profiles_record_the_wheel_odometry_when_there_is_some() -> None:
+    """The LIMO publishes /odom: its profiles record it (the odometry prior's input) and
+    `stream localize --smooth --profile limo` subscribes to it; replay takes it when a bag has
+    it (optional: bags of the original workflow have none)."""
+    from tagtrail.stream import cli
+
+    for name in ("limo", "limo-images"):
+        p = PROFILES[name]
+        assert ("/odom", "nav_msgs/msg/Odometry") in p.record and p.optional == ("/odom",)
+        ns = cli.with_profile(
+            cli.build_parser().parse_args(["localize", "--map", "m.yaml", "--profile", name])
+        )
+        assert ns.odom_key == "odom"
+    ns = cli.with_profile(cli.build_parser().parse_args(["localize", "--map", "m.yaml"]))
+    assert ns.odom_key is None

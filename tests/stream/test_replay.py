@@ -49,6 +49,9 @@ def test_bag_pose_topic_and_raw_topics(bag: Path) -> None:
     assert all(p[:4] == codec.CDR_LE for p in raw.payloads)
     with pytest.raises(SourceError, match="/nope"):
         bag_messages(bag, ["/nope"])
+    # a profile's optional topics (the LIMO's /odom) are replayed when the bag has them
+    some = bag_messages(bag, ["/detections", "/odom", "/wheel/odom"], ["/odom", "/wheel/odom"])
+    assert set(some.keys) == {"detections", "odom"}
     with pytest.raises(SourceError, match="not a pose topic"):
         load_poses(bag, topic="/detections")
 
