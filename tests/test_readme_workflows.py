@@ -81,8 +81,11 @@ def test_real_robot_workflow(tmp_path: Path) -> None:
         out = run_script(script.replace(ROBOT, here), project)
     finally:
         bridge.close()  # type: ignore[no-untyped-call]
-    assert re.search(r"record: interrupted: 1828 messages .* dropped 0", out), out[-4000:]
+    # the robot's detections and camera_info, and its wheel odometry (the profile's optional)
+    n = 1828 + metadata_count(robot["reference"], "/odom")
+    assert re.search(rf"record: interrupted: {n} messages .* dropped 0", out), out[-4000:]
     assert metadata_count(project / "bags" / "reference", "/detections") == 914
+    assert metadata_count(project / "bags" / "reference", "/odom") == n - 1828 > 0
     check_outputs(project)
     d = [s["distance_m"] for s in states(out)]
     assert max(d) - min(d) < 0.05 and max(d) < 2.0  # parked: one pose, near the path

@@ -743,6 +743,7 @@ def _replay(ns: argparse.Namespace) -> int:
                 express=ns.express,
                 stop=stop,
                 wire=wire,
+                optional=[t.lstrip("/") for t in getattr(ns, "optional_topics", ())],
             )
     finally:
         if wire is not None:

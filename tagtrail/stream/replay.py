@@ -246,11 +246,13 @@ def replay(
     express: bool = False,
     stop: threading.Event | None = None,
     wire: Any = None,
+    optional: Sequence[str] = (),
 ) -> Replayed:
     """Publish ``messages`` at ``rate`` (see :func:`schedule_s`).
 
-    First waits up to ``wait_s`` for a subscriber on every key; raises :class:`NoSubscriber`
-    if a key has none then, unless ``publish_anyway`` (a warning, and publishing goes on).
+    First waits up to ``wait_s`` for a subscriber on every key but the ``optional`` ones (a
+    profile's wheel odometry, which only some nodes take); raises :class:`NoSubscriber` if a
+    key has none then, unless ``publish_anyway`` (a warning, and publishing goes on).
     Puts run on a worker thread, so that ``stop`` (SIGINT/SIGTERM) ends the replay within a
     bounded time even while a put is blocked by a congested subscriber. ``wire``: the
     :class:`~tagtrail.stream.wire.Wire` to publish on (default: the bridge's).
@@ -294,7 +296,8 @@ def replay(
         alone = [
             k
             for k, pub in pubs.items()
-            if not wait_matching(pub, max(deadline - time.monotonic(), 0.0), stop)
+            if k not in optional
+            and not wait_matching(pub, max(deadline - time.monotonic(), 0.0), stop)
         ]
         if stop.is_set():
             return Replayed(0)
