@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import errno
+import os
 import sys
 from typing import TextIO
 
@@ -70,8 +71,10 @@ def storage_error(err: OSError, what: str = "") -> StorageError | None:
     if err.errno not in STORAGE_ERRNOS:
         return None
     where = f"{what}: " if what else ""
+    # the system's words for the errno: pyarrow's OSError says "[errno 28] No space left on
+    # device", Python's "No space left on device"
     return StorageError(
-        f"{where}cannot write {err.filename or 'a file'}: {err.strerror} "
+        f"{where}cannot write {err.filename or 'a file'}: {os.strerror(err.errno)} "
         "(free space or make the folder writable, then rerun; nothing partial "
         "was kept)"
     )

@@ -140,3 +140,17 @@ def test_full_disk_fails_in_one_line_and_keeps_nothing_partial(tmp_path, data, g
         recover_and_compare(project, good)
     finally:
         subprocess.run(["umount", "-l", str(mnt)], capture_output=True)
+
+
+def test_a_refused_write_says_it_in_the_systems_words() -> None:
+    """pyarrow's OSError on a full disk reads "[errno 28] No space left on device": the one
+    line says what Python's own does, whichever library hit the full disk (the full-disk test
+    above matches it, wherever the disk fills)."""
+    import errno
+
+    from tagtrail.errors import storage_error
+
+    for strerror in ("[errno 28] No space left on device", "No space left on device"):
+        err = storage_error(OSError(errno.ENOSPC, strerror, "/data/p/a.parquet"), "pnp [ref]")
+        assert err is not None
+        assert str(err).startswith("pnp [ref]: cannot write /data/p/a.parquet: No space left")
