@@ -54,6 +54,7 @@ CASES = [  # name, scenario, options
     ("circle, detections 0.3 px", "circle", {"frames": 300, "detections": True}),
     ("corridor (straight), detections 0.3 px", "corridor", {"frames": 300, "detections": True}),
     ("circle, rendered images", "circle", {"frames": 150, "compressed": True}),
+    ("corridor (straight), rendered images", "corridor", {"frames": 300, "compressed": True}),
 ]
 
 
@@ -73,8 +74,12 @@ NOTES = [
     "from both sides (2.0 mm; each frame on its own 0.73 mm); there the odometry costs a "
     "little (fast turns, where the LIMO model's wheels slip). With 0.3 px corner "
     "noise and a tag or two in view (corridor) the odometry brings live to 1.2x the offline "
-    "error; on the circle it stays 1.8x: a filter's estimate of the newest frame against a "
-    "smoother's with frames on both sides. Offline keeps the world frame: with the camera "
+    "error; on the circle it stays 1.8x, and on the rendered corridor (far tags, 1.2 m/s) 1.5x, "
+    "mostly sideways (live / offline mm RMS: along 0.89 / 0.69, lateral 1.65 / 0.96, height "
+    "0.64 / 0.55): a filter's estimate of the newest frame against a smoother's with frames on "
+    "both sides. Issue 28's 1.2x holds on the rendered circle, not on the rendered corridor. "
+    "The window's time budget makes these figures depend on the load (detections corridor "
+    "8.1 mm with a test run beside it). Offline keeps the world frame: with the camera "
     "frame, a stretch without tags and 1 s of wheel slip bent 26 cm (against 4.3).",
 ]
 
