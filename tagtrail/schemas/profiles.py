@@ -32,6 +32,7 @@ class LiveKeys(BaseModel):
     image_type: str = "compressed"
     pose_key: str = "tag_only_pose"
     odom_key: str | None = None  # the base's odometry for `stream localize --smooth`
+    camera_forward_m: float | None = None  # the camera ahead of the turning centre (m)
 
 
 class Profile(BaseModel):
@@ -53,6 +54,7 @@ class Profile(BaseModel):
 # give `init --tag-size`). The `sim` profile carries the simulator's size (SimOptions), which
 # `tagtrail simulate` documents and renders.
 _LIMO_STAGES: dict[str, dict[str, Any]] = {"report": {"plane": "xz"}}
+LIMO_CAMERA_FORWARD_M = 0.084  # the camera ahead of the base's centre (NOTES "The LIMO")
 
 PROFILES: dict[str, Profile] = {
     p.name: p
@@ -70,7 +72,10 @@ PROFILES: dict[str, Profile] = {
             optional=("/odom",),
             stages=_LIMO_STAGES,
             live=LiveKeys(
-                detections_key="detections", camera_info_key="camera_info", odom_key="odom"
+                detections_key="detections",
+                camera_info_key="camera_info",
+                odom_key="odom",
+                camera_forward_m=LIMO_CAMERA_FORWARD_M,
             ),
         ),
         Profile(
@@ -90,6 +95,7 @@ PROFILES: dict[str, Profile] = {
                 image_type="raw",
                 camera_info_key="camera/color/camera_info",
                 odom_key="odom",
+                camera_forward_m=LIMO_CAMERA_FORWARD_M,
             ),
         ),
         Profile(

@@ -386,10 +386,13 @@ def add_arguments(parser: argparse.ArgumentParser) -> argparse.ArgumentParser:
     )
     g.add_argument(
         "--camera-forward",
+        dest="camera_forward_m",
         type=NON_NEGATIVE,
-        default=0.0,
+        default=None,
         metavar="M",
-        help="the camera ahead of the base's turning centre (m; LIMO 0.084; default 0)",
+        help="the camera ahead of the base's turning centre (m): the smoother's drive prior "
+        "holds it and the dead reckoning turns about it (default: the profile's, limo: 0.084; "
+        "else fitted once the drive has turned)",
     )
     g.add_argument(
         "--prefix", default="localize", help="prefix of the --smooth outputs (default: %(default)s)"
@@ -630,6 +633,7 @@ _BUILTIN_KEYS = {
     "image_key": None,
     "image_type": "compressed",
     "odom_key": None,
+    "camera_forward_m": None,
 }
 
 
@@ -835,8 +839,12 @@ def _localize(ns: argparse.Namespace) -> int:
         from tagtrail.stream.continuity import DeadReckoning, LivePoses, Smoother, SmootherSettings
 
         live = LivePoses(
-            Smoother(loc.world_T_tag, loc.size_m, SmootherSettings(window_s=ns.window)),
-            DeadReckoning(latency_s=ns.odom_latency, camera_forward_m=ns.camera_forward),
+            Smoother(
+                loc.world_T_tag,
+                loc.size_m,
+                SmootherSettings(window_s=ns.window, lever_m=ns.camera_forward_m),
+            ),
+            DeadReckoning(latency_s=ns.odom_latency, camera_forward_m=ns.camera_forward_m or 0.0),
             ns.pose_key,
             ns.prefix,
             ns.frame_id,

@@ -72,6 +72,7 @@ from tagtrail.geometry.se3 import R_from_rotvec, xyz_quat_from_T
 from tagtrail.stream import codec
 from tagtrail.stream.stats import DropError
 
+BUDGET_SOLVES = 5  # the solves (at least 3) whose median time the budget judges
 MIN_TURN_RAD = 0.5  # the yaw the history must have turned before the mount's lever arm is fitted
 
 
@@ -84,11 +85,17 @@ class SmootherSettings:
     window_s: float = 2.0
     max_frames: int = 60
     budget_ms: float = 15.0
-    """A solve that takes longer halves the window's frames (down to 5) for the next ones; one
-    under half of it lets the window grow back by a frame: a loaded machine keeps its rate."""
+    """When the median of the last ``BUDGET_SOLVES`` solves takes longer, the window's frames
+    halve (down to 5) for the next ones; under half of it, the window grows back by a frame: a
+    loaded machine keeps its rate, a lone slow solve does not shrink the window."""
     max_iter: int = 2
     start_gate_m: float = 0.05
     plane_after_m: float = 1.0
+    lever_m: float | None = None
+    """The camera's distance ahead of the base's turning centre when the mount is known
+    (``--camera-forward``, the profile's): the drive prior's lever arm, held from the start;
+    None: fitted to the history once it has turned ``MIN_TURN_RAD`` (0 until then), which a
+    weaving drive along a corridor never does: there the held 0 pulls the camera sideways."""
     joint: JointSettings = field(default_factory=JointSettings)
 
 
@@ -179,6 +186,7 @@ class Smoother:
         self.extra = tuple(extra)
         self.clock = clock
         self.n_max = self.s.max_frames  # the window's frames now (the time budget's)
+        self._took_ms: deque[float] = deque(maxlen=BUDGET_SOLVES)
         self.R_tag = np.ascontiguousarray(world_T_tag[:, :3, :3])
         self.t_tag = np.ascontiguousarray(world_T_tag[:, :3, 3])
         self.pts = tag_corners(np.asarray(size_m, np.float64))
@@ -240,9 +248,11 @@ class Smoother:
             self.frames.popleft()
         t0 = self.clock()
         out = self._solve(camera)
-        took_ms = (self.clock() - t0) * 1e3
-        if took_ms > self.s.budget_ms:
+        self._took_ms.append((self.clock() - t0) * 1e3)
+        took_ms = float(np.median(self._took_ms))  # a lone slow solve (a hiccup) does not count
+        if took_ms > self.s.budget_ms and len(self._took_ms) >= 3:
             self.n_max = max(5, self.n_max // 2)
+            self._took_ms.clear()  # judge the smaller window on its own solves
         elif took_ms < self.s.budget_ms / 2:
             self.n_max = min(self.s.max_frames, self.n_max + 1)
         return out
@@ -330,7 +340,7 @@ class Smoother:
         if js.ground == "none" or js.drive == "free":
             return
         j = steps(t_s, js.max_gap_s)
-        mount = fit_mount(Rs, ts, t_s, j, self.plane, MIN_TURN_RAD)
+        mount = fit_mount(Rs, ts, t_s, j, self.plane, MIN_TURN_RAD, self.s.lever_m)
         q = drive_terms(Rs, ts, t_s, j, self.plane, mount, DRIVE)[0]
         wheeled = js.drive == "wheeled" or strain(q, DRIVE, 1.0) <= WHEELED_BOUND
         self.mount = mount if wheeled else None

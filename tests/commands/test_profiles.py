@@ -153,12 +153,18 @@ def test_live_nodes_take_the_profile(tmp_path: Path, monkeypatch: pytest.MonkeyP
         "detections",
         "cam/info",
     )  # flag wins
+    assert ns.camera_forward_m == 0.084  # the LIMO's camera ahead of its base (the smoother's)
+    ns = stream_cli.with_profile(
+        parse(["localize", "--map", "m", "--profile", "limo", "--camera-forward", "0.1"])
+    )
+    assert ns.camera_forward_m == 0.1
     ns = stream_cli.with_profile(parse(["localize", "--map", "m"]))  # no profile: as before
     assert (ns.detections_key, ns.camera_info_key, ns.image_type) == (
         "detections",
         "camera_info",
         "compressed",
     )
+    assert ns.camera_forward_m is None  # unknown: fitted once the drive has turned
     assert stage_params(["report"], profile="limo")["report"].plane == "xz"
     assert stage_params(["report"])["report"].plane == "auto"
     bag = tmp_path / "bag"

@@ -199,6 +199,37 @@ def test_fit_mount_recovers_the_lever_arm_and_the_camera_yaw() -> None:
     assert np.abs(q).max() * DRIVE.lateral_sigma * np.sqrt(1 / 30) < 2e-5  # 20 um a step
 
 
+def test_a_known_lever_arm_is_held_and_the_yaw_fitted_on_a_steady_arc() -> None:
+    """On a steady arc the lever arm and the camera's yaw are one unknown (both turn the steps
+    by the same angle): fitted together they trade off; with the mount's lever arm given
+    (``lever_m``) it is held and the yaw comes out right, even on a short history."""
+    n = 90  # 3 s of a steady arc (0.3 m/s, radius 0.6 m)
+    k, lever, yaw_deg = 0.5, 0.084, 3.0
+    t = np.arange(n) / 30.0
+    heading = k * t
+    mid = heading - 0.5 * k / 30.0
+    base = np.cumsum(0.3 * _d(mid), axis=0) / 30.0
+    pos = base + lever * _d(heading) + np.array([0.0, 0.17, 0.0])
+    flip = np.diag([1.0, -1.0, -1.0])
+    yaw = heading + np.radians(yaw_deg)
+    floor_R_cam = R_from_rotvec(np.stack([np.zeros(n), yaw, np.zeros(n)], axis=1)) @ flip
+    C = inv(make_T(floor_R_cam, pos))
+    R, tc = C[:, :3, :3], C[:, :3, 3]
+    plane = fit_plane(R, tc, GROUND)
+    j = steps(t, 0.5)
+    u = plane.u / np.linalg.norm(plane.u)
+    z = np.array([0.0, 0.0, 1.0]) - u[2] * u
+
+    def yaw_of(m: Mount) -> float:
+        return float(np.degrees(np.arctan2(np.cross(m.g, z) @ u, m.g @ z)))
+
+    held = fit_mount(R, tc, t, j, plane, 0.5, lever_m=lever)
+    assert held.lever_m == lever
+    assert abs(abs(yaw_of(held)) - yaw_deg) < 0.02
+    free = fit_mount(R, tc, t, j, plane, 0.5)  # the arc turned 1.5 rad: both fitted, traded
+    assert abs(abs(yaw_of(free)) - yaw_deg) > 0.5 or abs(free.lever_m - lever) > 0.01
+
+
 def test_strain_is_the_robust_chi2_per_step_in_the_variance_factor() -> None:
     q = np.array([1.0, -1.0, 0.0, 0.0])
     assert np.isclose(strain(q, DrivePrior(0.01, f_scale=1e9), 0.5), 1.0)  # 0.5 a step, / 0.5

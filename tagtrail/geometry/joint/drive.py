@@ -151,25 +151,37 @@ def robust_weights(q: F64, prior: DrivePrior) -> tuple[F64, F64]:
 
 
 def fit_mount(
-    R_cam: F64, t_cam: F64, t_s: F64, j: I64, plane: Plane, min_turn_rad: float = 0.0
+    R_cam: F64,
+    t_cam: F64,
+    t_s: F64,
+    j: I64,
+    plane: Plane,
+    min_turn_rad: float = 0.0,
+    lever_m: float | None = None,
 ) -> Mount:
     """The mount that fits fixed cameras: the forward axis first the steps' principal direction
     in the camera frame (across the plane's normal; the way most steps go), then the yaw about
     the normal and the lever arm that minimise the lateral steps (weighted by ``1 / h``, as the
     prior weighs them) by Gauss-Newton; the lever arm stays 0 without turns (under
-    ``min_turn_rad`` of yaw in all: noise in the yaw steps alone would set it)."""
+    ``min_turn_rad`` of yaw in all: noise in the yaw steps alone would set it), or is held at
+    ``lever_m`` when the mount is known (then the yaw alone is fitted)."""
+    lever0 = 0.0 if lever_m is None else float(lever_m)
     u = plane.u / max(float(np.linalg.norm(plane.u)), 1e-300)
     fwd = np.cross(u, np.array([1.0, 0.0, 0.0]))  # camera z, when nothing moves
     if not len(j):
-        return Mount(fwd / np.linalg.norm(fwd), 0.0)
+        return Mount(fwd / np.linalg.norm(fwd), lever0)
     x, theta, *_ = _geometry(R_cam, t_cam, j, plane.n)
     xp = x - np.outer(x @ u, u)
     if np.linalg.norm(xp) > 0:
         fwd = np.linalg.eigh(xp.T @ xp)[1][:, -1]
         fwd = -fwd if np.sum(np.sign(xp @ fwd)) < 0 else fwd
-    mount = Mount(fwd / np.linalg.norm(fwd), 0.0)
+    mount = Mount(fwd / np.linalg.norm(fwd), lever0)
     w = 1.0 / (t_s[j + 1] - t_s[j])
-    turns = float(np.sum(w * theta * theta)) > 1e-12 and float(np.abs(theta).sum()) >= min_turn_rad
+    turns = (
+        lever_m is None
+        and float(np.sum(w * theta * theta)) > 1e-12
+        and float(np.abs(theta).sum()) >= min_turn_rad
+    )
     for _ in range(5):  # lateral = s . x - lever theta; d s / d yaw = -g
         s = mount.lateral(plane.u)[0]
         r = x @ s - mount.lever_m * theta
