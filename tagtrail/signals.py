@@ -7,7 +7,9 @@ started with ``&`` by a non-interactive shell) stays ignored.
 
 The handler raises :class:`Interrupted` (a :class:`KeyboardInterrupt`) in the main thread, so
 the command unwinds through its ``finally`` blocks (temporary files removed) up to
-:func:`tagtrail.cli.run_command`, which prints the line. A watchdog thread started by the same
+:func:`tagtrail.cli.run_command`, which prints the line. Where Python would print and drop that
+exception (the signal arrived inside a garbage-collector callback or a finalizer) the signal is
+delivered again a few milliseconds later instead. A watchdog thread started by the same
 signal ends the process :data:`GRACE_S` later whatever the main thread is still doing (a stage
 running in a thread, a Dask cluster closing); a second signal ends it at once. Ending there
 leaves what ``kill -9`` leaves, which every writer tolerates: artifacts and outputs are renamed
@@ -18,6 +20,7 @@ Python's own Ctrl-C (a plain ``KeyboardInterrupt``, still exit 130 and one line)
 
 from __future__ import annotations
 
+import gc
 import os
 import signal
 import sys
@@ -28,6 +31,7 @@ from types import FrameType
 from typing import NoReturn
 
 GRACE_S = 0.5  # unwinding time before the watchdog ends the process
+REDELIVER_S = 0.005  # a signal that came during a GC callback or finalizer: delivered again
 HANDLED = (signal.SIGINT, signal.SIGTERM, signal.SIGHUP)
 
 _lock = threading.RLock()
@@ -113,7 +117,27 @@ def _watchdog(signum: int) -> None:
     leave(signum)
 
 
-def _handler(signum: int, _frame: FrameType | None) -> None:
+def _swallowed(frame: FrameType | None) -> bool:
+    """Whether an exception raised at ``frame`` would be printed and dropped ("Exception
+    ignored in ...") instead of unwinding the command: inside a garbage-collector callback
+    (dask's ``distributed`` registers one) or a finalizer (``__del__``)."""
+    codes = {getattr(getattr(cb, "__func__", cb), "__code__", None) for cb in gc.callbacks}
+    while frame is not None:
+        if frame.f_code in codes or frame.f_code.co_name == "__del__":
+            return True
+        frame = frame.f_back
+    return False
+
+
+def _redeliver(signum: int) -> None:
+    time.sleep(REDELIVER_S)
+    signal.pthread_kill(threading.main_thread().ident or 0, signum)
+
+
+def _handler(signum: int, frame: FrameType | None) -> None:
+    if _swallowed(frame):  # raise once the callback has returned: the signal again, shortly
+        threading.Thread(target=_redeliver, args=(signum,), daemon=True).start()
+        return
     with _lock:
         first = _state["signum"] is None and not _state["finished"]
         if first:

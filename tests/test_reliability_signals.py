@@ -535,3 +535,45 @@ def test_simulate_absurd_sizes_are_one_line(tmp_path, capsys, args) -> None:
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and err[0].startswith(f"error: {args[0]}: "), err
     assert not (tmp_path / "sim").exists()
+
+
+GC_CHILD = """
+import gc, sys, time
+from tagtrail import signals
+
+def slow_callback(phase, info):  # as dask's distributed registers one
+    if phase == "start":
+        print("in-gc", flush=True)
+        end = time.monotonic() + 0.3
+        while time.monotonic() < end:
+            pass
+
+signals.install()
+gc.callbacks.append(slow_callback)
+try:
+    while True:
+        gc.collect()
+except KeyboardInterrupt as err:
+    print("unwound", flush=True)
+    signals.finish(signals.report(err))
+"""
+
+
+def test_a_signal_inside_a_gc_callback_still_unwinds_the_command() -> None:
+    """A signal that lands while the garbage collector runs a callback (where a raised
+    exception is printed as "Exception ignored" and dropped) unwinds the command all the same,
+    its one line and nothing else on stderr."""
+    proc = subprocess.Popen(
+        [sys.executable, "-c", GC_CHILD],
+        env=cli_env(),
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+        preexec_fn=terminal_signals,
+    )
+    assert proc.stdout is not None
+    assert proc.stdout.readline() == "in-gc\n"
+    proc.send_signal(signal.SIGINT)  # inside the callback's 0.3 s
+    out, err = proc.communicate(timeout=30)
+    assert "unwound" in out, (out, err)
+    assert proc.returncode == 130 and err.strip() == "interrupted", err
