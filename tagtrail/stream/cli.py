@@ -838,6 +838,14 @@ def _localize(ns: argparse.Namespace) -> int:
     if ns.smooth:
         from tagtrail.stream.continuity import DeadReckoning, LivePoses, Smoother, SmootherSettings
 
+        if ns.camera_forward_m is None:
+            logging.getLogger("tagtrail.stream").warning(
+                "localize: --smooth without --camera-forward (nor a profile giving it): the "
+                "camera's lever arm is taken as 0 until the robot has turned 0.5 rad and it can "
+                "be fitted; give it (m ahead of the base's turning centre; LIMO 0.084) for "
+                "better poses from the start"
+            )
+
         live = LivePoses(
             Smoother(
                 loc.world_T_tag,

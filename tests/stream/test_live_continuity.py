@@ -241,6 +241,7 @@ def test_node_publishes_per_frame_and_between_frames_with_odometry(tmp_path: Pat
                 p.undeclare()
             sub.close()
         assert node.stop() == 0, node.output
+    assert "without --camera-forward" not in node.output
     states = [json.loads(s) for s in got]
     stamps = [s["stamp_sec"] * 10**9 + s["stamp_nanosec"] for s in states]
     assert stamps == sorted(stamps) and len(set(stamps)) == len(stamps)
@@ -260,6 +261,18 @@ def test_node_publishes_per_frame_and_between_frames_with_odometry(tmp_path: Pat
         G = truth[int(keys_t[np.argmin(np.abs(keys_t - s))])]
         errs.append(float(np.linalg.norm([q.x - G[0, 3], q.y - G[1, 3], q.z - G[2, 3]])))
     assert max(errs) < 0.05, max(errs)
+
+
+def test_smoothing_without_the_mount_says_so(noisy: Path) -> None:
+    """``--smooth`` with neither ``--camera-forward`` nor a profile that gives it: one warning
+    line naming the flag (the lever arm is 0 until the robot has turned enough to fit it)."""
+    args = ["localize", "--map", str(noisy / "ground_truth" / "tag_map.yaml"), "--smooth"]
+    args += ["--listen", loopback(free_port()), "--duration", "30", "--stats-period", "0"]
+    with running(args) as (node,):
+        node.wait_for("localize: ready")
+        assert node.stop() == 0, node.output
+    lines = [ln for ln in node.output.splitlines() if "without --camera-forward" in ln]
+    assert len(lines) == 1, node.output
 
 
 def test_further_priors_join_each_window(noisy: Path) -> None:
