@@ -47,7 +47,7 @@ ECHO_EXAMPLES = """examples:
 def _number(kind: type, low: float, strict: bool = False) -> Callable[[str], Any]:
     """An argparse ``type=``: a finite ``kind`` (int or float) ≥ ``low`` (> ``low`` if
     ``strict``); anything else is one argparse error line (exit 2)."""
-    bound = f"{'>' if strict else '>='} {low:g}"
+    bound = f" {'>' if strict else '>='} {low:g}" if math.isfinite(low) else ""
     what = "an integer" if kind is int else "a number"
     must = "an integer" if kind is int else "a finite number"
 
@@ -57,7 +57,7 @@ def _number(kind: type, low: float, strict: bool = False) -> Callable[[str], Any
         except ValueError:
             raise argparse.ArgumentTypeError(f"{text!r} is not {what}") from None
         if not math.isfinite(value) or value < low or (strict and value == low):
-            raise argparse.ArgumentTypeError(f"must be {must} {bound}, got {text!r}")
+            raise argparse.ArgumentTypeError(f"must be {must}{bound}, got {text!r}")
         return value
 
     return parse
@@ -66,6 +66,7 @@ def _number(kind: type, low: float, strict: bool = False) -> Callable[[str], Any
 NON_NEGATIVE = _number(float, 0.0)  # durations, periods, rates, margins
 COUNT = _number(int, 0)
 POSITIVE = _number(float, 0.0, strict=True)
+FINITE = _number(float, -math.inf)  # offsets that may be negative
 
 
 def tcp_port(text: str) -> int:
@@ -387,10 +388,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> argparse.ArgumentParser:
     g.add_argument(
         "--camera-forward",
         dest="camera_forward_m",
-        type=NON_NEGATIVE,
+        type=FINITE,
         default=None,
         metavar="M",
-        help="the camera ahead of the base's turning centre (m): the smoother's drive prior "
+        help="the camera ahead of the base's turning centre (m; negative: behind it): the "
+        "smoother's drive prior "
         "holds it and the dead reckoning turns about it (default: the profile's, limo: 0.084; "
         "else fitted once the drive has turned)",
     )

@@ -158,6 +158,8 @@ def test_live_nodes_take_the_profile(tmp_path: Path, monkeypatch: pytest.MonkeyP
         parse(["localize", "--map", "m", "--profile", "limo", "--camera-forward", "0.1"])
     )
     assert ns.camera_forward_m == 0.1
+    ns = stream_cli.with_profile(parse(["localize", "--map", "m", "--camera-forward", "-0.05"]))
+    assert ns.camera_forward_m == -0.05  # a camera behind the turning centre
     ns = stream_cli.with_profile(parse(["localize", "--map", "m"]))  # no profile: as before
     assert (ns.detections_key, ns.camera_info_key, ns.image_type) == (
         "detections",

@@ -400,16 +400,17 @@ def test_the_drive_prior_holds_a_wheeled_robot_only(sideways: bool, kept: bool) 
         assert sm.mount is not None and sm.mount.lever_m == pytest.approx(0.08, abs=1e-3)
 
 
-@pytest.mark.parametrize("lever_m", [None, 0.08])
+@pytest.mark.parametrize("lever_m", [None, 0.08, -0.06])
 def test_a_known_mount_holds_the_lever_arm_from_the_start(lever_m: float | None) -> None:
     """A robot weaving gently along a corridor never turns enough to tell the camera's lever
-    arm: fitted, it stays 0; given (``--camera-forward``, the profile's) it is held from the
-    first fit, and the mount's yaw is fitted on it."""
+    arm: fitted, it stays 0; given (``--camera-forward``, the profile's; negative: a camera
+    behind the turning centre) it is held from the first fit, and the mount's yaw is fitted on
+    it."""
     t = np.arange(240) / 30.0
     yaw = 0.03 * np.sin(1.5 * t)  # ~0.15 rad turned in all
     step = 1.2 / 30.0 * np.stack([np.cos(yaw), np.sin(yaw)], axis=1)
     base = np.concatenate([np.zeros((1, 2)), np.cumsum(step[:-1], axis=0)])
-    xy = base + 0.08 * np.stack([np.cos(yaw), np.sin(yaw)], axis=1)
+    xy = base + (lever_m or 0.08) * np.stack([np.cos(yaw), np.sin(yaw)], axis=1)
     C = _level_cameras(xy, yaw)
     sm = Smoother(np.eye(4)[None], np.array([0.16]), SmootherSettings(lever_m=lever_m))
     for k in range(len(t)):
