@@ -21,6 +21,21 @@ from tagtrail.geometry.se3 import R_from_rotvec
 _SMALL = 1e-4  # below this angle (rad) the Jacobian coefficients use their Taylor series
 
 
+def cross(a: ArrayLike, b: ArrayLike) -> F64:
+    """``np.cross`` of 3-vectors ``(..., 3)`` (broadcast), by components: numpy's own moves
+    axes around and costs ~30 us a call, which the live smoother's small solves make many of
+    (bench/LIVE_POSE.md)."""
+    a = np.asarray(a, dtype=np.float64)
+    b = np.asarray(b, dtype=np.float64)
+    out = np.empty(np.broadcast_shapes(a.shape, b.shape))
+    a0, a1, a2 = a[..., 0], a[..., 1], a[..., 2]
+    b0, b1, b2 = b[..., 0], b[..., 1], b[..., 2]
+    out[..., 0] = a1 * b2 - a2 * b1
+    out[..., 1] = a2 * b0 - a0 * b2
+    out[..., 2] = a0 * b1 - a1 * b0
+    return out
+
+
 def hat(v: ArrayLike) -> F64:
     """Skew-symmetric matrices ``(..., 3, 3)`` with ``hat(v) @ w == cross(v, w)``."""
     v = np.asarray(v, dtype=np.float64)

@@ -861,6 +861,7 @@ def _localize(ns: argparse.Namespace) -> int:
         )
         loc.smooth(live)
         node.types.update(live.keys())
+        node.after.append(live.settle)  # the window re-solved once the pose is out
     try:
         node.publisher(ns.pose_key)
         if live is not None and ns.odom_key:

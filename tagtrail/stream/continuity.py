@@ -51,6 +51,7 @@ from tagtrail.geometry.joint.ground import (
     fit_plane,
 )
 from tagtrail.geometry.joint.motion import MotionPrior
+from tagtrail.geometry.joint.newest import solve_newest
 from tagtrail.geometry.joint.odometry import (
     MAX_DEAD_RECKONING_S,
     Odometry,
@@ -91,6 +92,10 @@ class SmootherSettings:
     max_iter: int = 2
     start_gate_m: float = 0.05
     plane_after_m: float = 1.0
+    step_first: bool = True
+    """The newest frame's pose by the filter's step on the last solve (~1 ms), the window
+    re-solved after it is out (:meth:`Smoother.settle`); False: the window re-solved first
+    (the same pose for a linear problem; the step's reference)."""
     lever_m: float | None = None
     """The camera's distance ahead of the base's turning centre when the mount is known
     (``--camera-forward``, the profile's): the drive prior's lever arm, held from the start;
@@ -198,9 +203,14 @@ class Smoother:
         self._travel = 0.0
         self._seen = 0
         self.iters = 0
+        self._pending: CameraModel | None = None  # a frame answered by the filter's step
+        # the last solve: its newest frame's stamp, its last two frames' covariance, the
+        # corners' loss scale (noise units), the variance factor (>= 1)
+        self._last: tuple[int, F64, float, float] | None = None
 
     def reset(self) -> None:
         self.frames.clear()
+        self._last = None
 
     def _extrapolate(self, t_ns: int) -> tuple[F64, F64] | None:
         """The pose at ``t_ns`` by a constant twist from the last two frames (the motion
@@ -223,9 +233,16 @@ class Smoother:
         self, t_ns: int, tag: I64, corners_px: F64, start: F64 | None, camera: CameraModel
     ) -> tuple[F64, F64] | None:
         """Add a frame (map tag indices ``tag (k,)``, distorted corners ``(k, 4, 2)`` px, its own
-        pose ``start`` = world_T_cam (4, 4) or None) and re-solve the window: the newest frame's
-        ``world_T_cam (4, 4)`` and covariance ``(6, 6)`` of ``[position ; rotation]`` (world
-        axes, ROS's order). None when the frame has no start and nothing to extrapolate from."""
+        pose ``start`` = world_T_cam (4, 4) or None): the newest frame's ``world_T_cam (4, 4)``
+        and covariance ``(6, 6)`` of ``[position ; rotation]`` (world axes, ROS's order). None
+        when the frame has no start and nothing to extrapolate from.
+
+        The pose comes from the filter's step on the last solve's two newest frames
+        (:func:`~tagtrail.geometry.joint.newest.solve_newest`) when there is one, and the
+        window's re-solve waits for :meth:`settle` (the node calls it once the pose is out;
+        the next ``add`` does it first); else (the first frames, after a gap) the window is
+        solved at once."""
+        self.settle()
         if self.frames and (
             t_ns <= self.frames[-1].t_ns
             or (t_ns - self.frames[-1].t_ns) * 1e-9 > self.s.joint.max_gap_s
@@ -242,10 +259,26 @@ class Smoother:
             init = own if np.linalg.norm(cg - co) <= self.s.start_gate_m else guess
         if init is None:
             return None
-        self.frames.append(_Frame(t_ns, np.asarray(tag, np.int64), corners_px, *init))
+        frame = _Frame(t_ns, np.asarray(tag, np.int64), corners_px, *init)
+        quick = self._newest(frame, camera)
+        self.frames.append(frame)
         t_cut = t_ns - int(self.s.window_s * 1e9)
         while len(self.frames) > self.n_max or self.frames[0].t_ns < t_cut:
             self.frames.popleft()
+        if quick is not None:
+            self._pending = camera
+            return quick
+        return self._timed_solve(camera)
+
+    def settle(self) -> None:
+        """Re-solve the window of the frame :meth:`add` answered by the filter's step (nothing
+        when none waits): its frames, the plane, the mount and the next step's prior."""
+        camera, self._pending = self._pending, None
+        if camera is not None:
+            self._timed_solve(camera)
+
+    def _timed_solve(self, camera: CameraModel) -> tuple[F64, F64]:
+        """:meth:`_solve` under the time budget (:class:`SmootherSettings`)."""
         t0 = self.clock()
         out = self._solve(camera)
         self._took_ms.append((self.clock() - t0) * 1e3)
@@ -257,26 +290,31 @@ class Smoother:
             self.n_max = min(self.s.max_frames, self.n_max + 1)
         return out
 
-    def _solve(self, camera: CameraModel) -> tuple[F64, F64]:
-        fr = list(self.frames)
-        n_f = len(fr)
+    def _observations(
+        self, fr: Sequence[_Frame], camera: CameraModel
+    ) -> tuple[I64, CornerObservations, Corners]:
+        """The map tags seen in frames ``fr``, their corner observations and weighing."""
         tag_all = np.concatenate([f.tag for f in fr])
         used, tag_local = np.unique(tag_all, return_inverse=True)
-        frame = np.repeat(np.arange(n_f), [len(f.tag) for f in fr])
+        frame = np.repeat(np.arange(len(fr)), [len(f.tag) for f in fr])
         px = np.concatenate([f.corners_px for f in fr]).reshape(-1, 4, 2)
         ob = CornerObservations(frame, tag_local, self.pts[tag_all], camera.undistort(px))
-        js = self.s.joint
         corners = Corners(
             camera.focal_px,
-            corner_sigma(px, js.corner_sigma_px),
+            corner_sigma(px, self.s.joint.corner_sigma_px),
             CORNER_LOSS,
             CORNER_F_SCALE_PX,
             False,
         )
+        return used, ob, corners
+
+    def _priors(self, fr: Sequence[_Frame]) -> list[Any]:
+        """The priors over frames ``fr`` (module docstring)."""
+        js = self.s.joint
         priors: list[Any] = []
         sig = js.motion_sigmas()
         t_s = np.array([(f.t_ns - fr[0].t_ns) * 1e-9 for f in fr])
-        if sig is not None and n_f >= 3:
+        if sig is not None and len(fr) >= 3:
             priors.append(MotionPrior(t_s, *sig, js.max_gap_s, frame="camera"))
         if self.plane is not None and js.ground != "none":
             priors.append(FixedGround(GROUND, self.plane))
@@ -286,6 +324,40 @@ class Smoother:
             prior = make(t_s, [f.t_ns for f in fr])
             if prior is not None:
                 priors.append(prior)
+        return priors
+
+    def _newest(self, frame: _Frame, camera: CameraModel) -> tuple[F64, F64] | None:
+        """The filter's step for ``frame`` on the last solve (None: no solve to step from)."""
+        last = self._last
+        if (
+            not self.s.step_first
+            or last is None
+            or len(self.frames) < 2
+            or last[0] != self.frames[-1].t_ns
+        ):
+            return None
+        fr = [self.frames[-2], self.frames[-1], frame]
+        used, ob, corners = self._observations([frame], camera)
+        res = solve_newest(
+            np.stack([f.R for f in fr]),
+            np.stack([f.t for f in fr]),
+            last[1],
+            self.R_tag[used],
+            self.t_tag[used],
+            ob,
+            corners,
+            last[2],
+            self._priors(fr),
+            self.s.max_iter,
+        )
+        if res is None or not (np.isfinite(res.R).all() and np.isfinite(res.t).all()):
+            return None
+        frame.R, frame.t = res.R, res.t
+        return _world_T_cam(res.R, res.t), _world_cov(res.R, res.cov * last[3])
+
+    def _solve(self, camera: CameraModel) -> tuple[F64, F64]:
+        fr = list(self.frames)
+        used, ob, corners = self._observations(fr, camera)
         res = solve_joint(
             self.R_tag[used],
             self.t_tag[used],
@@ -294,7 +366,7 @@ class Smoother:
             ob,
             np.zeros(len(used), bool),
             corners,
-            priors,
+            self._priors(fr),
             max_iter=self.s.max_iter,
             covariance="last",
         )
@@ -303,16 +375,16 @@ class Smoother:
             f.R, f.t = res.R_cam[i], res.t_cam[i]
         R, t = res.R_cam[-1], res.t_cam[-1]
         self._note(fr[-1].t_ns, R, t)
-        T = np.eye(4)
-        T[:3, :3] = R.T
-        T[:3, 3] = -R.T @ t
+        vf = res.variance_factor
+        self._last = (
+            (fr[-1].t_ns, res.tail_cov, CORNER_F_SCALE_PX / res.sigma_px, max(vf, 1.0))
+            if res.tail_cov is not None and np.isfinite(vf) and np.isfinite(res.tail_cov).all()
+            else None
+        )
         cov = np.full((6, 6), np.nan)
         if res.cam_cov is not None:
-            J = np.zeros((6, 6))  # [w ; v] of cam_T_world -> [dc ; dtheta] in the world
-            J[:3, 3:] = -R.T
-            J[3:, :3] = -R.T
-            cov = J @ res.cam_cov[-1] @ J.T
-        return T, cov
+            cov = _world_cov(R, res.cam_cov[-1])
+        return _world_T_cam(R, t), cov
 
     def _note(self, t_ns: int, R: F64, t: F64) -> None:
         """Keep the smoothed pose; once the camera has travelled far enough, fit the ground
@@ -344,6 +416,23 @@ class Smoother:
         q = drive_terms(Rs, ts, t_s, j, self.plane, mount, DRIVE)[0]
         wheeled = js.drive == "wheeled" or strain(q, DRIVE, 1.0) <= WHEELED_BOUND
         self.mount = mount if wheeled else None
+
+
+def _world_T_cam(R: F64, t: F64) -> F64:
+    """``world_T_cam (4, 4)`` of ``cam_T_world`` ``(R, t)``."""
+    T = np.eye(4)
+    T[:3, :3] = R.T
+    T[:3, 3] = -R.T @ t
+    return T
+
+
+def _world_cov(R: F64, cam_cov: F64) -> F64:
+    """The covariance ``(6, 6)`` of ``[position ; rotation]`` in the world (ROS's order) from
+    that of ``cam_T_world``'s ``[w ; v]`` (``R``: its rotation)."""
+    J = np.zeros((6, 6))  # [w ; v] of cam_T_world -> [dc ; dtheta] in the world
+    J[:3, 3:] = -R.T
+    J[3:, :3] = -R.T
+    return J @ cam_cov @ J.T
 
 
 def robust_plane_frames(R: F64, t: F64, rounds: int = 3) -> np.ndarray:
@@ -594,6 +683,13 @@ class LivePoses:
             self.dead.up = self.smoother.plane.n  # fit_plane's n points up (against camera y)
         self.counts["tags"] += 1
         return self._out(t_ns, T, cov, 0.0, "tags")
+
+    def settle(self) -> None:
+        """The smoother's window re-solved after a pose is out (:meth:`Smoother.settle`; the
+        node calls it after publishing each input's outputs)."""
+        self.smoother.settle()
+        if self.smoother.plane is not None:
+            self.dead.up = self.smoother.plane.n
 
     def on_odometry(self, data: bytes) -> list[tuple[str, bytes]]:
         """One ``nav_msgs/Odometry``: the pose dead-reckoned from the last fix (nothing before

@@ -86,6 +86,9 @@ class Node:
         self._ready = threading.Condition()
         self._worker: threading.Thread | None = None
         self._closed = False
+        # work after each handled sample's outputs are out (the live smoother's window
+        # re-solve: the pose leaves first), under the handling lock
+        self.after: list[Callable[[], None]] = []
         self.clean = True  # False once a shutdown left a blocked put or an unclosed session
 
     def publisher(self, key: str, background: bool = False) -> zenoh.Publisher:
@@ -199,6 +202,12 @@ class Node:
             except Exception as err:  # noqa: BLE001 - a bad message must never stop the node
                 if not self._closed:  # a put on a publisher undeclared by close() is no error
                     stats.drop("error", f"{key}: {type(err).__name__}: {err}")
+            for fn in self.after:
+                try:
+                    fn()
+                except Exception as err:  # noqa: BLE001 - as a handler's
+                    if not self._closed:
+                        stats.drop("error", f"{key}: after it: {type(err).__name__}: {err}")
             if self.count is not None and stats.received >= self.count:
                 self.stop.set()
 

@@ -42,7 +42,7 @@ from tagtrail.geometry.arrays import F64, I64
 from tagtrail.geometry.joint.ground import Plane
 from tagtrail.geometry.joint.problem import Terms, centres
 from tagtrail.geometry.robust import LossName, rho
-from tagtrail.geometry.rotations import hat, log_so3, right_jacobian_inv
+from tagtrail.geometry.rotations import cross, hat, log_so3, right_jacobian_inv
 from tagtrail.geometry.se3 import R_from_rotvec
 
 N_MOUNT = 2  # parameters of a Mount: its yaw about the plane's normal, its lever arm
@@ -72,7 +72,7 @@ class Mount:
     def lateral(self, u: F64) -> tuple[F64, F64, float]:
         """``s (3,)``, ``w = u x g`` and ``|w|`` for the plane's camera-frame normal ``u``."""
         uh = u / np.linalg.norm(u)
-        w = np.cross(uh, self.g)
+        w = cross(uh, self.g)
         nw = float(np.linalg.norm(w))
         return w / nw, w, nw
 
@@ -119,25 +119,25 @@ def drive_terms(
     EtS = np.einsum("pji,j->pi", E, s)
     Jc = np.zeros((len(j), 2, 6))
     # s . x: rotations turn the step in the camera frame, translations move the centres
-    Jc[:, 0, :3] = 0.5 * np.cross(xa, s)
-    Jc[:, 1, :3] = 0.5 * np.cross(xb, s)
+    Jc[:, 0, :3] = 0.5 * cross(xa, s)
+    Jc[:, 1, :3] = 0.5 * cross(xb, s)
     Jc[:, 0, 3:] = 0.5 * (s + Es)
     Jc[:, 1, 3:] = -0.5 * (s + EtS)
     # theta = (R_j n) . Log(R_j R_{j+1}^T)
     Jc[:, 0, :3] -= lev * (
-        np.cross(u, e) + np.einsum("pij,pj->pi", E, np.einsum("pij,pj->pi", Jinv_T, u))
+        cross(u, e) + np.einsum("pij,pj->pi", E, np.einsum("pij,pj->pi", Jinv_T, u))
     )
     Jc[:, 1, :3] += lev * np.einsum("pij,pj->pi", Jinv_T, u)
     Jc *= inv_sig[:, None, None]
     Jg = np.zeros((len(j), 6 + N_MOUNT))
-    bxn = np.cross(plane.basis().T, plane.n)  # (2, 3): d n / d a_i
+    bxn = cross(plane.basis().T, plane.n)  # (2, 3): d n / d a_i
     Jg[:, :2] = -lev * np.einsum("pk,pki,ci->pc", e, Ra, bxn)
     # s = w / |w|, w = u^ x g: d s = (I - s s^T) d w / |w|; through u, d w = -[g]x d u^
     unorm = float(np.linalg.norm(plane.u))
     uh = plane.u / unorm
     P = (np.eye(3) - np.outer(s, s)) / nw
     Jg[:, 3:6] = x @ (P @ -hat(mount.g) @ (np.eye(3) - np.outer(uh, uh)) / unorm)
-    Jg[:, 6] = x @ (P @ np.cross(uh, w))  # g turned about u^: d w = u^ x (u^ x g) d b
+    Jg[:, 6] = x @ (P @ cross(uh, w))  # g turned about u^: d w = u^ x (u^ x g) d b
     Jg[:, 7] = -theta
     Jg *= inv_sig[:, None]
     return q, Jc, Jg
@@ -167,7 +167,7 @@ def fit_mount(
     ``lever_m`` when the mount is known (then the yaw alone is fitted)."""
     lever0 = 0.0 if lever_m is None else float(lever_m)
     u = plane.u / max(float(np.linalg.norm(plane.u)), 1e-300)
-    fwd = np.cross(u, np.array([1.0, 0.0, 0.0]))  # camera z, when nothing moves
+    fwd = cross(u, np.array([1.0, 0.0, 0.0]))  # camera z, when nothing moves
     if not len(j):
         return Mount(fwd / np.linalg.norm(fwd), lever0)
     x, theta, *_ = _geometry(R_cam, t_cam, j, plane.n)
@@ -292,9 +292,9 @@ def drive_report(
     j = part.j
     h = part.t_s[j + 1] - part.t_s[j]
     u = plane.u / max(float(np.linalg.norm(plane.u)), 1e-300)
-    fwd = np.cross(mount.lateral(u)[0], u)  # the robot's forward axis, camera frame
+    fwd = cross(mount.lateral(u)[0], u)  # the robot's forward axis, camera frame
     z = np.array([0.0, 0.0, 1.0]) - u[2] * u
-    yaw = np.degrees(np.arctan2(np.cross(fwd, z) @ u, fwd @ z))
+    yaw = np.degrees(np.arctan2(cross(fwd, z) @ u, fwd @ z))
     lat = q * part.prior.lateral_sigma / np.sqrt(h)  # m/s
     return DriveReport(
         mode=mode,

@@ -32,7 +32,7 @@ import numpy as np
 from tagtrail.geometry.arrays import F64
 from tagtrail.geometry.joint.problem import Terms, centres
 from tagtrail.geometry.robust import LossName, rho
-from tagtrail.geometry.rotations import hat
+from tagtrail.geometry.rotations import cross, hat
 from tagtrail.geometry.se3 import R_from_rotvec
 
 
@@ -65,9 +65,9 @@ class Plane:
     def basis(self) -> F64:
         """Two unit vectors ``(3, 2)`` orthogonal to ``n`` (the normal's 2 update directions)."""
         a = np.eye(3)[int(np.argmin(np.abs(self.n)))]
-        b1 = np.cross(self.n, a)
+        b1 = cross(self.n, a)
         b1 /= np.linalg.norm(b1)
-        return np.stack([b1, np.cross(self.n, b1)], axis=1)
+        return np.stack([b1, cross(self.n, b1)], axis=1)
 
     def update(self, step: F64) -> Plane:
         """The plane after the step ``[a (2) ; dd ; du (3)]``."""
@@ -104,9 +104,9 @@ def plane_terms(R_cam: F64, t_cam: F64, plane: Plane, prior: GroundPrior) -> tup
     Jc[:, 0, 3:] = -Rn / sh  # d c / d v = -R^T
     Jc[:, 1:, :3] = -hat(Rn) / st  # R n <- Exp(w) R n
     B = plane.basis()
-    bxn = np.cross(B.T, plane.n)  # (2, 3): d n / d a_i
+    bxn = cross(B.T, plane.n)  # (2, 3): d n / d a_i
     Jg = np.zeros((n_f, 4, 6))
-    Jg[:, 0, :2] = np.cross(plane.n, c) @ B / sh
+    Jg[:, 0, :2] = cross(plane.n, c) @ B / sh
     Jg[:, 0, 2] = -1.0 / sh
     Jg[:, 1:, :2] = np.einsum("fij,kj->fik", R_cam, bxn) / st
     Jg[:, 1:, 3:] = -np.eye(3) / st

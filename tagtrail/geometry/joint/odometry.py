@@ -57,7 +57,7 @@ from tagtrail.geometry.joint.drive import Mount, fit_mount
 from tagtrail.geometry.joint.ground import Plane
 from tagtrail.geometry.joint.problem import Terms, left_update
 from tagtrail.geometry.robust import LossName, rho
-from tagtrail.geometry.rotations import log_so3
+from tagtrail.geometry.rotations import cross, log_so3
 from tagtrail.geometry.se3 import R_from_quat_xyzw, R_from_rotvec, T_from_xyz_quat, inv, make_T
 
 N_ODOM = 7  # mount yaw, lever arm, time offset, scale, yaw scale, yaw per metre, yaw drift
@@ -194,7 +194,7 @@ def predict(Ra: F64, ta: F64, Rb: F64, tb: F64, u: F64, mount: Mount) -> F64:
     (``cam_T_world``, ``(P, 3, 3), (P, 3)``), in the base frame at ``a`` (module docstring)."""
     uh = u / np.linalg.norm(u)
     s = mount.lateral(uh)[0]
-    f = np.cross(s, uh)
+    f = cross(s, uh)
     R_rel = Ra @ np.swapaxes(Rb, 1, 2)
     ca = -np.einsum("pji,pj->pi", Ra, ta)
     cb = -np.einsum("pji,pj->pi", Rb, tb)
@@ -364,7 +364,7 @@ class OdometryPrior:
             u = self._u(values)
             uh = u / np.linalg.norm(u)
             a, b = self.recorded.g, st.mount.g
-            r0[2, 0] = np.arctan2(np.cross(a, b) @ uh, a @ b) / MOUNT_YAW_SIGMA_RAD
+            r0[2, 0] = np.arctan2(cross(a, b) @ uh, a @ b) / MOUNT_YAW_SIGMA_RAD
             r0[2, 1] = (st.mount.lever_m - self.recorded.lever_m) / MOUNT_LEVER_SIGMA_M
             J0[2, 0, own] = 1.0 / MOUNT_YAW_SIGMA_RAD
             J0[2, 1, own + 1] = 1.0 / MOUNT_LEVER_SIGMA_M
@@ -465,7 +465,7 @@ def dead_reckon(
     idx = np.flatnonzero(posed)
     uh = u / np.linalg.norm(u)
     s = state.mount.lateral(uh)[0]
-    f = np.cross(s, uh)
+    f = cross(s, uh)
     base_R = np.stack([f, s, uh], axis=1)  # cam_R_base: columns = base axes in the camera
     lever = state.mount.lever_m
     for k in np.flatnonzero(~posed):
@@ -537,9 +537,9 @@ class OdometryReport:
 def camera_yaw_deg(mount: Mount, u: F64) -> float:
     """The camera's yaw from the robot's forward axis (deg, about the normal, positive left)."""
     uh = u / np.linalg.norm(u)
-    fwd = np.cross(mount.lateral(uh)[0], uh)
+    fwd = cross(mount.lateral(uh)[0], uh)
     z = np.array([0.0, 0.0, 1.0]) - uh[2] * uh
-    return float(np.degrees(np.arctan2(np.cross(fwd, z) @ uh, fwd @ z)))
+    return float(np.degrees(np.arctan2(cross(fwd, z) @ uh, fwd @ z)))
 
 
 @dataclass(frozen=True)

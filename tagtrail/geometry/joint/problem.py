@@ -29,6 +29,7 @@ from tagtrail.geometry.arrays import F64, I64
 from tagtrail.geometry.camera import CameraModel
 from tagtrail.geometry.fusion import tag_corners
 from tagtrail.geometry.robust import LossName
+from tagtrail.geometry.rotations import hat
 from tagtrail.geometry.se3 import R_from_rotvec
 
 
@@ -103,7 +104,8 @@ class JointResult:
     observation (px); ``tag_std``/``cam_std`` ``(T|F, 2)``: position (m) and rotation (rad)
     standard deviations (RMS over the axes; 0 for fixed tags; None unless asked for) and
     ``cam_cov (F, 6, 6)`` each frame's covariance of the left perturbation ``[w ; v]`` of
-    ``cam_T_world`` (the map's share included when it is free; scaled as the std);
+    ``cam_T_world`` (the map's share included when it is free; scaled as the std),
+    ``tail_cov`` the last two frames' (below);
     ``variance_factor``: the whitened cost per degree of freedom (1 when the noise is as
     assumed); ``terms``: each prior's number of terms (``terms["motion"]``: frames held by the
     motion prior); ``sigma_px``: the median corner noise used; ``unknowns``: each prior's
@@ -125,6 +127,11 @@ class JointResult:
     tag_std: F64 | None = None
     cam_std: F64 | None = None
     cam_cov: F64 | None = None
+    tail_cov: F64 | None = None
+    """With ``covariance="last"`` and no free tag nor prior unknown: the last two frames'
+    joint covariance ``(12, 12)`` of their ``[w ; v]``, unscaled (the inverse normal matrix's
+    block): what the solve knows of them, a filter's prior for the next frame
+    (:mod:`.newest`)."""
 
     @property
     def prior_terms(self) -> int:
@@ -140,6 +147,21 @@ def project(
     pts_c = np.einsum("oij,okj->oki", R_cam[ob.frame], pts_w) + t_cam[ob.frame][:, None]
     z = np.where(pts_c[..., 2:3] > 1e-9, pts_c[..., 2:3], 1e-9)
     return pts_c[..., :2] / z - ob.uv, pts_w, pts_c
+
+
+def corner_jacobians(pc: F64, scale: F64) -> tuple[F64, F64]:
+    """The whitened projection's Jacobians at camera-frame corners ``pc (O, 4, 3)`` with
+    ``scale (O,)`` (normalised units -> units of each observation's noise): ``Jp (O, 4, 2, 3)``
+    on the camera-frame point and ``Jc (O, 8, 6)`` on the camera's left perturbation
+    ``[w ; v]``."""
+    n_o = len(pc)
+    z = pc[..., 2]
+    Jp = np.zeros((n_o, 4, 2, 3))
+    Jp[..., 0, 0] = Jp[..., 1, 1] = scale[:, None] / z
+    Jp[..., 2] = -scale[:, None, None] * pc[..., :2] / (z * z)[..., None]
+    eye = np.broadcast_to(np.eye(3), (n_o, 4, 3, 3))
+    Jc = (Jp @ np.concatenate([-hat(pc), eye], axis=-1)).reshape(n_o, 8, 6)
+    return Jp, Jc
 
 
 def sum_blocks(x: F64, idx: I64, n: int) -> F64:

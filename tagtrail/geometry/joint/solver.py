@@ -28,6 +28,7 @@ from tagtrail.geometry.joint.problem import (
     JointResult,
     Prior,
     Terms,
+    corner_jacobians,
     left_update,
     observation_rms_px,
     project,
@@ -157,11 +158,7 @@ class _Problem:
 
     def normal_equations(self, s: _State) -> _Normal:
         ob, n_o, n_f, n_t, scale = self.ob, self.n_o, self.n_f, self.n_t, self.scale
-        z = s.pc[..., 2]
-        Jp = np.zeros((n_o, 4, 2, 3))
-        Jp[..., 0, 0] = Jp[..., 1, 1] = scale[:, None] / z
-        Jp[..., 2] = -scale[:, None, None] * s.pc[..., :2] / (z * z)[..., None]
-        Jc = (Jp @ np.concatenate([-hat(s.pc), self.eye3], axis=-1)).reshape(n_o, 8, 6)
+        Jp, Jc = corner_jacobians(s.pc, scale)
         Jt = Jp @ s.R_cam[ob.frame][:, None] @ np.concatenate([-hat(s.pw), self.eye3], axis=-1)
         Jt = Jt.reshape(n_o, 8, 6)
         rv = s.r.reshape(n_o, 8) * scale[:, None]
@@ -330,9 +327,9 @@ def solve_joint(
         chi2 += float(np.sum(t.r**2))
     vf = chi2 / dof if dof > 0 else float("nan")
     res_px = observation_rms_px(s.R_cam, s.t_cam, s.R_tag, s.t_tag, ob, corners.px_per_unit)
-    tag_std = cam_std = cam_cov = None
+    tag_std = cam_std = cam_cov = tail_cov = None
     if covariance and n_o:
-        tag_std, cam_std, cam_cov = _std(
+        tag_std, cam_std, cam_cov, tail_cov = _std(
             pb,
             pb.normal_equations(s),
             s.t_tag,
@@ -355,6 +352,7 @@ def solve_joint(
         tag_std,
         cam_std,
         cam_cov,
+        tail_cov,
     )
 
 
@@ -406,19 +404,25 @@ def _banded_diag_inverse(cb: F64) -> F64:
 
 def _std(
     pb: _Problem, ne: _Normal, t_tag: F64, vf: float, last_only: bool = False
-) -> tuple[F64, F64, F64]:
+) -> tuple[F64, F64, F64, F64 | None]:
     """Per-tag and per-frame ``(position m, rotation rad)`` standard deviations (RMS over the
     axes) and each frame's 6x6 covariance, from the inverse normal matrix, scaled by the
-    variance factor ``vf`` (>= 1)."""
+    variance factor ``vf`` (>= 1); ``last_only``: also the last two frames' joint covariance
+    ``(12, 12)``, unscaled (None with dense unknowns, or one frame)."""
     Ablk, Htt, Hgg, B = ne.Ablk, ne.Htt, ne.Hgg, ne.B
     free_idx, n_t, bidx = pb.free_idx, pb.n_t, pb.bidx
     n_f = len(Ablk)
     cb = cholesky_banded(_band(Ablk, bidx, 0.0), lower=True)
-    if last_only:  # the last 6 columns of A^-1 by two banded solves
-        E = np.zeros((6 * n_f, 6))
-        E[-6:] = np.eye(6)
+    tail_cov = None
+    if last_only:  # the last 12 columns of A^-1 by two banded solves
+        m = min(12, 6 * n_f)
+        E = np.zeros((6 * n_f, m))
+        E[-m:] = np.eye(m)
+        tail = cho_solve_banded((cb, True), E)[-m:]
         cam_cov = np.full((n_f, 6, 6), np.nan)
-        cam_cov[-1] = cho_solve_banded((cb, True), E)[-6:]
+        cam_cov[-1] = tail[-6:, -6:]
+        if m == 12 and not pb.n_dense:
+            tail_cov = 0.5 * (tail + tail.T)
     elif np.any(Ablk[:, 1:]):  # frames coupled by the prior: the band's selected inverse
         cam_cov = _banded_diag_inverse(cb)
     else:  # independent frames: each block's own inverse
@@ -448,4 +452,4 @@ def _std(
         ],
         axis=1,
     )
-    return tag_std, cam_std, cam_cov
+    return tag_std, cam_std, cam_cov, tail_cov

@@ -1,0 +1,110 @@
+"""A fixed-lag window's newest frame without re-solving the window: the filter's step.
+
+After a window's solve, what its cost knows of its last two frames is their marginal Gaussian:
+mean the solved poses, covariance the inverse normal matrix's block
+(:attr:`~.problem.JointResult.tail_cov`). A new frame's pose then minimises its own corners'
+cost and the terms of the priors that reach it (the motion prior's triple, the drive's and the
+odometry's step into it, its own ground term) with those two frames under that Gaussian,
+eliminated in closed form: a stack of terms ``r = r0 + A d_new + B d_prev`` with ``d_prev ~
+N(0, S)`` is whitened by ``(I + B S B^T)^-1``. For a linear problem this is the re-solved
+window's newest frame exactly (a smoother's newest frame is its filtered estimate); here it
+costs a few 6x6 solves instead of the window's banded solve, so a live node can send the pose
+first and re-solve the window after (``stream/continuity.py``).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import numpy as np
+
+from tagtrail.geometry.arrays import F64
+from tagtrail.geometry.joint.problem import (
+    CornerObservations,
+    Corners,
+    Prior,
+    corner_jacobians,
+    left_update,
+    project,
+)
+from tagtrail.geometry.robust import rho
+
+
+@dataclass(frozen=True)
+class Newest:
+    """The new frame's ``cam_T_world`` ``(R, t)`` and the covariance ``(6, 6)`` of its
+    ``[w ; v]`` (unscaled: the inverse of its normal matrix)."""
+
+    R: F64
+    t: F64
+    cov: F64
+
+
+def solve_newest(
+    R_cam: F64,
+    t_cam: F64,
+    tail_cov: F64,
+    R_tag: F64,
+    t_tag: F64,
+    ob: CornerObservations,
+    corners: Corners,
+    f_scale: float,
+    priors: Sequence[Prior],
+    iters: int = 2,
+) -> Newest | None:
+    """The third of the frames ``cam_T_world`` ``R_cam (3, 3, 3)``, ``t_cam (3, 3)`` (the
+    first two: the window's solved last frames, with joint covariance ``tail_cov (12, 12)``;
+    the third: its start) from its corners ``ob`` (tags ``world_T_tag`` ``R_tag, t_tag``,
+    weighed by ``corners`` with the window's loss scale ``f_scale``, in noise units) and the
+    ``priors``' terms over the three frames that reach it (module docstring); ``iters``
+    Gauss-Newton steps. None when a step fails (the caller re-solves its window)."""
+    R_cam, t_cam = R_cam.copy(), t_cam.copy()
+    sig = np.broadcast_to(np.asarray(corners.sigma_px, np.float64), (len(ob.tag),))
+    scale = corners.px_per_unit / sig
+    f2 = f_scale * f_scale
+    H = np.eye(6)
+    for _ in range(iters):
+        r, _, pc = project(R_cam[2:], t_cam[2:], R_tag, t_tag, ob)
+        rv = r.reshape(len(r), 8) * scale[:, None]
+        bad = (pc[..., 2] <= 1e-6).any(axis=1)
+        _, w = rho(corners.loss, np.where(bad, 1e12, np.sum(rv * rv, axis=1)) / f2)
+        w = np.where(bad, 0.0, w)
+        Jc = corner_jacobians(pc, scale)[1]
+        H = np.einsum("oki,okj,o->ij", Jc, Jc, w)
+        g = np.einsum("oki,ok,o->i", Jc, rv, w)
+        rs, As, Bs = [], [], []
+        for p in priors:
+            T = p.terms(R_cam, t_cam, {})
+            n = T.Jc.shape[1]
+            sel = T.first + n - 1 == 2  # the terms that reach the new frame
+            if not sel.any():
+                continue
+            Jt, d = T.Jc[sel], T.r.shape[1]
+            m = len(Jt)
+            B = np.zeros((m, d, 12))
+            for i in range(n - 1):  # frame 3 - n + i of the two before
+                f = 3 - n + i
+                B[:, :, 6 * f : 6 * f + 6] = Jt[:, i]
+            rs.append(T.r[sel].reshape(-1))
+            As.append(Jt[:, n - 1].reshape(m * d, 6))
+            Bs.append(B.reshape(m * d, 12))
+        if rs:
+            rp, A, B = np.concatenate(rs), np.concatenate(As), np.concatenate(Bs)
+            M = np.eye(len(rp)) + B @ tail_cov @ B.T
+            X = np.linalg.solve(M, np.column_stack([A, rp]))
+            H = H + A.T @ X[:, :6]
+            g = g + A.T @ X[:, 6]
+        try:
+            step = -np.linalg.solve(H + 1e-12 * np.eye(6), g)
+        except np.linalg.LinAlgError:
+            return None
+        if not np.isfinite(step).all():
+            return None
+        R2, t2 = left_update(R_cam[2:], t_cam[2:], step[None])
+        R_cam[2], t_cam[2] = R2[0], t2[0]
+    try:
+        cov = np.asarray(np.linalg.inv(H + 1e-12 * np.eye(6)), np.float64)
+    except np.linalg.LinAlgError:
+        return None
+    return Newest(R_cam[2], t_cam[2], cov)
