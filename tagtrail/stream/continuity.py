@@ -260,7 +260,7 @@ class Smoother:
         if init is None:
             return None
         frame = _Frame(t_ns, np.asarray(tag, np.int64), corners_px, *init)
-        quick = self._newest(frame, camera)
+        quick = self._newest(frame, camera, guess)
         self.frames.append(frame)
         t_cut = t_ns - int(self.s.window_s * 1e9)
         while len(self.frames) > self.n_max or self.frames[0].t_ns < t_cut:
@@ -326,8 +326,14 @@ class Smoother:
                 priors.append(prior)
         return priors
 
-    def _newest(self, frame: _Frame, camera: CameraModel) -> tuple[F64, F64] | None:
-        """The filter's step for ``frame`` on the last solve (None: no solve to step from)."""
+    def _newest(
+        self, frame: _Frame, camera: CameraModel, guess: tuple[F64, F64] | None
+    ) -> tuple[F64, F64] | None:
+        """The filter's step for ``frame`` on the last solve (None: no solve to step from),
+        from the motion's extrapolation ``guess`` when there is one: there the priors, taken
+        once (:func:`~tagtrail.geometry.joint.newest.solve_newest`), are at their expected
+        residuals (from the frame's own pose, mm off, the motion prior's robust loss would
+        discount itself: +11 % on a detections circle)."""
         last = self._last
         if (
             not self.s.step_first
@@ -336,18 +342,19 @@ class Smoother:
             or last[0] != self.frames[-1].t_ns
         ):
             return None
-        fr = [self.frames[-2], self.frames[-1], frame]
+        start = guess if guess is not None else (frame.R, frame.t)
+        fr = [self.frames[-2], self.frames[-1]]
         used, ob, corners = self._observations([frame], camera)
         res = solve_newest(
-            np.stack([f.R for f in fr]),
-            np.stack([f.t for f in fr]),
+            np.stack([*(f.R for f in fr), start[0]]),
+            np.stack([*(f.t for f in fr), start[1]]),
             last[1],
             self.R_tag[used],
             self.t_tag[used],
             ob,
             corners,
             last[2],
-            self._priors(fr),
+            self._priors([*fr, frame]),
             self.s.max_iter,
         )
         if res is None or not (np.isfinite(res.R).all() and np.isfinite(res.t).all()):

@@ -73,7 +73,7 @@ def small_disk(tmp_path: Path, size: str) -> Iterator[Path]:
 
 @pytest.mark.slow
 @pytest.mark.parametrize("kind", ["mcap", "sqlite3"])
-@pytest.mark.parametrize(("flush", "size"), [("60", "64k"), ("0.2", "120k")])
+@pytest.mark.parametrize(("flush", "size"), [("60", "64k"), ("0.2", "240k")])
 def test_full_disk_bag_is_readable_and_counts_are_true(
     detections: Path, bridge: Any, tmp_path: Path, kind: str, flush: str, size: str
 ) -> None:

@@ -57,13 +57,17 @@ def solve_newest(
     first two: the window's solved last frames, with joint covariance ``tail_cov (12, 12)``;
     the third: its start) from its corners ``ob`` (tags ``world_T_tag`` ``R_tag, t_tag``,
     weighed by ``corners`` with the window's loss scale ``f_scale``, in noise units) and the
-    ``priors``' terms over the three frames that reach it (module docstring); ``iters``
-    Gauss-Newton steps. None when a step fails (the caller re-solves its window)."""
+    ``priors``' terms over the three frames that reach it (module docstring), those taken
+    once at the start (their robust weights too: start where they expect the frame, e.g. at
+    the motion's extrapolation); ``iters`` Gauss-Newton steps on the corners. None when a
+    step fails (the caller re-solves its window)."""
     R_cam, t_cam = R_cam.copy(), t_cam.copy()
     sig = np.broadcast_to(np.asarray(corners.sigma_px, np.float64), (len(ob.tag),))
     scale = corners.px_per_unit / sig
     f2 = f_scale * f_scale
-    H = np.eye(6)
+    Hp, gp = _prior_normal(R_cam, t_cam, tail_cov, priors)
+    moved = np.zeros(6)  # the new frame's steps so far: the priors' linear model moves with it
+    H = Hp
     for _ in range(iters):
         r, _, pc = project(R_cam[2:], t_cam[2:], R_tag, t_tag, ob)
         rv = r.reshape(len(r), 8) * scale[:, None]
@@ -71,30 +75,8 @@ def solve_newest(
         _, w = rho(corners.loss, np.where(bad, 1e12, np.sum(rv * rv, axis=1)) / f2)
         w = np.where(bad, 0.0, w)
         Jc = corner_jacobians(pc, scale)[1]
-        H = np.einsum("oki,okj,o->ij", Jc, Jc, w)
-        g = np.einsum("oki,ok,o->i", Jc, rv, w)
-        rs, As, Bs = [], [], []
-        for p in priors:
-            T = p.terms(R_cam, t_cam, {})
-            n = T.Jc.shape[1]
-            sel = T.first + n - 1 == 2  # the terms that reach the new frame
-            if not sel.any():
-                continue
-            Jt, d = T.Jc[sel], T.r.shape[1]
-            m = len(Jt)
-            B = np.zeros((m, d, 12))
-            for i in range(n - 1):  # frame 3 - n + i of the two before
-                f = 3 - n + i
-                B[:, :, 6 * f : 6 * f + 6] = Jt[:, i]
-            rs.append(T.r[sel].reshape(-1))
-            As.append(Jt[:, n - 1].reshape(m * d, 6))
-            Bs.append(B.reshape(m * d, 12))
-        if rs:
-            rp, A, B = np.concatenate(rs), np.concatenate(As), np.concatenate(Bs)
-            M = np.eye(len(rp)) + B @ tail_cov @ B.T
-            X = np.linalg.solve(M, np.column_stack([A, rp]))
-            H = H + A.T @ X[:, :6]
-            g = g + A.T @ X[:, 6]
+        H = np.einsum("oki,okj,o->ij", Jc, Jc, w) + Hp
+        g = np.einsum("oki,ok,o->i", Jc, rv, w) + gp + Hp @ moved
         try:
             step = -np.linalg.solve(H + 1e-12 * np.eye(6), g)
         except np.linalg.LinAlgError:
@@ -103,8 +85,40 @@ def solve_newest(
             return None
         R2, t2 = left_update(R_cam[2:], t_cam[2:], step[None])
         R_cam[2], t_cam[2] = R2[0], t2[0]
+        moved += step
     try:
         cov = np.asarray(np.linalg.inv(H + 1e-12 * np.eye(6)), np.float64)
     except np.linalg.LinAlgError:
         return None
     return Newest(R_cam[2], t_cam[2], cov)
+
+
+def _prior_normal(
+    R_cam: F64, t_cam: F64, tail_cov: F64, priors: Sequence[Prior]
+) -> tuple[F64, F64]:
+    """The priors' share of the new frame's normal equations ``(6, 6), (6,)`` at the start:
+    the terms that reach it, the two frames before under their marginal (module docstring).
+    Taken once: over the millimetres the corners then move the frame the priors are linear
+    (their robust weights held), and evaluating them is most of the step's time."""
+    rs, As, Bs = [], [], []
+    for p in priors:
+        T = p.terms(R_cam, t_cam, {})
+        n = T.Jc.shape[1]
+        sel = T.first + n - 1 == 2  # the terms that reach the new frame
+        if not sel.any():
+            continue
+        Jt, d = T.Jc[sel], T.r.shape[1]
+        m = len(Jt)
+        B = np.zeros((m, d, 12))
+        for i in range(n - 1):  # frame 3 - n + i of the two before
+            f = 3 - n + i
+            B[:, :, 6 * f : 6 * f + 6] = Jt[:, i]
+        rs.append(T.r[sel].reshape(-1))
+        As.append(Jt[:, n - 1].reshape(m * d, 6))
+        Bs.append(B.reshape(m * d, 12))
+    if not rs:
+        return np.zeros((6, 6)), np.zeros(6)
+    rp, A, B = np.concatenate(rs), np.concatenate(As), np.concatenate(Bs)
+    M = np.eye(len(rp)) + B @ tail_cov @ B.T
+    X = np.linalg.solve(M, np.column_stack([A, rp]))
+    return A.T @ X[:, :6], A.T @ X[:, 6]
