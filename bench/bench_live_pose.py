@@ -80,12 +80,13 @@ CASES = [  # name, scenario, its recording, options
 NOTES = [
     "",
     "Each frame's pose is the filter's step (geometry/joint/newest.py): the new frame's "
-    "corners and the priors' terms that reach it against the window's marginal on its two "
-    "newest frames; the window is re-solved after the pose is out. For a linear problem the "
-    "step is the re-solve's newest frame (tests/geometry/test_newest.py); here it is within "
-    "1-3 % of it where the motion prior's robust loss bends (re-solve first, same day: "
+    "corners and the priors' terms that reach it (taken once, at the motion's "
+    "extrapolation) against the window's marginal on its two newest frames; the window is "
+    "re-solved after the pose is out. For a linear problem the step is the re-solve's "
+    "newest frame (tests/geometry/test_newest.py). Re-solving first instead, the same day: "
     "circle detections 2.13 mm, corridor detections 6.50, rendered circle 0.37, corridor "
-    "1.55, room 0.76, hall 1.66), at a quarter of the CPU before the pose is out.",
+    "1.55, room 0.76 (1.23x), hall 1.66: the step is within 2.5 % of it, at a fifth of the "
+    "CPU before the pose is out.",
     "",
     "The smoother answers for its newest frame, which only the past constrains. Its "
     "motion prior takes the velocity in the camera's own frame (geometry/joint/motion.py, "
@@ -105,8 +106,8 @@ NOTES = [
     "fitted once the history has "
     "turned 0.5 rad, 0 until then) the rendered corridor is 1.51x, the room 2.0x (the "
     "first turn, before the fit) and the hall 1.34x. With 0.3 px corner noise it is not: "
-    "the circle stays 1.80x (mostly height and along-track: a filter's newest frame "
-    "against a smoother's frames with neighbours on both sides), the corridor 1.26x "
+    "the circle stays 1.73x (mostly height and along-track: a filter's newest frame "
+    "against a smoother's frames with neighbours on both sides), the corridor 1.25x "
     "(1.43x against the offline solve with the odometry). History: 2026-12-03 "
     "(world-frame motion, plane fitted to every pose, no drive, no odometry): circle "
     "detections 3.42 mm, 2.81x; corridor 11.58 mm, 2.18x, heading std 0.246 deg; rendered "

@@ -460,8 +460,8 @@ def test_wheel_odometry_joins_the_window(noisy: Path) -> None:
 def test_the_pose_leaves_before_the_window_is_re_solved(noisy: Path) -> None:
     """With ``step_first`` (the default) a frame's pose is the filter's step on the last solve
     and the window's re-solve waits for ``settle`` (the node's, once the pose is out; else the
-    next frame's); the poses are as good as the re-solve-first ones (measured here 2.19 vs
-    2.13 mm RMS: the motion prior's robust loss, tests/geometry/test_newest.py)."""
+    next frame's); the poses are as good as the re-solve-first ones (measured here 2.10 vs
+    2.13 mm RMS; the step starts from the motion's extrapolation, tests/geometry/test_newest.py)."""
     gt = read_trajectory(noisy / "ground_truth" / "trajectory.csv").set_index("t_ns")
     tags = read_tag_map(noisy / "ground_truth" / "tag_map.yaml")[0]
     m = bag_messages(noisy, ["/camera_info", "/detections"])
