@@ -270,6 +270,20 @@ class Smoother:
             return quick
         return self._timed_solve(camera)
 
+    def wants_start(self, t_ns: int) -> bool:
+        """Whether :meth:`add` of a frame at ``t_ns`` needs the frame's own pose: not when the
+        filter's step will start from the motion's extrapolation (the per-frame multi-tag PnP
+        is then ~0.5 ms for nothing)."""
+        last = self._last if self._pending is None else (self.frames[-1].t_ns,)
+        return not (
+            self.s.step_first
+            and last is not None
+            and len(self.frames) >= 2
+            and last[0] == self.frames[-1].t_ns
+            and t_ns > self.frames[-1].t_ns
+            and self._extrapolate(t_ns) is not None
+        )
+
     def settle(self) -> None:
         """Re-solve the window of the frame :meth:`add` answered by the filter's step (nothing
         when none waits): its frames, the plane, the mount and the next step's prior."""
@@ -574,9 +588,18 @@ class LiveOdometry:
         self.scales = (1.0, 1.0)
         self._at = -self.REFRESH
 
-    def _odometry(self, t0_ns: int) -> Odometry | None:
-        """The odometry received, its times (s) from ``t0_ns``; None before 2 messages."""
-        o = self.dead.odo
+    def _odometry(self, t0_ns: int, since_ns: int | None = None) -> Odometry | None:
+        """The odometry received (``since_ns``: only from the last sample at or before it on,
+        what a window starting then needs), its times (s) from ``t0_ns``; None before 2
+        messages."""
+        o: Sequence[tuple[int, float, float, float]] = self.dead.odo
+        if since_ns is not None:
+            tail = []
+            for sample in reversed(o):  # the newest first: a window's few, not the 10 s kept
+                tail.append(sample)
+                if sample[0] <= since_ns:
+                    break
+            o = tail[::-1]
         if len(o) < 2:
             return None
         a = np.array(o, np.float64)
@@ -618,7 +641,7 @@ class LiveOdometry:
         sm = self.smoother
         if sm.plane is None:
             return None
-        odo = self._odometry(t_ns[0])
+        odo = self._odometry(t_ns[0], t_ns[0])
         if odo is None:
             return None
         j = covered_steps(t_s, odo, sm.s.joint.max_gap_s, 0.0)
@@ -697,6 +720,11 @@ class LivePoses:
         self.smoother.settle()
         if self.smoother.plane is not None:
             self.dead.up = self.smoother.plane.n
+
+    def wants_start(self, t_ns: int) -> bool:
+        """Whether :meth:`on_frame` at ``t_ns`` needs the frame's own pose
+        (:meth:`Smoother.wants_start`)."""
+        return self.smoother.wants_start(t_ns)
 
     def on_odometry(self, data: bytes) -> list[tuple[str, bytes]]:
         """One ``nav_msgs/Odometry``: the pose dead-reckoned from the last fix (nothing before

@@ -132,10 +132,13 @@ class Localizer:
                 "the live node to silence this"
             )
 
-    def frame_pose(self, corners_px: F64, tag_ids: NDArray[np.integer]) -> tuple[F64 | None, int]:
+    def frame_pose(
+        self, corners_px: F64, tag_ids: NDArray[np.integer], pose: bool = True
+    ) -> tuple[F64 | None, int]:
         """``world_T_cam (4, 4)`` of one frame and the number of mapped tags used (None, 0 if
         none). ``corners_px (n, 4, 2)``: distorted pixels, OpenCV convention, SPEC corner order;
-        ``tag_ids (n,)``: the frame's (filtered) detections."""
+        ``tag_ids (n,)``: the frame's (filtered) detections; ``pose`` False: only the tags and
+        corners the smoother takes (``_last_obs``), the pose None."""
         assert self.camera is not None
         ids = np.asarray(tag_ids, dtype=np.int64).reshape(-1)
         px = np.asarray(corners_px, dtype=np.float64).reshape(-1, 4, 2)
@@ -154,6 +157,8 @@ class Localizer:
         sel = keep[good]
         corners = np.where(twice[sel, None, None], np.nan, px[sel])
         self._last_obs = (k[good][~twice[sel]], px[sel][~twice[sel]])  # the smoother's corners
+        if not pose:
+            return None, len(sel)
         p = self.params.trajectory
         res = frame_poses(
             self.world_T_tag[k[good]],
@@ -296,11 +301,13 @@ class Localizer:
     def _publish(self, stamp: Any, px: F64, ids: NDArray[np.integer]) -> list[tuple[str, bytes]]:
         if not np.isfinite(px).all():
             raise DropError("non_finite", "detection corners are not finite")
-        T, _ = self.frame_pose(px, ids)
         sec, nsec = int(stamp.sec), int(stamp.nanosec)
+        t_ns = sec * 1_000_000_000 + nsec
+        # the smoother's step starts from its own extrapolation: the frame's pose only without
+        T, _ = self.frame_pose(px, ids, self.live is None or self.live.wants_start(t_ns))
         if self.live is not None:
             out: list[tuple[str, bytes]] = self.live.on_frame(
-                sec * 1_000_000_000 + nsec, T, self._last_obs, self.camera
+                t_ns, T, self._last_obs, self.camera
             )
             return out
         if T is None or not np.isfinite(T).all():
