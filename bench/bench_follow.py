@@ -90,12 +90,12 @@ def main() -> None:
             "machine: p99 4.8-7.7 ms over six runs on 2026-12-04 afternoon (the code before "
             "this session's changes, the same afternoon: 5.4-6.5; this morning 4.8-5.5; the "
             "day before 4.2). "
-            "With --smooth each frame's pose leaves after the filter's step (~2 ms of CPU: "
+            "With --smooth each frame's pose leaves after the filter's step (~1.5-2 ms of CPU: "
             "its corners and, taken once from the motion's extrapolation, the priors' terms "
             "against the window's marginal) and the window is re-solved after (~10 ms, on a "
             "thread of lower priority); the dead-reckoned poses at the odometry's 50 Hz also "
             "pass the relocalize and follow nodes, so detections --smooth stays above 5 ms: "
-            "p50 8-11 ms, p99 16-18.5 (before the step: p50 15.5, p99 19.5). The 2 s "
+            "p50 6.8-7.6 ms, p99 13.7-14.7 (before the step: p50 15.5, p99 19.5). The 2 s "
             "blackout's p99 without --smooth is "
             "the first frames after it (the follower stopped; relocalize re-acquires).",
             "",

@@ -306,9 +306,7 @@ class Localizer:
         # the smoother's step starts from its own extrapolation: the frame's pose only without
         T, _ = self.frame_pose(px, ids, self.live is None or self.live.wants_start(t_ns))
         if self.live is not None:
-            out: list[tuple[str, bytes]] = self.live.on_frame(
-                t_ns, T, self._last_obs, self.camera
-            )
+            out: list[tuple[str, bytes]] = self.live.on_frame(t_ns, T, self._last_obs, self.camera)
             return out
         if T is None or not np.isfinite(T).all():
             raise DropError("no_pose", "no mapped tag in the frame")
