@@ -274,14 +274,21 @@ class Smoother:
         """Whether :meth:`add` of a frame at ``t_ns`` needs the frame's own pose: not when the
         filter's step will start from the motion's extrapolation (the per-frame multi-tag PnP
         is then ~0.5 ms for nothing)."""
-        last = self._last if self._pending is None else (self.frames[-1].t_ns,)
+        self.settle()  # what add does first: then the last solve is the one to step from
         return not (
+            self._steppable()
+            and t_ns > self.frames[-1].t_ns
+            and self._extrapolate(t_ns) is not None
+        )
+
+    def _steppable(self) -> bool:
+        """Whether the last solve is the window's, to take the filter's step from."""
+        last = self._last
+        return (
             self.s.step_first
             and last is not None
             and len(self.frames) >= 2
             and last[0] == self.frames[-1].t_ns
-            and t_ns > self.frames[-1].t_ns
-            and self._extrapolate(t_ns) is not None
         )
 
     def settle(self) -> None:
@@ -349,12 +356,7 @@ class Smoother:
         residuals (from the frame's own pose, mm off, the motion prior's robust loss would
         discount itself: +11 % on a detections circle)."""
         last = self._last
-        if (
-            not self.s.step_first
-            or last is None
-            or len(self.frames) < 2
-            or last[0] != self.frames[-1].t_ns
-        ):
+        if last is None or not self._steppable():
             return None
         start = guess if guess is not None else (frame.R, frame.t)
         fr = [self.frames[-2], self.frames[-1]]
@@ -709,8 +711,7 @@ class LivePoses:
         T, cov = got
         self.dead.fix = (t_ns, T)
         self.fix_cov = cov
-        if self.smoother.plane is not None:
-            self.dead.up = self.smoother.plane.n  # fit_plane's n points up (against camera y)
+        self._sync_up()
         self.counts["tags"] += 1
         return self._out(t_ns, T, cov, 0.0, "tags")
 
@@ -718,8 +719,12 @@ class LivePoses:
         """The smoother's window re-solved after a pose is out (:meth:`Smoother.settle`; the
         node calls it after publishing each input's outputs)."""
         self.smoother.settle()
+        self._sync_up()
+
+    def _sync_up(self) -> None:
+        """The dead reckoning turns about the smoother's plane once it has one."""
         if self.smoother.plane is not None:
-            self.dead.up = self.smoother.plane.n
+            self.dead.up = self.smoother.plane.n  # fit_plane's n points up (against camera y)
 
     def wants_start(self, t_ns: int) -> bool:
         """Whether :meth:`on_frame` at ``t_ns`` needs the frame's own pose
