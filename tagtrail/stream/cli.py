@@ -836,8 +836,9 @@ def _localize(ns: argparse.Namespace) -> int:
             msgs.COMPRESSED_IMAGE if ns.image_type == "compressed" else msgs.IMAGE
         )
     node.count = ns.count
-    live = None
+    live, background = None, None
     if ns.smooth:
+        from tagtrail.stream.background import Background
         from tagtrail.stream.continuity import DeadReckoning, LivePoses, Smoother, SmootherSettings
 
         if ns.camera_forward_m is None:
@@ -861,7 +862,9 @@ def _localize(ns: argparse.Namespace) -> int:
         )
         loc.smooth(live)
         node.types.update(live.keys())
-        node.after.append(live.settle)  # the window re-solved once the pose is out
+        # the window re-solved once the pose is out, in a process of the lowest priority
+        background = live.smoother.background = Background("localize: window re-solve")
+        node.after.append(live.dispatch)
     try:
         node.publisher(ns.pose_key)
         if live is not None and ns.odom_key:
@@ -878,8 +881,12 @@ def _localize(ns: argparse.Namespace) -> int:
     except BaseException:
         node.close()
         raise
-    with stop_on_signals() as stop:
-        node.run(ns.duration, ns.stats_period, stop)
+    try:
+        with stop_on_signals() as stop:
+            node.run(ns.duration, ns.stats_period, stop)
+    finally:
+        if background is not None:
+            background.close()
     if fox is not None:
         fox.close()  # on an error before this, the SDK stops it at exit (atexit)
     if ns.image_key or not node.clean:

@@ -69,11 +69,12 @@ from tagtrail.geometry.joint.settings import (
 from tagtrail.geometry.joint.setup import DRIVE, GROUND
 from tagtrail.geometry.joint.solver import solve_joint
 from tagtrail.geometry.rotations import log_so3
-from tagtrail.geometry.se3 import R_from_rotvec, xyz_quat_from_T
+from tagtrail.geometry.se3 import R_from_rotvec, quat_xyzw_of
 from tagtrail.stream import codec
 from tagtrail.stream.stats import DropError
 
 BUDGET_SOLVES = 5  # the solves (at least 3) whose median time the budget judges
+HISTORY = 600  # smoothed poses kept for the plane and mount fits (20 s at 30 Hz)
 MIN_TURN_RAD = 0.5  # the yaw the history must have turned before the mount's lever arm is fitted
 
 
@@ -175,6 +176,87 @@ PriorOf = Callable[[F64, list[int]], Any]
 :class:`LivePoses` adds), or a student's own."""
 
 
+@dataclass(frozen=True)
+class _Window:
+    """What a window's re-solve needs, taken when it is prepared (:meth:`Smoother._prepare`):
+    picklable, so that it can be computed in the background process (:func:`_resolve`)."""
+
+    R_tag: F64
+    t_tag: F64
+    R0: F64
+    t0: F64
+    ob: CornerObservations
+    corners: Corners
+    priors: list[Any]
+    settings: SmootherSettings
+    clock: Callable[[], float]
+    t_ns: int  # the newest frame's stamp
+    travel: float  # the camera's travel and frames seen before it (:meth:`Smoother._note`)
+    seen: int
+    has_plane: bool
+    hist: tuple[F64, F64, F64] | None  # the history (R, t, t_s) when a fit may be due
+
+
+@dataclass(frozen=True)
+class _Solved:
+    """A window's re-solve, computed: the solver's answer, its CPU time (ms), and the camera's
+    travel with the ground plane and mount fitted when the history asks for it (``fit``: None
+    when not due)."""
+
+    res: Any
+    took_ms: float
+    travel: float
+    fit: tuple[Plane, Mount | None, bool] | None
+
+
+def _resolve(w: _Window) -> _Solved:
+    """Compute a window's re-solve (a pure function of ``w``: here or in the background)."""
+    start = w.clock()
+    res = solve_joint(
+        w.R_tag,
+        w.t_tag,
+        w.R0,
+        w.t0,
+        w.ob,
+        np.zeros(len(w.R_tag), bool),
+        w.corners,
+        w.priors,
+        max_iter=w.settings.max_iter,
+        covariance="last",
+    )
+    took_ms = (w.clock() - start) * 1e3
+    R, t = res.R_cam[-1], res.t_cam[-1]
+    travel, fit = w.travel, None
+    if w.hist is not None:
+        Rs, ts, t_s = w.hist
+        if len(Rs):
+            travel += _moved((Rs[-1], ts[-1]), R, t)
+        n = min(HISTORY, len(Rs) + 1)
+        if _fit_due(w.settings, travel, n, w.seen, w.has_plane):
+            Rs = np.concatenate([Rs, R[None]])[-HISTORY:]
+            ts = np.concatenate([ts, t[None]])[-HISTORY:]
+            t_s = np.concatenate([t_s, [w.t_ns * 1e-9]])[-HISTORY:]
+            fit = _fit(w.settings, Rs, ts, t_s)
+    return _Solved(res, took_ms, travel, fit)
+
+
+class _Job:
+    """The window's re-solve after a pose went out: its frames and :class:`_Window`, handed
+    to the background process (:class:`~tagtrail.stream.background.Background`, job ``seq``);
+    :meth:`take` is its result, or computes it when that is not back."""
+
+    def __init__(self, frames: list[_Frame], window: _Window) -> None:
+        self.frames, self.window = frames, window
+        self.seq: int | None = None
+
+    def take(self, background: Any) -> _Solved:
+        if background is not None:
+            ok, out = background.result(self.seq)
+            if ok:
+                return out  # type: ignore[no-any-return]
+        return _resolve(self.window)
+
+
 class Smoother:
     """Fixed-lag smoother of one camera against a fixed map (module docstring); ``extra``:
     further priors of each window (:data:`PriorOf`)."""
@@ -185,7 +267,7 @@ class Smoother:
         size_m: F64,
         settings: SmootherSettings | None = None,
         extra: Sequence[PriorOf] = (),
-        clock: Callable[[], float] = time.perf_counter,
+        clock: Callable[[], float] = time.thread_time,
     ) -> None:
         self.s = settings or SmootherSettings()
         self.extra = tuple(extra)
@@ -196,14 +278,19 @@ class Smoother:
         self.t_tag = np.ascontiguousarray(world_T_tag[:, :3, 3])
         self.pts = tag_corners(np.asarray(size_m, np.float64))
         self.frames: deque[_Frame] = deque()
-        self.history: deque[tuple[F64, F64]] = deque(maxlen=600)  # smoothed (R, t), 20 s
+        self.history: deque[tuple[F64, F64]] = deque(maxlen=HISTORY)  # smoothed (R, t)
         self.plane: Plane | None = None
         self.mount: Mount | None = None
-        self.t_hist: deque[float] = deque(maxlen=600)
+        self.t_hist: deque[float] = deque(maxlen=HISTORY)
         self._travel = 0.0
         self._seen = 0
         self.iters = 0
-        self._pending: CameraModel | None = None  # a frame answered by the filter's step
+        # the re-solve after a frame answered by the step: its camera until it is prepared
+        # (once the pose is out: :meth:`pending`), then the job
+        self._pending: CameraModel | None = None
+        self._job: _Job | None = None
+        self._extrapolated: tuple[int, F64, F64, tuple[F64, F64] | None] | None = None
+        self.background: Any = None  # a Background process for the re-solves (None: here)
         # the last solve: its newest frame's stamp, its last two frames' covariance, the
         # corners' loss scale (noise units), the variance factor (>= 1)
         self._last: tuple[int, F64, float, float] | None = None
@@ -218,6 +305,14 @@ class Smoother:
         if len(self.frames) < 2:
             return None
         a, b = self.frames[-2], self.frames[-1]
+        memo = self._extrapolated  # wants_start's, for add of the same frame
+        if memo is not None and memo[0] == t_ns and memo[1] is a.R and memo[2] is b.R:
+            return memo[3]  # (the poses it came from are held: their ids cannot be reused)
+        out = self._extrapolated_from(a, b, t_ns)
+        self._extrapolated = (t_ns, a.R, b.R, out)
+        return out
+
+    def _extrapolated_from(self, a: _Frame, b: _Frame, t_ns: int) -> tuple[F64, F64] | None:
         h, g = (b.t_ns - a.t_ns) * 1e-9, (t_ns - b.t_ns) * 1e-9
         if h <= 0 or g > self.s.joint.max_gap_s:
             return None
@@ -268,7 +363,8 @@ class Smoother:
         if quick is not None:
             self._pending = camera
             return quick
-        return self._timed_solve(camera)
+        job = self._prepare(camera)
+        return self._commit(job.frames, _resolve(job.window))
 
     def wants_start(self, t_ns: int) -> bool:
         """Whether :meth:`add` of a frame at ``t_ns`` needs the frame's own pose: not when the
@@ -293,23 +389,86 @@ class Smoother:
 
     def settle(self) -> None:
         """Re-solve the window of the frame :meth:`add` answered by the filter's step (nothing
-        when none waits): its frames, the plane, the mount and the next step's prior."""
-        camera, self._pending = self._pending, None
-        if camera is not None:
-            self._timed_solve(camera)
+        when none waits; the background's result when it is back, :meth:`dispatch`): its
+        frames, the plane, the mount and the next step's prior."""
+        job, self._job = self._prepared(), None
+        if job is not None:
+            self._commit(job.frames, job.take(self.background))
 
-    def _timed_solve(self, camera: CameraModel) -> tuple[F64, F64]:
-        """:meth:`_solve` under the time budget (:class:`SmootherSettings`)."""
-        t0 = self.clock()
-        out = self._solve(camera)
-        self._took_ms.append((self.clock() - t0) * 1e3)
+    def dispatch(self) -> None:
+        """Prepare the waiting re-solve and hand it to :attr:`background` (when there is
+        one): the node calls this once the pose is out; the next :meth:`settle` takes the
+        result, or computes it when it is not back."""
+        job = self._prepared()
+        if job is not None and job.seq is None and self.background is not None:
+            job.seq = self.background.submit(_resolve, job.window)
+
+    def _prepared(self) -> _Job | None:
+        if self._pending is not None:
+            self._job, self._pending = self._prepare(self._pending), None
+        return self._job
+
+    def _history(self) -> tuple[F64, F64, F64]:
+        """The history as arrays: ``R (n, 3, 3)``, ``t (n, 3)``, ``t_s (n,)``."""
+        if not self.history:
+            return np.zeros((0, 3, 3)), np.zeros((0, 3)), np.zeros(0)
+        return (
+            np.stack([h[0] for h in self.history]),
+            np.stack([h[1] for h in self.history]),
+            np.asarray(self.t_hist, np.float64),
+        )
+
+    def _prepare(self, camera: CameraModel) -> _Job:
+        """The window's re-solve as a :class:`_Job`: the frames, corners and priors taken now,
+        the history only when a fit may be due (:meth:`_note`)."""
+        fr = list(self.frames)
+        used, ob, corners = self._observations(fr, camera)
+        seen, has_plane = self._seen + 1, self.plane is not None
+        window = _Window(
+            self.R_tag[used],
+            self.t_tag[used],
+            np.stack([f.R for f in fr]),
+            np.stack([f.t for f in fr]),
+            ob,
+            corners,
+            self._priors(fr),
+            self.s,
+            self.clock,
+            fr[-1].t_ns,
+            self._travel,
+            seen,
+            has_plane,
+            self._history() if not has_plane or seen % 30 == 0 else None,
+        )
+        return _Job(fr, window)
+
+    def _commit(self, fr: list[_Frame], done: _Solved) -> tuple[F64, F64]:
+        """Take a computed re-solve of frames ``fr`` (:class:`_Solved`): their poses, the
+        history, the fits, the next step's prior and the time budget
+        (:class:`SmootherSettings`); the newest frame's ``world_T_cam`` and covariance."""
+        res = done.res
+        self._took_ms.append(done.took_ms)
         took_ms = float(np.median(self._took_ms))  # a lone slow solve (a hiccup) does not count
         if took_ms > self.s.budget_ms and len(self._took_ms) >= 3:
             self.n_max = max(5, self.n_max // 2)
             self._took_ms.clear()  # judge the smaller window on its own solves
         elif took_ms < self.s.budget_ms / 2:
             self.n_max = min(self.s.max_frames, self.n_max + 1)
-        return out
+        self.iters = res.iters
+        for i, f in enumerate(fr):
+            f.R, f.t = res.R_cam[i], res.t_cam[i]
+        R, t = res.R_cam[-1], res.t_cam[-1]
+        self._note(fr[-1].t_ns, R, t, done)
+        vf = res.variance_factor
+        self._last = (
+            (fr[-1].t_ns, res.tail_cov, CORNER_F_SCALE_PX / res.sigma_px, max(vf, 1.0))
+            if res.tail_cov is not None and np.isfinite(vf) and np.isfinite(res.tail_cov).all()
+            else None
+        )
+        cov = np.full((6, 6), np.nan)
+        if res.cam_cov is not None:
+            cov = _world_cov(R, res.cam_cov[-1])
+        return _world_T_cam(R, t), cov
 
     def _observations(
         self, fr: Sequence[_Frame], camera: CameraModel
@@ -378,67 +537,61 @@ class Smoother:
         frame.R, frame.t = res.R, res.t
         return _world_T_cam(res.R, res.t), _world_cov(res.R, res.cov * last[3])
 
-    def _solve(self, camera: CameraModel) -> tuple[F64, F64]:
-        fr = list(self.frames)
-        used, ob, corners = self._observations(fr, camera)
-        res = solve_joint(
-            self.R_tag[used],
-            self.t_tag[used],
-            np.stack([f.R for f in fr]),
-            np.stack([f.t for f in fr]),
-            ob,
-            np.zeros(len(used), bool),
-            corners,
-            self._priors(fr),
-            max_iter=self.s.max_iter,
-            covariance="last",
-        )
-        self.iters = res.iters
-        for i, f in enumerate(fr):
-            f.R, f.t = res.R_cam[i], res.t_cam[i]
-        R, t = res.R_cam[-1], res.t_cam[-1]
-        self._note(fr[-1].t_ns, R, t)
-        vf = res.variance_factor
-        self._last = (
-            (fr[-1].t_ns, res.tail_cov, CORNER_F_SCALE_PX / res.sigma_px, max(vf, 1.0))
-            if res.tail_cov is not None and np.isfinite(vf) and np.isfinite(res.tail_cov).all()
-            else None
-        )
-        cov = np.full((6, 6), np.nan)
-        if res.cam_cov is not None:
-            cov = _world_cov(R, res.cam_cov[-1])
-        return _world_T_cam(R, t), cov
-
-    def _note(self, t_ns: int, R: F64, t: F64) -> None:
+    def _note(self, t_ns: int, R: F64, t: F64, done: _Solved | None = None) -> None:
         """Keep the smoothed pose; once the camera has travelled far enough, fit the ground
         plane to the history (robustly: a lone frame's outlier pose does not tilt it) and, on
         it, the camera's mount on a wheeled robot (every 30 frames). ``drive: auto`` keeps the
         drive prior while the history's steps leave it unstrained
-        (:func:`~tagtrail.geometry.joint.drive.strain`, as offline)."""
-        if self.history:
-            Rp, tp = self.history[-1]
-            self._travel += float(np.linalg.norm(-R.T @ t + Rp.T @ tp))
+        (:func:`~tagtrail.geometry.joint.drive.strain`, as offline). ``done``: a re-solve
+        that computed the travel and the fits already (:meth:`_prepare`)."""
+        if done is not None:
+            self._travel = done.travel
+        elif self.history:
+            self._travel += _moved(self.history[-1], R, t)
         self.history.append((R, t))
         self.t_hist.append(t_ns * 1e-9)
         self._seen += 1
-        if self._travel < self.s.plane_after_m or len(self.history) < 10:
-            return
-        if self.plane is not None and self._seen % 30:  # (the history stops at 600 poses)
-            return
-        Rs = np.stack([h[0] for h in self.history])
-        ts = np.stack([h[1] for h in self.history])
-        t_s = np.asarray(self.t_hist) - self.t_hist[0]
-        keep = robust_plane_frames(Rs, ts)
-        Rs, ts, t_s = Rs[keep], ts[keep], t_s[keep]
-        self.plane = fit_plane(Rs, ts, GROUND)
-        js = self.s.joint
-        if js.ground == "none" or js.drive == "free":
-            return
-        j = steps(t_s, js.max_gap_s)
-        mount = fit_mount(Rs, ts, t_s, j, self.plane, MIN_TURN_RAD, self.s.lever_m)
-        q = drive_terms(Rs, ts, t_s, j, self.plane, mount, DRIVE)[0]
-        wheeled = js.drive == "wheeled" or strain(q, DRIVE, 1.0) <= WHEELED_BOUND
-        self.mount = mount if wheeled else None
+        if done is not None:
+            fit = done.fit
+        elif _fit_due(self.s, self._travel, len(self.history), self._seen, self.plane is not None):
+            fit = _fit(self.s, *self._history())
+        else:
+            fit = None
+        if fit is not None:
+            self.plane = fit[0]
+            if fit[2]:
+                self.mount = fit[1]
+
+
+def _fit_due(s: SmootherSettings, travel: float, n_hist: int, seen: int, has_plane: bool) -> bool:
+    """Whether the history asks for the plane's (and mount's) fit (:meth:`Smoother._note`)."""
+    if travel < s.plane_after_m or n_hist < 10:
+        return False
+    return not (has_plane and seen % 30)  # (the history stops at HISTORY poses)
+
+
+def _fit(s: SmootherSettings, Rs: F64, ts: F64, t_hist: F64) -> tuple[Plane, Mount | None, bool]:
+    """The plane and the mount (None: not a wheeled robot's) fitted to the history ``Rs, ts``
+    at times ``t_hist`` (s), and whether the mount is to be set (not with ``ground: none`` or
+    ``drive: free``)."""
+    t_s = np.asarray(t_hist, np.float64) - t_hist[0]
+    keep = robust_plane_frames(Rs, ts)
+    Rs, ts, t_s = Rs[keep], ts[keep], t_s[keep]
+    plane = fit_plane(Rs, ts, GROUND)
+    js = s.joint
+    if js.ground == "none" or js.drive == "free":
+        return plane, None, False
+    j = steps(t_s, js.max_gap_s)
+    mount = fit_mount(Rs, ts, t_s, j, plane, MIN_TURN_RAD, s.lever_m)
+    q = drive_terms(Rs, ts, t_s, j, plane, mount, DRIVE)[0]
+    wheeled = js.drive == "wheeled" or strain(q, DRIVE, 1.0) <= WHEELED_BOUND
+    return plane, (mount if wheeled else None), True
+
+
+def _moved(prev: tuple[F64, F64], R: F64, t: F64) -> float:
+    """The camera centre's move from ``prev`` = (R, t) to (R, t) (cam_T_world), m."""
+    Rp, tp = prev
+    return float(np.linalg.norm(-R.T @ t + Rp.T @ tp))
 
 
 def _world_T_cam(R: F64, t: F64) -> F64:
@@ -716,10 +869,14 @@ class LivePoses:
         return self._out(t_ns, T, cov, 0.0, "tags")
 
     def settle(self) -> None:
-        """The smoother's window re-solved after a pose is out (:meth:`Smoother.settle`; the
-        node calls it after publishing each input's outputs)."""
+        """The smoother's window re-solved after a pose is out (:meth:`Smoother.settle`)."""
         self.smoother.settle()
         self._sync_up()
+
+    def dispatch(self) -> None:
+        """The window's re-solve handed to the background once the pose is out
+        (:meth:`Smoother.dispatch`; the next frame takes its result)."""
+        self.smoother.dispatch()
 
     def _sync_up(self) -> None:
         """The dead reckoning turns about the smoother's plane once it has one."""
@@ -762,8 +919,7 @@ class LivePoses:
             return []
         self.t_out = t_ns
         sec, nsec = divmod(t_ns, 1_000_000_000)
-        xyz, q = xyz_quat_from_T(T)
-        pq = [*xyz.tolist(), *q.tolist()]
+        pq = [*T[:3, 3].tolist(), *quat_xyzw_of(T[:3, :3])]
         state = {
             "stamp_sec": sec,
             "stamp_nanosec": nsec,

@@ -39,7 +39,7 @@ from tagtrail.errors import DataError
 from tagtrail.geometry.camera import CameraModel
 from tagtrail.geometry.fusion import frame_poses
 from tagtrail.geometry.ippe import solve_ippe
-from tagtrail.geometry.se3 import T_from_xyz_quat, xyz_quat_from_T
+from tagtrail.geometry.se3 import T_from_xyz_quat, quat_xyzw_of
 from tagtrail.io import msgs
 from tagtrail.io.sources import detection_problem, detections_from_msg, raw_image_from_msg
 from tagtrail.schemas.artifacts import POSE_COLS
@@ -113,6 +113,7 @@ class Localizer:
         self.detector = self.params.extract.detector()
         self.msg_detector = self.params.extract.detector("detections")  # recorded detections
         self.camera: CameraModel | None = None
+        self._info_bytes = b""  # the last CameraInfo taken, its stamp left out
         self.pose_key = pose_key
         self.stats = stats
         self.clock = clock
@@ -177,6 +178,11 @@ class Localizer:
         return res.world_T_cam[0], int(res.n_tags[0])
 
     def on_camera_info(self, data: bytes) -> list[tuple[str, bytes]]:
+        # the camera taken last (only the stamp differs: bytes 4-12, after the CDR's 4-byte
+        # encapsulation header): nothing to parse (~0.3 ms of each frame's latency otherwise)
+        same = len(data) > 12 and data[:4] + data[12:] == self._info_bytes
+        if same and self.camera is not None:
+            return self._release()
         try:
             msg = codec.deserialize(data, msgs.CAMERA_INFO)
         except codec.CodecError as err:
@@ -190,6 +196,7 @@ class Localizer:
         if self.camera is None or not cam.same_as(self.camera):
             log.info("localize: camera %dx%d %s", cam.width, cam.height, cam.distortion_model)
             self.camera = cam
+        self._info_bytes = data[:4] + data[12:]
         return self._release()
 
     def _hold(self, handle: Callable[[], list[tuple[str, bytes]]], size: int) -> None:
@@ -310,8 +317,8 @@ class Localizer:
             return out
         if T is None or not np.isfinite(T).all():
             raise DropError("no_pose", "no mapped tag in the frame")
-        xyz, q = xyz_quat_from_T(T)
-        return [(self.pose_key, self._enc(sec, nsec, *xyz.tolist(), *q.tolist()))]
+        x, y, z = T[:3, 3].tolist()
+        return [(self.pose_key, self._enc(sec, nsec, x, y, z, *quat_xyzw_of(T[:3, :3])))]
 
     def smooth(self, live: Any) -> None:
         """Pose frames by the live smoother ``live`` (:class:`~tagtrail.stream.continuity.

@@ -18,7 +18,6 @@ from __future__ import annotations
 
 import json
 import logging
-import os
 import sys
 import threading
 import time
@@ -59,16 +58,6 @@ def peak_rss_mb() -> float | None:
     return round(kib / (1 << 20 if sys.platform == "darwin" else 1024), 1)
 
 
-def lower_priority(by: int) -> None:
-    """Lower the calling thread's scheduling priority ``by`` nice steps (Linux sets it per
-    thread; nothing where the system refuses)."""
-    try:
-        tid = threading.get_native_id()
-        os.setpriority(os.PRIO_PROCESS, tid, min(19, os.getpriority(os.PRIO_PROCESS, tid) + by))
-    except (AttributeError, OSError):
-        pass
-
-
 class Node:
     """Publishers, subscribers, queryables and periodic tasks of one live node (see module doc)."""
 
@@ -97,12 +86,10 @@ class Node:
         self._ready = threading.Condition()
         self._worker: threading.Thread | None = None
         self._closed = False
-        # work after each handled sample's outputs are out (the live smoother's window
-        # re-solve: the pose leaves first): on a thread of lower priority, under the handling
-        # lock (:meth:`_after_work`)
+        # run after each handled sample's outputs are out, on the handling thread under its
+        # lock (the live smoother hands its window's re-solve to its background process then:
+        # the pose leaves first)
         self.after: list[Callable[[], None]] = []
-        self._after_due = threading.Event()
-        self._after_thread: threading.Thread | None = None
         self.clean = True  # False once a shutdown left a blocked put or an unclosed session
 
     def publisher(self, key: str, background: bool = False) -> zenoh.Publisher:
@@ -216,35 +203,13 @@ class Node:
             except Exception as err:  # noqa: BLE001 - a bad message must never stop the node
                 if not self._closed:  # a put on a publisher undeclared by close() is no error
                     stats.drop("error", f"{key}: {type(err).__name__}: {err}")
-            if self.after:
-                if self._after_thread is None:
-                    self._after_thread = threading.Thread(
-                        target=self._after_work, name="after", daemon=True
-                    )
-                    self._after_thread.start()
-                self._after_due.set()
+            for fn in self.after:
+                try:
+                    fn()
+                except Exception as err:  # noqa: BLE001 - must never stop the node
+                    stats.drop("error", f"after: {type(err).__name__}: {err}")
             if self.count is not None and stats.received >= self.count:
                 self.stop.set()
-
-    def _after_work(self) -> None:
-        """Run :attr:`after` once handled samples' outputs are out, at a lower priority than
-        the nodes downstream (Linux: this thread's nice + 10): on a shared machine the window's
-        re-solve (~10 ms) does not delay their answer to the pose just sent (bench/FOLLOW.md);
-        under the handling lock, so no handler runs meanwhile (a handler that finds the work
-        undone does it first, :meth:`~tagtrail.stream.continuity.Smoother.add`)."""
-        lower_priority(10)
-        while not self._closed:
-            if not self._after_due.wait(0.1):
-                continue
-            self._after_due.clear()
-            with self._lock:
-                for fn in self.after:
-                    if self._closed:
-                        return
-                    try:
-                        fn()
-                    except Exception as err:  # noqa: BLE001 - must never stop the node
-                        self.stats.drop("error", f"after: {type(err).__name__}: {err}")
 
     def queryable(self, key: str, payload: Callable[[], Payload]) -> None:
         """Answer ``get`` on ``key`` with ``payload()`` (late joiners fetch the reference path)."""

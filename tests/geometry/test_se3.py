@@ -57,3 +57,22 @@ def test_read_only_inputs_as_loaded_from_parquet() -> None:
         a.setflags(write=False)
     assert np.allclose(se3.T_from_xyz_quat(xyz, q), T)
     assert np.allclose(se3.R_from_rotvec(se3.rotvec_from_R(T[:, :3, :3])), T[:, :3, :3])
+
+
+def test_one_matrix_quaternion_is_scipys() -> None:
+    """``quat_xyzw_of`` (a live pose's, plain floats) gives ``quat_xyzw_from_R``'s quaternion,
+    sign included: random rotations, and those where the branch or the sign is decided by
+    ties (identity, half turns about axes and diagonals, qw = 0)."""
+    from tagtrail.geometry.se3 import R_from_rotvec, quat_xyzw_from_R, quat_xyzw_of
+
+    rng = np.random.default_rng(3)
+    rv = rng.normal(size=(500, 3))
+    rv *= rng.uniform(0, np.pi, (500, 1)) / np.linalg.norm(rv, axis=1, keepdims=True)
+    axes = np.array([[1, 0, 0], [0, 1, 0], [0, 0, 1], [1, 1, 0], [0, -1, 1], [1, 1, 1]], float)
+    special = np.concatenate(
+        [np.zeros((1, 3)), np.pi * axes / np.linalg.norm(axes, axis=1)[:, None]]
+    )
+    R = R_from_rotvec(np.concatenate([rv, special, -special]))
+    want = quat_xyzw_from_R(R)
+    got = np.array([quat_xyzw_of(r) for r in R])
+    assert np.abs(got - want).max() < 1e-15

@@ -70,6 +70,36 @@ def test_exact_detections_give_the_exact_pose(exact: Path) -> None:
     assert info.value.reason == "malformed"
 
 
+def test_a_repeated_camera_info_is_not_parsed_again(
+    exact: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """CameraInfo that differs from the last one taken only in its stamp is not parsed again
+    (it precedes each frame: ~0.3 ms of latency); one that differs in anything else is, and
+    a garbled one is refused as before."""
+    loc = Localizer(read_tag_map(exact / "ground_truth" / "tag_map.yaml")[0])
+    raw = bag_messages(exact, ["/camera_info"]).payloads[0]
+    msg = codec.deserialize(raw, "sensor_msgs/msg/CameraInfo")
+    parsed: list[bytes] = []
+    deserialize = codec.deserialize
+    monkeypatch.setattr(codec, "deserialize", lambda d, t: parsed.append(d) or deserialize(d, t))
+    loc.on_camera_info(raw)
+    first = loc.camera
+    msg.header.stamp.sec += 7
+    loc.on_camera_info(codec.serialize(msg))
+    assert loc.camera is first and len(parsed) == 1  # only its stamp differs: not parsed
+    msg.k = msg.k.copy()
+    msg.k[0] *= 1.01  # a new focal length
+    loc.on_camera_info(codec.serialize(msg))
+    assert len(parsed) == 2 and loc.camera.K[0, 0] == pytest.approx(first.K[0, 0] * 1.01)
+    second = loc.camera
+    msg.header.stamp.sec += 1
+    loc.on_camera_info(codec.serialize(msg))
+    assert loc.camera is second and len(parsed) == 2
+    with pytest.raises(DropError):
+        loc.on_camera_info(raw[:12] + b"\xff" * 8)  # its stamp, then garbage
+    assert len(parsed) == 3
+
+
 def test_localize_over_zenoh_within_1cm(noisy: Path) -> None:
     """Bag topics replayed over zenoh → ``stream localize`` (separate processes) → poses."""
     port = free_port()

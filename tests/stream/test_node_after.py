@@ -1,6 +1,6 @@
 """The node's work after a sample's outputs are out (:attr:`tagtrail.stream.node.Node.after`:
-the live smoother's window re-solve): it runs after the outputs are published, on a thread of
-lower priority, never beside a handler."""
+the live smoother hands its window's re-solve to its background process then), and that
+process (:class:`tagtrail.stream.background.Background`)."""
 
 from __future__ import annotations
 
@@ -12,38 +12,42 @@ import time
 import pytest
 import zenoh
 
+from tagtrail.stream.background import Background
 from tagtrail.stream.node import Node
 from tagtrail.stream.session import make_config
 from tagtrail.stream.stats import Stats
 from tests.stream.helpers import free_port, loopback
 
 
-def _nice() -> int:
-    return os.getpriority(os.PRIO_PROCESS, threading.get_native_id())
-
-
-@pytest.mark.skipif(sys.platform != "linux", reason="per-thread priorities are Linux's")
-def test_after_runs_once_the_outputs_are_out_at_a_lower_priority() -> None:
+def test_after_runs_on_the_handling_thread_once_the_outputs_are_out() -> None:
     port = free_port()
     a = zenoh.open(make_config("peer", listen=[loopback(port)]))
     b = zenoh.open(make_config("peer", connect=[loopback(port)]))
     node = Node(a, Stats("t"))
     got: list[bytes] = []
     sub = b.declare_subscriber("out", lambda s: got.append(s.payload.to_bytes()))
-    busy = threading.Event()  # a handler is running
-    seen: list[tuple[int, int, int, bool]] = []  # (outputs out, after's nice, handler's, overlap)
-    handler_nice: list[int] = []
+    handler_thread: list[int] = []
+    seen: list[tuple[int, int, bool]] = []  # (thread, outputs handed to zenoh, lock held)
+    published: list[bytes] = []
+    publish = node.publish
+
+    def counting(outputs: object, background: bool = False) -> None:
+        for key, payload in outputs:  # type: ignore[attr-defined]
+            publish([(key, payload)], background)
+            published.append(payload)
+
+    node.publish = counting  # type: ignore[method-assign]
 
     def handler(data: bytes) -> list[tuple[str, bytes]]:
-        busy.set()
-        handler_nice.append(_nice())
-        time.sleep(0.002)
-        busy.clear()
+        handler_thread.append(threading.get_native_id())
+        if data == b"\x02":
+            raise ValueError("a bad sample")  # after runs all the same (nothing to hand over)
         return [("out", data)]
 
     def after() -> None:
-        time.sleep(0.01)  # got's sample has arrived by then if it was published first
-        seen.append((len(got), _nice(), handler_nice[-1], busy.is_set()))
+        seen.append((threading.get_native_id(), len(published), node._lock.locked()))
+        if len(seen) == 4:
+            raise RuntimeError("after failed")  # counted, the node goes on
 
     node.after.append(after)
     node.subscribe("in", handler)
@@ -54,14 +58,80 @@ def test_after_runs_once_the_outputs_are_out_at_a_lower_priority() -> None:
             pub.put(bytes([i]))
             time.sleep(0.05)
         deadline = time.monotonic() + 3.0
-        while len(seen) < 5 and time.monotonic() < deadline:
+        while len(got) < 4 and time.monotonic() < deadline:
             time.sleep(0.01)
     finally:
         node.close()
         sub.undeclare()  # type: ignore[no-untyped-call]
         b.close()  # type: ignore[no-untyped-call]
-    assert len(seen) == 5 and len(got) == 5
-    for k, (n_out, nice, h_nice, overlap) in enumerate(seen):
-        assert n_out == k + 1  # this sample's output went out before
-        assert nice > h_nice  # lowered
-        assert not overlap
+    assert len(got) == 4 and [t for t, _, _ in seen] == handler_thread
+    assert [n for _, n, _ in seen] == [1, 2, 2, 3, 4]  # each after its sample's outputs
+    assert all(locked for _, _, locked in seen)  # no other sample is handled meanwhile
+    assert node.stats.dropped == {"error": 2}
+
+
+def _square(x: int) -> int:
+    return x * x
+
+
+def _policy(_: object) -> tuple[int, int, int]:
+    return os.getpid(), os.sched_getscheduler(0), os.getpriority(os.PRIO_PROCESS, 0)
+
+
+def _slow(s: float) -> float:
+    time.sleep(s)
+    return s
+
+
+def _fail(_: object) -> None:
+    raise ValueError("no")
+
+
+def _wait(bg: Background, seq: int | None, timeout_s: float = 20.0) -> object:
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline:
+        ok, value = bg.result(seq)
+        if ok:
+            return value
+        time.sleep(0.005)
+    raise AssertionError("no result")
+
+
+@pytest.mark.skipif(sys.platform != "linux", reason="SCHED_IDLE is Linux's")
+def test_background_computes_in_a_process_of_the_lowest_priority() -> None:
+    bg = Background("t")
+    try:
+        seq = bg.submit(_square, 7)
+        assert seq is not None and _wait(bg, seq) == 49
+        assert bg.result(seq) == (False, None)  # taken once
+        pid, policy, nice = _wait(bg, bg.submit(_policy, None))  # type: ignore[misc]
+        assert pid != os.getpid() and (policy == os.SCHED_IDLE or nice == 19)
+        slow = bg.submit(_slow, 0.3)
+        assert bg.submit(_square, 2) is None  # busy: refused (its owner computes it)
+        assert bg.result(slow) == (False, None)  # not back yet: never waited for
+        assert _wait(bg, slow) == 0.3
+        failed = bg.submit(_fail, None)
+        time.sleep(0.3)
+        assert bg.result(failed) == (False, None) and bg.counts["failed"] == 1
+        assert _wait(bg, bg.submit(_square, 3)) == 9  # it goes on after a failure
+        assert bg.counts["refused"] == 1 and bg.counts["used"] == 4
+    finally:
+        proc = bg._proc
+        bg.close()
+    assert proc is not None and proc.poll() is not None  # ended
+    assert bg.submit(_square, 2) is None  # nothing after close
+
+
+def test_background_child_leaves_with_its_parent() -> None:
+    """The child's input is the parent's pipe: when the parent goes (its end closed, as by
+    the parent's exit), the child leaves on its own."""
+    bg = Background("t")
+    assert _wait(bg, bg.submit(_square, 3)) == 9
+    proc = bg._proc
+    assert proc is not None and proc.stdin is not None
+    assert bg._conn is not None
+    bg._conn.close()  # the parent's ends of both pipes, as at its exit
+    proc.stdin.close()
+    proc.stdout.close()  # type: ignore[union-attr]
+    proc.wait(5.0)
+    bg.close()
