@@ -205,7 +205,7 @@ def frame_poses(
     used = np.zeros(n_frames, dtype=bool)
     if method == "pnp" and corners_px is not None and camera is not None:
         size = np.full(len(group), np.nan) if size_m is None else np.asarray(size_m, np.float64)
-        T, used = _pnp_frames(T, world_T_tag, group, corners_px, size, camera, ransac_px)
+        T, used = pnp_frames(T, world_T_tag, group, corners_px, size, camera, ransac_px)
     elif method == "pnp":
         method = "lsq"
     rest = ~used[group]  # the fusion only where PnP did not pose the frame (half the live time)
@@ -223,7 +223,7 @@ def frame_poses(
     return FramePoses(T, n_tags, used, method)
 
 
-def _pnp_frames(
+def pnp_frames(
     T: F64,
     world_T_tag: F64,
     group: I64,
@@ -232,7 +232,8 @@ def _pnp_frames(
     camera: CameraModel,
     ransac_px: float,
 ) -> tuple[F64, NDArray[np.bool_]]:
-    """``T`` with the frames that have >= 2 usable tags replaced by multi-tag PnP poses."""
+    """``T`` with the frames that have >= 2 usable tags replaced by multi-tag PnP poses, and
+    which frames were (:func:`frame_poses`' ``pnp`` without the fusion)."""
     px = np.asarray(corners_px, dtype=np.float64).reshape(-1, 4, 2)
     ok = np.isfinite(px).all(axis=(1, 2)) & np.isfinite(size) & (size > 0)
     n_ok = np.bincount(group[ok], minlength=len(T))

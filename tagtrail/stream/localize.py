@@ -37,8 +37,8 @@ from numpy.typing import NDArray
 
 from tagtrail.errors import DataError
 from tagtrail.geometry.camera import CameraModel
-from tagtrail.geometry.fusion import frame_poses
-from tagtrail.geometry.ippe import solve_ippe
+from tagtrail.geometry.fusion import frame_poses, pnp_frames
+from tagtrail.geometry.ippe import ippe_solvable, solve_ippe
 from tagtrail.geometry.se3 import T_from_xyz_quat, quat_xyzw_of
 from tagtrail.io import msgs
 from tagtrail.io.sources import detection_problem, detections_from_msg, raw_image_from_msg
@@ -150,24 +150,39 @@ class Localizer:
         if not len(keep):
             return None, 0
         k = np.searchsorted(self.ids, ids[keep])
-        cam_T_tag, err = solve_ippe(px[keep], self.size_m[k], self.camera)
-        good = np.flatnonzero(np.isfinite(err[:, 0]))  # offline, pnp keeps these observations
+        # offline, pnp keeps the observations IPPE solves (their poses: below, when needed)
+        good = np.flatnonzero(ippe_solvable(px[keep], self.size_m[k], self.camera))
         good = good[~_duplicated(ids[keep][good])]
         if not len(good):
             return None, 0
-        sel = keep[good]
+        sel, kg = keep[good], k[good]
         corners = np.where(twice[sel, None, None], np.nan, px[sel])
-        self._last_obs = (k[good][~twice[sel]], px[sel][~twice[sel]])  # the smoother's corners
+        self._last_obs = (kg[~twice[sel]], px[sel][~twice[sel]])  # the smoother's corners
         if not pose:
             return None, len(sel)
+        # multi-tag PnP needs no per-tag pose: the IPPE poses only for the fusion, when PnP
+        # does not pose the frame (< 2 tags, or it fails)
         p = self.params.trajectory
+        if self.method in ("auto", "pnp") and len(sel) >= 2:
+            T, by_pnp = pnp_frames(
+                np.full((1, 4, 4), np.nan),
+                self.world_T_tag[kg],
+                np.zeros(len(sel), np.int64),
+                corners,
+                self.size_m[kg],
+                self.camera,
+                p.ransac_px,
+            )
+            if by_pnp[0]:
+                return T[0], len(sel)
+        cam_T_tag = solve_ippe(px[sel], self.size_m[kg], self.camera)[0]
         res = frame_poses(
-            self.world_T_tag[k[good]],
-            cam_T_tag[good, 0],
+            self.world_T_tag[kg],
+            cam_T_tag[:, 0],
             np.zeros(len(sel), np.int64),
             1,
             corners_px=corners,
-            size_m=self.size_m[k[good]],
+            size_m=self.size_m[kg],
             camera=self.camera,
             method=self.method,
             loss=p.loss,

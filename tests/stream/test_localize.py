@@ -171,3 +171,51 @@ def test_localize_from_compressed_images_over_zenoh(tmp_path: Path) -> None:
     assert set(node.stats()["dropped"]) <= {"skipped"}, node.stats()
     err = _errors_m(poses, gt)
     assert err.max() < 0.01, f"max {err.max():.4f} m, median {np.median(err):.4f} m"
+
+
+def test_frame_pose_falls_back_to_the_fusion_as_the_trajectory_stage(exact: Path) -> None:
+    """Multi-tag PnP needs no per-tag IPPE pose, so the node solves IPPE's poses only when
+    PnP does not pose the frame; then (one tag, or PnP fails: the tags' corners shifted 40 px,
+    each their own way, leave too few inliers) the pose is the trajectory stage's fusion of them, as before."""
+    from tagtrail.geometry.fusion import frame_poses
+    from tagtrail.geometry.ippe import solve_ippe
+    from tagtrail.io.sources import detections_from_msg
+
+    loc = Localizer(read_tag_map(exact / "ground_truth" / "tag_map.yaml")[0])
+    msgs = bag_messages(exact, ["/camera_info", "/detections"])
+    loc.on_camera_info(msgs.payloads[msgs.keys.index("camera_info")])
+    raw = next(p for k, p in zip(msgs.keys, msgs.payloads, strict=True) if k == "detections")
+    dets = detections_from_msg(codec.deserialize(raw, "apriltag_msgs/msg/AprilTagDetectionArray"))
+    ids = np.array([d.tag_id for d in dets])
+    px = np.array([d.corners for d in dets], np.float64).reshape(-1, 4, 2)
+    assert len(ids) >= 3 and set(ids) <= set(loc.ids.tolist())
+    order = np.argsort(ids)
+    ids, px = ids[order], px[order]
+    shifted = px.copy()  # each tag its own way: no 6 corners agree on a pose, PnP fails
+    shifts = np.array([[40.0, 0.0], [0.0, 40.0], [-40.0, 0.0], [0.0, -40.0]])
+    shifted += np.resize(shifts, (len(ids), 2))[:, None, :]
+    p = loc.params.trajectory
+    for sel_px, sel_ids, by_pnp in (
+        (px, ids, True),
+        (shifted, ids, False),
+        (px[:1], ids[:1], False),
+    ):
+        T, n = loc.frame_pose(sel_px, sel_ids)
+        k = np.searchsorted(loc.ids, sel_ids)
+        cam_T_tag = solve_ippe(sel_px, loc.size_m[k], loc.camera)[0][:, 0]
+        want = frame_poses(
+            loc.world_T_tag[k],
+            cam_T_tag,
+            np.zeros(len(k), np.int64),
+            1,
+            corners_px=sel_px,
+            size_m=loc.size_m[k],
+            camera=loc.camera,
+            method="auto",
+            loss=p.loss,
+            f_scale=p.f_scale,
+            rot_weight_m=p.rot_weight_m,
+            ransac_px=p.ransac_px,
+        )
+        assert bool(want.by_pnp[0]) == by_pnp and n == len(sel_ids)
+        assert T is not None and np.abs(T - want.world_T_cam[0]).max() < 1e-12
