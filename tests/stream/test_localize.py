@@ -176,7 +176,8 @@ def test_localize_from_compressed_images_over_zenoh(tmp_path: Path) -> None:
 def test_frame_pose_falls_back_to_the_fusion_as_the_trajectory_stage(exact: Path) -> None:
     """Multi-tag PnP needs no per-tag IPPE pose, so the node solves IPPE's poses only when
     PnP does not pose the frame; then (one tag, or PnP fails: the tags' corners shifted 40 px,
-    each their own way, leave too few inliers) the pose is the trajectory stage's fusion of them, as before."""
+    each their own way, leave too few inliers) the pose is the trajectory stage's fusion of
+    them, as before."""
     from tagtrail.geometry.fusion import frame_poses
     from tagtrail.geometry.ippe import solve_ippe
     from tagtrail.io.sources import detections_from_msg
