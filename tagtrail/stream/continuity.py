@@ -168,6 +168,19 @@ class _Frame:
     corners_px: F64  # (k, 4, 2)
     R: F64  # cam_T_world
     t: F64
+    # the corners undistorted by ``camera`` and their noise (px), once a frame (the window's
+    # every frame undistorted again for each re-solve: ~1 ms)
+    camera: CameraModel | None = None
+    norm: F64 | None = None
+    sigma: F64 | None = None
+
+    def weighed(self, camera: CameraModel, sigma_px: float) -> tuple[F64, F64]:
+        """``(norm (k, 4, 2), sigma (k,))`` of the frame's corners through ``camera``."""
+        if self.camera is not camera or self.norm is None or self.sigma is None:
+            self.norm = camera.undistort(self.corners_px.reshape(-1, 4, 2))
+            self.sigma = corner_sigma(self.corners_px, sigma_px)
+            self.camera = camera
+        return self.norm, self.sigma
 
 
 PriorOf = Callable[[F64, list[int]], Any]
@@ -477,15 +490,11 @@ class Smoother:
         tag_all = np.concatenate([f.tag for f in fr])
         used, tag_local = np.unique(tag_all, return_inverse=True)
         frame = np.repeat(np.arange(len(fr)), [len(f.tag) for f in fr])
-        px = np.concatenate([f.corners_px for f in fr]).reshape(-1, 4, 2)
-        ob = CornerObservations(frame, tag_local, self.pts[tag_all], camera.undistort(px))
-        corners = Corners(
-            camera.focal_px,
-            corner_sigma(px, self.s.joint.corner_sigma_px),
-            CORNER_LOSS,
-            CORNER_F_SCALE_PX,
-            False,
-        )
+        w = [f.weighed(camera, self.s.joint.corner_sigma_px) for f in fr]
+        norm = w[0][0] if len(w) == 1 else np.concatenate([n for n, _ in w])
+        sigma = w[0][1] if len(w) == 1 else np.concatenate([g for _, g in w])
+        ob = CornerObservations(frame, tag_local, self.pts[tag_all], norm)
+        corners = Corners(camera.focal_px, sigma, CORNER_LOSS, CORNER_F_SCALE_PX, False)
         return used, ob, corners
 
     def _priors(self, fr: Sequence[_Frame]) -> list[Any]:

@@ -492,11 +492,18 @@ def test_the_pose_leaves_before_the_window_is_re_solved(
     calls = [0]
     frame_poses = localize.frame_poses
 
+    pnp_frames = localize.pnp_frames
+
     def counted(*a: Any, **kw: Any) -> Any:
         calls[0] += 1
         return frame_poses(*a, **kw)
 
+    def counted_pnp(*a: Any, **kw: Any) -> Any:
+        calls[0] += 1
+        return pnp_frames(*a, **kw)
+
     monkeypatch.setattr(localize, "frame_poses", counted)
+    monkeypatch.setattr(localize, "pnp_frames", counted_pnp)
     for k, p in zip(m.keys, m.payloads, strict=True):
         if k != "detections":
             continue
