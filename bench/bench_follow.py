@@ -91,7 +91,8 @@ def main() -> None:
             "350 us with 33 ms sleeps between), so latency is counted in Python calls: a "
             "CameraInfo that only differs in its stamp is not parsed again, a frame posed by "
             "multi-tag PnP builds no per-tag IPPE pose, a pose's quaternion skips scipy "
-            "(per frame: p50 3.8 ms, p99 5.2 in this table; 4.8-6.3 in other runs today; "
+            "(per frame: p50 3.1 ms, p99 4.1 in this table; 4.8-6.3 in runs today before the "
+            "count below; "
             "before these: 4.0-4.4 / 5.8-6.0). "
             "With --smooth each frame's pose leaves after the filter's step (~1-1.5 ms of CPU: "
             "its corners and, taken once from the motion's extrapolation, the priors' terms "
@@ -99,11 +100,13 @@ def main() -> None:
             "child process at SCHED_IDLE (stream/background.py): on a thread niced +10 it "
             "shared the GIL with the handlers, and Linux's EEVDF scheduler let it finish its "
             "slice before relocalize and follow ran (hops of 2-4 ms at p90). Detections "
-            "--smooth: p50 4.7 ms, p99 8.4 here (the thread: 7.1-7.6 / 14.5-14.7; before the "
+            "--smooth: p50 4.4-5.6 ms, p99 7.8-9.7 here (the thread: 7.1-7.6 / 14.5-14.7; "
+            "before the "
             "step: 15.5 / 19.5): the step's priors (~0.9 ms) and the dead-reckoned poses at the "
-            "odometry's 50 Hz through relocalize and follow keep it above 5 ms. The 2 s "
-            "blackout's p99 without --smooth is "
-            "the first frames after it (the follower stopped; relocalize re-acquires).",
+            "odometry's 50 Hz through relocalize and follow keep it above 5 ms. Latency "
+            "counts the frames with a tag in view (a Twist after a blind frame is the "
+            "follower's stop: counted, it made the 2 s blackout's p99 ~21 ms) from 1 s on; the "
+            "first second's worst (the nodes' warm-up) is 20-70 ms.",
             "",
             "`smooth`: `stream localize --smooth --odom-key odom` (the fixed-lag smoother and "
             "dead reckoning on the LIMO's odometry: it bridges the blackout); without it each "
