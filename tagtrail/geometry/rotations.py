@@ -122,6 +122,9 @@ def _log_via_quaternion(R: F64) -> F64:
     return out_
 
 
+_SKEW_I, _SKEW_J = np.array([2, 0, 1]), np.array([1, 2, 0])
+
+
 def log_so3(R: ArrayLike) -> F64:
     """Rotation vectors ``(..., 3)`` (angle in [0, pi]) of rotations ``(..., 3, 3)``.
 
@@ -132,9 +135,9 @@ def log_so3(R: ArrayLike) -> F64:
     R = np.asarray(R, dtype=np.float64)
     lead = R.shape[:-2]
     R = R.reshape(-1, 3, 3)
-    s = np.stack([R[:, 2, 1] - R[:, 1, 2], R[:, 0, 2] - R[:, 2, 0], R[:, 1, 0] - R[:, 0, 1]], -1)
+    s = R[:, _SKEW_I, _SKEW_J] - R[:, _SKEW_J, _SKEW_I]  # (R21 - R12, R02 - R20, R10 - R01)
     c = 0.5 * (R[:, 0, 0] + R[:, 1, 1] + R[:, 2, 2] - 1.0)
-    n = np.linalg.norm(s, axis=-1)
+    n = np.sqrt(np.add.reduce(s * s, axis=-1))  # = np.linalg.norm, without its checks
     th = np.arctan2(0.5 * n, c)
     small = n < 1e-12
     scale = np.where(small, 0.5 + th * th / 12.0, th / np.where(small, 1.0, n))
