@@ -133,6 +133,11 @@ class Background:
             return True, value
         return False, None
 
+    def idle(self) -> bool:
+        """Whether no job is being computed (a new one would be taken)."""
+        self._drain()
+        return self._busy is None
+
     def _drain(self) -> None:
         conn = self._conn
         try:

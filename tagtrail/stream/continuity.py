@@ -26,7 +26,7 @@ import json
 import math
 import time
 from collections import deque
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -183,6 +183,7 @@ class _Frame:
         return self.norm, self.sigma
 
 
+Outputs = Iterator[tuple[str, bytes]]  # a node's keyed payloads, encoded as they are published
 PriorOf = Callable[[F64, list[int]], Any]
 """A further prior of the window: ``(t_s (F,), t_ns)`` of its frames -> a
 :class:`~tagtrail.geometry.joint.Prior` (or None): :class:`LiveOdometry` (which
@@ -863,7 +864,7 @@ class LivePoses:
         own: F64 | None,
         obs: tuple[I64, F64] | None,
         camera: CameraModel | None,
-    ) -> list[tuple[str, bytes]]:
+    ) -> Outputs:
         """A camera frame: its own pose ``own`` (or None) and its mapped tags' corners."""
         if obs is None or not len(obs[0]) or camera is None:
             raise DropError("no_pose", "no mapped tag in the frame")
@@ -897,7 +898,7 @@ class LivePoses:
         (:meth:`Smoother.wants_start`)."""
         return self.smoother.wants_start(t_ns)
 
-    def on_odometry(self, data: bytes) -> list[tuple[str, bytes]]:
+    def on_odometry(self, data: bytes) -> Outputs:
         """One ``nav_msgs/Odometry``: the pose dead-reckoned from the last fix (nothing before
         a fix, or when it is older than the dead reckoning's bound)."""
         try:
@@ -910,10 +911,10 @@ class LivePoses:
         yaw = math.atan2(2 * (p.qw * p.qz + p.qx * p.qy), 1 - 2 * (p.qy**2 + p.qz**2))
         t = self.dead.add_odometry(p.sec * 1_000_000_000 + p.nanosec, p.x, p.y, yaw)
         if self.dead.fix is None or t <= self.t_out:
-            return []
+            return iter(())
         T = self.dead.pose(t)
         if T is None:
-            return []
+            return iter(())
         age = (t - self.dead.fix[0]) * 1e-9
         cov = self.fix_cov.copy()
         # odometry's own error: 3 % of the distance and 0.3 deg/s (the LIMO's), growing with it
@@ -923,12 +924,24 @@ class LivePoses:
         self.counts["odometry"] += 1
         return self._out(t, T, cov, age, "odometry")
 
-    def _out(self, t_ns: int, T: F64, cov: F64, age: float, source: str) -> list[tuple[str, bytes]]:
+    def _out(self, t_ns: int, T: F64, cov: F64, age: float, source: str) -> Outputs:
+        """The outputs of a pose (none for a stamp not after the last one's), encoded as they
+        are published: the ``PoseStamped`` the next node takes leaves first."""
         if t_ns <= self.t_out:
-            return []
+            return iter(())
         self.t_out = t_ns
+        return self._encoded(
+            t_ns, T, cov, age, source, len(self.smoother.frames), self.smoother.iters
+        )
+
+    def _encoded(
+        self, t_ns: int, T: F64, cov: F64, age: float, source: str, frames: int, iters: int
+    ) -> Outputs:
         sec, nsec = divmod(t_ns, 1_000_000_000)
         pq = [*T[:3, 3].tolist(), *quat_xyzw_of(T[:3, :3])]
+        yield self.pose_key, self._pose(sec, nsec, *pq)
+        yield self.cov_key, self._cov(sec, nsec, pq, np.nan_to_num(cov, nan=-1.0).ravel().tolist())
+        yield self.age_key, codec.encode_float64(age)
         state = {
             "stamp_sec": sec,
             "stamp_nanosec": nsec,
@@ -936,15 +949,10 @@ class LivePoses:
             "source": source,
             "position_std_m": _std(cov[:3, :3]),
             "rotation_std_deg": _std(cov[3:, 3:], math.degrees(1.0)),
-            "window_frames": len(self.smoother.frames),
-            "iterations": self.smoother.iters,
+            "window_frames": frames,
+            "iterations": iters,
         }
-        return [
-            (self.pose_key, self._pose(sec, nsec, *pq)),
-            (self.cov_key, self._cov(sec, nsec, pq, np.nan_to_num(cov, nan=-1.0).ravel().tolist())),
-            (self.age_key, codec.encode_float64(age)),
-            (self.state_key, json.dumps(state).encode()),
-        ]
+        yield self.state_key, json.dumps(state).encode()
 
 
 def _std(c: F64, unit: float = 1.0) -> float | None:

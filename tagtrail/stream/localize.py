@@ -26,7 +26,7 @@ from __future__ import annotations
 import logging
 import time
 from collections import Counter, deque
-from collections.abc import Callable
+from collections.abc import Callable, Iterable
 from dataclasses import dataclass, field
 from typing import Any, Literal
 
@@ -118,7 +118,9 @@ class Localizer:
         self.stats = stats
         self.clock = clock
         # inputs before the first CameraInfo: (handler, arrival clock, perf_counter_ns, bytes)
-        self.waiting: deque[tuple[Callable[[], list[tuple[str, bytes]]], float, int, int]] = deque()
+        self.waiting: deque[tuple[Callable[[], Iterable[tuple[str, bytes]]], float, int, int]] = (
+            deque()
+        )
         self._enc = codec.PoseStampedEncoder(frame_id)
         self.live: Any = None  # the live smoother (smooth()); None: each frame on its own
         self._last_obs: tuple[NDArray[np.int64], F64] | None = None
@@ -214,7 +216,7 @@ class Localizer:
         self._info_bytes = data[:4] + data[12:]
         return self._release()
 
-    def _hold(self, handle: Callable[[], list[tuple[str, bytes]]], size: int) -> None:
+    def _hold(self, handle: Callable[[], Iterable[tuple[str, bytes]]], size: int) -> None:
         """Keep an input that arrived before the first CameraInfo (:class:`Deferred`): the
         last :data:`WAIT_N` (:data:`WAIT_BYTES`) of them, for :data:`WAIT_S`; an input pushed
         out is dropped as ``no_camera_info``."""
@@ -249,7 +251,7 @@ class Localizer:
         if self.stats is not None:
             self.stats.drop(err.reason, str(err))
 
-    def on_detections(self, data: bytes) -> list[tuple[str, bytes]]:
+    def on_detections(self, data: bytes) -> Iterable[tuple[str, bytes]]:
         """The pose of one detection message (before the first CameraInfo: kept, see
         :meth:`_hold`)."""
         if self.camera is None:
@@ -267,7 +269,7 @@ class Localizer:
         px = np.array([d.corners for d in dets], dtype=np.float64)
         return self._publish(msg.header.stamp, px.reshape(-1, 4, 2), ids)
 
-    def on_image(self, data: bytes, kind: str = "compressed") -> list[tuple[str, bytes]]:
+    def on_image(self, data: bytes, kind: str = "compressed") -> Iterable[tuple[str, bytes]]:
         """Detect tags in one image and publish the pose. The image's size is checked before
         it is decoded (:meth:`check_size`): a bad or oversized image costs no memory."""
         from tagtrail.vision.apriltag import detect  # pupil-apriltags only where images are used
@@ -320,7 +322,9 @@ class Localizer:
             self.stats.stamp(int(msg.header.stamp.sec), int(msg.header.stamp.nanosec))
         return msg
 
-    def _publish(self, stamp: Any, px: F64, ids: NDArray[np.integer]) -> list[tuple[str, bytes]]:
+    def _publish(
+        self, stamp: Any, px: F64, ids: NDArray[np.integer]
+    ) -> Iterable[tuple[str, bytes]]:
         if not np.isfinite(px).all():
             raise DropError("non_finite", "detection corners are not finite")
         sec, nsec = int(stamp.sec), int(stamp.nanosec)
@@ -328,7 +332,9 @@ class Localizer:
         # the smoother's step starts from its own extrapolation: the frame's pose only without
         T, _ = self.frame_pose(px, ids, self.live is None or self.live.wants_start(t_ns))
         if self.live is not None:
-            out: list[tuple[str, bytes]] = self.live.on_frame(t_ns, T, self._last_obs, self.camera)
+            out: Iterable[tuple[str, bytes]] = self.live.on_frame(
+                t_ns, T, self._last_obs, self.camera
+            )
             return out
         if T is None or not np.isfinite(T).all():
             raise DropError("no_pose", "no mapped tag in the frame")

@@ -87,6 +87,13 @@ def _fail(_: object) -> None:
     raise ValueError("no")
 
 
+def _until(ok: object, timeout_s: float = 20.0) -> None:
+    deadline = time.monotonic() + timeout_s
+    while not ok() and time.monotonic() < deadline:  # type: ignore[operator]
+        time.sleep(0.005)
+    assert ok(), "timed out"  # type: ignore[operator]
+
+
 def _wait(bg: Background, seq: int | None, timeout_s: float = 20.0) -> object:
     deadline = time.monotonic() + timeout_s
     while time.monotonic() < deadline:
@@ -111,7 +118,7 @@ def test_background_computes_in_a_process_of_the_lowest_priority() -> None:
         assert bg.result(slow) == (False, None)  # not back yet: never waited for
         assert _wait(bg, slow) == 0.3
         failed = bg.submit(_fail, None)
-        time.sleep(0.3)
+        _until(bg.idle)
         assert bg.result(failed) == (False, None) and bg.counts["failed"] == 1
         assert _wait(bg, bg.submit(_square, 3)) == 9  # it goes on after a failure
         assert bg.counts["refused"] == 1 and bg.counts["used"] == 4
