@@ -46,6 +46,28 @@ DEPTH = 2  # tasks in flight per worker
 _PIPE_BYTES = 1 << 20
 
 
+def spawn_worker(func: str) -> subprocess.Popen[bytes]:
+    """One worker process running ``func`` (``"package.module:function"``) on the tasks
+    pickled to its stdin (a tuple of arguments each; ``None``: the end of a batch, echoed),
+    each answered on its stdout by a pickled ``(ok, result or exception)``; it leaves at EOF."""
+    env = dict(os.environ)
+    root = str(Path(tagtrail.__file__).resolve().parents[1])
+    env["PYTHONPATH"] = os.pathsep.join([root, *filter(None, [env.get("PYTHONPATH")])])
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "tagtrail.pool", func],
+        stdin=subprocess.PIPE,
+        stdout=subprocess.PIPE,
+        env=env,
+        process_group=0,  # Ctrl-C at a terminal signals its foreground group: the parent
+    )  # alone, which stops the workers (a worker has no partial result to keep)
+    for f in (proc.stdin, proc.stdout):  # fewer context switches for MB-sized raw images, and
+        try:  # a result written whole (Linux)
+            fcntl.fcntl(f.fileno(), fcntl.F_SETPIPE_SZ, _PIPE_BYTES)  # type: ignore
+        except (AttributeError, OSError, NameError):
+            pass
+    return proc
+
+
 class WorkerPool:
     """``workers`` processes running ``func`` (``"package.module:function"``) on tasks.
 
@@ -54,25 +76,7 @@ class WorkerPool:
     """
 
     def __init__(self, func: str, workers: int) -> None:
-        env = dict(os.environ)
-        root = str(Path(tagtrail.__file__).resolve().parents[1])
-        env["PYTHONPATH"] = os.pathsep.join([root, *filter(None, [env.get("PYTHONPATH")])])
-        self.procs = [
-            subprocess.Popen(
-                [sys.executable, "-m", "tagtrail.pool", func],
-                stdin=subprocess.PIPE,
-                stdout=subprocess.PIPE,
-                env=env,
-                process_group=0,  # Ctrl-C at a terminal signals its foreground group: the
-            )  # parent alone, which stops the workers (a worker has no partial result to keep)
-            for _ in range(max(1, workers))
-        ]
-        for p in self.procs:  # fewer context switches for MB-sized raw images (Linux)
-            for f in (p.stdin, p.stdout):
-                try:
-                    fcntl.fcntl(f.fileno(), fcntl.F_SETPIPE_SZ, _PIPE_BYTES)  # type: ignore
-                except (AttributeError, OSError, NameError):
-                    pass
+        self.procs = [spawn_worker(func) for _ in range(max(1, workers))]
         self._threads: list[threading.Thread] = []
         self._closing = threading.Event()
         self._clean = True  # no task in flight: safe to reuse

@@ -839,7 +839,13 @@ def _localize(ns: argparse.Namespace) -> int:
     live, background = None, None
     if ns.smooth:
         from tagtrail.stream.background import Background
-        from tagtrail.stream.continuity import DeadReckoning, LivePoses, Smoother, SmootherSettings
+        from tagtrail.stream.continuity import (
+            RESOLVE,
+            DeadReckoning,
+            LivePoses,
+            Smoother,
+            SmootherSettings,
+        )
 
         if ns.camera_forward_m is None:
             logging.getLogger("tagtrail.stream").warning(
@@ -863,7 +869,7 @@ def _localize(ns: argparse.Namespace) -> int:
         loc.smooth(live)
         node.types.update(live.keys())
         # the window re-solved once the pose is out, in a process of the lowest priority
-        background = live.smoother.background = Background("localize: window re-solve")
+        background = live.smoother.background = Background(RESOLVE, "localize: window re-solve")
         node.after.append(live.dispatch)
     try:
         node.publisher(ns.pose_key)

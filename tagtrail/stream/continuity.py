@@ -223,6 +223,9 @@ class _Solved:
     fit: tuple[Plane, Mount | None, bool] | None
 
 
+RESOLVE = "tagtrail.stream.continuity:_resolve"  # for a Background process
+
+
 def _resolve(w: _Window) -> _Solved:
     """Compute a window's re-solve (a pure function of ``w``: here or in the background)."""
     start = w.clock()
@@ -415,7 +418,7 @@ class Smoother:
         result, or computes it when it is not back."""
         job = self._prepared()
         if job is not None and job.seq is None and self.background is not None:
-            job.seq = self.background.submit(_resolve, job.window)
+            job.seq = self.background.submit(job.window)
 
     def _prepared(self) -> _Job | None:
         if self._pending is not None:

@@ -244,7 +244,7 @@ def test_node_publishes_per_frame_and_between_frames_with_odometry(tmp_path: Pat
             sub.wait_until("localize/state", lambda v: len(v) >= 150, timeout=40)
             time.sleep(1.0)  # the rest of the flood
             got = sub.wait("localize/state", 150)
-            helpers = _children(node.p.pid, "tagtrail.stream.background")
+            helpers = _children(node.p.pid, "tagtrail.stream.continuity:_resolve")
         finally:
             for p in pubs.values():
                 p.undeclare()
@@ -564,6 +564,7 @@ def test_the_background_re_solve_gives_the_same_poses(noisy: Path) -> None:
     not back yet — gives the poses of re-solving in the foreground (a pure function of the
     window taken when the pose left)."""
     from tagtrail.stream.background import Background
+    from tagtrail.stream.continuity import RESOLVE
 
     tags = read_tag_map(noisy / "ground_truth" / "tag_map.yaml")[0]
     m = bag_messages(noisy, ["/camera_info", "/detections"])
@@ -578,7 +579,7 @@ def test_the_background_re_solve_gives_the_same_poses(noisy: Path) -> None:
         )
         for _ in range(2)
     ]
-    bg = lives[0].smoother.background = Background("test")
+    bg = lives[0].smoother.background = Background(RESOLVE, "test")
     loc.on_camera_info(m.payloads[m.keys.index("camera_info")])
     poses: list[list[bytes]] = [[], []]
     try:

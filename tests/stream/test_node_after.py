@@ -70,21 +70,20 @@ def test_after_runs_on_the_handling_thread_once_the_outputs_are_out() -> None:
     assert node.stats.dropped == {"error": 2}
 
 
-def _square(x: int) -> int:
-    return x * x
-
-
-def _policy(_: object) -> tuple[int, int, int]:
-    return os.getpid(), os.sched_getscheduler(0), os.getpriority(os.PRIO_PROCESS, 0)
-
-
-def _slow(s: float) -> float:
-    time.sleep(s)
-    return s
-
-
-def _fail(_: object) -> None:
+def _run(job: tuple[str, object]) -> object:
+    """The test's jobs, by name (a worker runs one function)."""
+    what, arg = job
+    if what == "square":
+        return arg * arg  # type: ignore[operator]
+    if what == "policy":
+        return os.getpid(), os.sched_getscheduler(0), os.getpriority(os.PRIO_PROCESS, 0)
+    if what == "slow":
+        time.sleep(arg)  # type: ignore[arg-type]
+        return arg
     raise ValueError("no")
+
+
+JOBS = "tests.stream.test_node_after:_run"
 
 
 def _until(ok: object, timeout_s: float = 20.0) -> None:
@@ -106,39 +105,37 @@ def _wait(bg: Background, seq: int | None, timeout_s: float = 20.0) -> object:
 
 @pytest.mark.skipif(sys.platform != "linux", reason="SCHED_IDLE is Linux's")
 def test_background_computes_in_a_process_of_the_lowest_priority() -> None:
-    bg = Background("t")
+    bg = Background(JOBS, "t")
     try:
-        seq = bg.submit(_square, 7)
+        seq = bg.submit(("square", 7))
         assert seq is not None and _wait(bg, seq) == 49
         assert bg.result(seq) == (False, None)  # taken once
-        pid, policy, nice = _wait(bg, bg.submit(_policy, None))  # type: ignore[misc]
+        pid, policy, nice = _wait(bg, bg.submit(("policy", None)))  # type: ignore[misc]
         assert pid != os.getpid() and (policy == os.SCHED_IDLE or nice == 19)
-        slow = bg.submit(_slow, 0.3)
-        assert bg.submit(_square, 2) is None  # busy: refused (its owner computes it)
+        slow = bg.submit(("slow", 0.3))
+        assert bg.submit(("square", 2)) is None  # busy: refused (its owner computes it)
         assert bg.result(slow) == (False, None)  # not back yet: never waited for
         assert _wait(bg, slow) == 0.3
-        failed = bg.submit(_fail, None)
+        failed = bg.submit(("fail", None))
         _until(bg.idle)
         assert bg.result(failed) == (False, None) and bg.counts["failed"] == 1
-        assert _wait(bg, bg.submit(_square, 3)) == 9  # it goes on after a failure
+        assert _wait(bg, bg.submit(("square", 3))) == 9  # it goes on after a failure
         assert bg.counts["refused"] == 1 and bg.counts["used"] == 4
     finally:
         proc = bg._proc
         bg.close()
     assert proc is not None and proc.poll() is not None  # ended
-    assert bg.submit(_square, 2) is None  # nothing after close
+    assert bg.submit(("square", 2)) is None  # nothing after close
 
 
 def test_background_child_leaves_with_its_parent() -> None:
     """The child's input is the parent's pipe: when the parent goes (its end closed, as by
     the parent's exit), the child leaves on its own."""
-    bg = Background("t")
-    assert _wait(bg, bg.submit(_square, 3)) == 9
+    bg = Background(JOBS, "t")
+    assert _wait(bg, bg.submit(("square", 3))) == 9
     proc = bg._proc
-    assert proc is not None and proc.stdin is not None
-    assert bg._conn is not None
-    bg._conn.close()  # the parent's ends of both pipes, as at its exit
-    proc.stdin.close()
-    proc.stdout.close()  # type: ignore[union-attr]
+    assert proc is not None and proc.stdin is not None and proc.stdout is not None
+    proc.stdin.close()  # the parent's ends of both pipes, as at its exit
+    proc.stdout.close()
     proc.wait(5.0)
     bg.close()
