@@ -37,6 +37,7 @@ import subprocess
 import sys
 import threading
 import time
+from contextlib import ExitStack
 from pathlib import Path
 from typing import Any
 
@@ -62,6 +63,7 @@ from tagtrail.sim.scene import (
 )
 from tagtrail.sim.simulate import write_ground_truth
 from tagtrail.stream.follow import decode_twist
+from tagtrail.stream.node import collect_due, collections_between_messages
 from tagtrail.stream.session import make_config
 
 PLANE = "xz"  # the floor of the anchor's frame (world y up: n = −y points down)
@@ -269,6 +271,7 @@ def run(
     rows: list[tuple[float, ...]] = []
     blind_from, completed, t_end_seen = math.nan, False, math.nan
     session_b = None
+    quiet = ExitStack()
     try:
         common = ["--stats-period", "0"]
         inputs = (
@@ -357,6 +360,9 @@ def run(
         subs.append(session_b.declare_subscriber("relocalization/state", on_state))
         time.sleep(0.5)  # the links settle before the first frame
         limit = max_time_s or truth.length / speed_mps * 1.6 + blackout_s + 10.0
+        # the garbage collected while no frame waits for its Twist, as in the nodes (a
+        # collection in the simulator would delay the Twist's callback: latency not theirs)
+        quiet.enter_context(collections_between_messages())
         t0 = time.monotonic()
         t_sim, next_cam, next_odo, dt = 0.0, 0.0, 0.0, 0.005
         while t_sim < limit:
@@ -415,8 +421,13 @@ def run(
                     break
             else:
                 t_end_seen = math.nan
+            with lock:
+                answered = math.isnan(pending[0])
+            if answered:
+                collect_due()
             time.sleep(max(0.0, 0.004 - (time.monotonic() - t0 - now)))
     finally:
+        quiet.close()
         codes = [p.stop() for p in reversed(procs)][::-1]
         for s_ in subs:
             s_.undeclare()  # type: ignore[no-untyped-call]

@@ -63,18 +63,25 @@ class Background:
         self.dead = False
         self.counts = {"submitted": 0, "used": 0, "refused": 0, "failed": 0}
 
-    def submit(self, arg: Any) -> int | None:
-        """Hand ``func(arg)`` to the worker; its number, or None when the worker is busy (or
-        gone): then the owner computes it itself when it needs it."""
+    def start(self) -> bool:
+        """Start the worker now (else the first :meth:`submit` does): its start-up, ~0.5 s of
+        imports, is then over before the first job. Whether there is a worker."""
         if self.dead:
-            return None
+            return False
         if self._proc is None:
             try:
                 self._proc = spawn_worker(self.func)
             except Exception as err:  # noqa: BLE001 - no worker: the owner computes
                 self._fail(f"cannot start: {err}")
-                return None
+                return False
             lowest_priority(self._proc.pid)
+        return True
+
+    def submit(self, arg: Any) -> int | None:
+        """Hand ``func(arg)`` to the worker; its number, or None when the worker is busy (or
+        gone): then the owner computes it itself when it needs it."""
+        if not self.start():
+            return None
         self._drain()
         if self._busy is not None:
             self.counts["refused"] += 1
@@ -103,6 +110,11 @@ class Background:
             self.counts["used"] += 1
             return True, value
         return False, None
+
+    def ready(self, seq: int | None) -> bool:
+        """Whether job ``seq``'s result is back (:meth:`result` then returns it at once)."""
+        self._drain()
+        return seq is not None and self._done is not None and self._done[0] == seq
 
     def idle(self) -> bool:
         """Whether no job is being computed (a new one would be taken)."""
@@ -136,8 +148,19 @@ class Background:
     def close(self, timeout_s: float = 0.5) -> None:
         """End the worker (its stdin closed: it leaves; killed if it has not within
         ``timeout_s``); no job is taken after. Idempotent."""
-        self.dead = True
+        was, self.dead = self.dead, True
         proc, self._proc = self._proc, None
+        if not was and self.counts["submitted"] + self.counts["refused"]:
+            c = self.counts
+            log.info(
+                "%s: %d jobs computed in the background, %d of them back in time; %d refused "
+                "while it was busy, %d failed (the rest done in the foreground)",
+                self.name,
+                c["submitted"],
+                c["used"],
+                c["refused"],
+                c["failed"],
+            )
         if proc is None:
             return
         for f in (proc.stdin, proc.stdout):

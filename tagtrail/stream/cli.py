@@ -870,6 +870,7 @@ def _localize(ns: argparse.Namespace) -> int:
         node.types.update(live.keys())
         # the window re-solved once the pose is out, in a process of the lowest priority
         background = live.smoother.background = Background(RESOLVE, "localize: window re-solve")
+        background.start()  # its imports done while the node starts, not on the first frames
         node.after.append(live.dispatch)
     try:
         node.publisher(ns.pose_key)

@@ -45,11 +45,12 @@ from tagtrail.geometry.joint.drive import (
     strain,
 )
 from tagtrail.geometry.joint.ground import (
-    GroundPlane,
     GroundPrior,
     Plane,
     fit_plane,
+    plane_terms,
 )
+from tagtrail.geometry.joint.ground import robust_weights as ground_weights
 from tagtrail.geometry.joint.motion import MotionPrior
 from tagtrail.geometry.joint.newest import solve_newest
 from tagtrail.geometry.joint.odometry import (
@@ -120,8 +121,17 @@ class FixedGround:
 
     def terms(self, R_cam: F64, t_cam: F64, values: Any) -> Terms:
         """:class:`GroundPlane`'s terms at the fixed plane, without its unknowns."""
-        t = GroundPlane(self.prior, self.plane).terms(R_cam, t_cam, {"ground": self.plane})
-        return Terms(t.cost, t.r, t.first, t.Jc, None, 3 * len(R_cam))
+        p, Jc, _ = plane_terms(R_cam, t_cam, self.plane, self.prior, unknowns=False)
+        val, w = ground_weights(p, self.prior)
+        s = np.sqrt(w)
+        return Terms(
+            float(val.sum()),
+            p * s[:, None],
+            np.arange(len(R_cam)),
+            (Jc * s[:, None, None])[:, None],
+            None,
+            3 * len(R_cam),
+        )
 
     def update(self, value: Any, step: F64, values: Any) -> Any:
         return None
@@ -145,7 +155,9 @@ class FixedDrive:
 
     def terms(self, R_cam: F64, t_cam: F64, values: Any) -> Terms:
         j = steps(self.t_s, self.max_gap_s)
-        q, Jc, _ = drive_terms(R_cam, t_cam, self.t_s, j, self.plane, self.mount, DRIVE)
+        q, Jc, _ = drive_terms(
+            R_cam, t_cam, self.t_s, j, self.plane, self.mount, DRIVE, unknowns=False
+        )
         val, w = robust_weights(q, DRIVE)
         sw = np.sqrt(w)
         return Terms(
@@ -414,11 +426,18 @@ class Smoother:
 
     def dispatch(self) -> None:
         """Prepare the waiting re-solve and hand it to :attr:`background` (when there is
-        one): the node calls this once the pose is out; the next :meth:`settle` takes the
-        result, or computes it when it is not back."""
+        one), or take its result once it is back: the node calls this after each message's
+        outputs are out, so a frame's pose is followed by its window's hand-over, and the
+        result is taken between messages (the odometry's, at 50 Hz) instead of before the next
+        frame's step. :meth:`settle` takes what is left: the result when it is back, else it
+        computes it."""
         job = self._prepared()
-        if job is not None and job.seq is None and self.background is not None:
+        if job is None or self.background is None:
+            return
+        if job.seq is None:
             job.seq = self.background.submit(job.window)
+        elif self.background.ready(job.seq):
+            self.settle()
 
     def _prepared(self) -> _Job | None:
         if self._pending is not None:
@@ -596,7 +615,7 @@ def _fit(s: SmootherSettings, Rs: F64, ts: F64, t_hist: F64) -> tuple[Plane, Mou
         return plane, None, False
     j = steps(t_s, js.max_gap_s)
     mount = fit_mount(Rs, ts, t_s, j, plane, MIN_TURN_RAD, s.lever_m)
-    q = drive_terms(Rs, ts, t_s, j, plane, mount, DRIVE)[0]
+    q = drive_terms(Rs, ts, t_s, j, plane, mount, DRIVE, unknowns=False)[0]
     wheeled = js.drive == "wheeled" or strain(q, DRIVE, 1.0) <= WHEELED_BOUND
     return plane, (mount if wheeled else None), True
 
@@ -720,10 +739,9 @@ class FixedOdometry:
         pr, st, j = self.prior, self.prior.start, self.prior.j
         u, meas = pr.plane.u, pr.measured(st.offset_s)
         Ra, ta, Rb, tb = R_cam[j], t_cam[j], R_cam[j + 1], t_cam[j + 1]
-        q = pr.raw(Ra, ta, Rb, tb, u, st, meas)
+        q, Jc = pr.camera_terms(Ra, ta, Rb, tb, u, st, meas)
         val, w = pr.weights(q)
         sw = np.sqrt(w)
-        Jc = pr.camera_jacobians(Ra, ta, Rb, tb, u, st, meas)
         return Terms(
             float(val.sum()),
             q * sw[:, None],
@@ -887,9 +905,10 @@ class LivePoses:
         self._sync_up()
 
     def dispatch(self) -> None:
-        """The window's re-solve handed to the background once the pose is out
-        (:meth:`Smoother.dispatch`; the next frame takes its result)."""
+        """The window's re-solve handed to the background once the pose is out, its result
+        taken once back (:meth:`Smoother.dispatch`)."""
         self.smoother.dispatch()
+        self._sync_up()
 
     def _sync_up(self) -> None:
         """The dead reckoning turns about the smoother's plane once it has one."""

@@ -10,13 +10,17 @@ import numpy as np
 import pytest
 
 from tagtrail.geometry.joint import JointSettings, Mount, bridge, link_tags, solve_on_corners
+from tagtrail.geometry.joint.ground import Plane
 from tagtrail.geometry.joint.odometry import (
     MAX_DEAD_RECKONING_S,
+    Odometry,
+    OdometryPrior,
+    OdometryState,
     mount_from_base_T_camera,
     odometry_from_table,
     predict,
 )
-from tagtrail.geometry.joint.problem import centres
+from tagtrail.geometry.joint.problem import centres, left_update
 from tagtrail.geometry.joint.setup import Solved
 from tagtrail.geometry.se3 import inv
 from tagtrail.sim.scene import scene_T_cam_planar
@@ -64,6 +68,43 @@ def test_the_prediction_is_the_base_motion_through_the_mount() -> None:
     m = mount_from_base_T_camera(true_base_T_camera(), u)
     np.testing.assert_allclose(m.g, mount.g, atol=1e-12)
     assert m.lever_m == pytest.approx(MOUNT.forward_m)
+
+
+def test_the_camera_jacobians_are_the_residuals_derivatives() -> None:
+    """The closed-form camera Jacobians (and the residuals beside them) against central
+    differences of the whitened residuals, on tilted cameras, a mount off the forward axis and
+    every error term of the state nonzero."""
+    rng = np.random.default_rng(3)
+    xy = np.cumsum(rng.uniform(0.02, 0.05, (6, 2)), axis=0)
+    yaw = np.cumsum(rng.uniform(-0.3, 0.3, 6))
+    cTw = inv(scene_T_cam_planar(xy, yaw, MOUNT))
+    d = np.zeros((6, 6))
+    d[:, :3] = rng.normal(0.0, 0.05, (6, 3))  # off the plane: roll, pitch, a lean
+    R, t = left_update(cTw[:, :3, :3], cTw[:, :3, 3], d)
+    u = np.array([0.05, -1.0, 0.1])
+    g = np.array([0.2, 0.05, 1.0])
+    state = OdometryState(Mount(g / np.linalg.norm(g), 0.12), 0.01, 1.03, 0.97, 0.2, 0.004)
+    t_s = np.arange(6) / 15.0
+    odo = Odometry(np.linspace(-1.0, 2.0, 50), *rng.normal(0.0, 0.1, (3, 50)))
+    plane = Plane(np.array([0.0, 0.0, 1.0]), 0.17, u)
+    prior = OdometryPrior(odo, t_s, np.arange(5), 0.01, state, plane)
+    j = prior.j
+    meas = prior.measured(state.offset_s)
+
+    def q(R: np.ndarray, t: np.ndarray) -> np.ndarray:
+        return prior.raw(R[j], t[j], R[j + 1], t[j + 1], u, state, meas)
+
+    q0, Jc = prior.camera_terms(R[j], t[j], R[j + 1], t[j + 1], u, state, meas)
+    np.testing.assert_allclose(q0, q(R, t), atol=1e-12)
+    eps = 1e-6
+    for f in range(len(R)):
+        for c in range(6):
+            e = np.zeros((len(R), 6))
+            e[f, c] = eps
+            num = (q(*left_update(R, t, e)) - q(*left_update(R, t, -e))) / (2 * eps)
+            ana = np.where((j == f)[:, None], Jc[:, 0, :, c], 0.0)
+            ana = ana + np.where((j + 1 == f)[:, None], Jc[:, 1, :, c], 0.0)
+            np.testing.assert_allclose(num, ana, atol=1e-6 * np.abs(Jc).max())
 
 
 def test_a_time_offset_of_a_tenth_of_a_second_is_recovered() -> None:

@@ -560,9 +560,9 @@ def _until_idle(bg: Any, timeout_s: float = 20.0) -> None:
 
 def test_the_background_re_solve_gives_the_same_poses(noisy: Path) -> None:
     """The window's re-solve handed to the background process once the pose is out
-    (``dispatch``, as the node does) and taken by the next frame — or computed by it when
-    not back yet — gives the poses of re-solving in the foreground (a pure function of the
-    window taken when the pose left)."""
+    (``dispatch``, as the node does) and taken by a later ``dispatch`` or the next frame — or
+    computed by it when not back yet — gives the poses of re-solving in the foreground (a pure
+    function of the window taken when the pose left)."""
     from tagtrail.stream.background import Background
     from tagtrail.stream.continuity import RESOLVE
 
@@ -588,10 +588,16 @@ def test_the_background_re_solve_gives_the_same_poses(noisy: Path) -> None:
             for j, live in enumerate(lives):
                 loc.smooth(live)
                 poses[j].append(dict(loc.on_detections(p))["tag_only_pose"])
-                if j == 0 and i % 2:  # to an idle child, and back before the next frame
+                if j == 0 and i % 4 == 1:  # to an idle child, back before the next frame
                     _until_idle(bg)
                     live.dispatch()
                     _until_idle(bg)
+                elif j == 0 and i % 4 == 3:  # back, and taken between messages (the
+                    _until_idle(bg)  # odometry's) by a later dispatch
+                    live.dispatch()
+                    _until_idle(bg)
+                    live.dispatch()
+                    assert live.smoother._job is None  # taken: the next frame has nothing to do
                 elif j == 0:  # the next frame mostly computes it itself
                     live.dispatch()
                 else:

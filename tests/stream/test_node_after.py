@@ -115,6 +115,9 @@ def test_background_computes_in_a_process_of_the_lowest_priority() -> None:
         slow = bg.submit(("slow", 0.3))
         assert bg.submit(("square", 2)) is None  # busy: refused (its owner computes it)
         assert bg.result(slow) == (False, None)  # not back yet: never waited for
+        assert not bg.ready(slow)
+        _until(lambda: bg.ready(slow))
+        assert bg.ready(slow) and not bg.ready(None)  # asking takes nothing
         assert _wait(bg, slow) == 0.3
         failed = bg.submit(("fail", None))
         _until(bg.idle)
@@ -126,6 +129,24 @@ def test_background_computes_in_a_process_of_the_lowest_priority() -> None:
         bg.close()
     assert proc is not None and proc.poll() is not None  # ended
     assert bg.submit(("square", 2)) is None  # nothing after close
+
+
+def test_background_starts_before_its_first_job_and_sums_up_at_close(
+    caplog: pytest.LogCaptureFixture,
+) -> None:
+    """:meth:`Background.start` spawns the worker at once (its imports over before the first
+    frame); closing says what the background did."""
+    bg = Background(JOBS, "t")
+    try:
+        assert bg.start() and bg._proc is not None and bg._proc.poll() is None
+        proc = bg._proc
+        assert bg.start() and bg._proc is proc  # once
+        assert _wait(bg, bg.submit(("square", 4))) == 16
+    finally:
+        with caplog.at_level("INFO", logger="tagtrail.stream"):
+            bg.close()
+    assert not bg.start()  # nothing after close
+    assert "t: 1 jobs computed in the background, 1 of them back in time" in caplog.text
 
 
 def test_background_child_leaves_with_its_parent() -> None:

@@ -148,6 +148,7 @@ def solve_grounded(
             driven.unknowns["ground"],
             driven.unknowns["drive"],
             drive,
+            unknowns=False,
         )
         fit = strain(q, drive, driven.variance_factor)
         wheeled = use_drive or (moved.enough and drive_mode == "auto" and bool(fit < WHEELED_BOUND))

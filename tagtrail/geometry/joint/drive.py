@@ -102,11 +102,18 @@ def _geometry(R: F64, t: F64, j: I64, n: F64) -> tuple[F64, F64, F64, F64, F64, 
 
 
 def drive_terms(
-    R_cam: F64, t_cam: F64, t_s: F64, j: I64, plane: Plane, mount: Mount, prior: DrivePrior
-) -> tuple[F64, F64, F64]:
+    R_cam: F64,
+    t_cam: F64,
+    t_s: F64,
+    j: I64,
+    plane: Plane,
+    mount: Mount,
+    prior: DrivePrior,
+    unknowns: bool = True,
+) -> tuple[F64, F64, F64 | None]:
     """Whitened residuals ``q (P,)`` of the steps ``j`` and their Jacobians on the cameras
     ``[w ; v]`` of frames ``j, j+1`` ``(P, 2, 6)`` and on the plane's 6 then the mount's 2
-    parameters ``(P, 8)``."""
+    parameters ``(P, 8)`` (None unless ``unknowns``: plane and mount held fixed)."""
     x, theta, E, e, u, dc = _geometry(R_cam, t_cam, j, plane.n)
     s, w, nw = mount.lateral(plane.u)
     lev = mount.lever_m
@@ -129,6 +136,8 @@ def drive_terms(
     )
     Jc[:, 1, :3] += lev * np.einsum("pij,pj->pi", Jinv_T, u)
     Jc *= inv_sig[:, None, None]
+    if not unknowns:
+        return q, Jc, None
     Jg = np.zeros((len(j), 6 + N_MOUNT))
     bxn = cross(plane.basis().T, plane.n)  # (2, 3): d n / d a_i
     Jg[:, :2] = -lev * np.einsum("pk,pki,ci->pc", e, Ra, bxn)
@@ -219,6 +228,7 @@ class WheeledDrive:
         q, Jc, Jg = drive_terms(
             R_cam, t_cam, self.t_s, self.j, values["ground"], values[self.name], self.prior
         )
+        assert Jg is not None
         val, w = robust_weights(q, self.prior)
         s = np.sqrt(w)
         return Terms(

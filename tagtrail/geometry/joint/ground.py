@@ -92,9 +92,12 @@ def fit_plane(R_cam: F64, t_cam: F64, prior: GroundPrior) -> Plane:
     return Plane(n, float(n @ c_mean), R_mean @ n)
 
 
-def plane_terms(R_cam: F64, t_cam: F64, plane: Plane, prior: GroundPrior) -> tuple[F64, F64, F64]:
+def plane_terms(
+    R_cam: F64, t_cam: F64, plane: Plane, prior: GroundPrior, unknowns: bool = True
+) -> tuple[F64, F64, F64 | None]:
     """Whitened residuals ``p (F, 4)`` and their Jacobians on each camera's ``[w ; v]``
-    ``(F, 4, 6)`` and on the plane's 6 parameters ``(F, 4, 6)``."""
+    ``(F, 4, 6)`` and on the plane's 6 parameters ``(F, 4, 6)`` (None unless ``unknowns``:
+    the plane held fixed)."""
     n_f = len(R_cam)
     sh, st = prior.height_sigma_m, prior.tilt_sigma_rad
     c = centres(R_cam, t_cam)
@@ -103,6 +106,8 @@ def plane_terms(R_cam: F64, t_cam: F64, plane: Plane, prior: GroundPrior) -> tup
     Jc = np.zeros((n_f, 4, 6))
     Jc[:, 0, 3:] = -Rn / sh  # d c / d v = -R^T
     Jc[:, 1:, :3] = -hat(Rn) / st  # R n <- Exp(w) R n
+    if not unknowns:
+        return p, Jc, None
     B = plane.basis()
     bxn = cross(B.T, plane.n)  # (2, 3): d n / d a_i
     Jg = np.zeros((n_f, 4, 6))
@@ -136,6 +141,7 @@ class GroundPlane:
         """Each frame's whitened 4-vector (height, tilt); 3 degrees of freedom a frame less
         the plane's 5."""
         p, Jc, Jg = plane_terms(R_cam, t_cam, values[self.name], self.prior)
+        assert Jg is not None
         val, w = robust_weights(p, self.prior)
         s = np.sqrt(w)
         return Terms(
@@ -163,7 +169,7 @@ def planarity(R_cam: F64, t_cam: F64, cam_cov: F64, prior: GroundPrior) -> tuple
     motion off any plane give hundreds. The median: a ramp, a bump or a flipped frame does not
     decide it."""
     plane = fit_plane(R_cam, t_cam, prior)
-    p, _, _ = plane_terms(R_cam, t_cam, plane, prior)
+    p = plane_terms(R_cam, t_cam, plane, prior, unknowns=False)[0]
     Rn = R_cam @ plane.n
     var_h = np.einsum("fi,fij,fj->f", Rn, cam_cov[:, 3:, 3:], Rn)
     K = hat(Rn)
@@ -243,7 +249,7 @@ def ground_report(
     note: str = "",
 ) -> GroundReport:
     """The :class:`GroundReport` of cameras ``cam_T_world`` against ``plane``."""
-    p, _, _ = plane_terms(R_cam, t_cam, plane, prior)
+    p = plane_terms(R_cam, t_cam, plane, prior, unknowns=False)[0]
     u = plane.u / max(float(np.linalg.norm(plane.u)), 1e-300)
     return GroundReport(
         mode=mode,

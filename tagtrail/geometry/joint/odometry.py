@@ -33,9 +33,8 @@ each step's 3-vector: a stretch of wheel slip stops counting instead of bending 
 
 Unknowns (:class:`OdometryState`, 7 parameters): the mount's yaw about ``u`` and its lever arm
 (the drive prior's :meth:`Mount.update`), the time offset (bounded to ``MAX_OFFSET_S``), the
-scale, the yaw scale, the yaw per metre and the yaw drift. The camera Jacobians are central
-differences of the prediction (12 evaluations over all steps at once; the prediction is smooth
-and cheap), the unknowns' likewise.
+scale, the yaw scale, the yaw per metre and the yaw drift. The camera Jacobians are in closed
+form (:meth:`OdometryPrior.camera_terms`), the unknowns' central differences of the prediction.
 
 With the prior, frames with no tag in view but covered by the odometry get a pose
 (:func:`extend_frames`): held by the odometry, the motion prior and the ground plane, their
@@ -55,9 +54,9 @@ import numpy as np
 from tagtrail.geometry.arrays import F64, I64
 from tagtrail.geometry.joint.drive import Mount, fit_mount
 from tagtrail.geometry.joint.ground import Plane
-from tagtrail.geometry.joint.problem import Terms, left_update
+from tagtrail.geometry.joint.problem import Terms
 from tagtrail.geometry.robust import LossName, rho
-from tagtrail.geometry.rotations import cross, log_so3
+from tagtrail.geometry.rotations import cross, log_so3, right_jacobian_inv
 from tagtrail.geometry.se3 import R_from_quat_xyzw, R_from_rotvec, T_from_xyz_quat, inv, make_T
 
 N_ODOM = 7  # mount yaw, lever arm, time offset, scale, yaw scale, yaw per metre, yaw drift
@@ -293,7 +292,7 @@ class OdometryPrior:
         Ra, ta, Rb, tb = R_cam[j], t_cam[j], R_cam[j + 1], t_cam[j + 1]
         u, st = self._u(values), values[self.name]
         meas = self.measured(st.offset_s)
-        Jc = self.camera_jacobians(Ra, ta, Rb, tb, u, st, meas)
+        Jc = self.camera_terms(Ra, ta, Rb, tb, u, st, meas)[1]
         cols: list[F64] = []
         if self.grounded:
             plane: Plane = values["ground"]
@@ -312,31 +311,41 @@ class OdometryPrior:
             cols.append((qp - qm) / (2 * _EPS))
         return Jc, np.stack(cols, axis=2)
 
-    def camera_jacobians(
+    def camera_terms(
         self, Ra: F64, ta: F64, Rb: F64, tb: F64, u: F64, st: OdometryState, meas: F64
-    ) -> F64:
-        """``Jc (P, 2, 3, 6)`` on the cameras ``[w ; v]`` of frames ``j, j+1`` (``Ra, ta``,
-        ``Rb, tb``): central differences, the 24 perturbed predictions in one batch."""
+    ) -> tuple[F64, F64]:
+        """The whitened residuals ``(P, 3)`` (as :meth:`raw`) and their Jacobians ``Jc (P, 2,
+        3, 6)`` on the cameras ``[w ; v]`` of frames ``j, j+1`` (``Ra, ta``, ``Rb, tb``), in
+        closed form. Under the joint solve's left perturbations (``R <- Exp(w) R``, ``c <- c -
+        R^T v``) the base's step ``d = R_rel o + p - o`` moves by ``-[R_rel o + p]x w_a + v_a +
+        R_rel [o]x w_b - R_rel v_b`` and ``Log R_rel`` by ``J_l^-1 w_a - J_r^-1 w_b`` (``J_l^-1
+        = J_r^-T``); the whitening is linear in ``d``'s components."""
+        uh = u / np.linalg.norm(u)
+        s = st.mount.lateral(uh)[0]
+        f = cross(s, uh)
+        R_rel = Ra @ np.swapaxes(Rb, 1, 2)
+        dc = np.einsum("pji,pj->pi", Ra, ta) - np.einsum("pji,pj->pi", Rb, tb)  # c_b - c_a
+        o = -st.mount.lever_m * f
+        a = R_rel @ o + np.einsum("pij,pj->pi", Ra, dc)  # d + o
+        e = log_so3(R_rel)
+        q = self._whiten(np.stack([(a - o) @ f, (a - o) @ s, e @ uh], axis=1), st, meas)
+        Jinv = right_jacobian_inv(e)
         P = len(Ra)
-        d = np.concatenate([np.eye(6), -np.eye(6)]) * _EPS  # +e_k then -e_k
-        D = np.repeat(d, P, axis=0)  # (12 P, 6): P rows a perturbation
-
-        def tile(x: F64) -> F64:
-            return np.tile(x, (12,) + (1,) * (x.ndim - 1))
-
-        Rap, tap = left_update(tile(Ra), tile(ta), D)
-        Rbp, tbp = left_update(tile(Rb), tile(tb), D)
-        pr = predict(
-            np.concatenate([Rap, tile(Ra)]),
-            np.concatenate([tap, tile(ta)]),
-            np.concatenate([tile(Rb), Rbp]),
-            np.concatenate([tile(tb), tbp]),
-            u,
-            st.mount,
-        ).reshape(2, 2, 6, P, 3)  # frame, sign, k, step
-        q = self._whiten(pr, st, meas)
-        J = (q[:, 0] - q[:, 1]) / (2 * _EPS)  # (2, 6, P, 3)
-        return np.transpose(J, (2, 0, 3, 1))
+        J = np.empty((P, 3, 2, 6))  # residual, frame, [w ; v]
+        sig_t, sig_r = self._sigmas
+        kt = st.scale / sig_t[:, None]
+        for row, ax in ((0, f), (1, s)):  # f . d and s . d
+            Rta = np.einsum("pji,j->pi", R_rel, ax)
+            J[:, row, 0, :3] = cross(a, ax) * kt
+            J[:, row, 0, 3:] = ax * kt
+            J[:, row, 1, :3] = cross(Rta, o) * kt
+            J[:, row, 1, 3:] = -Rta * kt
+        J[:, 2, 0, :3] = np.einsum("pij,j->pi", Jinv, uh) * st.yaw_scale  # u . Log R_rel
+        J[:, 2, 1, :3] = -np.einsum("pji,j->pi", Jinv, uh) * st.yaw_scale
+        J[:, 2, :, 3:] = 0.0
+        J[:, 2] += J[:, 0] * (st.yaw_per_m * sig_t)[:, None, None]
+        J[:, 2] /= sig_r[:, None, None]
+        return q, np.transpose(J, (0, 2, 1, 3))
 
     def terms(self, R_cam: F64, t_cam: F64, values: Mapping[str, Any]) -> Terms:
         """Each step's whitened 3-vector (robust), then two rows of the weak priors on the
