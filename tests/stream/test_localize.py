@@ -220,3 +220,30 @@ def test_frame_pose_falls_back_to_the_fusion_as_the_trajectory_stage(exact: Path
         )
         assert bool(want.by_pnp[0]) == by_pnp and n == len(sel_ids)
         assert T is not None and np.abs(T - want.world_T_cam[0]).max() < 1e-12
+
+
+def test_unmapped_and_repeated_tags_are_left_out_of_a_frame(exact: Path) -> None:
+    """A tag the map does not hold changes nothing; a tag detected twice in one frame is
+    nobody's to trust (the offline detections table has no corners for it either): it leaves
+    the smoother's corners and the PnP."""
+    from tagtrail.io.sources import detections_from_msg
+    from tagtrail.stream.localize import _duplicated
+
+    np.testing.assert_array_equal(_duplicated(np.array([4, 2, 4, 9])), [True, False, True, False])
+    assert not _duplicated(np.array([4, 2, 9])).any() and len(_duplicated(np.zeros(0, int))) == 0
+    loc = Localizer(read_tag_map(exact / "ground_truth" / "tag_map.yaml")[0])
+    msgs = bag_messages(exact, ["/camera_info", "/detections"])
+    loc.on_camera_info(msgs.payloads[msgs.keys.index("camera_info")])
+    raw = next(p for k, p in zip(msgs.keys, msgs.payloads, strict=True) if k == "detections")
+    dets = detections_from_msg(codec.deserialize(raw, "apriltag_msgs/msg/AprilTagDetectionArray"))
+    ids = np.array([d.tag_id for d in dets])
+    px = np.array([d.corners for d in dets], np.float64).reshape(-1, 4, 2)
+    assert len(ids) >= 3
+    T, n = loc.frame_pose(px, ids)
+    unmapped = max(loc.ids.tolist()) + 1
+    T2, n2 = loc.frame_pose(np.concatenate([px, px[:1] + 50.0]), np.r_[ids, unmapped])
+    assert n2 == n and T is not None and T2 is not None and np.abs(T2 - T).max() < 1e-12
+    loc.frame_pose(np.concatenate([px, px[:1] + 50.0]), np.r_[ids, ids[0]], pose=False)
+    assert loc._last_obs is not None
+    tags = loc._last_obs[0]
+    assert len(tags) == len(ids) - 1 and int(np.searchsorted(loc.ids, ids[0])) not in tags
