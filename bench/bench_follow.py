@@ -106,7 +106,8 @@ def main() -> None:
             "the step 19.5): the step (~1 ms, 2x that cold) and the dead-reckoned poses at the "
             "odometry's 50 Hz through all three nodes keep it above 5 ms. Images: localize "
             "skipped 14-18 frames while busy in this evening's runs, also with today's changes "
-            "undone (3-4 in the morning's: the machine's state, not the code). Latency counts "
+            "undone, against 3-4 in earlier runs, one of them on this code an hour before: the "
+            "machine's state, not the code. Latency counts "
             "the frames with a tag in view (a Twist after a blind frame is the follower's "
             "stop: counted, it made the 2 s blackout's p99 ~21 ms) from 1 s on; the first "
             "second's worst (the nodes' warm-up) is 20-70 ms.",
