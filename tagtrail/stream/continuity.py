@@ -48,9 +48,8 @@ from tagtrail.geometry.joint.ground import (
     GroundPrior,
     Plane,
     fit_plane,
-    plane_terms,
+    ground_terms,
 )
-from tagtrail.geometry.joint.ground import robust_weights as ground_weights
 from tagtrail.geometry.joint.motion import MotionPrior
 from tagtrail.geometry.joint.newest import solve_newest
 from tagtrail.geometry.joint.odometry import (
@@ -121,17 +120,7 @@ class FixedGround:
 
     def terms(self, R_cam: F64, t_cam: F64, values: Any) -> Terms:
         """:class:`GroundPlane`'s terms at the fixed plane, without its unknowns."""
-        p, Jc, _ = plane_terms(R_cam, t_cam, self.plane, self.prior, unknowns=False)
-        val, w = ground_weights(p, self.prior)
-        s = np.sqrt(w)
-        return Terms(
-            float(val.sum()),
-            p * s[:, None],
-            np.arange(len(R_cam)),
-            (Jc * s[:, None, None])[:, None],
-            None,
-            3 * len(R_cam),
-        )
+        return ground_terms(R_cam, t_cam, self.plane, self.prior, unknowns=False)
 
     def update(self, value: Any, step: F64, values: Any) -> Any:
         return None

@@ -173,6 +173,21 @@ def test_localize_from_compressed_images_over_zenoh(tmp_path: Path) -> None:
     assert err.max() < 0.01, f"max {err.max():.4f} m, median {np.median(err):.4f} m"
 
 
+def _first_frame(rec: Path) -> tuple[Localizer, np.ndarray, np.ndarray]:
+    """A localizer of ``rec``'s map, its camera given, and the first detection message's tag
+    ids ``(n,)`` and corners ``(n, 4, 2)``."""
+    from tagtrail.io.sources import detections_from_msg
+
+    loc = Localizer(read_tag_map(rec / "ground_truth" / "tag_map.yaml")[0])
+    msgs = bag_messages(rec, ["/camera_info", "/detections"])
+    loc.on_camera_info(msgs.payloads[msgs.keys.index("camera_info")])
+    raw = next(p for k, p in zip(msgs.keys, msgs.payloads, strict=True) if k == "detections")
+    dets = detections_from_msg(codec.deserialize(raw, "apriltag_msgs/msg/AprilTagDetectionArray"))
+    ids = np.array([d.tag_id for d in dets])
+    px = np.array([d.corners for d in dets], np.float64).reshape(-1, 4, 2)
+    return loc, ids, px
+
+
 def test_frame_pose_falls_back_to_the_fusion_as_the_trajectory_stage(exact: Path) -> None:
     """Multi-tag PnP needs no per-tag IPPE pose, so the node solves IPPE's poses only when
     PnP does not pose the frame; then (one tag, or PnP fails: the tags' corners shifted 40 px,
@@ -180,15 +195,8 @@ def test_frame_pose_falls_back_to_the_fusion_as_the_trajectory_stage(exact: Path
     them, as before."""
     from tagtrail.geometry.fusion import frame_poses
     from tagtrail.geometry.ippe import solve_ippe
-    from tagtrail.io.sources import detections_from_msg
 
-    loc = Localizer(read_tag_map(exact / "ground_truth" / "tag_map.yaml")[0])
-    msgs = bag_messages(exact, ["/camera_info", "/detections"])
-    loc.on_camera_info(msgs.payloads[msgs.keys.index("camera_info")])
-    raw = next(p for k, p in zip(msgs.keys, msgs.payloads, strict=True) if k == "detections")
-    dets = detections_from_msg(codec.deserialize(raw, "apriltag_msgs/msg/AprilTagDetectionArray"))
-    ids = np.array([d.tag_id for d in dets])
-    px = np.array([d.corners for d in dets], np.float64).reshape(-1, 4, 2)
+    loc, ids, px = _first_frame(exact)
     assert len(ids) >= 3 and set(ids) <= set(loc.ids.tolist())
     order = np.argsort(ids)
     ids, px = ids[order], px[order]
@@ -226,18 +234,11 @@ def test_unmapped_and_repeated_tags_are_left_out_of_a_frame(exact: Path) -> None
     """A tag the map does not hold changes nothing; a tag detected twice in one frame is
     nobody's to trust (the offline detections table has no corners for it either): it leaves
     the smoother's corners and the PnP."""
-    from tagtrail.io.sources import detections_from_msg
     from tagtrail.stream.localize import _duplicated
 
     np.testing.assert_array_equal(_duplicated(np.array([4, 2, 4, 9])), [True, False, True, False])
     assert not _duplicated(np.array([4, 2, 9])).any() and len(_duplicated(np.zeros(0, int))) == 0
-    loc = Localizer(read_tag_map(exact / "ground_truth" / "tag_map.yaml")[0])
-    msgs = bag_messages(exact, ["/camera_info", "/detections"])
-    loc.on_camera_info(msgs.payloads[msgs.keys.index("camera_info")])
-    raw = next(p for k, p in zip(msgs.keys, msgs.payloads, strict=True) if k == "detections")
-    dets = detections_from_msg(codec.deserialize(raw, "apriltag_msgs/msg/AprilTagDetectionArray"))
-    ids = np.array([d.tag_id for d in dets])
-    px = np.array([d.corners for d in dets], np.float64).reshape(-1, 4, 2)
+    loc, ids, px = _first_frame(exact)
     assert len(ids) >= 3
     T, n = loc.frame_pose(px, ids)
     unmapped = max(loc.ids.tolist()) + 1

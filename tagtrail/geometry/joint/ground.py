@@ -125,6 +125,25 @@ def robust_weights(p: F64, prior: GroundPrior) -> tuple[F64, F64]:
     return f2 * val, w
 
 
+def ground_terms(
+    R_cam: F64, t_cam: F64, plane: Plane, prior: GroundPrior, unknowns: bool = True
+) -> Terms:
+    """The prior's robust terms at ``plane``: each frame's whitened 4-vector (height, tilt),
+    3 degrees of freedom a frame, less the plane's 5 when it is an unknown (``unknowns``; held
+    fixed: no Jacobian on it)."""
+    p, Jc, Jg = plane_terms(R_cam, t_cam, plane, prior, unknowns)
+    val, w = robust_weights(p, prior)
+    s = np.sqrt(w)
+    return Terms(
+        float(val.sum()),
+        p * s[:, None],
+        np.arange(len(R_cam)),
+        (Jc * s[:, None, None])[:, None],
+        None if Jg is None else Jg * s[:, None, None],
+        3 * len(R_cam) - (5 if unknowns else 0),
+    )
+
+
 @dataclass(frozen=True)
 class GroundPlane:
     """The ground-plane prior as a part of the joint solve (:class:`~.problem.Prior`): its
@@ -140,18 +159,7 @@ class GroundPlane:
     def terms(self, R_cam: F64, t_cam: F64, values: Mapping[str, Any]) -> Terms:
         """Each frame's whitened 4-vector (height, tilt); 3 degrees of freedom a frame less
         the plane's 5."""
-        p, Jc, Jg = plane_terms(R_cam, t_cam, values[self.name], self.prior)
-        assert Jg is not None
-        val, w = robust_weights(p, self.prior)
-        s = np.sqrt(w)
-        return Terms(
-            float(val.sum()),
-            p * s[:, None],
-            np.arange(len(R_cam)),
-            (Jc * s[:, None, None])[:, None],
-            Jg * s[:, None, None],
-            3 * len(R_cam) - 5,
-        )
+        return ground_terms(R_cam, t_cam, values[self.name], self.prior)
 
     def update(self, value: Plane, step: F64, values: Mapping[str, Any]) -> Plane:
         return value.update(step)
