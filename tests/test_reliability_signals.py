@@ -578,8 +578,13 @@ def test_a_signal_inside_a_gc_callback_still_unwinds_the_command() -> None:
         preexec_fn=terminal_signals,
     )
     assert proc.stdout is not None
-    assert proc.stdout.readline() == "in-gc\n"
-    proc.send_signal(signal.SIGINT)  # inside the callback's 0.3 s
-    out, err = proc.communicate(timeout=30)
+    try:
+        assert proc.stdout.readline() == "in-gc\n"
+        proc.send_signal(signal.SIGINT)  # inside the callback's 0.3 s
+        out, err = proc.communicate(timeout=30)
+    finally:
+        if proc.poll() is None:  # a failure must not leave the child spinning
+            proc.kill()
+            proc.wait()
     assert "unwound" in out, (out, err)
     assert proc.returncode == 130 and err.strip() == "interrupted", err
