@@ -415,11 +415,12 @@ class Smoother:
 
     def dispatch(self) -> None:
         """Prepare the waiting re-solve and hand it to :attr:`background` (when there is
-        one), or take its result once it is back: the node calls this after each message's
-        outputs are out, so a frame's pose is followed by its window's hand-over, and the
-        result is taken between messages (the odometry's, at 50 Hz) instead of before the next
-        frame's step. :meth:`settle` takes what is left: the result when it is back, else it
-        computes it."""
+        one), or take its result once it is back: the node's after-work (``Node.after``, a
+        couple of ms after a message's outputs, once the nodes downstream have had their
+        turn), so a frame's pose is followed by its window's hand-over, and the result is
+        taken between messages (the odometry's, at 50 Hz) instead of before the next frame's
+        step. :meth:`settle` takes what is left: the result when it is back, else it computes
+        it."""
         job = self._prepared()
         if job is None or self.background is None:
             return

@@ -9,6 +9,7 @@ import sys
 import threading
 import time
 
+import numpy as np
 import pytest
 import zenoh
 
@@ -19,33 +20,33 @@ from tagtrail.stream.stats import Stats
 from tests.stream.helpers import free_port, loopback
 
 
-def test_after_runs_on_the_handling_thread_once_the_outputs_are_out() -> None:
+def test_after_runs_once_the_outputs_are_out_and_the_node_was_idle_after_s() -> None:
     port = free_port()
     a = zenoh.open(make_config("peer", listen=[loopback(port)]))
     b = zenoh.open(make_config("peer", connect=[loopback(port)]))
     node = Node(a, Stats("t"))
     got: list[bytes] = []
     sub = b.declare_subscriber("out", lambda s: got.append(s.payload.to_bytes()))
-    handler_thread: list[int] = []
-    seen: list[tuple[int, int, bool]] = []  # (thread, outputs handed to zenoh, lock held)
-    published: list[bytes] = []
+    # (thread, outputs handed to zenoh, lock held, seconds since the last output)
+    seen: list[tuple[str, int, bool, float]] = []
+    published: list[float] = []
     publish = node.publish
 
     def counting(outputs: object, background: bool = False) -> None:
         for key, payload in outputs:  # type: ignore[attr-defined]
             publish([(key, payload)], background)
-            published.append(payload)
+            published.append(time.monotonic())
 
     node.publish = counting  # type: ignore[method-assign]
 
     def handler(data: bytes) -> list[tuple[str, bytes]]:
-        handler_thread.append(threading.get_native_id())
         if data == b"\x02":
             raise ValueError("a bad sample")  # after runs all the same (nothing to hand over)
         return [("out", data)]
 
     def after() -> None:
-        seen.append((threading.get_native_id(), len(published), node._lock.locked()))
+        since = time.monotonic() - published[-1]
+        seen.append((threading.current_thread().name, len(published), node._lock.locked(), since))
         if len(seen) == 4:
             raise RuntimeError("after failed")  # counted, the node goes on
 
@@ -64,10 +65,51 @@ def test_after_runs_on_the_handling_thread_once_the_outputs_are_out() -> None:
         node.close()
         sub.undeclare()  # type: ignore[no-untyped-call]
         b.close()  # type: ignore[no-untyped-call]
-    assert len(got) == 4 and [t for t, _, _ in seen] == handler_thread
-    assert [n for _, n, _ in seen] == [1, 2, 2, 3, 4]  # each after its sample's outputs
-    assert all(locked for _, _, locked in seen)  # no other sample is handled meanwhile
+    assert len(got) == 4 and len(seen) == 5
+    assert [n for _, n, _, _ in seen] == [1, 2, 2, 3, 4]  # each after its sample's outputs
+    assert all(locked for _, _, locked, _ in seen)  # no other sample is handled meanwhile
+    assert {name for name, _, _, _ in seen} == {"handle"}  # the node's worker, not zenoh's
+    assert all(since >= node.after_s for _, n, _, since in seen if n)  # the downstream's turn
     assert node.stats.dropped == {"error": 2}
+
+
+def test_in_a_flood_the_after_work_still_runs_once_overdue() -> None:
+    port = free_port()
+    a = zenoh.open(make_config("peer", listen=[loopback(port)]))
+    b = zenoh.open(make_config("peer", connect=[loopback(port)]))
+    c = zenoh.open(make_config("peer", connect=[loopback(port)]))  # the flood's link
+    node = Node(a, Stats("t"))
+    handled: list[int] = []
+    afters: list[int] = []  # samples handled when it ran
+
+    def handler(data: bytes) -> list[tuple[str, bytes]]:
+        time.sleep(0.3 if data == b"\xff" else 0.001)
+        handled.append(data[0])
+        return []
+
+    node.after.append(lambda: afters.append(len(handled)))
+    node.subscribe("in", handler)
+    try:
+        time.sleep(0.3)
+        slow, flood = b.declare_publisher("in"), c.declare_publisher("in")
+        time.sleep(0.3)
+        slow.put(b"\xff")  # while it is handled, the flood queues up
+        time.sleep(0.05)
+        for i in range(200):
+            flood.put(bytes([i]))
+        deadline = time.monotonic() + 5.0
+        while len(handled) < 201 and time.monotonic() < deadline:
+            time.sleep(0.01)
+        time.sleep(0.1)
+    finally:
+        node.close()
+        for s in (b, c):
+            s.close()  # type: ignore[no-untyped-call]
+    assert len(handled) == 201 and handled[1:] == list(range(200))
+    assert afters[-1] == 201  # the last sample's, once idle
+    # handled back to back from the queue (never idle): the after-work is overdue 2 ms on
+    gaps = np.diff([0, *afters])
+    assert len(afters) > 20 and gaps[1:].max() <= 2 * node.after_s / 0.001 + 2
 
 
 def _run(job: tuple[str, object]) -> object:
