@@ -25,6 +25,7 @@ from __future__ import annotations
 import json
 import math
 import time
+from bisect import bisect_left
 from collections import deque
 from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass, field
@@ -69,7 +70,7 @@ from tagtrail.geometry.joint.settings import (
 from tagtrail.geometry.joint.setup import DRIVE, GROUND
 from tagtrail.geometry.joint.solver import solve_joint
 from tagtrail.geometry.rotations import log_so3
-from tagtrail.geometry.se3 import R_from_rotvec, quat_xyzw_of
+from tagtrail.geometry.se3 import R_of_rotvec, quat_xyzw_of
 from tagtrail.stream import codec
 from tagtrail.stream.stats import DropError
 
@@ -335,8 +336,7 @@ class Smoother:
         if h <= 0 or g > self.s.joint.max_gap_s:
             return None
         Rab = b.R @ a.R.T  # cam_R_world: b = Rab a (left increment)
-        w = log_so3(Rab[None])[0] * (g / h)
-        dR = R_from_rotvec(w[None])[0]
+        dR = R_of_rotvec(log_so3(Rab[None])[0] * (g / h))
         ca, cb = -a.R.T @ a.t, -b.R.T @ b.t
         c = cb + b.R.T @ (a.R @ (cb - ca)) * (g / h)  # a's step, seen from b
         R = dR @ b.R
@@ -674,9 +674,8 @@ class DeadReckoning:
         o = self.odo
         if not o or t_ns > o[-1][0] or t_ns < o[0][0]:
             return None
-        ts = [s[0] for s in o]
-        j = int(np.searchsorted(ts, t_ns))
-        if ts[j] == t_ns or j == 0:
+        j = bisect_left(o, t_ns, key=_stamp)  # (not a list of the 500 stamps a call: ~20 us)
+        if o[j][0] == t_ns or j == 0:
             return o[j][1:]
         a, b = o[j - 1], o[j]
         f = (t_ns - a[0]) / (b[0] - a[0])
@@ -705,7 +704,7 @@ class DeadReckoning:
         fwd = fwd / max(float(np.linalg.norm(fwd)), 1e-12)
         left = np.cross(up, fwd)
         d = self.camera_forward_m
-        Rz = R_from_rotvec((up * dyaw)[None])[0]
+        Rz = R_of_rotvec(up * dyaw)
         base = T[:3, 3] - d * fwd + dx * fwd + dy * left
         out = np.eye(4)
         out[:3, :3] = Rz @ R
@@ -965,6 +964,10 @@ class LivePoses:
             "iterations": iters,
         }
         yield self.state_key, json.dumps(state).encode()
+
+
+def _stamp(sample: tuple[int, float, float, float]) -> int:
+    return sample[0]
 
 
 def _std(c: F64, unit: float = 1.0) -> float | None:

@@ -76,3 +76,20 @@ def test_one_matrix_quaternion_is_scipys() -> None:
     want = quat_xyzw_from_R(R)
     got = np.array([quat_xyzw_of(r) for r in R])
     assert np.abs(got - want).max() < 1e-15
+
+
+def test_one_rotation_vector_matrix_is_scipys() -> None:
+    """``R_of_rotvec`` (a live pose's, plain floats) gives ``R_from_rotvec``'s matrix: random
+    vectors up to a half turn and beyond, and tiny ones (the series' side of its threshold and
+    just past it, where 1 - cos would cancel)."""
+    from tagtrail.geometry.se3 import R_from_rotvec, R_of_rotvec
+
+    rng = np.random.default_rng(4)
+    d = rng.normal(size=(400, 3))
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    th = np.concatenate([rng.uniform(0, 2 * np.pi, 300), 10.0 ** rng.uniform(-12, -3, 100)])
+    rv = np.concatenate([d * th[:, None], np.zeros((1, 3)), [[np.pi, 0, 0], [1e-8, 0, 0]]])
+    want = R_from_rotvec(rv)
+    got = np.stack([R_of_rotvec(v) for v in rv])
+    assert np.abs(got - want).max() < 1e-15 * 8
+    assert np.abs(got @ np.swapaxes(got, 1, 2) - np.eye(3)).max() < 1e-14
