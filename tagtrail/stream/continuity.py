@@ -29,6 +29,7 @@ from bisect import bisect_left
 from collections import deque
 from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass, field
+from operator import itemgetter
 from typing import Any
 
 import numpy as np
@@ -674,7 +675,7 @@ class DeadReckoning:
         o = self.odo
         if not o or t_ns > o[-1][0] or t_ns < o[0][0]:
             return None
-        j = bisect_left(o, t_ns, key=_stamp)  # (not a list of the 500 stamps a call: ~20 us)
+        j = bisect_left(o, t_ns, key=itemgetter(0))  # (not a list of the 500 stamps a call: ~20 us)
         if o[j][0] == t_ns or j == 0:
             return o[j][1:]
         a, b = o[j - 1], o[j]
@@ -964,10 +965,6 @@ class LivePoses:
             "iterations": iters,
         }
         yield self.state_key, json.dumps(state).encode()
-
-
-def _stamp(sample: tuple[int, float, float, float]) -> int:
-    return sample[0]
 
 
 def _std(c: F64, unit: float = 1.0) -> float | None:

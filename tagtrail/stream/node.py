@@ -44,7 +44,7 @@ AFTER_S = 0.002
 for the downstream's turn: in the closed loop (bench/FOLLOW.md) relocalize and follow answered
 a pose in ~0.8 ms at p50 and 1.4 ms at p90. Run at once, localize's hand-over of its window's
 re-solve (~0.5 ms) and a node's collection (~1 ms) took their CPU on 2 cores: detections ->
-Twist p99 5.5-7.1 ms against 4.2-6.4 deferred (7 runs each, alternated)."""
+Twist with --smooth, p99 median 7.9 ms against 7.0 deferred (6 runs each, alternated)."""
 CONGESTION = {"block": zenoh.CongestionControl.BLOCK, "drop": zenoh.CongestionControl.DROP}
 
 
@@ -210,7 +210,7 @@ class Node:
                         self._queue.append((key, handler, sample, t_recv))
                         self._ready.notify_all()
                 if here:
-                    self._handle_then_free(key, handler, sample, t_recv)
+                    self._then_free(self._handle, key, handler, sample, t_recv)
 
             self._start_worker()
             self._entities.append(self.wire.declare_subscriber(key, msgtype, callback, True))
@@ -261,25 +261,24 @@ class Node:
                         self._ready.wait(max(wait, 0.0))
                         continue
                     self._busy = True
-            try:
-                if item is None:
-                    with self._lock:
-                        if not self._closed:
-                            self._after_work()
-                else:
-                    self._handle(*item)
-            finally:
-                with self._ready:
-                    self._busy = False
-                    self._ready.notify_all()
+            if item is None:
+                self._then_free(self._after_work_locked)
+            else:
+                self._then_free(self._handle, *item)
 
-    def _handle_then_free(self, key: str, handler: Handler, sample: zenoh.Sample, t: int) -> None:
+    def _then_free(self, fn: Callable[..., None], *args: Any) -> None:
+        """``fn(*args)`` by the thread that marked the node busy; then it is free again."""
         try:
-            self._handle(key, handler, sample, t)
+            fn(*args)
         finally:
             with self._ready:
                 self._busy = False
                 self._ready.notify_all()
+
+    def _after_work_locked(self) -> None:
+        with self._lock:
+            if not self._closed:
+                self._after_work()
 
     def _after_work(self) -> None:
         """The after-hooks, then the garbage due (:func:`collect_due`); under the lock."""
