@@ -45,6 +45,11 @@ for the downstream's turn: in the closed loop (bench/FOLLOW.md) relocalize and f
 a pose in ~0.8 ms at p50 and 1.4 ms at p90. Run at once, localize's hand-over of its window's
 re-solve (~0.5 ms) and a node's collection (~1 ms) took their CPU on 2 cores: detections ->
 Twist with --smooth, p99 median 7.9 ms against 7.0 deferred (6 runs each, alternated)."""
+AFTER_MAX_S = 0.006
+"""A pending after-work waits at most this long for the node to be idle ``after_s``: a message
+that ends later runs it at once, as does one with others queued behind it (a flood). Before
+this bound a message that came within ``after_s`` of the last (the simulator's ``camera_info``,
+then its frame) ran it at once after its outputs, on nearly every frame."""
 CONGESTION = {"block": zenoh.CongestionControl.BLOCK, "drop": zenoh.CongestionControl.DROP}
 
 
@@ -142,12 +147,14 @@ class Node:
         self._worker: threading.Thread | None = None
         self._closed = False
         # the after-work: run under the handling lock once the node has been idle after_s
-        # after a sample's outputs (or, in a flood, after the next sample once overdue): the
-        # live smoother hands its window's re-solve to its background process then, after
-        # the pose has left and the downstream nodes have had their turn
+        # after a sample's outputs (or, in a flood, after the next sample once overdue or
+        # AFTER_MAX_S after it was asked for): the live smoother hands its window's re-solve
+        # to its background process then, after the pose has left and the downstream nodes
+        # have had their turn
         self.after: list[Callable[[], None]] = []
         self.after_s = AFTER_S
         self._due: float | None = None  # when the pending after-work runs (None: none)
+        self._by = 0.0  # when a pending after-work no longer waits for an idle node
         self.clean = True  # False once a shutdown left a blocked put or an unclosed session
 
     def publisher(self, key: str, background: bool = False) -> zenoh.Publisher:
@@ -312,11 +319,14 @@ class Node:
                     stats.drop("error", f"{key}: {type(err).__name__}: {err}")
             now = time.monotonic()
             if self._due is None:
-                self._due = now + self.after_s  # the ordered worker runs it
+                self._due, self._by = now + self.after_s, now + AFTER_MAX_S
                 with self._ready:
-                    self._ready.notify_all()
+                    self._ready.notify_all()  # the ordered worker runs it
             elif now >= self._due:
-                self._after_work()  # a flood: the after-work is never put off for long
+                if self._queue or now >= self._by:
+                    self._after_work()  # a flood: the after-work is never put off for long
+                else:  # (one message after another: camera_info, then the frame)
+                    self._due = now + self.after_s  # the downstream's turn after this one's
             if self.count is not None and stats.received >= self.count:
                 self.stop.set()
 

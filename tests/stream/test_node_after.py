@@ -14,7 +14,7 @@ import pytest
 import zenoh
 
 from tagtrail.stream.background import Background
-from tagtrail.stream.node import Node
+from tagtrail.stream.node import AFTER_MAX_S, Node
 from tagtrail.stream.session import make_config
 from tagtrail.stream.stats import Stats
 from tests.stream.helpers import free_port, loopback
@@ -110,6 +110,61 @@ def test_in_a_flood_the_after_work_still_runs_once_overdue() -> None:
     # handled back to back from the queue (never idle): the after-work is overdue 2 ms on
     gaps = np.diff([0, *afters])
     assert len(afters) > 20 and gaps[1:].max() <= 2 * node.after_s / 0.001 + 2
+
+
+def test_a_message_soon_after_another_puts_the_after_work_off_until_after_its_outputs() -> None:
+    """``camera_info`` then its frame, as a camera driver sends them: the frame's handling ends
+    past the after-work the first asked for. It still waits ``after_s`` after the frame's
+    outputs (the downstream's turn) instead of running at once after them; and a stream that
+    never leaves the node idle ``after_s`` (no backlog either) has it run every
+    ``AFTER_MAX_S`` or so."""
+    port = free_port()
+    a = zenoh.open(make_config("peer", listen=[loopback(port)]))
+    b = zenoh.open(make_config("peer", connect=[loopback(port)]))
+    node = Node(a, Stats("t"))
+    out: list[float] = []  # when each sample's output left
+    afters: list[tuple[float, int]] = []  # (seconds since the last output, outputs so far)
+
+    def handler(data: bytes) -> list[tuple[str, bytes]]:
+        if data == b"frame":
+            time.sleep(2 * node.after_s)  # ends past the after-work camera_info asked for
+        elif data == b"tick":
+            _spin(node.after_s)  # busy whenever the after-work falls due
+        out.append(time.monotonic())  # (this handler's output is what the node publishes)
+        return []
+
+    node.after.append(lambda: afters.append((time.monotonic() - out[-1], len(out))))
+    node.subscribe("in", handler)
+    try:
+        time.sleep(0.3)
+        pub = b.declare_publisher("in")
+        time.sleep(0.3)
+        for _ in range(5):
+            pub.put(b"camera_info")
+            pub.put(b"frame")
+            time.sleep(0.05)
+        _until(lambda: len(afters) >= 5, 5.0)
+        pairs = list(afters)
+        afters.clear()
+        t0 = time.monotonic()
+        for i in range(80):  # a sample every 1.15 after_s: the node is never idle after_s
+            pub.put(b"tick")
+            _spin(t0 + (i + 1) * 1.15 * node.after_s - time.monotonic())
+        during = [n for _, n in afters]
+    finally:
+        node.close()
+        b.close()  # type: ignore[no-untyped-call]
+    assert len(pairs) == 5 and [n for _, n in pairs] == [2, 4, 6, 8, 10]  # after each frame
+    assert all(since >= node.after_s for since, _ in pairs)  # not at once after its outputs
+    # ~185 ms: every 4 ticks (~9 ms) past AFTER_MAX_S (19-21 seen); without the bound 1-2
+    assert AFTER_MAX_S <= 0.01 and len(during) >= 8
+
+
+def _spin(seconds: float) -> None:
+    """Busy for ``seconds`` (a sleep overshoots by ~0.1 ms)."""
+    end = time.monotonic() + seconds
+    while time.monotonic() < end:
+        pass
 
 
 def _run(job: tuple[str, object]) -> object:
