@@ -25,10 +25,10 @@ from tagtrail.geometry.joint.problem import (
     Corners,
     Prior,
     corner_jacobians,
-    left_update,
     project,
 )
 from tagtrail.geometry.robust import rho
+from tagtrail.geometry.se3 import R_of_rotvec
 
 
 @dataclass(frozen=True)
@@ -83,8 +83,8 @@ def solve_newest(
             return None
         if not np.isfinite(step).all():
             return None
-        R2, t2 = left_update(R_cam[2:], t_cam[2:], step[None])
-        R_cam[2], t_cam[2] = R2[0], t2[0]
+        dR = R_of_rotvec(step[:3])  # left_update's, for one frame without scipy's ~40 us
+        R_cam[2], t_cam[2] = dR @ R_cam[2], dR @ t_cam[2] + step[3:]
         moved += step
     try:
         cov = np.asarray(np.linalg.inv(H + 1e-12 * np.eye(6)), np.float64)

@@ -232,7 +232,7 @@ class OdometryPrior:
     @cached_property
     def _sigmas(self) -> tuple[F64, F64]:
         """Each step's ``st``, ``sr`` (module docstring), from the odometry at the start."""
-        o = self.measured(self.start.offset_s)
+        o = self._measured_at_start
         dist = np.hypot(o[:, 0], o[:, 1])
         st = np.sqrt(self.sigma_m**2 * dist + FLOOR_M**2)
         sr = np.sqrt(SIGMA_RAD**2 * np.abs(o[:, 2]) + SIGMA_RAD_PER_M**2 * dist + FLOOR_RAD**2)
@@ -240,7 +240,17 @@ class OdometryPrior:
 
     def measured(self, offset_s: float) -> F64:
         """The odometry's motion of each step ``(P, 3)`` read at the frames' stamps + offset."""
+        if offset_s == self.start.offset_s:  # the sigmas' and, offset held, every solve's
+            return self._measured_at_start
         return self.odo.relative(self.t_s[self.j] + offset_s, self.t_s[self.j + 1] + offset_s)
+
+    @cached_property
+    def _measured_at_start(self) -> F64:
+        o = self.odo.relative(
+            self.t_s[self.j] + self.start.offset_s, self.t_s[self.j + 1] + self.start.offset_s
+        )
+        o.setflags(write=False)  # shared: read only
+        return o
 
     def _u(self, values: Mapping[str, Any]) -> F64:
         return np.asarray(values["ground"].u if self.grounded else self.plane.u)
