@@ -414,21 +414,26 @@ class Smoother:
         if job is not None:
             self._commit(job.frames, job.take(self.background))
 
-    def dispatch(self) -> None:
+    def dispatch(self) -> bool:
         """Prepare the waiting re-solve and hand it to :attr:`background` (when there is
         one), or take its result once it is back: the node's after-work (``Node.after``, a
         couple of ms after a message's outputs, once the nodes downstream have had their
         turn), so a frame's pose is followed by its window's hand-over, and the result is
-        taken between messages (the odometry's, at 50 Hz) instead of before the next frame's
-        step. :meth:`settle` takes what is left: the result when it is back, else it computes
-        it."""
+        taken between messages instead of before the next frame's step. Whether the
+        background still has it (the node asks again a couple of ms later: without that,
+        the result waited for an odometry message, and a fifth of the frames took it first
+        thing). :meth:`settle` takes what is left: the result when it is back, else it
+        computes it."""
         job = self._prepared()
-        if job is None or self.background is None:
-            return
+        if job is None or self.background is None or self.background.dead:
+            return False
         if job.seq is None:
-            job.seq = self.background.submit(job.window)
+            if self.background.idle():  # (else its start-up, or a job the next frame took)
+                job.seq = self.background.submit(job.window)
         elif self.background.ready(job.seq):
             self.settle()
+            return False
+        return True
 
     def _prepared(self) -> _Job | None:
         if self._pending is not None:
@@ -894,11 +899,12 @@ class LivePoses:
         self.smoother.settle()
         self._sync_up()
 
-    def dispatch(self) -> None:
+    def dispatch(self) -> bool:
         """The window's re-solve handed to the background once the pose is out, its result
-        taken once back (:meth:`Smoother.dispatch`)."""
-        self.smoother.dispatch()
+        taken once back; whether it is still out (:meth:`Smoother.dispatch`)."""
+        out = self.smoother.dispatch()
         self._sync_up()
+        return out
 
     def _sync_up(self) -> None:
         """The dead reckoning turns about the smoother's plane once it has one."""

@@ -151,7 +151,7 @@ class Node:
         # AFTER_MAX_S after it was asked for): the live smoother hands its window's re-solve
         # to its background process then, after the pose has left and the downstream nodes
         # have had their turn
-        self.after: list[Callable[[], None]] = []
+        self.after: list[Callable[[], bool | None]] = []
         self.after_s = AFTER_S
         self._due: float | None = None  # when the pending after-work runs (None: none)
         self._by = 0.0  # when a pending after-work no longer waits for an idle node
@@ -288,14 +288,20 @@ class Node:
                 self._after_work()
 
     def _after_work(self) -> None:
-        """The after-hooks, then the garbage due (:func:`collect_due`); under the lock."""
+        """The after-hooks, then the garbage due (:func:`collect_due`); under the lock. A hook
+        that returns True waits for something (the background's re-solve): the after-work
+        runs again ``after_s`` later, message or not."""
         self._due = None
+        again = False
         for fn in self.after:
             try:
-                fn()
+                again = bool(fn()) or again
             except Exception as err:  # noqa: BLE001 - must never stop the node
                 self.stats.drop("error", f"after: {type(err).__name__}: {err}")
         collect_due()  # the outputs are out: the messages' garbage, when due
+        if again and not self._closed:
+            now = time.monotonic()
+            self._due, self._by = now + self.after_s, now + AFTER_MAX_S
 
     def _handle(self, key: str, handler: Handler, sample: zenoh.Sample, t_recv: int) -> None:
         stats = self.stats

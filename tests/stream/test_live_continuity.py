@@ -592,12 +592,12 @@ def test_the_background_re_solve_gives_the_same_poses(noisy: Path) -> None:
                     _until_idle(bg)
                     live.dispatch()
                     _until_idle(bg)
-                elif j == 0 and i % 4 == 3:  # back, and taken between messages (the
-                    _until_idle(bg)  # odometry's) by a later dispatch
-                    live.dispatch()
+                elif j == 0 and i % 4 == 3:  # back, and taken between messages by a later
+                    _until_idle(bg)  # dispatch (the node asks again while it says it waits)
+                    assert live.dispatch()  # handed over: to be asked again
                     _until_idle(bg)
-                    live.dispatch()
-                    assert live.smoother._job is None  # taken: the next frame has nothing to do
+                    assert not live.dispatch()  # taken: nothing to wait for
+                    assert live.smoother._job is None  # the next frame has nothing to do
                 elif j == 0:  # the next frame mostly computes it itself
                     live.dispatch()
                 else:

@@ -160,6 +160,35 @@ def test_a_message_soon_after_another_puts_the_after_work_off_until_after_its_ou
     assert AFTER_MAX_S <= 0.01 and len(during) >= 8
 
 
+def test_an_after_hook_that_waits_for_something_is_asked_again_without_a_message() -> None:
+    """A hook that returns True (the smoother's re-solve still in the background) runs again
+    ``after_s`` later with no message in between, until it returns False."""
+    port = free_port()
+    a = zenoh.open(make_config("peer", listen=[loopback(port)]))
+    b = zenoh.open(make_config("peer", connect=[loopback(port)]))
+    node = Node(a, Stats("t"))
+    runs: list[float] = []
+
+    def hook() -> bool:
+        runs.append(time.monotonic())
+        return len(runs) < 4
+
+    node.after.append(hook)
+    node.subscribe("in", lambda data: [])
+    try:
+        time.sleep(0.3)
+        pub = b.declare_publisher("in")
+        time.sleep(0.3)
+        pub.put(b"x")
+        _until(lambda: len(runs) >= 4, 5.0)
+        time.sleep(0.05)
+    finally:
+        node.close()
+        b.close()  # type: ignore[no-untyped-call]
+    assert len(runs) == 4 and node.stats.received == 1  # one message, four runs, then none
+    assert all(gap >= node.after_s for gap in np.diff(runs))
+
+
 def _spin(seconds: float) -> None:
     """Busy for ``seconds`` (a sleep overshoots by ~0.1 ms)."""
     end = time.monotonic() + seconds
