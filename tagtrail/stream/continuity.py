@@ -557,7 +557,7 @@ class Smoother:
             ob,
             corners,
             last[2],
-            self._priors([*fr, frame]),
+            [p for p in self._priors([*fr, frame]) if _reaches_newest(p)],
             self.s.max_iter,
         )
         if res is None or not (np.isfinite(res.R).all() and np.isfinite(res.t).all()):
@@ -589,6 +589,14 @@ class Smoother:
             self.plane = fit[0]
             if fit[2]:
                 self.mount = fit[1]
+
+
+def _reaches_newest(prior: Any) -> bool:
+    """Whether ``prior`` over the step's three frames has a term on the new one: not the
+    odometry when it does not yet cover the new frame's stamp (a frame handled at once
+    after it was taken: the odometry of its time comes 2-8 ms later), whose terms (~0.2 ms
+    cold) the step would evaluate to drop."""
+    return not isinstance(prior, FixedOdometry) or bool((prior.prior.j == 1).any())
 
 
 def _fit_due(s: SmootherSettings, travel: float, n_hist: int, seen: int, has_plane: bool) -> bool:
