@@ -190,7 +190,8 @@ Outputs = Iterator[tuple[str, bytes]]  # a node's keyed payloads, encoded as the
 PriorOf = Callable[[F64, list[int]], Any]
 """A further prior of the window: ``(t_s (F,), t_ns)`` of its frames -> a
 :class:`~tagtrail.geometry.joint.Prior` (or None): :class:`LiveOdometry` (which
-:class:`LivePoses` adds), or a student's own."""
+:class:`LivePoses` adds), or a student's own. One with a ``refresh()`` method has it called
+as each window's re-solve is prepared (after the pose is out), for its slower updates."""
 
 
 @dataclass(frozen=True)
@@ -454,6 +455,10 @@ class Smoother:
         """The window's re-solve as a :class:`_Job`: the frames, corners and priors taken now,
         the history only when a fit may be due (:meth:`_note`)."""
         fr = list(self.frames)
+        for make in self.extra:  # (off the pose's path: a frame's step only evaluates them)
+            refresh = getattr(make, "refresh", None)
+            if refresh is not None:
+                refresh()
         used, ob, corners = self._observations(fr, camera)
         seen, has_plane = self._seen + 1, self.plane is not None
         window = _Window(
@@ -763,11 +768,12 @@ class LiveOdometry:
     window (a :data:`PriorOf`), its unknowns held: the time offset 0 (:class:`DeadReckoning`
     takes the latency off the stamps), no drift, the wheel scale and turn scale read against
     the smoothed history (medians of the steps' ratios, refreshed every ``REFRESH`` frames,
-    within ``SCALE_BOUNDS``), through the camera's mount (the drive prior's, fitted on the
-    history's plane; else the camera looking along the floor ``camera_forward_m`` ahead of
-    the base). Seconds of live history cannot solve the offline prior's seven unknowns (a
-    steady arc cannot tell a turn's scale from a drift, a straight drive the lever arm); held,
-    the tags correct what the odometry gets wrong, and its robust loss drops slip."""
+    within ``SCALE_BOUNDS``, by :meth:`refresh` as a window is prepared), through the camera's
+    mount (the drive prior's, fitted on the history's plane; else the camera looking along the
+    floor ``camera_forward_m`` ahead of the base). Seconds of live history cannot solve the
+    offline prior's seven unknowns (a steady arc cannot tell a turn's scale from a drift, a
+    straight drive the lever arm); held, the tags correct what the odometry gets wrong, and
+    its robust loss drops slip."""
 
     REFRESH = 30
     SCALE_BOUNDS = (0.8, 1.25)
@@ -795,7 +801,9 @@ class LiveOdometry:
         t = ((np.array([s[0] for s in o], np.int64) - t0_ns) * 1e-9).astype(np.float64)
         return Odometry(t, a[:, 1], a[:, 2], np.unwrap(a[:, 3]))
 
-    def _refresh(self) -> None:
+    def refresh(self) -> None:
+        """Read the scales again when ``REFRESH`` frames have been added since (1-2 ms over
+        the history, once a second: in a frame's step it was a thirtieth of the frames' p99)."""
         sm = self.smoother
         if sm._seen - self._at < self.REFRESH or len(sm.history) < 30 or sm.plane is None:
             return
@@ -836,7 +844,6 @@ class LiveOdometry:
         j = covered_steps(t_s, odo, sm.s.joint.max_gap_s, 0.0)
         if not len(j):
             return None
-        self._refresh()
         mount = sm.mount
         if mount is None:
             u = sm.plane.u / np.linalg.norm(sm.plane.u)
