@@ -46,10 +46,11 @@ a pose in ~0.8 ms at p50 and 1.4 ms at p90. Run at once, localize's hand-over of
 re-solve (~0.5 ms) and a node's collection (~1 ms) took their CPU on 2 cores: detections ->
 Twist with --smooth, p99 median 7.9 ms against 7.0 deferred (6 runs each, alternated)."""
 AFTER_MAX_S = 0.006
-"""A pending after-work waits at most this long for the node to be idle ``after_s``: a message
-that ends later runs it at once, as does one with others queued behind it (a flood). Before
-this bound a message that came within ``after_s`` of the last (the simulator's ``camera_info``,
-then its frame) ran it at once after its outputs, on nearly every frame."""
+"""A pending after-work is put off at most this long by messages still being handled when it
+falls due: a message that ends later runs it at once, as does one with others queued behind it
+(a flood). Before this bound a message that came within ``after_s`` of the last (the
+simulator's ``camera_info``, then its frame) ran it at once after its outputs, on nearly every
+frame."""
 CONGESTION = {"block": zenoh.CongestionControl.BLOCK, "drop": zenoh.CongestionControl.DROP}
 
 
@@ -146,11 +147,11 @@ class Node:
         self._busy = False  # a sample of the ordered subscriptions is being handled
         self._worker: threading.Thread | None = None
         self._closed = False
-        # the after-work: run under the handling lock once the node has been idle after_s
-        # after a sample's outputs (or, in a flood, after the next sample once overdue or
-        # AFTER_MAX_S after it was asked for): the live smoother hands its window's re-solve
-        # to its background process then, after the pose has left and the downstream nodes
-        # have had their turn
+        # the after-work: run under the handling lock after_s after a sample's outputs when
+        # the node is idle then, else after_s after the outputs of the sample it is handling
+        # (in a flood, or AFTER_MAX_S after it was asked for: at once after that sample): the
+        # live smoother hands its window's re-solve to its background process then, after
+        # the pose has left and the downstream nodes have had their turn
         self.after: list[Callable[[], bool | None]] = []
         self.after_s = AFTER_S
         self._due: float | None = None  # when the pending after-work runs (None: none)
@@ -300,8 +301,11 @@ class Node:
                 self.stats.drop("error", f"after: {type(err).__name__}: {err}")
         collect_due()  # the outputs are out: the messages' garbage, when due
         if again and not self._closed:
-            now = time.monotonic()
-            self._due, self._by = now + self.after_s, now + AFTER_MAX_S
+            self._ask_after(time.monotonic())
+
+    def _ask_after(self, now: float) -> None:
+        """Have the after-work run ``after_s`` from ``now`` (put off by at most AFTER_MAX_S)."""
+        self._due, self._by = now + self.after_s, now + AFTER_MAX_S
 
     def _handle(self, key: str, handler: Handler, sample: zenoh.Sample, t_recv: int) -> None:
         stats = self.stats
@@ -325,7 +329,7 @@ class Node:
                     stats.drop("error", f"{key}: {type(err).__name__}: {err}")
             now = time.monotonic()
             if self._due is None:
-                self._due, self._by = now + self.after_s, now + AFTER_MAX_S
+                self._ask_after(now)
                 with self._ready:
                     self._ready.notify_all()  # the ordered worker runs it
             elif now >= self._due:
