@@ -150,7 +150,8 @@ def test_a_message_soon_after_another_puts_the_after_work_off_until_after_its_ou
         for i in range(80):  # a sample every 1.15 after_s: the node is never idle after_s
             pub.put(b"tick")
             _spin(t0 + (i + 1) * 1.15 * node.after_s - time.monotonic())
-        during = [n for _, n in afters]
+        _until(lambda: len(out) >= 90, 5.0)  # all handled (a slow machine lags behind)
+        during = [n for _, n in afters if n <= 90]
     finally:
         node.close()
         b.close()  # type: ignore[no-untyped-call]
