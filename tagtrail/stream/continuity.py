@@ -43,14 +43,15 @@ from tagtrail.geometry.joint.drive import (
     drive_terms,
     fit_mount,
     robust_weights,
-    steps,
     strain,
 )
 from tagtrail.geometry.joint.ground import (
+    GroundLevel,
     GroundPrior,
     Plane,
     fit_plane,
     ground_terms,
+    plane_spread,
 )
 from tagtrail.geometry.joint.motion import MotionPrior
 from tagtrail.geometry.joint.newest import solve_newest
@@ -61,7 +62,13 @@ from tagtrail.geometry.joint.odometry import (
     OdometryState,
     covered_steps,
 )
-from tagtrail.geometry.joint.problem import CornerObservations, Corners, Terms, corner_sigma
+from tagtrail.geometry.joint.problem import (
+    CornerObservations,
+    Corners,
+    Terms,
+    corner_sigma,
+    steps,
+)
 from tagtrail.geometry.joint.settings import (
     CORNER_F_SCALE_PX,
     CORNER_LOSS,
@@ -78,6 +85,13 @@ from tagtrail.stream.stats import DropError
 BUDGET_SOLVES = 5  # the solves (at least 3) whose median time the budget judges
 HISTORY = 600  # smoothed poses kept for the plane and mount fits (20 s at 30 Hz)
 MIN_TURN_RAD = 0.5  # the yaw the history must have turned before the mount's lever arm is fitted
+# The ground prior's level term (the height's change frame to frame) is held once the history's
+# spread across the travel is this many times its scatter off the plane
+# (geometry.joint.ground.plane_spread): a straight drive gives 1-2 and leaves the normal free to
+# roll about the line (harmless while the camera keeps to it; the hall's first 9 m fitted one
+# 34 deg off, and held level through its U-turn that put the camera 5 cm low); a weaving drive
+# gives 30-1000 in its first second.
+MIN_PLANE_SPREAD = 100.0
 
 
 @dataclass(frozen=True)
@@ -224,7 +238,7 @@ class _Solved:
     res: Any
     took_ms: float
     travel: float
-    fit: tuple[Plane, Mount | None, bool] | None
+    fit: _Fit | None
 
 
 RESOLVE = "tagtrail.stream.continuity:_resolve"  # for a Background process
@@ -301,6 +315,7 @@ class Smoother:
         self.frames: deque[_Frame] = deque()
         self.history: deque[tuple[F64, F64]] = deque(maxlen=HISTORY)  # smoothed (R, t)
         self.plane: Plane | None = None
+        self.level = False  # the plane's normal told by the history: its level term held
         self.mount: Mount | None = None
         self.t_hist: deque[float] = deque(maxlen=HISTORY)
         self._travel = 0.0
@@ -531,6 +546,8 @@ class Smoother:
             priors.append(MotionPrior(t_s, *sig, js.max_gap_s, frame="camera"))
         if self.plane is not None and js.ground != "none":
             priors.append(FixedGround(GROUND, self.plane))
+            if self.level and np.isfinite(GROUND.level_sigma):
+                priors.append(GroundLevel(GROUND, t_s, js.max_gap_s, self.plane))
             if self.mount is not None and js.drive != "free":
                 priors.append(FixedDrive(self.plane, self.mount, t_s, js.max_gap_s))
         for make in self.extra:
@@ -591,9 +608,9 @@ class Smoother:
         else:
             fit = None
         if fit is not None:
-            self.plane = fit[0]
-            if fit[2]:
-                self.mount = fit[1]
+            self.plane, self.level = fit.plane, fit.told
+            if fit.set_mount:
+                self.mount = fit.mount
 
 
 def _reaches_newest(prior: Any) -> bool:
@@ -604,6 +621,19 @@ def _reaches_newest(prior: Any) -> bool:
     return not isinstance(prior, FixedOdometry) or bool((prior.prior.j == 1).any())
 
 
+@dataclass(frozen=True)
+class _Fit:
+    """The history's fits (:func:`_fit`): the ground ``plane``, whether it ``told`` the
+    plane's normal (:data:`MIN_PLANE_SPREAD`; the level term is held only then), the
+    ``mount`` (None: not a wheeled robot's) and whether it is to be set (not with ``ground:
+    none`` or ``drive: free``)."""
+
+    plane: Plane
+    told: bool
+    mount: Mount | None
+    set_mount: bool
+
+
 def _fit_due(s: SmootherSettings, travel: float, n_hist: int, seen: int, has_plane: bool) -> bool:
     """Whether the history asks for the plane's (and mount's) fit (:meth:`Smoother._note`)."""
     if travel < s.plane_after_m or n_hist < 10:
@@ -611,22 +641,21 @@ def _fit_due(s: SmootherSettings, travel: float, n_hist: int, seen: int, has_pla
     return not (has_plane and seen % 30)  # (the history stops at HISTORY poses)
 
 
-def _fit(s: SmootherSettings, Rs: F64, ts: F64, t_hist: F64) -> tuple[Plane, Mount | None, bool]:
-    """The plane and the mount (None: not a wheeled robot's) fitted to the history ``Rs, ts``
-    at times ``t_hist`` (s), and whether the mount is to be set (not with ``ground: none`` or
-    ``drive: free``)."""
+def _fit(s: SmootherSettings, Rs: F64, ts: F64, t_hist: F64) -> _Fit:
+    """The plane and the mount fitted to the history ``Rs, ts`` at times ``t_hist`` (s)."""
     t_s = np.asarray(t_hist, np.float64) - t_hist[0]
     keep = robust_plane_frames(Rs, ts)
     Rs, ts, t_s = Rs[keep], ts[keep], t_s[keep]
     plane = fit_plane(Rs, ts, GROUND)
+    told = plane_spread(Rs, ts, GROUND) >= MIN_PLANE_SPREAD
     js = s.joint
     if js.ground == "none" or js.drive == "free":
-        return plane, None, False
+        return _Fit(plane, told, None, False)
     j = steps(t_s, js.max_gap_s)
     mount = fit_mount(Rs, ts, t_s, j, plane, MIN_TURN_RAD, s.lever_m)
     q = drive_terms(Rs, ts, t_s, j, plane, mount, DRIVE, unknowns=False)[0]
     wheeled = js.drive == "wheeled" or strain(q, DRIVE, 1.0) <= WHEELED_BOUND
-    return plane, (mount if wheeled else None), True
+    return _Fit(plane, told, mount if wheeled else None, True)
 
 
 def _moved(prev: tuple[F64, F64], R: F64, t: F64) -> float:

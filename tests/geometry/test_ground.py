@@ -8,14 +8,17 @@ import numpy as np
 from tagtrail.geometry.joint import Corners, MotionPrior, solve_grounded, solve_joint
 from tagtrail.geometry.joint.ground import (
     PLANAR_BOUND,
+    GroundLevel,
     GroundPrior,
     Plane,
     fit_plane,
+    level_terms,
     planarity,
     plane_terms,
 )
 from tagtrail.geometry.joint.problem import centres, left_update
 from tagtrail.geometry.registration import umeyama
+from tagtrail.geometry.robust import rho
 from tagtrail.geometry.se3 import R_from_rotvec, make_T
 from tests.geometry.problems import FOCAL_PX, corner_problem, perturbed, planar_cameras
 
@@ -42,6 +45,81 @@ def test_plane_terms_jacobians_match_finite_differences() -> None:
         step[c] = eps
         num = (plane_terms(R, t, plane.update(step), PRIOR)[0] - p) / eps
         np.testing.assert_allclose(num, Jg[:, :, c], atol=1e-4 * np.abs(Jg).max())
+
+
+def test_level_terms_jacobians_match_finite_differences() -> None:
+    """The level term's whitened height change between consecutive frames: its Jacobians on
+    both cameras and on the plane's normal; a gap beyond ``max_gap_s`` has no term."""
+    rng = np.random.default_rng(2)
+    C = perturbed(planar_cameras(6), 2, 0.05, 0.05)
+    R, t = C[:, :3, :3], C[:, :3, 3]
+    n = rng.normal(size=3)
+    plane = Plane(n / np.linalg.norm(n), 0.3, rng.normal(size=3))
+    prior = GroundPrior.of(0.01, 1.0, 1000.0)  # loose: the robust loss in its quadratic part
+    t_s = np.array([0.0, 0.03, 0.07, 0.1, 0.9, 0.95])  # a 0.8 s gap: frames 3 and 4 not tied
+    part = GroundLevel(prior, t_s, 0.5)
+    assert part.uses == ("ground",) and GroundLevel(prior, t_s, 0.5, plane).uses == ()
+    terms = part.terms(R, t, {"ground": plane})
+    np.testing.assert_array_equal(terms.first, [0, 1, 2, 4])
+    c = centres(R, t)
+    j = terms.first
+    q = (c[j + 1] - c[j]) @ plane.n / (1000.0 * np.sqrt(t_s[j + 1] - t_s[j]))
+    _, w = rho(prior.loss, q * q / prior.f_scale**2)
+    np.testing.assert_allclose(terms.r[:, 0], q * np.sqrt(w), rtol=1e-12)
+    eps = 1e-7
+    for f in range(len(R)):
+        for k in range(6):
+            d = np.zeros((len(R), 6))
+            d[f, k] = eps
+            num = level_terms(*left_update(R, t, d), t_s, j, plane, prior, True).r - terms.r
+            for m, first in enumerate(j):
+                want = terms.Jc[m, f - first, 0, k] if f in (first, first + 1) else 0.0
+                np.testing.assert_allclose(
+                    num[m, 0] / eps, want, atol=1e-4 * np.abs(terms.Jc).max()
+                )
+    for k in range(6):
+        step = np.zeros(6)
+        step[k] = eps
+        num = (level_terms(R, t, t_s, j, plane.update(step), prior, True).r - terms.r) / eps
+        np.testing.assert_allclose(
+            num, terms.Jg[:, :, k], atol=1e-4 * np.abs(terms.Jg).max() + 1e-9
+        )
+
+
+def test_level_term_steadies_the_height_of_a_noisy_ring() -> None:
+    """With the level term beside the per-frame one (the motion prior's steps), the ring's
+    camera heights come out steadier than with the per-frame term alone."""
+    ob, W, C, anchor, t_s = corner_problem(noise_px=1.0, seed=5)
+    free = np.arange(len(W)) != anchor
+    truth = fit_plane(C[:, :3, :3], C[:, :3, 3], PRIOR)
+    motion = MotionPrior(t_s, 0.3, 1.0, 1.0)
+
+    def solve(priors=()):  # type: ignore[no-untyped-def]
+        return solve_joint(
+            W[:, :3, :3],
+            W[:, :3, 3],
+            C[:, :3, :3],
+            C[:, :3, 3],
+            ob,
+            free,
+            Corners(FOCAL_PX),
+            [motion, *priors],
+            covariance=True,
+        )
+
+    free_res = solve()
+    heights = []
+    for prior in (PRIOR, GroundPrior.of(0.01, 1.0, 0.005)):
+        res, block = solve_grounded(
+            free_res, lambda r, priors: solve(priors), prior, "plane", motion=motion
+        )
+        assert block.applied
+        assert ("level" in res.terms) == np.isfinite(prior.level_sigma)
+        _, Rf, tf = umeyama(res.t_tag, W[:, :3, 3], with_scale=False)
+        cam = centres(res.R_cam, res.t_cam) @ Rf.T + tf - centres(C[:, :3, :3], C[:, :3, 3])
+        h = cam @ truth.n
+        heights.append(float(np.std(np.diff(h))))
+    assert heights[1] < 0.7 * heights[0]
 
 
 def test_fit_plane_recovers_the_floor_and_the_mount() -> None:

@@ -408,6 +408,42 @@ def test_the_live_plane_leaves_outlier_poses_out() -> None:
     assert tilt_deg(keep) < 0.05 and tilt_deg(np.ones(200, bool)) > 1.0
 
 
+def test_the_level_term_waits_for_a_history_that_tells_the_plane() -> None:
+    """A straight drive leaves the plane's normal free to roll about the line: the smoother
+    keeps the plane (per-frame height and tilt hold whatever the roll) but not the level term
+    (tying the height along a normal tens of degrees off, it put the hall's camera 5 cm low
+    in its U-turn). Once the history turns it holds the level term too."""
+    from tagtrail.geometry.joint.ground import GroundLevel
+    from tagtrail.stream.continuity import _Frame
+
+    rng = np.random.default_rng(7)
+    t = np.arange(240) / 30.0
+    yaw = np.where(t < 4.0, 0.0, np.pi * np.clip(t - 4.0, 0.0, 2.0) / 2.0)  # then a U-turn
+    step = 0.6 / 30.0 * np.stack([np.cos(yaw), np.sin(yaw)], axis=1)
+    xy = np.concatenate([np.zeros((1, 2)), np.cumsum(step[:-1], axis=0)])
+    C = _level_cameras(xy, yaw)
+    C[:, :3, 3] += rng.normal(scale=3e-4, size=(240, 3))  # the smoothed poses' sub-mm noise
+    sm = Smoother(np.eye(4)[None], np.array([0.16]), SmootherSettings())
+    told, planed = [], []
+    for k in range(len(t)):
+        sm._note(int(t[k] * 1e9), C[k, :3, :3], C[k, :3, 3])
+        told.append(sm.level)
+        planed.append(sm.plane is not None)
+    told_at = np.flatnonzero(told)
+    assert planed.index(True) < 60  # the plane from the first metre on, the level term not
+    assert 4.0 < t[told_at[0]] < 5.5  # not on the straight 2.4 m, soon into the turn
+    assert all(told[told_at[0] :])  # (the history keeps the turn)
+    sm.frames.extend(
+        _Frame(
+            int(t[k] * 1e9), np.zeros(0, np.int64), np.zeros((0, 4, 2)), C[k, :3, :3], C[k, :3, 3]
+        )
+        for k in range(3)
+    )
+    assert any(isinstance(p, GroundLevel) for p in sm._priors(list(sm.frames)))
+    sm.level = False
+    assert not any(isinstance(p, GroundLevel) for p in sm._priors(list(sm.frames)))
+
+
 @pytest.mark.parametrize(("sideways", "kept"), [(False, True), (True, False)])
 def test_the_drive_prior_holds_a_wheeled_robot_only(sideways: bool, kept: bool) -> None:
     """A robot weaving along (the camera 8 cm ahead of its turning centre): the smoother keeps

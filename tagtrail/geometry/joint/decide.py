@@ -25,11 +25,11 @@ from tagtrail.geometry.joint.drive import (
     drive_report,
     drive_terms,
     fit_mount,
-    steps,
     strain,
 )
 from tagtrail.geometry.joint.ground import (
     PLANAR_BOUND,
+    GroundLevel,
     GroundPlane,
     GroundPrior,
     GroundReport,
@@ -37,7 +37,7 @@ from tagtrail.geometry.joint.ground import (
     planarity,
 )
 from tagtrail.geometry.joint.motion import MotionPrior
-from tagtrail.geometry.joint.problem import JointResult, Prior, centres
+from tagtrail.geometry.joint.problem import JointResult, Prior, centres, steps
 from tagtrail.geometry.rotations import geodesic_angle
 
 # A dataset on which auto decides: the camera travels MIN_TRAVEL_M (its centres' extent) or
@@ -130,6 +130,11 @@ def solve_grounded(
             use_ground = use_ground or (mode == "auto" and ref[0])
             use_drive = use_drive or (drive_mode == "auto" and ref[1])
     part = GroundPlane(ground, plane)
+    level = (
+        [GroundLevel(ground, motion.t_s, motion.max_gap_s)]
+        if motion is not None and np.isfinite(ground.level_sigma)
+        else []
+    )
     drive_rep = None
     if use_ground and drive is not None and motion is not None:
         j = steps(motion.t_s, motion.max_gap_s)
@@ -139,7 +144,7 @@ def solve_grounded(
             motion.max_gap_s,
             fit_mount(res.R_cam, res.t_cam, motion.t_s, j, plane),
         )
-        driven = resolve(res, [part, wheels])
+        driven = resolve(res, [part, *level, wheels])
         q, _, _ = drive_terms(
             driven.R_cam,
             driven.t_cam,
@@ -158,7 +163,7 @@ def solve_grounded(
         if wheeled:
             res = driven
     if use_ground and (drive_rep is None or not drive_rep.applied):
-        res = resolve(res, [part])
+        res = resolve(res, [part, *level])
     if use_ground:
         plane = res.unknowns["ground"]
     return res, ground_report(

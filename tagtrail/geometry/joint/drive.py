@@ -40,7 +40,7 @@ from pydantic import BaseModel, ConfigDict
 
 from tagtrail.geometry.arrays import F64, I64
 from tagtrail.geometry.joint.ground import Plane
-from tagtrail.geometry.joint.problem import Terms, centres
+from tagtrail.geometry.joint.problem import Terms, centres, steps
 from tagtrail.geometry.robust import LossName, rho
 from tagtrail.geometry.rotations import cross, hat, log_so3, right_jacobian_inv
 from tagtrail.geometry.se3 import R_from_rotvec
@@ -80,12 +80,6 @@ class Mount:
         """The mount after the step ``[b ; dl]``: ``g`` turned by ``b`` rad about ``u``."""
         g = R_from_rotvec((step[0] * u / np.linalg.norm(u))[None])[0] @ self.g
         return Mount(g / np.linalg.norm(g), self.lever_m + float(step[1]))
-
-
-def steps(t_s: F64, max_gap_s: float) -> I64:
-    """Frames ``j (P,)`` whose successor ``j + 1`` follows within ``max_gap_s``."""
-    dt = np.diff(np.asarray(t_s, np.float64))
-    return np.flatnonzero((dt > 0) & (dt <= max_gap_s)).astype(np.int64)
 
 
 def _geometry(R: F64, t: F64, j: I64, n: F64) -> tuple[F64, F64, F64, F64, F64, F64]:

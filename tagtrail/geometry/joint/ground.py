@@ -16,6 +16,18 @@ stop counting instead of bending the map. It is what holds the far end of a long
 level: without it a corridor's tag map and trajectory bend out of the floor by several cm per
 10 m (the pitch error of each tag pair adding up).
 
+Between consecutive frames ``j, j+1`` (``h_j`` s apart) the height changes little
+(:class:`GroundLevel`, robust too)::
+
+    l_j = n . (c_{j+1} - c_j) / (level_sigma sqrt(h_j))
+
+``level_sigma`` (m/s/sqrt(Hz)) is the density of the camera's vertical velocity off the plane (a
+floor's slope and undulation as the robot drives over it): the height wanders ``level_sigma
+sqrt(T)`` over ``T`` seconds, held within ``height_sigma`` by the per-frame term. The per-frame
+term alone leaves a frame's height to its own corners within 1 cm: a filter's newest frame,
+with no later frame beside it, then jitters by tenths of a mm where a smoother's frames do not
+(``stream/continuity.py``).
+
 Plane updates: ``n <- Exp(B a) n`` with ``B (3, 2)`` a basis orthogonal to ``n`` (2 parameters),
 ``d <- d + dd``, ``u <- u + du``: 6 parameters, as a tag's. Camera perturbations are the joint
 solve's left ones, ``R <- Exp(w) R``, ``t <- Exp(w) t + v`` (so ``c <- c - R^T v``).
@@ -29,8 +41,8 @@ from typing import Any
 
 import numpy as np
 
-from tagtrail.geometry.arrays import F64
-from tagtrail.geometry.joint.problem import Terms, centres
+from tagtrail.geometry.arrays import F64, I64
+from tagtrail.geometry.joint.problem import Terms, centres, steps
 from tagtrail.geometry.robust import LossName, rho
 from tagtrail.geometry.rotations import cross, hat
 from tagtrail.geometry.se3 import R_from_rotvec
@@ -44,13 +56,17 @@ class GroundPrior:
 
     height_sigma_m: float
     tilt_sigma_rad: float
+    level_sigma: float = float("inf")
     loss: LossName = "cauchy"
     f_scale: float = 3.0
 
     @classmethod
-    def of(cls, height_sigma_m: float, tilt_sigma_deg: float) -> GroundPrior:
-        """The prior from a pipeline's ``ground_height_sigma_m`` and ``ground_tilt_sigma_deg``."""
-        return cls(height_sigma_m, float(np.radians(tilt_sigma_deg)))
+    def of(
+        cls, height_sigma_m: float, tilt_sigma_deg: float, level_sigma: float = float("inf")
+    ) -> GroundPrior:
+        """The prior from its height (m), tilt (deg) and level (m/s/sqrt(Hz); inf: no level
+        term) noise."""
+        return cls(height_sigma_m, float(np.radians(tilt_sigma_deg)), level_sigma)
 
 
 @dataclass(frozen=True)
@@ -75,11 +91,9 @@ class Plane:
         return Plane(n / np.linalg.norm(n), self.d + float(step[2]), self.u + step[3:])
 
 
-def fit_plane(R_cam: F64, t_cam: F64, prior: GroundPrior) -> Plane:
-    """The plane that minimises the prior's cost for fixed cameras: with ``d`` and ``u`` at
-    their optima the cost is ``n^T M n``, ``M`` the scatter of the centres over
-    ``height_sigma^2`` plus that of the rotations over ``tilt_sigma^2``, so ``n`` is ``M``'s
-    least eigenvector."""
+def _scatter(R_cam: F64, t_cam: F64, prior: GroundPrior) -> tuple[F64, F64, F64]:
+    """``M (3, 3)``: the scatter of the centres over ``height_sigma^2`` plus that of the
+    rotations over ``tilt_sigma^2``, per frame; the mean centre and the mean rotation."""
     c = centres(R_cam, t_cam)
     c_mean, R_mean = c.mean(axis=0), R_cam.mean(axis=0)
     dc, dR = c - c_mean, R_cam - R_mean
@@ -87,9 +101,27 @@ def fit_plane(R_cam: F64, t_cam: F64, prior: GroundPrior) -> Plane:
         np.einsum("fi,fj->ij", dc, dc) / prior.height_sigma_m**2
         + np.einsum("fki,fkj->ij", dR, dR) / prior.tilt_sigma_rad**2
     ) / len(R_cam)
+    return M, c_mean, R_mean
+
+
+def fit_plane(R_cam: F64, t_cam: F64, prior: GroundPrior) -> Plane:
+    """The plane that minimises the prior's cost for fixed cameras: with ``d`` and ``u`` at
+    their optima the cost is ``n^T M n`` (:func:`_scatter`), so ``n`` is ``M``'s least
+    eigenvector."""
+    M, c_mean, R_mean = _scatter(R_cam, t_cam, prior)
     n = np.linalg.eigh(M)[1][:, 0]
     n = n if n @ (R_mean.T @ np.array([0.0, -1.0, 0.0])) >= 0 else -n  # camera y points down
     return Plane(n, float(n @ c_mean), R_mean @ n)
+
+
+def plane_spread(R_cam: F64, t_cam: F64, prior: GroundPrior) -> float:
+    """How well cameras that move in a plane tell its normal: ``M``'s middle eigenvalue over
+    its least (:func:`_scatter`), the spread across the one direction of travel (sideways, or
+    a turn's change of heading) over the scatter off the plane. A straight drive without
+    turning leaves the normal free to roll about the line (1-2: the plane fitted to it can be
+    tens of degrees off); a weaving drive gives 30-1000 in its first second, a turn more."""
+    lam = np.linalg.eigvalsh(_scatter(R_cam, t_cam, prior)[0])
+    return float(lam[1] / max(lam[0], 1e-300))
 
 
 def plane_terms(
@@ -163,6 +195,61 @@ class GroundPlane:
 
     def update(self, value: Plane, step: F64, values: Mapping[str, Any]) -> Plane:
         return value.update(step)
+
+
+def level_terms(
+    R_cam: F64, t_cam: F64, t_s: F64, j: I64, plane: Plane, prior: GroundPrior, unknowns: bool
+) -> Terms:
+    """The level terms (module docstring) of the steps ``j`` (frames ``j, j+1`` stamped
+    ``t_s``): each step's whitened height change, robust, with Jacobians on its two cameras'
+    ``[w ; v]`` and (``unknowns``) on the plane's 6 parameters; 1 degree of freedom a step."""
+    Rn = R_cam @ plane.n
+    h = -np.einsum("fi,fi->f", Rn, t_cam)  # n . c, c = -R^T t
+    inv = 1.0 / (prior.level_sigma * np.sqrt(t_s[j + 1] - t_s[j]))
+    q = (h[j + 1] - h[j]) * inv
+    f2 = prior.f_scale**2
+    val, w = rho(prior.loss, q * q / f2)
+    s = np.sqrt(w) * inv
+    Jc = np.zeros((len(j), 2, 1, 6))
+    Jc[:, 0, 0, 3:] = Rn[j] * s[:, None]  # d (n . c) / d v = -R n
+    Jc[:, 1, 0, 3:] = -Rn[j + 1] * s[:, None]
+    Jg = None
+    if unknowns:
+        c = centres(R_cam, t_cam)
+        Jg = np.zeros((len(j), 1, 6))
+        Jg[:, 0, :2] = (c[j + 1] - c[j]) @ cross(plane.basis().T, plane.n).T * s[:, None]
+    return Terms(float(f2 * val.sum()), (q * np.sqrt(w))[:, None], j, Jc, Jg, len(j))
+
+
+@dataclass(frozen=True)
+class GroundLevel:
+    """The ground prior's level terms (module docstring) as a part of the joint solve, on the
+    :class:`GroundPlane`'s plane (no unknowns of its own): the steps between frames stamped
+    ``t_s`` (s) within ``max_gap_s`` (the motion prior's)."""
+
+    prior: GroundPrior
+    t_s: F64
+    max_gap_s: float
+    fixed: Plane | None = None
+    """A plane held fixed (a live window's, fitted to the history): then no ``ground`` prior
+    is needed beside it."""
+
+    name = "level"
+    n_params = 0
+    start = None
+
+    @property
+    def uses(self) -> tuple[str, ...]:
+        return () if self.fixed is not None else ("ground",)
+
+    def terms(self, R_cam: F64, t_cam: F64, values: Mapping[str, Any]) -> Terms:
+        """Each step's whitened height change; 1 degree of freedom a step."""
+        j = steps(self.t_s, self.max_gap_s)
+        plane = values["ground"] if self.fixed is None else self.fixed
+        return level_terms(R_cam, t_cam, self.t_s, j, plane, self.prior, self.fixed is None)
+
+    def update(self, value: Any, step: F64, values: Mapping[str, Any]) -> Any:
+        return None
 
 
 PLANAR_BOUND = 2.0  # median normalised chi^2 per degree of freedom below which motion is planar

@@ -78,6 +78,12 @@ class Terms:
     dof: int = 0
 
 
+def steps(t_s: F64, max_gap_s: float) -> I64:
+    """Frames ``j (P,)`` whose successor ``j + 1`` follows within ``max_gap_s``."""
+    dt = np.diff(np.asarray(t_s, np.float64))
+    return np.flatnonzero((dt > 0) & (dt <= max_gap_s)).astype(np.int64)
+
+
 class Prior(Protocol):
     """A prior of the joint solve: ``name`` keys its unknowns (``n_params`` parameters, starting
     at ``start``; ``uses``: the names whose unknowns its terms depend on, its own last when it

@@ -53,6 +53,7 @@ from tagtrail.geometry.joint.settings import (
     DRIVE_LATERAL_SIGMA,
     ESTIMATE_NOISE,
     GROUND_HEIGHT_SIGMA_M,
+    GROUND_LEVEL_SIGMA,
     GROUND_TILT_SIGMA_DEG,
     MAX_ITER,
     ODOMETRY_SIGMA_M,
@@ -61,7 +62,7 @@ from tagtrail.geometry.joint.settings import (
 from tagtrail.geometry.joint.solver import solve_joint
 from tagtrail.geometry.joint.start import initial_cameras
 
-GROUND = GroundPrior.of(GROUND_HEIGHT_SIGMA_M, GROUND_TILT_SIGMA_DEG)
+GROUND = GroundPrior.of(GROUND_HEIGHT_SIGMA_M, GROUND_TILT_SIGMA_DEG, GROUND_LEVEL_SIGMA)
 DRIVE = DrivePrior(DRIVE_LATERAL_SIGMA)
 
 
