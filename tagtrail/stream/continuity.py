@@ -46,11 +46,13 @@ from tagtrail.geometry.joint.drive import (
     strain,
 )
 from tagtrail.geometry.joint.ground import (
+    PLANAR_BOUND,
     GroundLevel,
     GroundPrior,
     Plane,
     fit_plane,
     ground_terms,
+    planarity,
     plane_spread,
 )
 from tagtrail.geometry.joint.motion import MotionPrior
@@ -225,7 +227,7 @@ class _Window:
     t_ns: int  # the newest frame's stamp
     travel: float  # the camera's travel and frames seen before it (:meth:`Smoother._note`)
     seen: int
-    has_plane: bool
+    fitted: bool  # the history fitted before (the fits then every 30 frames)
     hist: tuple[F64, F64, F64] | None  # the history (R, t, t_s) when a fit may be due
 
 
@@ -267,7 +269,7 @@ def _resolve(w: _Window) -> _Solved:
         if len(Rs):
             travel += _moved((Rs[-1], ts[-1]), R, t)
         n = min(HISTORY, len(Rs) + 1)
-        if _fit_due(w.settings, travel, n, w.seen, w.has_plane):
+        if _fit_due(w.settings, travel, n, w.seen, w.fitted):
             Rs = np.concatenate([Rs, R[None]])[-HISTORY:]
             ts = np.concatenate([ts, t[None]])[-HISTORY:]
             t_s = np.concatenate([t_s, [w.t_ns * 1e-9]])[-HISTORY:]
@@ -316,6 +318,7 @@ class Smoother:
         self.history: deque[tuple[F64, F64]] = deque(maxlen=HISTORY)  # smoothed (R, t)
         self.plane: Plane | None = None
         self.level = False  # the plane's normal told by the history: its level term held
+        self.fitted = False  # the history fitted once (then every 30 frames)
         self.mount: Mount | None = None
         self.t_hist: deque[float] = deque(maxlen=HISTORY)
         self._travel = 0.0
@@ -475,7 +478,7 @@ class Smoother:
             if refresh is not None:
                 refresh()
         used, ob, corners = self._observations(fr, camera)
-        seen, has_plane = self._seen + 1, self.plane is not None
+        seen, fitted = self._seen + 1, self.fitted
         window = _Window(
             self.R_tag[used],
             self.t_tag[used],
@@ -489,8 +492,8 @@ class Smoother:
             fr[-1].t_ns,
             self._travel,
             seen,
-            has_plane,
-            self._history() if not has_plane or seen % 30 == 0 else None,
+            fitted,
+            self._history() if not fitted or seen % 30 == 0 else None,
         )
         return _Job(fr, window)
 
@@ -603,12 +606,12 @@ class Smoother:
         self._seen += 1
         if done is not None:
             fit = done.fit
-        elif _fit_due(self.s, self._travel, len(self.history), self._seen, self.plane is not None):
+        elif _fit_due(self.s, self._travel, len(self.history), self._seen, self.fitted):
             fit = _fit(self.s, *self._history())
         else:
             fit = None
         if fit is not None:
-            self.plane, self.level = fit.plane, fit.told
+            self.plane, self.level, self.fitted = fit.plane, fit.told, True
             if fit.set_mount:
                 self.mount = fit.mount
 
@@ -626,19 +629,20 @@ class _Fit:
     """The history's fits (:func:`_fit`): the ground ``plane``, whether it ``told`` the
     plane's normal (:data:`MIN_PLANE_SPREAD`; the level term is held only then), the
     ``mount`` (None: not a wheeled robot's) and whether it is to be set (not with ``ground:
-    none`` or ``drive: free``)."""
+    none`` or ``drive: free``). No plane: the history leaves any plane (``ground: auto``: the
+    offline planarity test on the smoothed poses; a hand-held camera)."""
 
-    plane: Plane
+    plane: Plane | None
     told: bool
     mount: Mount | None
     set_mount: bool
 
 
-def _fit_due(s: SmootherSettings, travel: float, n_hist: int, seen: int, has_plane: bool) -> bool:
+def _fit_due(s: SmootherSettings, travel: float, n_hist: int, seen: int, fitted: bool) -> bool:
     """Whether the history asks for the plane's (and mount's) fit (:meth:`Smoother._note`)."""
     if travel < s.plane_after_m or n_hist < 10:
         return False
-    return not (has_plane and seen % 30)  # (the history stops at HISTORY poses)
+    return not (fitted and seen % 30)  # (the history stops at HISTORY poses)
 
 
 def _fit(s: SmootherSettings, Rs: F64, ts: F64, t_hist: F64) -> _Fit:
@@ -646,9 +650,13 @@ def _fit(s: SmootherSettings, Rs: F64, ts: F64, t_hist: F64) -> _Fit:
     t_s = np.asarray(t_hist, np.float64) - t_hist[0]
     keep = robust_plane_frames(Rs, ts)
     Rs, ts, t_s = Rs[keep], ts[keep], t_s[keep]
+    js = s.joint
+    if js.ground == "auto" and planarity(Rs, ts, np.zeros((len(Rs), 6, 6)), GROUND)[1] >= (
+        PLANAR_BOUND
+    ):
+        return _Fit(None, False, None, True)  # not a ground robot's, as ``ground: auto`` offline
     plane = fit_plane(Rs, ts, GROUND)
     told = plane_spread(Rs, ts, GROUND) >= MIN_PLANE_SPREAD
-    js = s.joint
     if js.ground == "none" or js.drive == "free":
         return _Fit(plane, told, None, False)
     j = steps(t_s, js.max_gap_s)

@@ -444,6 +444,36 @@ def test_the_level_term_waits_for_a_history_that_tells_the_plane() -> None:
     assert not any(isinstance(p, GroundLevel) for p in sm._priors(list(sm.frames)))
 
 
+@pytest.mark.parametrize(("ground", "held"), [("auto", False), ("plane", True)])
+def test_a_hand_held_history_is_not_held_to_a_plane(ground: str, held: bool) -> None:
+    """A camera carried by hand (+-10 cm up and down, +-5 deg of roll and pitch) leaves any
+    plane: with ``ground: auto`` the smoother holds no ground prior (nor the drive's), as the
+    offline planarity test decides; ``ground: plane`` holds it all the same."""
+    from tagtrail.geometry.joint import JointSettings
+    from tagtrail.geometry.se3 import R_from_rotvec
+
+    rng = np.random.default_rng(3)
+    t = np.arange(240) / 30.0
+    yaw = 0.4 * np.sin(0.7 * t)
+    step = 0.5 / 30.0 * np.stack([np.cos(yaw), np.sin(yaw)], axis=1)
+    xy = np.concatenate([np.zeros((1, 2)), np.cumsum(step[:-1], axis=0)])
+    C = _level_cameras(xy, yaw)
+    wobble = R_from_rotvec(rng.normal(scale=np.radians(5.0), size=(240, 3)))
+    C[:, :3, :3] = wobble @ C[:, :3, :3]
+    C[:, :3, 3] = np.einsum("fij,fj->fi", wobble, C[:, :3, 3])
+    C[:, :3, 3] -= np.einsum(
+        "fij,fj->fi", C[:, :3, :3], [0.0, 0.0, 1.0] * rng.normal(scale=0.1, size=(240, 1))
+    )
+    settings = SmootherSettings(joint=JointSettings(ground=ground))  # type: ignore[arg-type]
+    sm = Smoother(np.eye(4)[None], np.array([0.16]), settings)
+    for k in range(len(t)):
+        sm._note(int(t[k] * 1e9), C[k, :3, :3], C[k, :3, 3])
+    assert sm.fitted
+    assert (sm.plane is not None) == held
+    if not held:
+        assert sm.mount is None and not sm.level
+
+
 @pytest.mark.parametrize(("sideways", "kept"), [(False, True), (True, False)])
 def test_the_drive_prior_holds_a_wheeled_robot_only(sideways: bool, kept: bool) -> None:
     """A robot weaving along (the camera 8 cm ahead of its turning centre): the smoother keeps
