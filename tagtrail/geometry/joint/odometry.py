@@ -415,6 +415,26 @@ def covered_steps(t_s: F64, odo: Odometry, max_gap_s: float, margin: float) -> I
     return np.flatnonzero(ok).astype(np.int64)
 
 
+def fit_yaw(cam_yaw: F64, ox: F64, h: F64, otheta: F64) -> tuple[float, float, float]:
+    """The odometry's yaw errors ``(yaw_scale, yaw_per_m, yaw_drift_rps)`` that fit steps of
+    known turns: the cameras' yaw ``cam_yaw (P,)`` (rad), the odometry's forward step ``ox``
+    (m), the steps' durations ``h`` (s) and the odometry's yaw ``otheta`` (rad) -- the prior's
+    model ``otheta = yaw_scale cam_yaw + yaw_per_m ox + yaw_drift_rps h``, weighed by its yaw
+    noise, robust (Cauchy at 3 standard deviations) and held near ``(1, 0, 0)`` by the weak
+    priors the offline solve uses (a steady arc cannot tell a turn's scale from a drift)."""
+    X = np.stack([cam_yaw, ox, h], axis=1)
+    inv_var = 1.0 / (SIGMA_RAD**2 * np.abs(otheta) + SIGMA_RAD_PER_M**2 * np.abs(ox) + FLOOR_RAD**2)
+    prior = np.diag(1.0 / np.array([YAW_SCALE_SIGMA, YAW_PER_M_SIGMA, DRIFT_SIGMA_RPS]) ** 2)
+    beta0 = np.array([1.0, 0.0, 0.0])
+    beta, w = beta0, np.ones(len(otheta))
+    for _ in range(5):  # IRLS
+        Xw = X * (w * inv_var)[:, None]
+        beta = np.linalg.solve(X.T @ Xw + prior, Xw.T @ otheta + prior @ beta0)
+        z = (otheta - X @ beta) ** 2 * inv_var / 9.0
+        w = rho("cauchy", z)[1]
+    return float(beta[0]), float(beta[1]), float(beta[2])
+
+
 def fit_state(
     R_cam: F64,
     t_cam: F64,
