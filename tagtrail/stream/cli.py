@@ -21,6 +21,7 @@ from tagtrail.errors import SourceError
 from tagtrail.geometry.reference_path import PLANES
 from tagtrail.stream.codec import POSE_TYPES
 from tagtrail.stream.session import add_session_arguments, config_from_args, open_session
+from tagtrail.stream.stats import say
 
 EXAMPLES = """examples:
   tagtrail stream relocalize --reference outputs/reference --alignment reloc/summary.json
@@ -982,7 +983,7 @@ def _record(ns: argparse.Namespace) -> int:
     from tagtrail.stream.session import close_all, stop_on_signals
 
     if ns.recover:
-        print(recover(ns.out), flush=True)
+        say(recover(ns.out))
         return 0
     profile = get_profile(ns.profile)
     max_size = parse_size(ns.max_size) if ns.max_size else None
@@ -1002,9 +1003,9 @@ def _record(ns: argparse.Namespace) -> int:
         rec = Recorder(session, topics, writer, wait_s=ns.wait, max_size=max_size, wire=wire)
         with stop_on_signals() as stop:
             done = rec.run(ns.duration, ns.stats_period, stop)
-        print(summary_line(done, writer), flush=True)
+        say(summary_line(done, writer))
         if wire.summary():
-            print(f"record: {json.dumps(wire.summary())}", flush=True)
+            say(f"record: {json.dumps(wire.summary())}")
     finally:
         if wire is not None:
             wire.close()
@@ -1042,7 +1043,7 @@ def _echo(ns: argparse.Namespace) -> int:
                     if data[:1] in (b"{", b"[")
                     else (f"<{len(data)} bytes of CDR>")
                 )
-                print(f"{ns.key}: {text}", flush=True)
+                say(f"{ns.key}: {text}")
     finally:
         wire.close()
         close_all(session, [sub])

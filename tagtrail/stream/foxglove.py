@@ -23,6 +23,7 @@ from typing import Any
 
 from tagtrail.errors import SessionError, SpecError, one_line
 from tagtrail.io import msgs
+from tagtrail.stream.stats import say
 
 log = logging.getLogger("tagtrail.stream")
 Handler = Callable[[bytes], Iterable[tuple[str, bytes]]]  # a node's (tagtrail.stream.node)
@@ -169,7 +170,7 @@ def foxglove_server(
     if getattr(ns, "foxglove", None) is None:
         return None
     fox = FoxgloveServer(types, ns.foxglove, ns.foxglove_host, name=f"tagtrail {node}")
-    print(f"{node}: foxglove {fox.url}", flush=True)
+    say(f"{node}: foxglove {fox.url}")
     return fox
 
 

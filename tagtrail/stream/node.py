@@ -32,7 +32,7 @@ from typing import Any
 import zenoh
 
 from tagtrail.stream.session import close_all
-from tagtrail.stream.stats import Deferred, DropError, Stats
+from tagtrail.stream.stats import Deferred, DropError, Stats, say
 from tagtrail.stream.wire import RmwPublisher, Wire
 
 log = logging.getLogger("tagtrail.stream")
@@ -383,7 +383,7 @@ class Node:
             "shutdown_clean": self.clean,
             "peak_rss_mb": peak_rss_mb(),
         }
-        print("stats " + json.dumps(summary), flush=True)
+        say("stats " + json.dumps(summary))
         return summary
 
     def _serve(
@@ -393,7 +393,7 @@ class Node:
         garbage of a node that runs timers without messages (:func:`collect_due`, at 4 times
         its threshold: the handler's collections come first)."""
         t_stats = time.monotonic() + stats_period_s
-        print(f"{self.stats.name}: ready", flush=True)
+        say(f"{self.stats.name}: ready")
         while not self.stop.is_set() and not (stop is not None and stop.is_set()):
             now = time.monotonic()
             if t_end is not None and now >= t_end:

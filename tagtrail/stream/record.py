@@ -37,7 +37,7 @@ from tagtrail.errors import SourceError, SpecError, StorageError, TagtrailError
 from tagtrail.io import msgs
 from tagtrail.schemas.profiles import Profile
 from tagtrail.stream.bagwriter import CrashSafeWriter, is_full_disk
-from tagtrail.stream.stats import StampOrder
+from tagtrail.stream.stats import StampOrder, say
 
 log = logging.getLogger("tagtrail.stream")
 ADMIN_KEYS = ("@/*/@ros2_lv/MP/**", "@ros2_lv/*/MP/**")  # zenoh 1.x bridges, then 0.x ones
@@ -344,9 +344,7 @@ class Recorder:
                     self.wire.declare_subscriber(t.spec.topic, t.spec.msgtype, self._callback(t))
                 )
             names = ", ".join(f"{t.spec.topic} ({t.spec.msgtype})" for t in self.topics.values())
-            print(
-                f"record: recording {names} into {self.writer.out} ({self.writer.kind})", flush=True
-            )
+            say(f"record: recording {names} into {self.writer.out} ({self.writer.kind})")
             t_line = t_last = time.monotonic()
             while not stop.is_set() and not self.stopped.is_set():
                 now = time.monotonic()
@@ -362,7 +360,7 @@ class Recorder:
                     )
                     break
                 if stats_period_s > 0 and now - t_line >= stats_period_s:
-                    print(self.line(now - t0, now - t_last), flush=True)
+                    say(self.line(now - t0, now - t_last))
                     t_line = t_last = now
                 stop.wait(0.05)
             if stop.is_set() and not self.reason:

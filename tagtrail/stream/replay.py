@@ -37,7 +37,7 @@ from tagtrail.io.bags import bag_path, open_bag
 from tagtrail.io.layouts import TRAJECTORY_NAMES, read_trajectory
 from tagtrail.schemas.artifacts import POSE_COLS
 from tagtrail.stream import codec
-from tagtrail.stream.stats import lone_outliers
+from tagtrail.stream.stats import lone_outliers, say
 
 log = logging.getLogger("tagtrail.stream")
 POSE_MSGTYPES = tuple(codec.POSE_TYPES.values())
@@ -317,10 +317,9 @@ def replay(
         if failed:
             raise failed[0]
         dt = time.perf_counter() - t0
-        print(
+        say(
             f"replay: published {sent} messages on {', '.join(pubs)} in {dt:.2f} s "
-            f"({sent / max(dt, 1e-9):.0f}/s)",
-            flush=True,
+            f"({sent / max(dt, 1e-9):.0f}/s)"
         )
         if clean:
             time.sleep(0.05)  # let the last samples leave before the session closes

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import logging
+import sys
 import time
 from collections import Counter, deque
 from typing import Any
@@ -183,3 +184,12 @@ class Stats:
             "proc_p50_us": float(np.percentile(lat, 50)) if lat.size else None,
             "proc_p99_us": float(np.percentile(lat, 99)) if lat.size else None,
         }
+
+
+def say(line: str) -> None:
+    """Print one line to stdout in one write: ``print`` writes the text and its newline apart
+    when stdout is unbuffered (``PYTHONUNBUFFERED``), and nodes started together in one
+    terminal (``&``) then run each other's lines together ("relocalize: readyrelocalization/
+    state: ...")."""
+    sys.stdout.write(line + "\n")
+    sys.stdout.flush()
