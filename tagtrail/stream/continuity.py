@@ -652,11 +652,12 @@ def _fit(s: SmootherSettings, Rs: F64, ts: F64, t_hist: F64) -> _Fit:
     keep = robust_plane_frames(Rs, ts)
     Rs, ts, t_s = Rs[keep], ts[keep], t_s[keep]
     js = s.joint
-    if js.ground == "auto" and planarity(Rs, ts, np.zeros((len(Rs), 6, 6)), GROUND)[1] >= (
-        PLANAR_BOUND
-    ):
-        return _Fit(None, False, None, True)  # not a ground robot's, as ``ground: auto`` offline
-    plane = fit_plane(Rs, ts, GROUND)
+    if js.ground == "auto":  # as offline: the planarity test, its plane fitted on the way
+        plane, stat = planarity(Rs, ts, np.zeros((len(Rs), 6, 6)), GROUND)
+        if stat >= PLANAR_BOUND:
+            return _Fit(None, False, None, True)  # not a ground robot's
+    else:
+        plane = fit_plane(Rs, ts, GROUND)
     told = plane_spread(Rs, ts, GROUND) >= MIN_PLANE_SPREAD
     if js.ground == "none" or js.drive == "free":
         return _Fit(plane, told, None, False)

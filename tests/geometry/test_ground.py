@@ -86,9 +86,9 @@ def test_level_terms_jacobians_match_finite_differences() -> None:
         )
 
 
-def test_level_term_steadies_the_height_of_a_noisy_ring() -> None:
-    """With the level term beside the per-frame one (the motion prior's steps), the ring's
-    camera heights come out steadier than with the per-frame term alone."""
+def _noisy_ring():  # type: ignore[no-untyped-def]
+    """The noisy ring's problem: its truth, the plane its cameras ride, its motion prior and
+    ``solve(priors)``, the joint solve from the truth with the motion prior and ``priors``."""
     ob, W, C, anchor, t_s = corner_problem(noise_px=1.0, seed=5)
     free = np.arange(len(W)) != anchor
     truth = fit_plane(C[:, :3, :3], C[:, :3, 3], PRIOR)
@@ -107,6 +107,13 @@ def test_level_term_steadies_the_height_of_a_noisy_ring() -> None:
             covariance=True,
         )
 
+    return W, C, truth, motion, solve
+
+
+def test_level_term_steadies_the_height_of_a_noisy_ring() -> None:
+    """With the level term beside the per-frame one (the motion prior's steps), the ring's
+    camera heights come out steadier than with the per-frame term alone."""
+    W, C, truth, motion, solve = _noisy_ring()
     free_res = solve()
     heights = []
     for prior in (PRIOR, GroundPrior.of(0.01, 1.0, 0.005)):
@@ -152,22 +159,7 @@ def test_ground_prior_holds_a_noisy_ring_in_its_plane() -> None:
     the cameras' height error drops several-fold, the tags follow, and the plane found is the
     true one -- all after the best rigid fit of the tags to the truth (the anchor's own error
     tilts the whole solution; it is no error of the prior's)."""
-    ob, W, C, anchor, t_s = corner_problem(noise_px=1.0, seed=5)
-    free = np.arange(len(W)) != anchor
-    truth = fit_plane(C[:, :3, :3], C[:, :3, 3], PRIOR)
-
-    def solve(priors=()):  # type: ignore[no-untyped-def]
-        return solve_joint(
-            W[:, :3, :3],
-            W[:, :3, 3],
-            C[:, :3, :3],
-            C[:, :3, 3],
-            ob,
-            free,
-            Corners(FOCAL_PX),
-            [MotionPrior(t_s, 0.3, 1.0, 1.0), *priors],
-            covariance=True,
-        )
+    W, C, truth, _, solve = _noisy_ring()
 
     free_res = solve()
     res, block = solve_grounded(free_res, lambda r, priors: solve(priors), PRIOR, "auto")
