@@ -16,8 +16,10 @@ extrapolation when its own disagrees: an IPPE flip), at most ``max_iter`` iterat
 answer is the newest frame's pose and its covariance (the smoother's filtered estimate).
 
 :class:`DeadReckoning` carries the last fix forward by the base's odometry (``nav_msgs/Odometry``
-whose stamps are publication times: the state they describe is ``latency_s`` older), the camera
-``camera_forward_m`` ahead of the base's turning centre, turning about the plane's normal.
+whose stamps are publication times, put back on the driver's fixed-rate clock by
+:class:`~tagtrail.geometry.joint.odometry.StampGrid`: the state they describe is ``latency_s``
+older), the camera ``camera_forward_m`` ahead of the base's turning centre, turning about the
+plane's normal.
 """
 
 from __future__ import annotations
@@ -62,6 +64,7 @@ from tagtrail.geometry.joint.odometry import (
     Odometry,
     OdometryPrior,
     OdometryState,
+    StampGrid,
     covered_steps,
     fit_yaw,
 )
@@ -619,9 +622,9 @@ class Smoother:
 
 def _reaches_newest(prior: Any) -> bool:
     """Whether ``prior`` over the step's three frames has a term on the new one: not the
-    odometry when it does not yet cover the new frame's stamp (a frame handled at once
-    after it was taken: the odometry of its time comes 2-8 ms later), whose terms (~0.2 ms
-    cold) the step would evaluate to drop."""
+    odometry when it does not reach the new frame's stamp, even carried on
+    (``LiveOdometry.EXTEND_S``: a gap in the stream), whose terms (~0.2 ms cold) the step
+    would evaluate to drop."""
     return not isinstance(prior, FixedOdometry) or bool((prior.prior.j == 1).any())
 
 
@@ -718,10 +721,12 @@ class DeadReckoning:
     odo: deque[tuple[int, float, float, float]] = field(default_factory=lambda: deque(maxlen=500))
     fix: tuple[int, F64] | None = None  # (t_ns, world_T_cam)
     up: F64 | None = None  # the plane's normal pointing up (world)
+    grid: StampGrid = field(default_factory=StampGrid)
 
     def add_odometry(self, stamp_ns: int, x: float, y: float, yaw: float) -> int:
-        """One odometry message (stamp = publication time); the state's time (ns)."""
-        t = stamp_ns - int(self.latency_s * 1e9)
+        """One odometry message (stamp = publication time, its jitter taken off on the
+        driver's grid); the state's time (ns)."""
+        t = self.grid.add(stamp_ns) - int(self.latency_s * 1e9)
         if self.odo and t <= self.odo[-1][0]:
             return t
         self.odo.append((t, x, y, yaw))
@@ -818,6 +823,10 @@ class LiveOdometry:
 
     REFRESH = 30
     SCALE_BOUNDS = (0.8, 1.25)
+    # The newest frame's odometry arrives after it (50 Hz, 2-8 ms late: up to 28 ms uncovered):
+    # carried on at its last step's rate (Odometry.extended; mm off at 1 m/s^2) the step gets
+    # its odometry term. Not further: a slower stream's older rate would mislead more.
+    EXTEND_S = 0.04
 
     def __init__(self, smoother: Smoother, dead: DeadReckoning) -> None:
         self.smoother, self.dead = smoother, dead
@@ -884,6 +893,7 @@ class LiveOdometry:
         odo = self._odometry(t_ns[0], t_ns[0])
         if odo is None:
             return None
+        odo = odo.extended(float(t_s[-1]), self.EXTEND_S)
         j = covered_steps(t_s, odo, sm.s.joint.max_gap_s, 0.0)
         if not len(j):
             return None

@@ -676,24 +676,22 @@ def test_the_background_re_solve_gives_the_same_poses(noisy: Path) -> None:
     assert bg.counts["used"] >= N_FRAMES // 3, bg.counts
 
 
-def test_the_step_leaves_out_the_odometry_until_it_covers_the_new_frame() -> None:
-    """The filter's step evaluates the odometry prior only when it has a term on the new
-    frame: the odometry of a frame's time comes after it (stamps 2-8 ms late), so a frame
-    handled at once has none, and the steps before it are the window's, not the step's."""
+def test_the_step_takes_the_odometry_on_to_the_new_frame_but_not_across_a_gap() -> None:
+    """A frame handled at once has no odometry of its time yet (50 Hz, stamps 2-8 ms late):
+    the stream carried on at its last rate up to ``EXTEND_S`` gives the step its term on the
+    new frame. A stream that stopped further back (a gap) gives none, and the step leaves the
+    prior out (the steps before it are the window's, not the step's)."""
     from tagtrail.geometry.joint.ground import Plane
     from tagtrail.stream.continuity import LiveOdometry, _reaches_newest
 
     sm = Smoother(np.eye(4)[None], np.array([0.1]))
-    dead = DeadReckoning(latency_s=0.0)
     sm.plane = Plane(np.array([0.0, -1.0, 0.0]), 0.0, np.array([0.0, 1.0, 0.0]))
-    odo = LiveOdometry(sm, dead)
-    frames_ns = [1_000_000_000, 1_033_000_000, 1_066_000_000]
-    t_s = np.array([(t - frames_ns[0]) * 1e-9 for t in frames_ns])
-    for t in range(980_000_000, 1_050_000_000, 20_000_000):  # up to 1.04 s: not the third
-        dead.add_odometry(t, 0.3 * (t * 1e-9 - 1.0), 0.0, 0.0)
-    early = odo(t_s, frames_ns)
-    assert early is not None and early.prior.j.tolist() == [0] and not _reaches_newest(early)
-    for t in range(1_060_000_000, 1_100_000_000, 20_000_000):  # now past it
-        dead.add_odometry(t, 0.3 * (t * 1e-9 - 1.0), 0.0, 0.0)
-    late = odo(t_s, frames_ns)
-    assert late is not None and late.prior.j.tolist() == [0, 1] and _reaches_newest(late)
+    odo = LiveOdometry(sm, DeadReckoning(latency_s=0.0))
+    for t in range(980_000_000, 1_040_000_001, 20_000_000):  # up to 1.04 s
+        odo.dead.add_odometry(t, 0.3 * (t * 1e-9 - 1.0), 0.0, 0.0)
+    for newest_ns, reaches in ((1_066_000_000, True), (1_090_000_000, False)):
+        assert (newest_ns - 1_040_000_000 <= LiveOdometry.EXTEND_S * 1e9) is reaches
+        frames_ns = [1_000_000_000, 1_033_000_000, newest_ns]
+        got = odo(np.array([(t - frames_ns[0]) * 1e-9 for t in frames_ns]), frames_ns)
+        assert got is not None and _reaches_newest(got) is reaches, newest_ns
+        assert got.prior.j.tolist() == ([0, 1] if reaches else [0])
