@@ -147,7 +147,9 @@ class Background:
 
     def close(self, timeout_s: float = 0.5) -> None:
         """End the worker (its stdin closed: it leaves; killed if it has not within
-        ``timeout_s``); no job is taken after. Idempotent."""
+        ``timeout_s``); no job is taken after. Idempotent, and it does not raise: on a machine
+        busy with other work a ``SCHED_IDLE`` process gets no CPU, not even to die of the kill,
+        and the parent goes on without waiting for it (the kernel reaps it later)."""
         was, self.dead = self.dead, True
         proc, self._proc = self._proc, None
         if not was and self.counts["submitted"] + self.counts["refused"]:
@@ -173,4 +175,7 @@ class Background:
             proc.wait(timeout_s)
         except subprocess.TimeoutExpired:
             proc.kill()
-            proc.wait(timeout_s)
+            try:
+                proc.wait(timeout_s)
+            except subprocess.TimeoutExpired:
+                log.info("%s: killed, not yet gone (no CPU for it): left to the system", self.name)

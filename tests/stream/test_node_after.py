@@ -5,6 +5,7 @@ process (:class:`tagtrail.stream.background.Background`)."""
 from __future__ import annotations
 
 import os
+import subprocess
 import sys
 import threading
 import time
@@ -287,3 +288,26 @@ def test_background_child_leaves_with_its_parent() -> None:
     proc.stdout.close()
     proc.wait(5.0)
     bg.close()
+
+
+def test_background_close_does_not_raise_when_the_worker_is_slow_to_go(
+    caplog: pytest.LogCaptureFixture,
+) -> None:
+    """On a machine busy with other work a ``SCHED_IDLE`` worker gets no CPU, not even to die
+    of the kill: the node's shutdown goes on (one line) instead of a traceback. Here the
+    worker's waits time out as they did under two CPU-bound processes on 2 cores."""
+    bg = Background(JOBS, "t")
+    assert bg.start()
+    proc = bg._proc
+    assert proc is not None
+    real_wait, calls = proc.wait, []
+
+    def slow_wait(timeout: float | None = None) -> int:
+        calls.append(timeout)
+        raise subprocess.TimeoutExpired(proc.args, timeout or 0.0)
+
+    proc.wait = slow_wait  # type: ignore[method-assign]
+    with caplog.at_level("INFO", logger="tagtrail.stream"):
+        bg.close()  # killed, then given up on: no exception
+    assert len(calls) == 2 and "left to the system" in caplog.text
+    assert real_wait(10.0) is not None  # the kill did its work
