@@ -52,6 +52,7 @@ def solve_newest(
     f_scale: float,
     priors: Sequence[Prior],
     iters: int = 2,
+    rows: Rows | None = None,
 ) -> Newest | None:
     """The third of the frames ``cam_T_world`` ``R_cam (3, 3, 3)``, ``t_cam (3, 3)`` (the
     first two: the window's solved last frames, with joint covariance ``tail_cov (12, 12)``;
@@ -59,13 +60,14 @@ def solve_newest(
     weighed by ``corners`` with the window's loss scale ``f_scale``, in noise units) and the
     ``priors``' terms over the three frames that reach it (module docstring), those taken
     once at the start (their robust weights too: start where they expect the frame, e.g. at
-    the motion's extrapolation); ``iters`` Gauss-Newton steps on the corners. None when a
-    step fails (the caller re-solves its window)."""
+    the motion's extrapolation); ``iters`` Gauss-Newton steps on the corners. ``rows``: more
+    priors' terms, taken beforehand (:func:`prior_rows`, at this start). None when a step fails
+    (the caller re-solves its window)."""
     R_cam, t_cam = R_cam.copy(), t_cam.copy()
     sig = np.broadcast_to(np.asarray(corners.sigma_px, np.float64), (len(ob.tag),))
     scale = corners.px_per_unit / sig
     f2 = f_scale * f_scale
-    Hp, gp = _prior_normal(R_cam, t_cam, tail_cov, priors)
+    Hp, gp = prior_normal(prior_rows(R_cam, t_cam, priors, rows), tail_cov)
     moved = np.zeros(6)  # the new frame's steps so far: the priors' linear model moves with it
     H = Hp
     for _ in range(iters):
@@ -93,14 +95,16 @@ def solve_newest(
     return Newest(R_cam[2], t_cam[2], cov)
 
 
-def _prior_normal(
-    R_cam: F64, t_cam: F64, tail_cov: F64, priors: Sequence[Prior]
-) -> tuple[F64, F64]:
-    """The priors' share of the new frame's normal equations ``(6, 6), (6,)`` at the start:
-    the terms that reach it, the two frames before under their marginal (module docstring).
-    Taken once: over the millimetres the corners then move the frame the priors are linear
-    (their robust weights held), and evaluating them is most of the step's time."""
-    rs, As, Bs = [], [], []
+Rows = tuple[F64, F64, F64]
+"""The priors' terms that reach the new frame, stacked: residuals ``r (m,)`` and their
+Jacobians on the new frame ``A (m, 6)`` and on the two before it ``B (m, 12)``."""
+
+
+def prior_rows(R_cam: F64, t_cam: F64, priors: Sequence[Prior], rows: Rows | None = None) -> Rows:
+    """The terms of ``priors`` over the three frames that reach the third (after ``rows``,
+    when given): evaluating them is most of the step's time, and all but the odometry's can
+    be taken before the frame arrives (``stream/continuity.py``)."""
+    rs, As, Bs = ([rows[0]], [rows[1]], [rows[2]]) if rows is not None else ([], [], [])
     for p in priors:
         T = p.terms(R_cam, t_cam, {})
         n = T.Jc.shape[1]
@@ -117,8 +121,20 @@ def _prior_normal(
         As.append(Jt[:, n - 1].reshape(m * d, 6))
         Bs.append(B.reshape(m * d, 12))
     if not rs:
+        return np.zeros(0), np.zeros((0, 6)), np.zeros((0, 12))
+    if len(rs) == 1:
+        return rs[0], As[0], Bs[0]
+    return np.concatenate(rs), np.concatenate(As), np.concatenate(Bs)
+
+
+def prior_normal(rows: Rows, tail_cov: F64) -> tuple[F64, F64]:
+    """The priors' share of the new frame's normal equations ``(6, 6), (6,)`` at the start:
+    their terms ``rows``, the two frames before under their marginal (module docstring).
+    Taken once: over the millimetres the corners then move the frame the priors are linear
+    (their robust weights held)."""
+    rp, A, B = rows
+    if not len(rp):
         return np.zeros((6, 6)), np.zeros(6)
-    rp, A, B = np.concatenate(rs), np.concatenate(As), np.concatenate(Bs)
     M = np.eye(len(rp)) + B @ tail_cov @ B.T
     X = np.linalg.solve(M, np.column_stack([A, rp]))
     return A.T @ X[:, :6], A.T @ X[:, 6]
