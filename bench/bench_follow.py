@@ -23,6 +23,7 @@ import os
 import sys
 import tempfile
 from pathlib import Path
+from typing import Any
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
@@ -74,93 +75,110 @@ def main() -> None:
             print(json.dumps(row), flush=True)
             rows.append(row)
     if a.write:
-        load = os.getloadavg()[0]
-        lines = [
-            "# Closed-loop following (bench/bench_follow.py)",
-            "",
-            f"{dt.date.today()}, load {load:.1f} on {os.cpu_count()} cores. Figure eight "
-            "(9.08 m, self-crossing), start 0.3 m / 30 deg off, 0.3 m/s, Stanley, LIMO "
-            "profile; detections with 0.3 px corner noise. Cross-track = true (ground truth) "
-            "after 5 s; latency = detections (or a rendered 640x480 rgb8 image) published -> "
-            "Twist received (3 node hops: localize, relocalize, follow). Images: localize "
-            "detects the tags, re-fits their corners by the gradient alone (--refit-corners "
-            "edges: the intensity-profile model would add ~3 ms a tag) and skips frames that "
-            "arrive while it is busy. Issue 28's targets: images p99 <= 33 ms and detections "
-            "p99 <= 5 ms. Per frame a node's every message costs 2-3x its time in a loop "
-            "(caches gone cold while it waits 33 ms; measured: a CameraInfo 60 us in a loop, "
-            "350 us with 33 ms sleeps between; a dead-reckoned pose 32 us run twice in a "
-            "row, 120-215 us after a 20 ms sleep on an otherwise idle machine, spinning the "
-            "CPU before it did not help: the host's other tenants take the caches), so latency "
-            "is counted in Python calls: a "
-            "CameraInfo that only differs in its stamp is not parsed again, a frame posed by "
-            "multi-tag PnP builds no per-tag IPPE pose, a pose's quaternion skips scipy. Every "
-            "node (and the simulator) collects Python's garbage between messages, not in them "
-            "(stream/node.py: automatic, a young generation's collection took ~1 ms some 25 "
-            "times in 30 s, in each node). A sample that finds a node idle is handled on "
-            "zenoh's delivering thread (handing it to a worker cost ~60 us a hop at p50, "
-            "0.7-1.9 ms at p99), and a node's work after a message (localize's hand-over of "
-            "its window's re-solve, the garbage) runs 2 ms after it, so the nodes downstream "
-            "have both cores first (--smooth p99 median 7.9 -> 7.0 ms in 6 alternated runs on "
-            "a loaded hour, better in all 6); a message still being handled then puts it off "
-            "until 2 ms after its own outputs (at most 6 ms): a frame comes right after its "
-            "CameraInfo, and until 2026-12-05 that ran the hand-over straight after every "
-            "frame's outputs (localize's pose -> Twist p99 2.5-3.3 -> 1.5 ms, detections -> "
-            "Twist 5.5-7.4 -> 4.4-5.5 ms in 3 alternated traced pairs). With --smooth each "
-            "frame's "
-            "pose leaves after the "
-            "filter's step (~1 ms of CPU: its corners and, taken once from the motion's "
-            "extrapolation, the priors' terms against the window's marginal) and the window "
-            "is re-solved after (~7 ms) in a child process at SCHED_IDLE "
-            "(stream/background.py; on a thread niced +10 it shared the GIL with the handlers "
-            "and Linux's EEVDF scheduler let it finish its slice before relocalize and follow "
-            "ran: hops of 2-4 ms at p90), whose result is taken between messages (the node "
-            "asks every 2 ms while it is out; left to an odometry message's after-work, a "
-            "fifth of the frames took it first, ~0.2 ms) instead of before the next frame's "
-            "step. Detections, "
-            "per frame: p99 3.0-4.2 ms in today's 6 bench runs (3.3-4.4 the day before). "
-            "--smooth, as below (the odometry's scales read again off the step's path, its "
-            "prior left out of the step while it cannot reach the new frame): p50 2.0-3.1, "
-            "p99 3.5-6.2 in 6 cases of 3 runs (median 4.2; 5 under 5 ms, the one over at "
-            "p50 3.1, a slow spell); 4.5-5.7 (median 4.8) in the 8 before those two changes "
-            "(4.2 and 5.5 with the first only), "
-            "4.1-6.4 in the 8 before the result was asked for every 2 ms (the hand-over put "
-            "off only), 5.1-5.4 the day before (the hand-over after every frame's outputs), "
-            "6.4-8.9 two days before. With the ground prior's level term in the step "
-            "(+35 us cold) and the live odometry's yaw fit (the table below): 3.3 and 5.0 "
-            "here; the day's 7 runs with the level term 3.3-5.3, median 4.5, 6 under 5 ms (5.3 "
-            "at load 1.1 straight after a benchmark, its p50 3.0); per frame 3.4 and 2.8. "
-            "What is left is the step's ~0.8 ms of CPU (2x that "
-            "cold) and the machine: the same code's --smooth p99 ran from 4.2 to 8.5 ms over "
-            "a day's experiments, so changes were judged in runs alternated with the code "
-            "before, or by the work they take off a frame's path (traced). Images: localize "
-            "skipped 2-15 frames while busy and the loop converged in 2.1-2.5 s over today's "
-            "runs (the code before as well, in runs alternated with it: the machine's "
-            "state). Latency counts "
-            "the frames with a tag in view (a Twist after a blind frame is the follower's "
-            "stop: counted, it made the 2 s blackout's p99 ~21 ms) from 1 s on; the first "
-            "second's worst (the nodes' warm-up) is 20-70 ms.",
-            "",
-            "`smooth`: `stream localize --smooth --odom-key odom` (the fixed-lag smoother and "
-            "dead reckoning on the LIMO's odometry: it bridges the blackout); without it each "
-            "frame is posed on its own and the follower stops in the blackout. Load: the "
-            "1-minute load average when the row finished (2 cores shared by 5 engineers: "
-            "latencies are pessimistic).",
-            "",
-            "| input | smooth | blackout s | seed | converged s | RMS cm | max cm | "
-            "crossing max cm | completed | duration s | latency p50 ms | p99 ms | "
-            "frames skipped by localize | load |",
-            "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|",
-        ]
-        for r in rows:
-            lines.append(
-                f"| {r['input']} | {'on' if r['smooth'] else 'off'} | {r['blackout_s']:g} | "
-                f"{r['seed']} | "
-                f"{r['converged_s']:.2f} | "
-                f"{r['rms_cm']:.2f} | {r['max_cm']:.2f} | {r['crossing_max_cm']:.2f} | "
-                f"{r['completed']} | {r['duration_s']:.1f} | {r['lat_p50_ms']:.1f} | "
-                f"{r['lat_p99_ms']:.1f} | {r['skipped']} | {r['load']:.1f} |"
-            )
-        (ROOT / "bench" / "FOLLOW.md").write_text("\n".join(lines) + "\n", encoding="utf-8")
+        _write(rows, os.getloadavg()[0])
+
+
+def _write(rows: list[dict[str, Any]], load: float) -> None:
+    lines = [
+        "# Closed-loop following (bench/bench_follow.py)",
+        "",
+        f"{dt.date.today()}, load {load:.1f} on {os.cpu_count()} cores. Figure eight "
+        "(9.08 m, self-crossing), start 0.3 m / 30 deg off, 0.3 m/s, Stanley, LIMO "
+        "profile; detections with 0.3 px corner noise. Cross-track = true (ground truth) "
+        "after 5 s; latency = detections (or a rendered 640x480 rgb8 image) published -> "
+        "Twist received (3 node hops: localize, relocalize, follow). Images: localize "
+        "detects the tags, re-fits their corners by the gradient alone (--refit-corners "
+        "edges: the intensity-profile model would add ~3 ms a tag) and skips frames that "
+        "arrive while it is busy. Issue 28's targets: images p99 <= 33 ms and detections "
+        "p99 <= 5 ms. Per frame a node's every message costs 2-3x its time in a loop "
+        "(caches gone cold while it waits 33 ms; measured: a CameraInfo 60 us in a loop, "
+        "350 us with 33 ms sleeps between; a dead-reckoned pose 32 us run twice in a "
+        "row, 120-215 us after a 20 ms sleep on an otherwise idle machine, spinning the "
+        "CPU before it did not help: the host's other tenants take the caches), so latency "
+        "is counted in Python calls: a "
+        "CameraInfo that only differs in its stamp is not parsed again, a frame posed by "
+        "multi-tag PnP builds no per-tag IPPE pose, a pose's quaternion skips scipy. Every "
+        "node (and the simulator) collects Python's garbage between messages, not in them "
+        "(stream/node.py: automatic, a young generation's collection took ~1 ms some 25 "
+        "times in 30 s, in each node). A sample that finds a node idle is handled on "
+        "zenoh's delivering thread (handing it to a worker cost ~60 us a hop at p50, "
+        "0.7-1.9 ms at p99), and a node's work after a message (localize's hand-over of "
+        "its window's re-solve, the garbage) runs 2 ms after it, so the nodes downstream "
+        "have both cores first (--smooth p99 median 7.9 -> 7.0 ms in 6 alternated runs on "
+        "a loaded hour, better in all 6); a message still being handled then puts it off "
+        "until 2 ms after its own outputs (at most 6 ms): a frame comes right after its "
+        "CameraInfo, and until 2026-12-05 that ran the hand-over straight after every "
+        "frame's outputs (localize's pose -> Twist p99 2.5-3.3 -> 1.5 ms, detections -> "
+        "Twist 5.5-7.4 -> 4.4-5.5 ms in 3 alternated traced pairs). With --smooth each "
+        "frame's "
+        "pose leaves after the "
+        "filter's step (~1 ms of CPU: its corners and, taken once from the motion's "
+        "extrapolation, the priors' terms against the window's marginal) and the window "
+        "is re-solved after (~7 ms) in a child process at SCHED_IDLE "
+        "(stream/background.py; on a thread niced +10 it shared the GIL with the handlers "
+        "and Linux's EEVDF scheduler let it finish its slice before relocalize and follow "
+        "ran: hops of 2-4 ms at p90), whose result is taken between messages (the node "
+        "asks every 2 ms while it is out; left to an odometry message's after-work, a "
+        "fifth of the frames took it first, ~0.2 ms) instead of before the next frame's "
+        "step. Detections, "
+        "per frame: p99 3.0-4.2 ms in today's 6 bench runs (3.3-4.4 the day before). "
+        "--smooth, as below (the odometry's scales read again off the step's path, its "
+        "prior left out of the step while it cannot reach the new frame): p50 2.0-3.1, "
+        "p99 3.5-6.2 in 6 cases of 3 runs (median 4.2; 5 under 5 ms, the one over at "
+        "p50 3.1, a slow spell); 4.5-5.7 (median 4.8) in the 8 before those two changes "
+        "(4.2 and 5.5 with the first only), "
+        "4.1-6.4 in the 8 before the result was asked for every 2 ms (the hand-over put "
+        "off only), 5.1-5.4 the day before (the hand-over after every frame's outputs), "
+        "6.4-8.9 two days before. With the ground prior's level term in the step "
+        "(+35 us cold) and the live odometry's yaw fit (the table below): 3.3 and 5.0 "
+        "here; the day's 7 runs with the level term 3.3-5.3, median 4.5, 6 under 5 ms (5.3 "
+        "at load 1.1 straight after a benchmark, its p50 3.0); per frame 3.4 and 2.8. "
+        "What is left is the step's ~0.8 ms of CPU (2x that "
+        "cold) and the machine: the same code's --smooth p99 ran from 4.2 to 8.5 ms over "
+        "a day's experiments, so changes were judged in runs alternated with the code "
+        "before, or by the work they take off a frame's path (traced). Images: localize "
+        "skipped 2-15 frames while busy and the loop converged in 2.1-2.5 s over today's "
+        "runs (the code before as well, in runs alternated with it: the machine's "
+        "state). Latency counts "
+        "the frames with a tag in view (a Twist after a blind frame is the follower's "
+        "stop: counted, it made the 2 s blackout's p99 ~21 ms) from 1 s on; the first "
+        "second's worst (the nodes' warm-up) is 20-70 ms.",
+        "",
+        "2026-12-05 afternoon, three seeds a case (the host slower than in the morning: "
+        "per frame p50 2.6-3.5 where it was 1.9-2.6). The dead reckoning now takes the "
+        "odometry's errors the smoother read off each step (DeadReckoning.errors): the 2 s "
+        "blackout's max 0.88 / 4.82 / 5.29 cm over seeds 0-2 -> 0.36 / 0.31 / 0.36 (seeds "
+        "1 and 2 draw wheels 2-4 % apart; the morning's table had seed 0 only). The "
+        "step's priors' terms but the odometry's are taken ahead, once the window is "
+        "re-solved (SmootherSettings.step_ahead): traced, localize's detections -> pose "
+        "p50 3.15 -> 2.27 ms, p99 5.0 -> 4.0; the step also gained the odometry's term on "
+        "the new frame (+0.25 ms CPU, bench/LIVE_POSE.md). --smooth detections -> Twist "
+        "p99 4.9 / 5.3 / 4.9, blackout 5.2 / 6.2 / 5.5 (before the step ahead, the same "
+        "afternoon: 6.1 / 5.8 / 5.6 and 6.2 / 4.7 / 5.7; with neither, 5.0 / 5.8 / 5.4 "
+        "and 6.2 / 5.9 / 5.1); per frame 3.5-4.4. What is left of the tail is past "
+        "localize: pose -> Twist through relocalize and follow, and the host.",
+        "",
+        "`smooth`: `stream localize --smooth --odom-key odom` (the fixed-lag smoother and "
+        "dead reckoning on the LIMO's odometry: it bridges the blackout); without it each "
+        "frame is posed on its own and the follower stops in the blackout. Load: the "
+        "1-minute load average when the row finished (2 cores shared by 5 engineers: "
+        "latencies are pessimistic).",
+        "",
+        "| input | smooth | blackout s | seed | converged s | RMS cm | max cm | "
+        "crossing max cm | completed | duration s | latency p50 ms | p99 ms | "
+        "frames skipped by localize | load |",
+        "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|",
+    ]
+    for r in rows:
+        lines.append(
+            f"| {r['input']} | {'on' if r['smooth'] else 'off'} | {r['blackout_s']:g} | "
+            f"{r['seed']} | "
+            f"{r['converged_s']:.2f} | "
+            f"{r['rms_cm']:.2f} | {r['max_cm']:.2f} | {r['crossing_max_cm']:.2f} | "
+            f"{r['completed']} | {r['duration_s']:.1f} | {r['lat_p50_ms']:.1f} | "
+            f"{r['lat_p99_ms']:.1f} | {r['skipped']} | {r['load']:.1f} |"
+        )
+    (ROOT / "bench" / "FOLLOW.md").write_text("\n".join(lines) + "\n", encoding="utf-8")
 
 
 if __name__ == "__main__":
