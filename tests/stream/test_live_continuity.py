@@ -51,9 +51,9 @@ def noisy(tmp_path_factory: pytest.TempPathFactory) -> Path:
     )["circle"]
 
 
-def _live(loc: Localizer, **kw: float) -> LivePoses:
+def _live(loc: Localizer, settings: SmootherSettings | None = None, **kw: float) -> LivePoses:
     return LivePoses(
-        Smoother(loc.world_T_tag, loc.size_m, SmootherSettings()),
+        Smoother(loc.world_T_tag, loc.size_m, settings or SmootherSettings()),
         DeadReckoning(**kw),
         "tag_only_pose",
         "localize",
@@ -603,16 +603,7 @@ def test_the_pose_leaves_before_the_window_is_re_solved(
     tags = read_tag_map(noisy / "ground_truth" / "tag_map.yaml")[0]
     m = bag_messages(noisy, ["/camera_info", "/detections"])
     loc = Localizer(tags)
-    lives = {
-        step: LivePoses(
-            Smoother(loc.world_T_tag, loc.size_m, SmootherSettings(step_first=step)),
-            DeadReckoning(),
-            "tag_only_pose",
-            "localize",
-            "map",
-        )
-        for step in (True, False)
-    }
+    lives = {step: _live(loc, SmootherSettings(step_first=step)) for step in (True, False)}
     loc.on_camera_info(m.payloads[m.keys.index("camera_info")])
     errs: dict[bool, list[float]] = {True: [], False: []}
     pending = 0
@@ -758,16 +749,7 @@ def test_the_step_taken_ahead_gives_the_pose_taken_on_arrival(noisy: Path, jitte
         if k == "detections":
             dict(loc.on_detections(p))
     rng = np.random.default_rng(1)
-    lives = [
-        LivePoses(
-            Smoother(loc.world_T_tag, loc.size_m, SmootherSettings(step_ahead=ahead)),
-            DeadReckoning(),
-            "tag_only_pose",
-            "localize",
-            "map",
-        )
-        for ahead in (True, False)
-    ]
+    lives = [_live(loc, SmootherSettings(step_ahead=ahead)) for ahead in (True, False)]
     poses: list[list[tuple[float, ...]]] = [[], []]
     for t_ns, own, obs, camera in frames:
         t = t_ns + int(rng.integers(-jitter_ns, jitter_ns + 1))
