@@ -257,8 +257,12 @@ def map_branches(
     k = np.repeat(starts, sq) + local // z
     m = np.repeat(starts, sq) + local % z
     pred = Rc[k] @ (np.swapaxes(Rw[k], -1, -2) @ Rw[m])[:, None]  # m's cam_R_tag from k's (p, a)
-    cos = (np.einsum("paij,pbij->pab", pred, Rc[m]) - 1.0) / 2.0
-    err = np.degrees(np.arccos(np.clip(np.nan_to_num(cos, nan=-1.0), -1.0, 1.0)))  # (p, a, b)
+    # the angle from the chord |A - B|_F = 2 sqrt(2) sin(angle / 2): accurate near 0, where the
+    # trace's arccos is off by ~1e-6 deg (more than the ties' margin below: a frame of one tag
+    # took its mirror 1 time in 20)
+    d = pred[:, :, None] - Rc[m][:, None, :]
+    half = np.sqrt(np.einsum("pabij,pabij->pab", d, d)) / (2.0 * np.sqrt(2.0))
+    err = np.degrees(2.0 * np.arcsin(np.clip(np.nan_to_num(half, nan=1.0), 0.0, 1.0)))
     err[:, :, 1] += 1e-6  # ties: the first solution
     score = np.zeros((n, 2))
     np.add.at(score, k, np.minimum(err.min(axis=2), cap_deg))

@@ -9,7 +9,8 @@ detection's stamp) — the input of ``tagtrail stream relocalize``.
 
 Per frame the offline pipeline's functions run with its stages' parameters (:class:`Params`; one
 implementation, two drivers): the extract stage's filters, IPPE per tag
-(:func:`tagtrail.geometry.ippe.solve_ippe`), then :func:`tagtrail.geometry.fusion.frame_poses`,
+(:func:`tagtrail.geometry.ippe.solve_ippe`; of its two solutions the one the map agrees with,
+:func:`~tagtrail.geometry.ippe.map_branches`), then :func:`tagtrail.geometry.fusion.frame_poses`,
 the trajectory stage's per-frame method (Eq. 3.8; ``auto`` = one RANSAC PnP over every corner
 of every mapped tag when >= 2 are seen, else the robust fusion of the per-tag estimates; the
 offline default ``joint`` holds frames together in time, which a node answering each frame at
@@ -38,7 +39,7 @@ from numpy.typing import NDArray
 from tagtrail.errors import DataError
 from tagtrail.geometry.camera import CameraModel
 from tagtrail.geometry.fusion import frame_poses, pnp_frames
-from tagtrail.geometry.ippe import ippe_solvable, solve_ippe
+from tagtrail.geometry.ippe import ippe_solvable, map_branches, solve_ippe
 from tagtrail.geometry.se3 import T_from_xyz_quat, quat_xyzw_of
 from tagtrail.io import msgs
 from tagtrail.io.sources import detection_problem, detections_from_msg, raw_image_from_msg
@@ -183,10 +184,14 @@ class Localizer:
             )
             if by_pnp[0]:
                 return T[0], len(sel)
-        cam_T_tag = solve_ippe(px[sel], self.size_m[kg], self.camera)[0]
+        both = solve_ippe(px[sel], self.size_m[kg], self.camera)[0]
+        # each tag's solution the map agrees with in the frame, as the trajectory stage takes
+        pick = map_branches(
+            np.zeros(len(sel), np.int64), self.world_T_tag[kg, :3, :3], both[:, :, :3, :3]
+        )
         res = frame_poses(
             self.world_T_tag[kg],
-            cam_T_tag[:, 0],
+            both[np.arange(len(sel)), pick],
             np.zeros(len(sel), np.int64),
             1,
             corners_px=corners,
