@@ -237,6 +237,27 @@ def test_no_odometry_no_change_and_off_means_off() -> None:
     assert MAX_DEAD_RECKONING_S < 20.0
 
 
+def test_untagged_frames_tied_to_no_tag_frame_get_no_pose() -> None:
+    """Two frames a step apart in the middle of 3 s with no tag and no other frame (a camera
+    that dropped the rest) are tied to each other but, past ``max_gap_s``, to no frame with a
+    tag: nothing holds them in the plane, so they are not posed (they made the covariance's
+    Cholesky fail: optimize stopped with a LinAlgError on a corridor whose first frames saw only
+    tags left out of the map). A blind frame a step from the tags still is."""
+    d = drive(seconds=9.0, blind=(3.0, 6.0))
+    pb = problem(d, SETTINGS)
+    assert np.diff(pb.t_s).max() > 2.5 > SETTINGS.max_gap_s  # the blind stretch: no frame
+    mid = int(np.searchsorted(d.t_ns, d.t_ns[0] + int(4.5e9)))
+    edge = int(np.searchsorted(d.t_ns, pb.t_ns[pb.t_s < 3.5][-1])) + 1  # after the last tag
+    lone = d.t_ns[[mid, mid + 1, edge]]
+    data = replace(odometry_data(d), frames_t_ns=lone)
+    free = np.zeros(len(d.world_T_tag), bool)
+    s = solve_on_corners(pb, d.world_T_tag, free, SETTINGS, odometry=data)
+    assert s.odometry is not None and s.odometry.applied
+    assert s.odometry.frames_odometry_only == 1
+    assert set(s.pb.t_ns) - set(pb.t_ns) == {d.t_ns[edge]}
+    assert s.res.cam_std is not None and np.isfinite(s.res.cam_std).all()
+
+
 def test_odometry_from_table_keeps_the_yaw_unwrapped() -> None:
     """Several turns: the yaw keeps counting past pi (a step across the wrap reads as the
     small turn it is)."""
