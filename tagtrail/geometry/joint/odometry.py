@@ -154,10 +154,7 @@ class StampGrid:
     is: a step that is not a whole number of periods (40 % off) starts the grid again, and
     residuals over a quarter period leave the stamps raw. Live, :meth:`add` takes each message
     as it arrives (the newest stamp on the line's end: ~2 standard deviations of the jitter over
-    the square root of the window); :func:`on_grid` runs it over a recording (not yet in the
-    offline prior: there it changed the map enough that the per-frame node no longer equalled
-    the frame-by-frame trajectory stage on one single-tag frame, tests/stream/test_live_offline.py,
-    not yet understood)."""
+    the square root of the window); offline :func:`on_grid` runs it over the recording."""
 
     window: int = 50
     _k: deque[int] = field(default_factory=deque)
@@ -235,6 +232,7 @@ def odometry_from_table(
         return None, "messages with a zero quaternion"
     R = R_from_quat_xyzw(q / nq[:, None])
     yaw = np.unwrap(np.arctan2(R[:, 1, 0], R[:, 0, 0]))
+    t_ns = on_grid(t_ns)
     return (
         Odometry(
             np.asarray((t_ns - t0_ns) * 1e-9, np.float64),
