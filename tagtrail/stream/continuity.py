@@ -98,6 +98,10 @@ MIN_TURN_RAD = 0.5  # the yaw the history must have turned before the mount's le
 # 2 us by under 2 um. A camera stamped on a fixed period (ns-rounded: 1 ns off every few
 # frames) takes them; one stamped by a jittery host clock computes them on arrival.
 AHEAD_TOL_NS = 2_000
+# After this many frames in a row off the stamp taken ahead for, the step is no longer taken
+# ahead but every AHEAD_RETRY-th frame (a host-stamped camera: ~0.75 ms of CPU a frame for
+# nothing, on the pose's path when the next frame comes before the after-work has run).
+AHEAD_MISSES, AHEAD_RETRY = 10, 30
 # spread across the travel is this many times its scatter off the plane
 # (geometry.joint.ground.plane_spread): a straight drive gives 1-2 and leaves the normal free to
 # roll about the line (harmless while the camera keeps to it; the hall's first 9 m fitted one
@@ -352,6 +356,8 @@ class Smoother:
         # and the terms of the priors but the extra ones there, for the last solve only
         self._next: tuple[int, F64, F64, Rows, Any] | None = None
         self.ahead_used = 0  # frames whose step took it
+        self._ahead_missed = 0  # frames in a row that did not (AHEAD_MISSES)
+        self.ahead_taken = 0  # steps taken ahead
 
     def reset(self) -> None:
         self.frames.clear()
@@ -554,6 +560,8 @@ class Smoother:
         self._next = None
         if not self.s.step_ahead or not self._steppable() or len(self.frames) < 2:
             return
+        if self._ahead_missed >= AHEAD_MISSES and self._seen % AHEAD_RETRY:
+            return
         a, b = self.frames[-2], self.frames[-1]
         t_ns = 2 * b.t_ns - a.t_ns
         start = self._extrapolated_from(a, b, t_ns)
@@ -563,6 +571,7 @@ class Smoother:
         priors = [p for p in self._priors([a, b, nxt], extra=False) if _reaches_newest(p)]
         rows = prior_rows(np.stack([a.R, b.R, start[0]]), np.stack([a.t, b.t, start[1]]), priors)
         self._next = (t_ns, start[0], start[1], rows, self._last)
+        self.ahead_taken += 1
 
     def _observations(
         self, fr: Sequence[_Frame], camera: CameraModel
@@ -614,12 +623,11 @@ class Smoother:
         fr = [self.frames[-2], self.frames[-1]]
         used, ob, corners = self._observations([frame], camera)
         nxt, rows = self._next, None
-        if (
-            nxt is not None
-            and nxt[4] is last
-            and guess is not None
-            and abs(frame.t_ns - nxt[0]) <= AHEAD_TOL_NS
-        ):
+        taken = nxt is not None and nxt[4] is last and guess is not None
+        hit = taken and nxt is not None and abs(frame.t_ns - nxt[0]) <= AHEAD_TOL_NS
+        if taken:
+            self._ahead_missed = 0 if hit else self._ahead_missed + 1
+        if hit and nxt is not None:
             rows = nxt[3]
             if not (np.array_equal(start[0], nxt[1]) and np.array_equal(start[1], nxt[2])):
                 # the terms taken ahead, moved to this start on their linear model

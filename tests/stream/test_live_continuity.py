@@ -733,8 +733,9 @@ def test_the_step_taken_ahead_gives_the_pose_taken_on_arrival(noisy: Path, jitte
     arrival: within 1e-8 at the recording's stamps (30 Hz: the interval 1 ns off every third
     frame, the only difference) and within 1 um with stamps 0.3 us off their period (moved on
     their linear model); stamps off by more than ``AHEAD_TOL_NS`` (a host clock's 0.15 ms)
-    take them on arrival (but the few that happen to fall within it)."""
-    from tagtrail.stream.continuity import AHEAD_TOL_NS
+    take them on arrival (but the few that happen to fall within it), and after
+    ``AHEAD_MISSES`` such frames in a row it is taken ahead every ``AHEAD_RETRY``-th frame only."""
+    from tagtrail.stream.continuity import AHEAD_MISSES, AHEAD_RETRY, AHEAD_TOL_NS
 
     tags = read_tag_map(noisy / "ground_truth" / "tag_map.yaml")[0]
     m = bag_messages(noisy, ["/camera_info", "/detections", "/odom"])
@@ -764,3 +765,5 @@ def test_the_step_taken_ahead_gives_the_pose_taken_on_arrival(noisy: Path, jitte
         assert np.abs(a - b).max() < (1e-8 if jitter_ns == 0 else 1e-6)
     else:
         assert used < 0.05 * N_FRAMES and np.abs(a - b).max() < 1e-6  # (a few by chance)
+        taken = lives[0].smoother.ahead_taken
+        assert taken <= 2 * AHEAD_MISSES + N_FRAMES / AHEAD_RETRY < 0.2 * N_FRAMES, taken
