@@ -192,9 +192,10 @@ def test_frame_pose_falls_back_to_the_fusion_as_the_trajectory_stage(exact: Path
     """Multi-tag PnP needs no per-tag IPPE pose, so the node solves IPPE's poses only when
     PnP does not pose the frame; then (one tag, or PnP fails: the tags' corners shifted 40 px,
     each their own way, leave too few inliers) the pose is the trajectory stage's fusion of
-    them, as before."""
+    them, each tag's solution the one the map agrees with (the shifted tags: not all the
+    lower-reprojection ones)."""
     from tagtrail.geometry.fusion import frame_poses
-    from tagtrail.geometry.ippe import solve_ippe
+    from tagtrail.geometry.ippe import map_branches, solve_ippe
 
     loc, ids, px = _first_frame(exact)
     assert len(ids) >= 3 and set(ids) <= set(loc.ids.tolist())
@@ -204,6 +205,7 @@ def test_frame_pose_falls_back_to_the_fusion_as_the_trajectory_stage(exact: Path
     shifts = np.array([[40.0, 0.0], [0.0, 40.0], [-40.0, 0.0], [0.0, -40.0]])
     shifted += np.resize(shifts, (len(ids), 2))[:, None, :]
     p = loc.params.trajectory
+    picks = []
     for sel_px, sel_ids, by_pnp in (
         (px, ids, True),
         (shifted, ids, False),
@@ -211,10 +213,14 @@ def test_frame_pose_falls_back_to_the_fusion_as_the_trajectory_stage(exact: Path
     ):
         T, n = loc.frame_pose(sel_px, sel_ids)
         k = np.searchsorted(loc.ids, sel_ids)
-        cam_T_tag = solve_ippe(sel_px, loc.size_m[k], loc.camera)[0][:, 0]
+        both = solve_ippe(sel_px, loc.size_m[k], loc.camera)[0]
+        pick = map_branches(
+            np.zeros(len(k), np.int64), loc.world_T_tag[k, :3, :3], both[..., :3, :3]
+        )
+        picks.append(pick)
         want = frame_poses(
             loc.world_T_tag[k],
-            cam_T_tag,
+            both[np.arange(len(k)), pick],
             np.zeros(len(k), np.int64),
             1,
             corners_px=sel_px,
@@ -228,6 +234,7 @@ def test_frame_pose_falls_back_to_the_fusion_as_the_trajectory_stage(exact: Path
         )
         assert bool(want.by_pnp[0]) == by_pnp and n == len(sel_ids)
         assert T is not None and np.abs(T - want.world_T_cam[0]).max() < 1e-12
+    assert picks[1].any()  # the map took a mirror, which the node used to leave
 
 
 def test_unmapped_and_repeated_tags_are_left_out_of_a_frame(exact: Path) -> None:
