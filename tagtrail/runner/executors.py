@@ -384,8 +384,14 @@ class DaskSession:
 
     def kill_workers(self) -> None:
         """SIGKILL the worker processes of the local cluster (Ctrl-C): their task is abandoned,
-        as the local executor abandons its threads; the store keeps no partial entry."""
+        as the local executor abandons its threads; the store keeps no partial entry. Each
+        nanny is marked failed first (the status in which it neither restarts its worker nor
+        waits to close): a running one restarts a worker that dies, and the new process, still
+        starting when the command exits, printed a traceback (EOFError) after ``interrupted``."""
+        failed = importlib.import_module("distributed.core").Status.failed
         for nanny in getattr(self._cluster, "workers", {}).values():
+            with contextlib.suppress(AttributeError, TypeError):
+                nanny.status = failed
             pid = getattr(getattr(nanny, "process", None), "pid", None)
             if pid:
                 with contextlib.suppress(OSError):
