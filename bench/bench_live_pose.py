@@ -337,7 +337,12 @@ def _write(rows: list[dict[str, Any]], seeded: list[dict[str, Any]]) -> None:
         "axis in the floor plane, its error's standard deviation (on the corridor: a straight "
         "drive, phi's spread there). CPU = the smoother's thread time per frame: the pose "
         "(the filter's step) / the window's re-solve after it (the per-frame pose comes on "
-        "top, ~1 ms).",
+        "top, ~1 ms). This run (2026-12-05 evening, after the map_branches fix, the stamp grid "
+        "offline again and the step ahead's give-up) is on a host ~1.4x slower than the "
+        "morning's (the same code's re-solve p50 10.5-11 ms against 7.5): every RMS is the "
+        "morning's to 3 digits but the corridor's seed 3 (1.665 -> 1.694 mm), whose window "
+        "the time budget (15 ms over the median of 5 solves) cut in a slow spell; run alone "
+        "it is 1.665 again: on a slow host the live figures depend on its load.",
         "",
         "| case | frames | frame RMS / max mm | live RMS / max mm | no odom RMS / max mm | "
         "offline RMS / max mm | offline + odom RMS / max mm (applied) | "
