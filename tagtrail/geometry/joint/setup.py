@@ -27,7 +27,6 @@ from tagtrail.geometry.joint.odometry import (
     MOUNT_LEVER_SIGMA_M,
     MOUNT_YAW_SIGMA_RAD,
     ODOM_BOUND,
-    Odometry,
     OdometryData,
     OdometryPrior,
     OdometryReport,
@@ -146,17 +145,17 @@ def odometry_input(table: Any, mount: Any, frames_t_ns: I64 | None) -> OdometryD
     )
 
 
-def _tied(t_ns: I64, extra: I64, odo: Odometry, max_gap_s: float, margin: float) -> I64:
-    """Of the untagged frames ``extra``, those a chain of steps the odometry covers ties to a
-    frame with a tag (``t_ns``; stamps on ``odo``'s clock from ``t_ns[0]``): a run of untagged
-    frames tied only among themselves would be free in the plane."""
+def _tied(t_ns: I64, extra: I64, max_gap_s: float) -> I64:
+    """Of the untagged frames ``extra``, those a chain of frames each within ``max_gap_s`` of
+    the next (the motion prior's links; the odometry's steps are among them) ties to a frame
+    with a tag (``t_ns``): a run of untagged frames linked only among themselves is free in the
+    plane (the covariance's Cholesky failed on one)."""
     if not len(extra):
         return extra
     t = np.concatenate([t_ns, extra])
     order = np.argsort(t, kind="stable")
-    linked = np.zeros(len(t), bool)  # sorted frame k tied to k - 1
-    linked[covered_steps((t[order] - t_ns[0]) * 1e-9, odo, max_gap_s, margin) + 1] = True
-    run = np.cumsum(~linked)  # runs of tied frames, in sorted order
+    dt = np.diff(t[order]) * 1e-9
+    run = np.cumsum(np.r_[True, ~((dt > 0) & (dt <= max_gap_s))])  # linked runs, sorted order
     tagged = np.zeros(run[-1] + 1, bool)
     tagged[run[order < len(t_ns)]] = True
     keep = np.empty(len(t), bool)
@@ -323,9 +322,8 @@ def with_odometry(
     state = fit_state(
         res.R_cam, res.t_cam, pb.t_s, odo, plane, start_mount, pb.max_gap_s, ODOMETRY_SIGMA_M
     )
-    margin = abs(state.offset_s) + 0.05  # room for the time offset to move in the solve
-    # the frames without a tag the odometry covers, within reach of a frame with one, and tied
-    # by a step it covers (others would be free in the plane: nothing but the plane holds them)
+    # the frames without a tag the odometry covers, within reach of a frame with one and linked
+    # to one (_tied)
     extra = np.zeros(0, np.int64)
     if data.frames_t_ns is not None and len(data.frames_t_ns):
         ft = np.setdiff1d(np.asarray(data.frames_t_ns, np.int64), pb.t_ns)
@@ -333,8 +331,8 @@ def with_odometry(
         i, last = np.searchsorted(pb.t_s, fs), len(pb.t_s) - 1
         before, after = pb.t_s[np.clip(i - 1, 0, last)], pb.t_s[np.clip(i, 0, last)]
         near = np.minimum(np.abs(fs - before), np.abs(fs - after))  # from a frame with a tag
-        extra = ft[odo.covers(fs, margin) & (near <= MAX_DEAD_RECKONING_S)]
-        extra = _tied(pb.t_ns, extra, odo, pb.max_gap_s, margin)
+        extra = ft[odo.covers(fs + state.offset_s) & (near <= MAX_DEAD_RECKONING_S)]
+        extra = _tied(pb.t_ns, extra, pb.max_gap_s)
     t_ns = np.concatenate([pb.t_ns, extra])
     order = np.argsort(t_ns, kind="stable")
     t_ns = t_ns[order]
@@ -351,6 +349,7 @@ def with_odometry(
     Rs, ts = dead_reckon(R0, t0, posed, t_s, odo_k, plane.u, state)
     ob = replace(pb.ob, frame=rank[pb.ob.frame])
     motion = replace(pb.motion, t_s=t_s)
+    margin = abs(state.offset_s) + 0.05
     j = covered_steps(t_s, odo_k, pb.max_gap_s, margin)
     if len(j) < 4:
         return off("fewer than 4 steps between frames are covered by it")
