@@ -158,6 +158,19 @@ def _write(rows: list[dict[str, Any]], load: float) -> None:
         "and 6.2 / 5.9 / 5.1); per frame 3.5-4.4. What is left of the tail is past "
         "localize: pose -> Twist through relocalize and follow, and the host.",
         "",
+        "2026-12-05 evening (the table below; the map_branches fix, the offline stamp grid, "
+        "the step ahead's give-up; nothing on the live path of these runs changed): a host "
+        "~1.4x slower again (bench/LIVE_POSE.md: the same re-solve 10.5-11 ms p50 against "
+        "7.5), per frame p99 4.6-5.0 (3.5-4.4 in the afternoon), --smooth 5.8 / 6.5 / 8.5, "
+        "blackout 6.4 / 6.1 / 6.2, images 20-26 (the 33 ms target met). Tracking as before "
+        "in every run: converged 2.0-2.1 s (images 2.4-2.6), max 0.30-0.46 cm, all "
+        "completed. Node processing on a --smooth run: localize p50 0.55-0.68 ms, p99 "
+        "4.9-5.6 (frames and odometry messages), relocalize 0.32-0.38 / 0.8-1.0, follow "
+        "0.15-0.19 / 0.37-0.51. Leaving the dead-reckoned poses between frames out (77 "
+        "poses a second through relocalize and follow -> 30) did not shorten the tail "
+        "(p99 7.5 / 7.0 with them, 8.1 / 7.2 without, alternated): the tail is localize's "
+        "step on a slow host, not the extra traffic.",
+        "",
         "`smooth`: `stream localize --smooth --odom-key odom` (the fixed-lag smoother and "
         "dead reckoning on the LIMO's odometry: it bridges the blackout); without it each "
         "frame is posed on its own and the follower stops in the blackout. Load: the "
