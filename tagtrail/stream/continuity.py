@@ -623,9 +623,9 @@ class Smoother:
         fr = [self.frames[-2], self.frames[-1]]
         used, ob, corners = self._observations([frame], camera)
         nxt, rows = self._next, None
-        taken = nxt is not None and nxt[4] is last and guess is not None
-        hit = taken and nxt is not None and abs(frame.t_ns - nxt[0]) <= AHEAD_TOL_NS
-        if taken:
+        hit = False
+        if nxt is not None and nxt[4] is last and guess is not None:
+            hit = abs(frame.t_ns - nxt[0]) <= AHEAD_TOL_NS
             self._ahead_missed = 0 if hit else self._ahead_missed + 1
         if hit and nxt is not None:
             rows = nxt[3]

@@ -185,9 +185,13 @@ class Localizer:
             if by_pnp[0]:
                 return T[0], len(sel)
         both = solve_ippe(px[sel], self.size_m[kg], self.camera)[0]
-        # each tag's solution the map agrees with in the frame, as the trajectory stage takes
-        pick = map_branches(
-            np.zeros(len(sel), np.int64), self.world_T_tag[kg, :3, :3], both[:, :, :3, :3]
+        # each tag's solution the map agrees with in the frame, as the trajectory stage takes (a
+        # frame of one tag keeps its first: nothing to check it against)
+        one = np.zeros(len(sel), np.int64)  # the frame of each tag: all this one
+        pick = (
+            map_branches(one, self.world_T_tag[kg, :3, :3], both[:, :, :3, :3])
+            if len(sel) > 1
+            else one
         )
         res = frame_poses(
             self.world_T_tag[kg],
