@@ -61,12 +61,20 @@ from tagtrail.geometry.joint.motion import MotionPrior
 from tagtrail.geometry.joint.newest import Rows, prior_rows, solve_newest
 from tagtrail.geometry.joint.odometry import (
     MAX_DEAD_RECKONING_S,
+    ODOM_F_SCALE,
+    ODOM_LOSS,
     Odometry,
     OdometryPrior,
     OdometryState,
+    Pose2,
     StampGrid,
+    carried_on,
     covered_steps,
     fit_yaw,
+    planar_step,
+    step_model,
+    step_sigmas,
+    whiten,
 )
 from tagtrail.geometry.joint.problem import (
     CornerObservations,
@@ -83,6 +91,7 @@ from tagtrail.geometry.joint.settings import (
 )
 from tagtrail.geometry.joint.setup import DRIVE, GROUND
 from tagtrail.geometry.joint.solver import solve_joint
+from tagtrail.geometry.robust import rho
 from tagtrail.geometry.rotations import log_so3
 from tagtrail.geometry.se3 import R_of_rotvec, quat_xyzw_of
 from tagtrail.stream import codec
@@ -222,11 +231,14 @@ class _Frame:
 
 
 Outputs = Iterator[tuple[str, bytes]]  # a node's keyed payloads, encoded as they are published
+_ON_ARRIVAL = object()  # an extra prior that takes nothing ahead (Smoother._ahead)
 PriorOf = Callable[[F64, list[int]], Any]
 """A further prior of the window: ``(t_s (F,), t_ns)`` of its frames -> a
 :class:`~tagtrail.geometry.joint.Prior` (or None): :class:`LiveOdometry` (which
 :class:`LivePoses` adds), or a student's own. One with a ``refresh()`` method has it called
-as each window's re-solve is prepared (after the pose is out), for its slower updates."""
+as each window's re-solve is prepared (after the pose is out), for its slower updates; one
+with ``ahead(a, b, start)`` and ``ahead_rows(taken, t_ns, d)`` takes the next frame's step's
+term as far as it can before the frame (:meth:`Smoother._ahead`), the rest on arrival."""
 
 
 @dataclass(frozen=True)
@@ -352,9 +364,10 @@ class Smoother:
         # the last solve: its newest frame's stamp, its last two frames' covariance, the
         # corners' loss scale (noise units), the variance factor (>= 1)
         self._last: tuple[int, F64, float, float] | None = None
-        # the next frame's step taken ahead (:meth:`_ahead`): its expected stamp, its start
-        # and the terms of the priors but the extra ones there, for the last solve only
-        self._next: tuple[int, F64, F64, Rows, Any] | None = None
+        # the next frame's step taken ahead (:meth:`_ahead`): its expected stamp, its start,
+        # the terms of the priors but the extra ones there, the last solve it is for, and
+        # what each extra prior took ahead (its ``ahead``'s, else _ON_ARRIVAL)
+        self._next: tuple[int, F64, F64, Rows, Any, tuple[Any, ...]] | None = None
         self.ahead_used = 0  # frames whose step took it
         self._ahead_missed = 0  # frames in a row that did not (AHEAD_MISSES)
         self.ahead_taken = 0  # steps taken ahead
@@ -553,10 +566,12 @@ class Smoother:
 
     def _ahead(self) -> None:
         """Take the next frame's step ahead, as far as it can be before the frame: at the
-        stamp one frame interval on, the start the motion extrapolates there and the terms
-        of the priors but the extra ones (the odometry's, whose messages keep coming), ~0.6
-        ms off the pose's path. A frame whose stamp is within ``AHEAD_TOL_NS`` of it takes
-        them (:meth:`_newest`); exactly there its pose is the one computed on arrival."""
+        stamp one frame interval on, the start the motion extrapolates there, the terms of
+        the joint model's priors (~0.6 ms off the pose's path) and what the extra ones take
+        ahead (the odometry: its Jacobians, ~0.4 ms; its reading, whose messages keep
+        coming, waits for the frame). A frame whose stamp is within ``AHEAD_TOL_NS`` of it
+        takes them (:meth:`_newest`); exactly there its pose is the one computed on
+        arrival."""
         self._next = None
         if not self.s.step_ahead or not self._steppable() or len(self.frames) < 2:
             return
@@ -570,7 +585,7 @@ class Smoother:
         nxt = _Frame(t_ns, np.zeros(0, np.int64), np.zeros((0, 4, 2)), *start)
         priors = [p for p in self._priors([a, b, nxt], extra=False) if _reaches_newest(p)]
         rows = prior_rows(np.stack([a.R, b.R, start[0]]), np.stack([a.t, b.t, start[1]]), priors)
-        self._next = (t_ns, start[0], start[1], rows, self._last)
+        self._next = (t_ns, start[0], start[1], rows, self._last, self._extras_ahead(a, b, start))
         self.ahead_taken += 1
 
     def _observations(
@@ -622,22 +637,31 @@ class Smoother:
         start = guess if guess is not None else (frame.R, frame.t)
         fr = [self.frames[-2], self.frames[-1]]
         used, ob, corners = self._observations([frame], camera)
-        nxt, rows = self._next, None
+        nxt = self._next
         hit = False
         if nxt is not None and nxt[4] is last and guess is not None:
             hit = abs(frame.t_ns - nxt[0]) <= AHEAD_TOL_NS
             self._ahead_missed = 0 if hit else self._ahead_missed + 1
+        d = np.zeros(6)  # the start from the one taken ahead
+        rows: Rows | None = None
         if hit and nxt is not None:
-            rows = nxt[3]
+            rows, ahead = nxt[3], nxt[5]
             if not (np.array_equal(start[0], nxt[1]) and np.array_equal(start[1], nxt[2])):
                 # the terms taken ahead, moved to this start on their linear model
                 dR = start[0] @ nxt[1].T
                 d = np.concatenate([log_so3(dR[None])[0], start[1] - dR @ nxt[2]])
                 rows = (rows[0] + rows[1] @ d, rows[1], rows[2])
             self.ahead_used += 1
-            priors = [p for p in self._priors([*fr, frame], own=False) if _reaches_newest(p)]
+            priors: list[Any] = []
         else:
-            priors = [p for p in self._priors([*fr, frame]) if _reaches_newest(p)]
+            priors = [p for p in self._priors([*fr, frame], extra=False) if _reaches_newest(p)]
+            ahead = self._extras_ahead(fr[0], fr[1], start)
+        extra, more = self._extra_on_arrival([*fr, frame], ahead, frame.t_ns, d)
+        if more:
+            have = rows if rows is not None else (np.zeros(0), np.zeros((0, 6)), np.zeros((0, 12)))
+            r, A, B = (np.concatenate([x, *(m[i] for m in more)]) for i, x in enumerate(have))
+            rows = (r, A, B)
+        priors += extra
         res = solve_newest(
             np.stack([*(f.R for f in fr), start[0]]),
             np.stack([*(f.t for f in fr), start[1]]),
@@ -655,6 +679,37 @@ class Smoother:
             return None
         frame.R, frame.t = res.R, res.t
         return _world_T_cam(res.R, res.t), _world_cov(res.R, res.cov * last[3])
+
+    def _extras_ahead(self, a: _Frame, b: _Frame, start: tuple[F64, F64]) -> tuple[Any, ...]:
+        """What each extra prior takes of a step from frames ``a, b`` to a new frame at
+        ``start`` before the new frame's own data (its ``ahead``; else ``_ON_ARRIVAL``)."""
+        return tuple(
+            make.ahead(a, b, start) if hasattr(make, "ahead") else _ON_ARRIVAL
+            for make in self.extra
+        )
+
+    def _extra_on_arrival(
+        self, fr: Sequence[_Frame], ahead: tuple[Any, ...], t_ns: int, d: F64
+    ) -> tuple[list[Any], list[Rows]]:
+        """The extra priors' part of the step into the frame at ``t_ns`` (the last of ``fr``)
+        from what each took before it (``ahead``, :meth:`_extras_ahead`; ``d``: the frame's
+        start from the one it was taken at): the rows of those that took something (their
+        ``ahead_rows``, with the frame's own data: the odometry's reading), the priors of
+        the others (evaluated in the step)."""
+        priors: list[Any] = []
+        more: list[Rows] = []
+        for make, ah in zip(self.extra, ahead, strict=True):
+            if ah is _ON_ARRIVAL:
+                t_s = np.array([(f.t_ns - fr[0].t_ns) * 1e-9 for f in fr])
+                prior = make(t_s, [f.t_ns for f in fr])
+                if prior is not None and _reaches_newest(prior):
+                    priors.append(prior)
+            elif ah is not None:
+                taker: Any = make  # (one with ahead and ahead_rows: PriorOf)
+                got = taker.ahead_rows(ah, t_ns, d)
+                if got is not None:
+                    more.append(got)
+        return priors, more
 
     def _note(self, t_ns: int, R: F64, t: F64, done: _Solved | None = None) -> None:
         """Keep the smoothed pose; once the camera has travelled far enough, fit the ground
@@ -813,19 +868,48 @@ class DeadReckoning:
         return a[1] + f * (b[1] - a[1]), a[2] + f * (b[2] - a[2]), a[3] + f * dyaw
 
     def _step(
-        self, a: tuple[float, ...], b: tuple[float, ...], h: float, run: tuple[float, ...]
+        self, a: Pose2, b: Pose2, h: float, run: tuple[float, ...]
     ) -> tuple[float, float, float]:
         """``run`` (x, y, yaw of the base since the fix) on by the odometry's step from its
         pose ``a`` to ``b`` (``h`` s), its :attr:`errors` taken off (the offline prior's
         model: distance ``scale`` times the true, yaw ``turn`` times the true turn plus
         ``per_m`` per metre read and ``drift`` per second)."""
         scale, turn, per_m, drift = self.errors
-        c, s = math.cos(a[2]), math.sin(a[2])
-        ox, oy = c * (b[0] - a[0]) + s * (b[1] - a[1]), -s * (b[0] - a[0]) + c * (b[1] - a[1])
-        oth = math.atan2(math.sin(b[2] - a[2]), math.cos(b[2] - a[2]))
+        ox, oy, oth = planar_step(a, b)
         dx, dy, dth = ox / scale, oy / scale, (oth - per_m * ox - drift * h) / turn
         c, s = math.cos(run[2]), math.sin(run[2])
         return run[0] + c * dx - s * dy, run[1] + s * dx + c * dy, run[2] + dth
+
+    def reading(
+        self, t0_ns: int, t_ns: int, since_ns: int, extend_ns: int
+    ) -> tuple[float, float, float] | None:
+        """What the odometry read from ``t0_ns`` to ``t_ns``: ``(dx, dy, dyaw)`` in the base's
+        frame at ``t0_ns``, its errors in -- the window's prior's reading of a step
+        (:class:`LiveOdometry`: the samples from the last at or before ``since_ns`` on, at
+        least two, carried on at the last step's rate up to ``extend_ns`` past the last);
+        None where they do not cover both times. In scalars: a frame's step takes it on
+        arrival (building the prior took ~0.2 ms)."""
+        o = self.odo
+        first = max(bisect_right(o, since_ns, key=itemgetter(0)) - 1, 0)
+        if len(o) - first < 2 or not o[first][0] <= t0_ns <= t_ns:
+            return None
+        last = o[-1]
+        if t_ns <= last[0]:
+            b = self._at(t_ns)
+        elif t_ns - last[0] <= extend_ns:
+            prev = o[-2]
+            b = carried_on(prev[1:], last[1:], (t_ns - last[0]) / (last[0] - prev[0]))
+        else:
+            return None
+        if b is None:
+            return None
+        if t0_ns <= last[0]:
+            a = self._at(t0_ns)
+        else:  # both past the last sample: on the line to the carried-on pose, as interpolated
+            g = (t0_ns - last[0]) / (t_ns - last[0])
+            x, y, yaw = last[1:]
+            a = x + g * (b[0] - x), y + g * (b[1] - y), yaw + g * (b[2] - yaw)
+        return None if a is None else planar_step(a, b)
 
     def _motion(self, t_fix: int, t_ns: int) -> tuple[float, float, float] | None:
         """The base's motion from ``t_fix`` to ``t_ns`` in its frame at ``t_fix``: the
@@ -1002,19 +1086,71 @@ class LiveOdometry:
         j = covered_steps(t_s, odo, sm.s.joint.max_gap_s, 0.0)
         if not len(j):
             return None
-        mount = sm.mount
+        state = self._state(sm.plane)
+        return FixedOdometry(OdometryPrior(odo, t_s, j, ODOMETRY_SIGMA_M, state, sm.plane))
+
+    def _state(self, plane: Plane) -> OdometryState:
+        """The unknowns held: the mount (the smoother's, else the camera looking along the
+        floor ``camera_forward_m`` ahead of the base), the scales and yaw errors read."""
+        mount = self.smoother.mount
         if mount is None:
-            u = sm.plane.u / np.linalg.norm(sm.plane.u)
+            u = plane.u / np.linalg.norm(plane.u)
             fwd = np.array([0.0, 0.0, 1.0]) - u[2] * u  # the optical axis along the floor
             mount = Mount(fwd / np.linalg.norm(fwd), self.dead.camera_forward_m)
-        state = OdometryState(
+        return OdometryState(
             mount,
             scale=self.scales[0],
             yaw_scale=self.scales[1],
             yaw_per_m=self.yaw[0],
             yaw_drift_rps=self.yaw[1],
         )
-        return FixedOdometry(OdometryPrior(odo, t_s, j, ODOMETRY_SIGMA_M, state, sm.plane))
+
+    def ahead(self, a: _Frame, b: _Frame, start: tuple[F64, F64]) -> _OdometryAhead | None:
+        """The next frame's odometry term as far as it goes before the frame (``Smoother.
+        _ahead``): what the odometry should read from frame ``b`` to the next at its start
+        ``start`` (``cam_T_world``) and its Jacobians; the reading itself waits for the frame
+        (:meth:`ahead_rows`). None without a plane (then no term, as :meth:`__call__`)."""
+        plane = self.smoother.plane
+        if plane is None:
+            return None
+        st = self._state(plane)
+        m, J = step_model(b.R[None], b.t[None], start[0][None], start[1][None], plane.u, st)
+        return _OdometryAhead(a.t_ns, b.t_ns, m[0], J[0], st.yaw_drift_rps)
+
+    def ahead_rows(self, ah: _OdometryAhead, t_ns: int, d: F64) -> Rows | None:
+        """The odometry's term on the step into the frame at ``t_ns``, taken ahead (``ah``, at
+        a start ``d`` (``[w ; v]``) from the frame's: moved on its linear model), as
+        :func:`~tagtrail.geometry.joint.newest.prior_rows` gives :meth:`__call__`'s: the same
+        reading, whitening and robust weight. None when the odometry does not cover it."""
+        h_ns = t_ns - ah.t0_ns
+        if not 0 < h_ns * 1e-9 <= self.smoother.s.joint.max_gap_s:
+            return None
+        got = self.dead.reading(ah.t0_ns, t_ns, ah.since_ns, int(self.EXTEND_S * 1e9))
+        if got is None:
+            return None
+        o = np.array([got])
+        sig_t, sig_r = step_sigmas(o, ODOMETRY_SIGMA_M)
+        m = ah.m + ah.J[:, 1] @ d
+        drift = np.array([ah.drift_rps * (h_ns * 1e-9)])
+        q = whiten(m[None], o, drift, sig_t, sig_r)[0]
+        w = rho(ODOM_LOSS, float(q @ q) / ODOM_F_SCALE**2)[1]
+        k = math.sqrt(float(w)) / np.array([sig_t[0], sig_t[0], sig_r[0]])
+        B = np.zeros((3, 12))
+        B[:, 6:] = ah.J[:, 0] * k[:, None]  # the frame before (the two before: a, b)
+        return q * math.sqrt(float(w)), ah.J[:, 1] * k[:, None], B
+
+
+@dataclass(frozen=True)
+class _OdometryAhead:
+    """:meth:`LiveOdometry.ahead`'s: the stamps of the step's frames (``since_ns``: the
+    window's first, from which the prior takes its samples), the readings modelled at the
+    start ``m (3,)`` and their Jacobians ``J (3, 2, 6)`` on the frame before and the new."""
+
+    since_ns: int
+    t0_ns: int
+    m: F64
+    J: F64
+    drift_rps: float
 
 
 class LivePoses:

@@ -666,7 +666,8 @@ def test_the_background_re_solve_gives_the_same_poses(noisy: Path) -> None:
     loc = Localizer(tags)
     lives = [
         LivePoses(
-            Smoother(loc.world_T_tag, loc.size_m, SmootherSettings()),
+            # no time budget: a window cut by a slow solve on one side only is not the point
+            Smoother(loc.world_T_tag, loc.size_m, SmootherSettings(budget_ms=math.inf)),
             DeadReckoning(),
             "tag_only_pose",
             "localize",
@@ -726,6 +727,88 @@ def test_the_step_takes_the_odometry_on_to_the_new_frame_but_not_across_a_gap() 
         assert got.prior.j.tolist() == ([0, 1] if reaches else [0])
 
 
+def test_the_odometry_read_in_scalars_is_the_window_prior_s_reading() -> None:
+    """``DeadReckoning.reading`` (a frame's step, on arrival) reads what the window's prior
+    reads from the same samples (``LiveOdometry._odometry``, carried on by ``Odometry.
+    extended``, ``relative``): within the samples, past the last (carried on, both times
+    too), across the yaw's wrap at +-pi; None beyond the carry or before the samples."""
+    from tagtrail.geometry.joint.odometry import Odometry
+
+    rng = np.random.default_rng(3)
+    dead = DeadReckoning(latency_s=0.0)
+    t = 1_000_000_000 + np.cumsum(rng.integers(15_000_000, 25_000_000, 40))
+    yaw = np.pi - 0.4 + np.cumsum(rng.uniform(0.0, 0.06, 40))  # through +pi
+    x, y = np.cumsum(rng.uniform(0, 0.01, 40)), np.cumsum(rng.uniform(-0.01, 0.01, 40))
+    dead.odo.extend(
+        (int(a), float(b), float(c), math.remainder(float(d), math.tau))  # wrapped, as read
+        for a, b, c, d in zip(t, x, y, yaw, strict=True)
+    )
+    ext = 40_000_000
+    for since, t0, t1 in [
+        (t[5], t[5] + 3_000_000, t[7] + 1_000_000),  # within
+        (t[1], t[2] + 1_000_000, t[-5] + 2_000_000),  # across the wrap
+        (t[20], t[25] + 9_000_000, t[-1] + 30_000_000),  # the new frame past the last
+        (t[-3], t[-1] + 5_000_000, t[-1] + 30_000_000),  # both past it
+    ]:
+        got = dead.reading(int(t0), int(t1), int(since), ext)
+        k = int(np.searchsorted(t, since, side="right")) - 1
+        base = int(since)
+        odo = Odometry((t[k:] - base) * 1e-9, x[k:], y[k:], np.unwrap(yaw[k:]))
+        odo = odo.extended((t1 - base) * 1e-9, ext * 1e-9)
+        want = odo.relative(np.array([(t0 - base) * 1e-9]), np.array([(t1 - base) * 1e-9]))[0]
+        assert got is not None and np.allclose(got, want, rtol=0, atol=1e-12), (got, want)
+    assert dead.reading(int(t[-3]), int(t[-1] + ext + 1_000_000), int(t[-3]), ext) is None
+    assert dead.reading(int(t[0] - 1), int(t[2]), int(t[0]), ext) is None
+
+
+def test_the_step_s_odometry_term_is_the_window_prior_s(noisy: Path) -> None:
+    """The odometry's term in a frame's step (``LiveOdometry.ahead``, its Jacobians at the
+    start, then ``ahead_rows`` with the reading on arrival) is the window's odometry prior's
+    term on that frame (``LiveOdometry(...)``'s ``FixedOdometry`` through ``prior_rows``, as
+    the step took it before): residuals and Jacobians within 1e-9 on every frame of a
+    recording once the plane is fitted, the odometry carried on to each frame's stamp."""
+    from tagtrail.geometry.joint.newest import prior_rows
+    from tagtrail.stream.continuity import _reaches_newest
+
+    tags = read_tag_map(noisy / "ground_truth" / "tag_map.yaml")[0]
+    m = bag_messages(noisy, ["/camera_info", "/detections", "/odom"])
+    loc = Localizer(tags)
+    live = _live(loc)
+    loc.smooth(live)
+    sm = live.smoother
+    odo = sm.extra[0]
+    loc.on_camera_info(m.payloads[m.keys.index("camera_info")])
+    compared, worst = 0, 0.0
+    for k, p in zip(m.keys, m.payloads, strict=True):
+        if k == "odom":
+            dict(live.on_odometry(p))
+            continue
+        if k != "detections":
+            continue
+        t_new = codec.deserialize(p, "apriltag_msgs/msg/AprilTagDetectionArray").header.stamp
+        t_ns = t_new.sec * 1_000_000_000 + t_new.nanosec
+        sm.settle()
+        start = sm._extrapolate(t_ns) if len(sm.frames) >= 2 else None
+        if start is not None and sm.plane is not None:
+            a, b = sm.frames[-2], sm.frames[-1]
+            t_s = np.array([0.0, (b.t_ns - a.t_ns) * 1e-9, (t_ns - a.t_ns) * 1e-9])
+            prior = odo(t_s, [a.t_ns, b.t_ns, t_ns])
+            want = (
+                prior_rows(np.stack([a.R, b.R, start[0]]), np.stack([a.t, b.t, start[1]]), [prior])
+                if prior is not None and _reaches_newest(prior)
+                else None
+            )
+            got = odo.ahead_rows(odo.ahead(a, b, start), t_ns, np.zeros(6))
+            assert (got is None) == (want is None), t_ns
+            if got is not None and want is not None:
+                compared += 1
+                worst = max(
+                    worst, *(float(np.abs(x - y).max()) for x, y in zip(got, want, strict=True))
+                )
+        dict(loc.on_detections(p))
+    assert compared > 0.5 * N_FRAMES and worst < 1e-9, (compared, worst)
+
+
 @pytest.mark.parametrize("jitter_ns", [0, 300, 150_000])
 def test_the_step_taken_ahead_gives_the_pose_taken_on_arrival(noisy: Path, jitter_ns: int) -> None:
     """The priors' terms of the next frame's step, taken once the window is re-solved at the
@@ -740,19 +823,36 @@ def test_the_step_taken_ahead_gives_the_pose_taken_on_arrival(noisy: Path, jitte
     tags = read_tag_map(noisy / "ground_truth" / "tag_map.yaml")[0]
     m = bag_messages(noisy, ["/camera_info", "/detections", "/odom"])
     loc = Localizer(tags)
-    frames: list[tuple] = []
+    events: list[tuple] = []  # the frames' on_frame arguments and the odometry, in order
     grab = _live(loc)
     real = grab.on_frame
-    grab.on_frame = lambda *a: (frames.append(a), real(*a))[1]  # type: ignore[method-assign]
+    grab.on_frame = lambda *a: (events.append(a), real(*a))[1]  # type: ignore[method-assign]
     loc.smooth(grab)
     loc.on_camera_info(m.payloads[m.keys.index("camera_info")])
     for k, p in zip(m.keys, m.payloads, strict=True):
         if k == "detections":
             dict(loc.on_detections(p))
+        elif k == "odom":
+            events.append((p,))
     rng = np.random.default_rng(1)
-    lives = [_live(loc, SmootherSettings(step_ahead=ahead)) for ahead in (True, False)]
+    # (no time budget: a window cut by a slow solve on one side only is not the point)
+    lives = [_live(loc, SmootherSettings(step_ahead=a, budget_ms=math.inf)) for a in (True, False)]
+    odo = lives[0].smoother.extra[0]  # the odometry's term in the step: its uses counted
+    real_rows, odo_rows = odo.ahead_rows, [0]
+
+    def counted(*args: Any) -> Any:
+        got = real_rows(*args)
+        odo_rows[0] += got is not None
+        return got
+
+    odo.ahead_rows = counted
     poses: list[list[tuple[float, ...]]] = [[], []]
-    for t_ns, own, obs, camera in frames:
+    for ev in events:
+        if len(ev) == 1:
+            for live in lives:
+                dict(live.on_odometry(ev[0]))
+            continue
+        t_ns, own, obs, camera = ev
         t = t_ns + int(rng.integers(-jitter_ns, jitter_ns + 1))
         for live, out in zip(lives, poses, strict=True):
             out.append(_pose7(dict(live.on_frame(t, own, obs, camera))["tag_only_pose"]))
@@ -762,6 +862,7 @@ def test_the_step_taken_ahead_gives_the_pose_taken_on_arrival(noisy: Path, jitte
     assert lives[1].smoother.ahead_used == 0
     if 4 * jitter_ns <= AHEAD_TOL_NS:  # (the stamp one interval on: three stamps off)
         assert used > 0.9 * N_FRAMES
+        assert odo_rows[0] > 0.5 * N_FRAMES  # (once the plane is fitted: the odometry's term)
         assert np.abs(a - b).max() < (1e-8 if jitter_ns == 0 else 1e-6)
     else:
         assert used < 0.05 * N_FRAMES and np.abs(a - b).max() < 1e-6  # (a few by chance)

@@ -44,6 +44,7 @@ uncertainty (the solver's covariance) growing with the distance from the last ta
 
 from __future__ import annotations
 
+import math
 from collections import deque
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field, replace
@@ -69,6 +70,8 @@ SIGMA_RAD = 0.02
 SIGMA_RAD_PER_M = 0.01
 FLOOR_RAD = float(np.radians(0.2))
 MAX_DEAD_RECKONING_S = 10.0  # frames further than this from a frame with a tag get no pose
+ODOM_LOSS: LossName = "cauchy"  # each step's robust loss, at ODOM_F_SCALE standard deviations
+ODOM_F_SCALE = 3.0
 ODOM_BOUND = 2.0  # the prior's robust chi^2 per degree of freedom, in the variance factor
 # What the odometry's errors are before the data says otherwise (weak priors on the unknowns,
 # so a straight drive, which cannot tell a turn's scale, leaves it near 1 instead of anywhere):
@@ -112,27 +115,51 @@ class Odometry:
 
     def extended(self, t: float, max_s: float) -> Odometry:
         """The odometry carried on to ``t`` (s) at its last step's speed and turn rate (in the
-        base's frame), when ``t`` is past the last stamp by at most ``max_s``; else itself.
-        What a frame taken since the last message needs (a live frame's arrives after it)."""
+        base's frame, :func:`carried_on`), when ``t`` is past the last stamp by at most
+        ``max_s``; else itself. What a frame taken since the last message needs (a live
+        frame's arrives after it)."""
         ahead = t - float(self.t_s[-1])
         if not 0.0 < ahead <= max_s or len(self.t_s) < 2:
             return self
         f = ahead / float(self.t_s[-1] - self.t_s[-2])
-        dx, dy, th = self.relative(self.t_s[-2:-1], self.t_s[-1:])[0]
-        # the step's twist (SE(2) log), f of it (exp) from the last sample: exact on an arc
-        a, b = _sinc_cosc(th)
-        det = a * a + b * b
-        vx, vy = (a * dx + b * dy) / det * f, (a * dy - b * dx) / det * f
-        a, b = _sinc_cosc(th * f)
-        sx, sy = a * vx - b * vy, b * vx + a * vy
-        c, s = np.cos(self.yaw[-1]), np.sin(self.yaw[-1])
+        a = (float(self.x[-2]), float(self.y[-2]), float(self.yaw[-2]))
+        b = (float(self.x[-1]), float(self.y[-1]), float(self.yaw[-1]))
+        x, y, yaw = carried_on(a, b, f)
         return replace(
             self,
             t_s=np.append(self.t_s, t),
-            x=np.append(self.x, self.x[-1] + c * sx - s * sy),
-            y=np.append(self.y, self.y[-1] + s * sx + c * sy),
-            yaw=np.append(self.yaw, self.yaw[-1] + th * f),
+            x=np.append(self.x, x),
+            y=np.append(self.y, y),
+            yaw=np.append(self.yaw, yaw),
         )
+
+
+Pose2 = tuple[float, float, float]
+"""A planar pose ``(x, y, yaw)`` of the base in the odometry's frame."""
+
+
+def planar_step(a: Pose2, b: Pose2) -> Pose2:
+    """The base's motion ``(dx, dy, dyaw)`` from pose ``a`` to ``b`` in its frame at ``a``
+    (the yaw's change wrapped to +-pi): :meth:`Odometry.relative` for one step, in scalars
+    (a live node's per-message work, where numpy's overhead on three numbers dominates)."""
+    c, s = math.cos(a[2]), math.sin(a[2])
+    ex, ey = b[0] - a[0], b[1] - a[1]
+    dyaw = math.atan2(math.sin(b[2] - a[2]), math.cos(b[2] - a[2]))
+    return c * ex + s * ey, -s * ex + c * ey, dyaw
+
+
+def carried_on(a: Pose2, b: Pose2, f: float) -> Pose2:
+    """The pose past ``b`` by ``f`` times the step from ``a`` to ``b``, at that step's speed
+    and turn rate in the base's frame: f of the step's twist (SE(2)'s log), its exp from
+    ``b`` -- exact on an arc."""
+    dx, dy, th = planar_step(a, b)
+    p, q = _sinc_cosc(th)
+    det = p * p + q * q
+    vx, vy = (p * dx + q * dy) / det * f, (p * dy - q * dx) / det * f
+    p, q = _sinc_cosc(th * f)
+    sx, sy = p * vx - q * vy, q * vx + p * vy
+    c, s = math.cos(b[2]), math.sin(b[2])
+    return b[0] + c * sx - s * sy, b[1] + s * sx + c * sy, b[2] + th * f
 
 
 def _sinc_cosc(th: float) -> tuple[float, float]:
@@ -140,7 +167,7 @@ def _sinc_cosc(th: float) -> tuple[float, float]:
     ``v`` to the step ``[[a, -b], [b, a]] v``."""
     if abs(th) < 1e-4:
         return 1.0 - th * th / 6.0, th / 2.0 - th**3 / 24.0
-    return float(np.sin(th) / th), float((1.0 - np.cos(th)) / th)
+    return math.sin(th) / th, (1.0 - math.cos(th)) / th
 
 
 @dataclass
@@ -296,6 +323,75 @@ def predict(Ra: F64, ta: F64, Rb: F64, tb: F64, u: F64, mount: Mount) -> F64:
     return np.stack([d @ f, d @ s, log_so3(R_rel) @ uh], axis=1)
 
 
+def step_sigmas(o: F64, sigma_m: float) -> tuple[F64, F64]:
+    """Each step's ``st``, ``sr`` ``(P,)`` (module docstring) from the odometry's readings
+    ``o (P, 3)``."""
+    dist = np.hypot(o[:, 0], o[:, 1])
+    st = np.sqrt(sigma_m**2 * dist + FLOOR_M**2)
+    sr = np.sqrt(SIGMA_RAD**2 * np.abs(o[:, 2]) + SIGMA_RAD_PER_M**2 * dist + FLOOR_RAD**2)
+    return st, sr
+
+
+def reading_model(pr: F64, st: OdometryState) -> F64:
+    """What the odometry reads ``(..., P, 3)`` for the base's true steps ``pr (..., P, 3)``
+    under its errors ``st``, but the drift (module docstring): ``[scale dx, scale dy,
+    yaw_scale dtheta + yaw_per_m scale dx]``."""
+    return np.stack(
+        [
+            st.scale * pr[..., 0],
+            st.scale * pr[..., 1],
+            st.yaw_scale * pr[..., 2] + st.yaw_per_m * st.scale * pr[..., 0],
+        ],
+        axis=-1,
+    )
+
+
+def whiten(m: F64, o: F64, drift: F64, sig_t: F64, sig_r: F64) -> F64:
+    """Whitened residuals ``(..., P, 3)`` of modelled readings ``m (..., P, 3)``
+    (:func:`reading_model`) plus the drift's yaw ``drift (P,)`` against the read ``o (P,
+    3)``."""
+    return np.stack(
+        [
+            (m[..., 0] - o[:, 0]) / sig_t,
+            (m[..., 1] - o[:, 1]) / sig_t,
+            (m[..., 2] + drift - o[:, 2]) / sig_r,
+        ],
+        axis=-1,
+    )
+
+
+def step_model(Ra: F64, ta: F64, Rb: F64, tb: F64, u: F64, st: OdometryState) -> tuple[F64, F64]:
+    """The readings the odometry should give ``(P, 3)`` (:func:`reading_model`) between
+    cameras ``a`` and ``b`` (``cam_T_world``, ``(P, 3, 3), (P, 3)``) and their Jacobians
+    ``(P, 3, 2, 6)`` (reading, frame, ``[w ; v]``) on the two cameras, in closed form: under
+    the joint solve's left perturbations (``R <- Exp(w) R``, ``c <- c - R^T v``) the base's
+    step ``d = R_rel o + p - o`` moves by ``-[R_rel o + p]x w_a + v_a + R_rel [o]x w_b - R_rel
+    v_b`` and ``Log R_rel`` by ``J_l^-1 w_a - J_r^-1 w_b`` (``J_l^-1 = J_r^-T``). Nothing of
+    the odometry's own readings: a live step takes it before they arrive."""
+    uh = u / np.linalg.norm(u)
+    s = st.mount.lateral(uh)[0]
+    f = cross(s, uh)
+    R_rel = Ra @ np.swapaxes(Rb, 1, 2)
+    dc = np.einsum("pji,pj->pi", Ra, ta) - np.einsum("pji,pj->pi", Rb, tb)  # c_b - c_a
+    o = -st.mount.lever_m * f
+    a = R_rel @ o + np.einsum("pij,pj->pi", Ra, dc)  # d + o
+    e = log_so3(R_rel)
+    m = reading_model(np.stack([(a - o) @ f, (a - o) @ s, e @ uh], axis=1), st)
+    Jinv = right_jacobian_inv(e)
+    J = np.empty((len(Ra), 3, 2, 6))
+    for row, ax in ((0, f), (1, s)):  # f . d and s . d
+        Rta = np.einsum("pji,j->pi", R_rel, ax)
+        J[:, row, 0, :3] = cross(a, ax) * st.scale
+        J[:, row, 0, 3:] = ax * st.scale
+        J[:, row, 1, :3] = cross(Rta, o) * st.scale
+        J[:, row, 1, 3:] = -Rta * st.scale
+    J[:, 2, 0, :3] = np.einsum("pij,j->pi", Jinv, uh) * st.yaw_scale  # u . Log R_rel
+    J[:, 2, 1, :3] = -np.einsum("pji,j->pi", Jinv, uh) * st.yaw_scale
+    J[:, 2, :, 3:] = 0.0
+    J[:, 2] += J[:, 0] * st.yaw_per_m
+    return m, J
+
+
 @dataclass(frozen=True)
 class OdometryPrior:
     """The odometry prior as a part of the joint solve (:class:`~.problem.Prior`): the
@@ -312,8 +408,8 @@ class OdometryPrior:
     plane: Plane
     grounded: bool = False
     recorded: Mount | None = None
-    loss: LossName = "cauchy"
-    f_scale: float = 3.0
+    loss: LossName = ODOM_LOSS
+    f_scale: float = ODOM_F_SCALE
 
     name = "odometry"
     n_params = N_ODOM
@@ -325,11 +421,7 @@ class OdometryPrior:
     @cached_property
     def _sigmas(self) -> tuple[F64, F64]:
         """Each step's ``st``, ``sr`` (module docstring), from the odometry at the start."""
-        o = self._measured_at_start
-        dist = np.hypot(o[:, 0], o[:, 1])
-        st = np.sqrt(self.sigma_m**2 * dist + FLOOR_M**2)
-        sr = np.sqrt(SIGMA_RAD**2 * np.abs(o[:, 2]) + SIGMA_RAD_PER_M**2 * dist + FLOOR_RAD**2)
-        return st, sr
+        return step_sigmas(self._measured_at_start, self.sigma_m)
 
     def measured(self, offset_s: float) -> F64:
         """The odometry's motion of each step ``(P, 3)`` read at the frames' stamps + offset."""
@@ -359,21 +451,7 @@ class OdometryPrior:
         """Whitened residuals ``(..., P, 3)`` of predicted steps ``pr (..., P, 3)`` against the
         measured ``o (P, 3)``."""
         h = self.t_s[self.j + 1] - self.t_s[self.j]
-        sig_t, sig_r = self._sigmas
-        return np.stack(
-            [
-                (st.scale * pr[..., 0] - o[:, 0]) / sig_t,
-                (st.scale * pr[..., 1] - o[:, 1]) / sig_t,
-                (
-                    st.yaw_scale * pr[..., 2]
-                    + st.yaw_per_m * st.scale * pr[..., 0]
-                    + st.yaw_drift_rps * h
-                    - o[:, 2]
-                )
-                / sig_r,
-            ],
-            axis=-1,
-        )
+        return whiten(reading_model(pr, st), o, st.yaw_drift_rps * h, *self._sigmas)
 
     def residuals(self, R_cam: F64, t_cam: F64, values: Mapping[str, Any]) -> F64:
         """Whitened residuals ``(P, 3)`` at cameras ``cam_T_world`` and the unknowns."""
@@ -419,36 +497,13 @@ class OdometryPrior:
     ) -> tuple[F64, F64]:
         """The whitened residuals ``(P, 3)`` (as :meth:`raw`) and their Jacobians ``Jc (P, 2,
         3, 6)`` on the cameras ``[w ; v]`` of frames ``j, j+1`` (``Ra, ta``, ``Rb, tb``), in
-        closed form. Under the joint solve's left perturbations (``R <- Exp(w) R``, ``c <- c -
-        R^T v``) the base's step ``d = R_rel o + p - o`` moves by ``-[R_rel o + p]x w_a + v_a +
-        R_rel [o]x w_b - R_rel v_b`` and ``Log R_rel`` by ``J_l^-1 w_a - J_r^-1 w_b`` (``J_l^-1
-        = J_r^-T``); the whitening is linear in ``d``'s components."""
-        uh = u / np.linalg.norm(u)
-        s = st.mount.lateral(uh)[0]
-        f = cross(s, uh)
-        R_rel = Ra @ np.swapaxes(Rb, 1, 2)
-        dc = np.einsum("pji,pj->pi", Ra, ta) - np.einsum("pji,pj->pi", Rb, tb)  # c_b - c_a
-        o = -st.mount.lever_m * f
-        a = R_rel @ o + np.einsum("pij,pj->pi", Ra, dc)  # d + o
-        e = log_so3(R_rel)
-        q = self._whiten(np.stack([(a - o) @ f, (a - o) @ s, e @ uh], axis=1), st, meas)
-        Jinv = right_jacobian_inv(e)
-        P = len(Ra)
-        J = np.empty((P, 3, 2, 6))  # residual, frame, [w ; v]
+        closed form (:func:`step_model`; the whitening is linear in the readings)."""
+        m, J = step_model(Ra, ta, Rb, tb, u, st)
+        h = self.t_s[self.j + 1] - self.t_s[self.j]
         sig_t, sig_r = self._sigmas
-        kt = st.scale / sig_t[:, None]
-        for row, ax in ((0, f), (1, s)):  # f . d and s . d
-            Rta = np.einsum("pji,j->pi", R_rel, ax)
-            J[:, row, 0, :3] = cross(a, ax) * kt
-            J[:, row, 0, 3:] = ax * kt
-            J[:, row, 1, :3] = cross(Rta, o) * kt
-            J[:, row, 1, 3:] = -Rta * kt
-        J[:, 2, 0, :3] = np.einsum("pij,j->pi", Jinv, uh) * st.yaw_scale  # u . Log R_rel
-        J[:, 2, 1, :3] = -np.einsum("pji,j->pi", Jinv, uh) * st.yaw_scale
-        J[:, 2, :, 3:] = 0.0
-        J[:, 2] += J[:, 0] * (st.yaw_per_m * sig_t)[:, None, None]
-        J[:, 2] /= sig_r[:, None, None]
-        return q, np.transpose(J, (0, 2, 1, 3))
+        q = whiten(m, meas, st.yaw_drift_rps * h, sig_t, sig_r)
+        sig = np.stack([sig_t, sig_t, sig_r], axis=1)
+        return q, np.transpose(J / sig[:, :, None, None], (0, 2, 1, 3))
 
     def terms(self, R_cam: F64, t_cam: F64, values: Mapping[str, Any]) -> Terms:
         """Each step's whitened 3-vector (robust), then two rows of the weak priors on the
