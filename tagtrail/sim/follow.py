@@ -6,7 +6,10 @@ The simulated LIMO (:mod:`tagtrail.sim.limo`) publishes ``detections`` (apriltag
 and ``odom`` (50 Hz) on a zenoh peer listening on 127.0.0.1 and obeys
 ``cmd_vel``; ``stream localize`` → ``stream relocalize`` → ``stream follow`` run as their own
 processes, chained on loopback ports (sim ← localize ← relocalize ← follow, follow → sim), as on
-a robot. Simulated time is wall time (real time on loopback).
+a robot. Simulated time is wall time (real time on loopback). The camera exposes on its own 30 Hz
+clock and stamps each frame with its exposure (as a driver with the sensor's timestamps); the
+wheels are read on a 50 Hz clock and each reading is stamped when published, 2-8 ms later (the
+LIMO's driver, NOTES). A step of the simulation publishes what its sensors took since the last.
 
 The reference (default): a figure eight (lemniscate of Bernoulli, a = 1.8 m: 9.0 m, crossing
 itself at its centre, tightest radius 0.6 m) in a 4.8 × 3.6 m room with 26 wall tags, opened
@@ -195,6 +198,7 @@ class _Truth:
         return m.cross_track_m, m.progress_m
 
 
+
 def run(
     out: Path,
     *,
@@ -363,39 +367,54 @@ def run(
         # the garbage collected while no frame waits for its Twist, as in the nodes (a
         # collection in the simulator would delay the Twist's callback: latency not theirs)
         quiet.enter_context(collections_between_messages())
-        t0 = time.monotonic()
+        # the Twist's callback waits for the interpreter's lock while the loop renders a
+        # frame: hand it over within 0.5 ms instead of Python's 5 (a wait not the nodes')
+        quiet.callback(sys.setswitchinterval, sys.getswitchinterval())
+        sys.setswitchinterval(0.0005)
+        t0, t0_ns = time.monotonic(), time.time_ns()
         t_sim, next_cam, next_odo, dt = 0.0, 0.0, 0.0, 0.005
         while t_sim < limit:
             now = time.monotonic() - t0
+            # the kinematics to now, through the camera's exposures and the wheels' readings on
+            # their own clocks (30 Hz, 50 Hz; as the sensors: a frame's pose is the exposure's,
+            # stamped with it; an odometry reading is stamped when published, 2-8 ms later)
+            shots: list[tuple[float, np.ndarray]] = []
+            reads: list[bytes] = []
             while t_sim < now:
+                t_to = min(t_sim + dt, next_cam, next_odo)
                 with lock:
-                    kin.step(t_sim, dt)
-                odo.step(kin.v, kin.omega, dt)
-                t_sim += dt
+                    kin.step(t_sim, t_to - t_sim)
+                odo.step(kin.v, kin.omega, t_to - t_sim)
+                t_sim = t_to
+                if t_sim >= next_cam:
+                    shots.append((t_sim, limo.camera_pose(scene, kin.x, kin.y, kin.yaw)))
+                    next_cam = t_sim + 1 / opts.fps
+                if t_sim >= next_odo:
+                    lag_ns = limo.latency_ns(rng)  # stamp = publication time
+                    reads.append(odo.message(t0_ns + round(t_sim * 1e9) + lag_ns))
+                    next_odo = t_sim + 0.02
             T = limo.camera_pose(scene, kin.x, kin.y, kin.yaw)
             ct, prog = truth(T)
-            wall_ns = time.time_ns()
-            if t_sim >= next_cam:
-                next_cam += 1 / opts.fps
+            for t_shot, T_shot in shots:
+                stamp_ns = t0_ns + round(t_shot * 1e9)
                 if math.isnan(blind_from) and blackout_s > 0 and prog >= truth.length / 2:
-                    blind_from = t_sim
-                blind = blind_from <= t_sim < blind_from + blackout_s
+                    blind_from = t_shot
+                blind = blind_from <= t_shot < blind_from + blackout_s
                 if renderer is not None:
-                    img, info = limo.image(renderer, scene, T, wall_ns, rng, blind)
+                    img, info = limo.image(renderer, scene, T_shot, stamp_ns, rng, blind)
                     pubs[IMAGE_INFO_KEY].put(info)
                     pubs[IMAGE_KEY].put(img)
                     seen = not blind
                 else:
-                    det, info, n_tags = limo.detections(scene, T, wall_ns, opts, rng, blind)
+                    det, info, n_tags = limo.detections(scene, T_shot, stamp_ns, opts, rng, blind)
                     pubs["camera_info"].put(info)
                     pubs["detections"].put(det)
                     seen = n_tags > 0
                 with lock:
                     pending[:] = [time.monotonic(), t_sim] if seen else [math.nan, math.nan]
-            if t_sim >= next_odo:
-                next_odo += 0.02
-                lag_ns = limo.latency_ns(rng)  # stamp = publication time
-                pubs["odom"].put(odo.message(wall_ns + lag_ns))
+            for read in reads:
+                pubs["odom"].put(read)
+            if reads:
                 with lock:
                     s = dict(state)
                     c = list(cmd)

@@ -1178,7 +1178,8 @@ class LivePoses:
         self._cov = codec.PoseWithCovarianceEncoder(frame_id)
         self.t_out = -1  # the last stamp published (ns): poses leave in time order
         self.fix_cov = np.full((6, 6), np.nan)
-        self.counts = {"tags": 0, "odometry": 0}
+        # poses: of a frame, dead-reckoned, a frame's fix carried to a later pose's stamp
+        self.counts = {"tags": 0, "odometry": 0, "carried": 0}
 
     def keys(self) -> dict[str, str]:
         """Output key → message type."""
@@ -1207,7 +1208,17 @@ class LivePoses:
         self.fix_cov = cov
         self._sync_up()
         self.counts["tags"] += 1
-        return self._out(t_ns, T, cov, 0.0, "tags")
+        if t_ns > self.t_out:
+            return self._out(t_ns, T, cov, 0.0, "tags")
+        # poses dead-reckoned to later times left while the frame was on its way (a camera
+        # stamped at exposure, its frame 10-30 ms behind the odometry): the new fix carried to
+        # the last of them, for the same stamp (never dropped: the fix is news)
+        t = self.t_out
+        carried = self.dead.pose(t)
+        if carried is None:
+            return iter(())
+        self.counts["carried"] += 1
+        return self._out(t, carried, self._carried_cov(carried, t), (t - t_ns) * 1e-9, "tags", True)
 
     def settle(self) -> None:
         """The smoother's window re-solved after a pose is out (:meth:`Smoother.settle`)."""
@@ -1248,19 +1259,27 @@ class LivePoses:
         T = self.dead.pose(t)
         if T is None:
             return iter(())
-        age = (t - self.dead.fix[0]) * 1e-9
-        cov = self.fix_cov.copy()
-        # odometry's own error: 3 % of the distance and 0.3 deg/s (the LIMO's), growing with it
-        dist = float(np.linalg.norm(T[:3, 3] - self.dead.fix[1][:3, 3]))
-        cov[:3, :3] += np.eye(3) * (0.03 * dist + 1e-4) ** 2
-        cov[3:, 3:] += np.eye(3) * (math.radians(0.3) * age) ** 2
         self.counts["odometry"] += 1
-        return self._out(t, T, cov, age, "odometry")
+        return self._out(t, T, self._carried_cov(T, t), (t - self.dead.fix[0]) * 1e-9, "odometry")
 
-    def _out(self, t_ns: int, T: F64, cov: F64, age: float, source: str) -> Outputs:
-        """The outputs of a pose (none for a stamp not after the last one's), encoded as they
-        are published: the ``PoseStamped`` the next node takes leaves first."""
-        if t_ns <= self.t_out:
+    def _carried_cov(self, T: F64, t_ns: int) -> F64:
+        """The covariance of the last fix carried to pose ``T`` at ``t_ns`` by the odometry,
+        grown by its own error: 3 % of the distance and 0.3 deg/s (the LIMO's)."""
+        assert self.dead.fix is not None
+        t_fix, T_fix = self.dead.fix
+        cov = self.fix_cov.copy()
+        dist = float(np.linalg.norm(T[:3, 3] - T_fix[:3, 3]))
+        cov[:3, :3] += np.eye(3) * (0.03 * dist + 1e-4) ** 2
+        cov[3:, 3:] += np.eye(3) * (math.radians(0.3) * (t_ns - t_fix) * 1e-9) ** 2
+        return cov
+
+    def _out(
+        self, t_ns: int, T: F64, cov: F64, age: float, source: str, again: bool = False
+    ) -> Outputs:
+        """The outputs of a pose (none for a stamp before the last one's, nor the same stamp
+        but ``again``: a new fix carried to it), encoded as they are published: the
+        ``PoseStamped`` the next node takes leaves first."""
+        if t_ns < self.t_out or (t_ns == self.t_out and not again):
             return iter(())
         self.t_out = t_ns
         return self._encoded(

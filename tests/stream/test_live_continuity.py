@@ -34,6 +34,7 @@ from tagtrail.stream.continuity import DeadReckoning, LivePoses, Smoother, Smoot
 from tagtrail.stream.localize import Localizer
 from tagtrail.stream.replay import bag_messages
 from tagtrail.stream.session import wait_matching
+from tagtrail.stream.stats import DropError
 from tests.stream.helpers import Collector, free_port, loopback, running
 
 N_FRAMES = 300
@@ -589,6 +590,59 @@ def test_wheel_odometry_joins_the_window(noisy: Path) -> None:
     assert 1.0 < odo.scales[0] < 1.05
     assert fed.dead.errors == (*odo.scales, *odo.yaw)  # the dead reckoning takes them off
     assert rms["fed"] <= 1.05 * rms["bare"], rms
+
+
+def test_a_frame_behind_the_odometry_carries_its_fix_to_the_newest_pose(noisy: Path) -> None:
+    """A camera stamped at exposure delivers each frame ~20 ms late, after odometry of later
+    stamps: those poses left first (dead-reckoned from the previous fix). The frame's fix is
+    then carried by the odometry to the last pose's stamp and published for it again (in
+    time order; before, the fix was dropped), its source ``tags`` and its fix age the
+    carry's."""
+    tags = read_tag_map(noisy / "ground_truth" / "tag_map.yaml")[0]
+    m = bag_messages(noisy, ["/camera_info", "/detections", "/odom"])
+    loc = Localizer(tags)
+    live = _live(loc)
+    loc.smooth(live)
+    loc.on_camera_info(m.payloads[m.keys.index("camera_info")])
+    late_ns = 20_000_000
+    order = sorted(
+        range(len(m.keys)),
+        key=lambda i: int(m.t_ns[i]) + (late_ns if m.keys[i] != "odom" else 0),
+    )
+    stamps: list[int] = []
+    carried: list[tuple[int, float]] = []  # (stamp, fix age)
+    frames = 0
+    for i in order:
+        k, p = m.keys[i], m.payloads[i]
+        if k == "camera_info":
+            loc.on_camera_info(p)
+            continue
+        if k == "odom":
+            out = dict(live.on_odometry(p))
+        else:
+            before = live.counts["tags"]
+            try:
+                out = dict(loc.on_detections(p))
+            except DropError:
+                continue
+            frames += live.counts["tags"] - before
+            assert out, "a frame's fix is never dropped"
+        if not out:
+            continue
+        q = codec.decode_pose(out["tag_only_pose"])
+        stamps.append(q.sec * 1_000_000_000 + q.nanosec)
+        state = json.loads(out["localize/state"])
+        if k == "odom":
+            continue
+        head = codec.deserialize(p, "apriltag_msgs/msg/AprilTagDetectionArray").header.stamp
+        assert state["source"] == "tags"
+        if stamps[-1] != head.sec * 1_000_000_000 + head.nanosec:
+            assert stamps[-1] > head.sec * 1_000_000_000 + head.nanosec
+            assert state["fix_age_s"] > 0
+            carried.append((stamps[-1], state["fix_age_s"]))
+    assert np.all(np.diff(stamps) >= 0)  # in time order (a carried fix: the same stamp again)
+    assert len(carried) > 0.5 * frames and live.counts["carried"] == len(carried)
+    assert max(c[1] for c in carried) < late_ns * 1e-9
 
 
 def test_the_pose_leaves_before_the_window_is_re_solved(
