@@ -198,7 +198,6 @@ class _Truth:
         return m.cross_track_m, m.progress_m
 
 
-
 def run(
     out: Path,
     *,
