@@ -198,6 +198,9 @@ class _Truth:
         return m.cross_track_m, m.progress_m
 
 
+IN_FLIGHT_S = 0.010  # the simulator's longest pause for a frame's Twist (run's loop)
+
+
 def run(
     out: Path,
     *,
@@ -243,6 +246,7 @@ def run(
     # answers (a frame without a tag gives no pose: the follower's stop commands then answer
     # no frame)
     pending = [math.nan, math.nan]
+    answered = threading.Event()  # the pending frame's Twist came
     t0 = time.monotonic()
 
     def on_cmd(sample: zenoh.Sample) -> None:
@@ -257,6 +261,7 @@ def run(
             if math.isfinite(pending[0]):
                 lat.append((pending[1], now - pending[0]))
                 pending[0] = math.nan
+                answered.set()
 
     def on_state(sample: zenoh.Sample) -> None:
         try:
@@ -411,6 +416,7 @@ def run(
                     seen = n_tags > 0
                 with lock:
                     pending[:] = [time.monotonic(), t_sim] if seen else [math.nan, math.nan]
+                    answered.clear()
             for read in reads:
                 pubs["odom"].put(read)
             if reads:
@@ -440,10 +446,17 @@ def run(
             else:
                 t_end_seen = math.nan
             with lock:
-                answered = math.isnan(pending[0])
-            if answered:
+                sent = pending[0]
+            if math.isnan(sent):
                 collect_due()
-            time.sleep(max(0.0, 0.004 - (time.monotonic() - t0 - now)))
+                time.sleep(max(0.0, 0.004 - (time.monotonic() - t0 - now)))
+            else:
+                # a frame on its way through the nodes: the simulator keeps off the CPU until
+                # its Twist (at most IN_FLIGHT_S): its own Python work (the next steps, the
+                # truth's tracker) took a core and the interpreter's lock from the nodes and
+                # the Twist's callback on 2 cores, latency that is no node's (a robot's
+                # drivers are not on this interpreter); the kinematics catch up after
+                answered.wait(max(0.0, sent + IN_FLIGHT_S - time.monotonic()))
     finally:
         quiet.close()
         codes = [p.stop() for p in reversed(procs)][::-1]
