@@ -48,6 +48,7 @@ class Kinematics(Planar):
     cmd_timeout_s: float = 0.5
     cmd: tuple[float, float] = (0.0, 0.0)
     t_cmd: float = -math.inf
+    before: tuple[float, float, float] = (0.0, 0.0, -math.inf)  # the command before, its time
 
     def command(self, v: float, omega: float, t: float) -> None:
         """A ``cmd_vel`` at time ``t``; non-finite values are ignored (kept as zero)."""
@@ -55,11 +56,16 @@ class Kinematics(Planar):
             v = omega = 0.0
         v = max(-MAX_SPEED_MPS, min(MAX_SPEED_MPS, v))
         bound = abs(v) / MIN_TURN_RADIUS_M
+        self.before = (*self.cmd, self.t_cmd)
         self.cmd, self.t_cmd = (v, max(-bound, min(bound, omega))), t
 
     def step(self, t: float, dt: float) -> None:
-        """Advance by ``dt`` (s) to time ``t + dt``."""
-        v_c, w_c = self.cmd if t - self.t_cmd <= self.cmd_timeout_s else (0.0, 0.0)
+        """Advance by ``dt`` (s) to time ``t + dt``, under the command in force at ``t`` (a
+        step caught up after a command came still takes the one before for its time)."""
+        cmd, t_cmd = (
+            (self.cmd, self.t_cmd) if t >= self.t_cmd else (self.before[:2], self.before[2])
+        )
+        v_c, w_c = cmd if t - t_cmd <= self.cmd_timeout_s else (0.0, 0.0)
         a = min(1.0, dt / self.tau_s)
         self.v += a * (v_c - self.v)
         self.omega += a * (w_c - self.omega)

@@ -36,6 +36,23 @@ def test_kinematics_obey_the_limos_limits() -> None:
     assert abs(k.v) < 1e-3
 
 
+def test_steps_caught_up_after_a_command_take_the_one_in_force_at_their_time() -> None:
+    """The simulator integrates lazily (after a frame's Twist, or its 4 ms tick): a command
+    that came at t = 0.4 s moves the base only from then on, not over the steps before it."""
+    late, timely = limo.Kinematics(), limo.Kinematics()
+    for k in (late, timely):
+        k.command(0.3, 0.0, 0.0)
+    for i in range(40):  # to 0.4 s under the first command
+        timely.step(i * 0.01, 0.01)
+    late.command(0.0, 0.0, 0.4)  # the stop came before the steps to 0.4 s were taken
+    timely.command(0.0, 0.0, 0.4)
+    for i in range(40):
+        late.step(i * 0.01, 0.01)
+    assert late.x == timely.x and late.v == timely.v > 0.29
+    late.step(0.4, 0.01)
+    assert late.v < timely.v  # from 0.4 s the stop
+
+
 def test_odometry_error_model() -> None:
     for seed in range(20):
         odo = limo.WheelOdometry(np.random.default_rng(seed))
