@@ -342,7 +342,12 @@ def _write(rows: list[dict[str, Any]], seeded: list[dict[str, Any]]) -> None:
         "morning's (the same code's re-solve p50 10.5-11 ms against 7.5): every RMS is the "
         "morning's to 3 digits but the corridor's seed 3 (1.665 -> 1.694 mm), whose window "
         "the time budget (15 ms over the median of 5 solves) cut in a slow spell; run alone "
-        "it is 1.665 again: on a slow host the live figures depend on its load.",
+        "it is 1.665 again: on a slow host the live figures depend on its load. Rerun late "
+        "that day with the step's odometry term in closed form (geometry/joint/odometry.py "
+        "step_model and a scalar reading, taken ahead with the other priors' terms), the six "
+        "cases of the table: every RMS the same to 3 digits; the pose's CPU p50 / p99 0.75 / "
+        "0.93, 0.76 / 0.91, 0.81 / 1.71, 0.76 / 0.98, 0.81 / 0.95, 0.81 / 1.07 ms in the "
+        "table's order, against its 1.1-1.4 / 1.4-2.6.",
         "",
         "| case | frames | frame RMS / max mm | live RMS / max mm | no odom RMS / max mm | "
         "offline RMS / max mm | offline + odom RMS / max mm (applied) | "
