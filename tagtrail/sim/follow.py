@@ -447,16 +447,18 @@ def run(
                 t_end_seen = math.nan
             with lock:
                 sent = pending[0]
-            if math.isnan(sent):
-                collect_due()
-                time.sleep(max(0.0, 0.004 - (time.monotonic() - t0 - now)))
-            else:
+            pause = sent + IN_FLIGHT_S - time.monotonic()  # (NaN: no frame in flight)
+            if pause > 0:
                 # a frame on its way through the nodes: the simulator keeps off the CPU until
                 # its Twist (at most IN_FLIGHT_S): its own Python work (the next steps, the
                 # truth's tracker) took a core and the interpreter's lock from the nodes and
                 # the Twist's callback on 2 cores, latency that is no node's (a robot's
                 # drivers are not on this interpreter); the kinematics catch up after
-                answered.wait(max(0.0, sent + IN_FLIGHT_S - time.monotonic()))
+                answered.wait(pause)
+            else:  # (a frame still in flight after the pause: its steps, not a spin)
+                if math.isnan(sent):
+                    collect_due()
+                time.sleep(max(0.0, 0.004 - (time.monotonic() - t0 - now)))
     finally:
         quiet.close()
         codes = [p.stop() for p in reversed(procs)][::-1]
