@@ -191,10 +191,14 @@ def _write(rows: list[dict[str, Any]], load: float) -> None:
         "truth's tracker) took a core from the nodes on 2 cores and delayed the Twist's "
         "callback (follow's start -> Twist received, worst 3 %: 1.83 -> 0.88 ms); a step "
         "caught up after a command takes the command in force at its time. "
-        "The table, with all three: per frame p99 4.2-4.7 ms (6 of 6 under 5), --smooth "
-        "5.5 / 5.0 / 4.8, blackout 6.5 / 4.4 / 5.2 (2 of 6 under 5, the rest 5.0-6.5), "
-        "images 22.7-26.8; tracking as before (converged 2.0-2.1 s, max <= 0.55 cm, all "
-        "completed). A camera stamped by a jittery host clock (stamps off their "
+        "With all three: per frame p99 4.2-4.7 ms (6 of 6 under 5), --smooth 5.5 / 5.0 / "
+        "4.8, blackout 6.5 / 4.4 / 5.2, images 22.7-26.8 (p50 15.4-16.5: past its 10 ms the "
+        "pause spun until the Twist, a core taken from localize's detection; now the loop "
+        "takes its steps again). The table, with that fixed: per frame p99 4.0-4.7 ms (6 "
+        "of 6 under 5), --smooth 5.2 / 5.1 / 4.8, blackout 4.9 / 5.2 / 5.3 (2 of 6 under 5, "
+        "the rest 5.1-5.3), images 18.1-20.1 (p50 13.8-15.0); tracking as before "
+        "(converged 2.0-2.15 s, max <= 0.51 cm, all completed). A camera stamped by a "
+        "jittery host clock (stamps off their "
         "period by more than 2 us) takes the step on arrival: about the evening's "
         "figures.",
         "",
