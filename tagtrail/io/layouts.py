@@ -26,6 +26,7 @@ from numpy.typing import NDArray
 from tagtrail import faults
 from tagtrail.errors import SourceError, one_line
 from tagtrail.schemas.artifacts import EVIDENCE_COLS, POSE_COLS, STD_COLS
+from tagtrail.schemas.documents import KnownGround
 from tagtrail.schemas.ranges import check_expansion
 
 TRAJ_COLS = ["t_ns", *POSE_COLS]
@@ -166,6 +167,26 @@ def _resolve(path: Path, names: tuple[str, ...], what: str) -> Path:
     if not path.is_file():
         raise SourceError(f"{path}: no such file or folder")
     return path
+
+
+GROUND_FILE = "ground.json"
+
+
+def ground_beside(map_path: Path) -> Path:
+    """Where a tag map's ``ground.json`` would be: in the map's folder (``optimize`` exports
+    both to ``outputs/<dataset>/``)."""
+    map_path = Path(map_path)
+    return (map_path if map_path.is_dir() else map_path.parent) / GROUND_FILE
+
+
+def read_ground(path: Path) -> KnownGround:
+    """Read a ``ground.json`` (a file, or a folder holding one); bad content is a one-line
+    :class:`SourceError` naming the file."""
+    f = _resolve(path, (GROUND_FILE,), "ground plane")
+    try:
+        return KnownGround.model_validate_json(f.read_bytes())
+    except (OSError, ValueError) as err:
+        raise SourceError(f"{f}: not a ground.json: {one_line(str(err))}") from err
 
 
 def read_trajectory(path: Path) -> pd.DataFrame:

@@ -41,6 +41,7 @@ OUTPUT_FILES = (  # what the exporters write in outputs/<dataset>/ (tests/test_r
     "trajectory_raw.csv",
     "tag_map.yaml",
     "tag_map.csv",
+    "ground.json",
     "diagnostics.csv",
     "map.png",
     "evaluation.json",

@@ -8,9 +8,10 @@ The serialised form of every document is ``model_dump(mode="json")`` (keys sorte
 
 from __future__ import annotations
 
+import math
 from typing import Annotated, Any, Literal
 
-from pydantic import BaseModel, ConfigDict, Field, ValidationError
+from pydantic import AfterValidator, BaseModel, ConfigDict, Field, ValidationError
 
 from tagtrail.errors import ArtifactError
 from tagtrail.geometry.camera import CameraModel
@@ -131,6 +132,25 @@ class GroundSummary(Document):
     document)."""
     note: str = ""
     """Why ``auto`` was not decided on this dataset (a parked or few-second one), in words."""
+    offset_m: float | None = None
+    """The plane's offset ``n . c`` of the camera centres (m; None in reports before it)."""
+    normal_camera: list[float] | None = None
+    """The normal seen from the camera (unit; None in reports before it)."""
+
+    def known(self) -> KnownGround | None:
+        """The ``ground.json`` of this block: its plane and, when the wheeled-drive prior held
+        it, the mount; None when the prior was not applied (or an older report)."""
+        if not self.applied or self.offset_m is None or self.normal_camera is None:
+            return None
+        d = self.drive if self.drive is not None and self.drive.applied else None
+        fwd = None if d is None else d.forward_camera
+        return KnownGround(
+            normal=self.normal,
+            offset_m=self.offset_m,
+            normal_camera=self.normal_camera,
+            forward_camera=None if fwd is None else list(fwd),
+            lever_m=None if fwd is None or d is None else d.lever_m,
+        )
 
 
 class OdometrySummary(Document):
@@ -189,6 +209,35 @@ class BundleSummary(Document):
     p95_px: float
     ground: GroundSummary | None = None
     odometry: OdometrySummary | None = None
+
+
+def _unit3(v: list[float]) -> list[float]:
+    """A finite 3-vector of non-zero length, made unit."""
+    if len(v) != 3 or not all(math.isfinite(x) for x in v):
+        raise ValueError(f"not a finite 3-vector: {v}")
+    n = math.sqrt(sum(x * x for x in v))
+    if n < 1e-9:
+        raise ValueError("a zero vector")
+    return [x / n for x in v]
+
+
+Unit3 = Annotated[list[float], AfterValidator(_unit3)]
+
+
+class KnownGround(Document):
+    """``ground.json`` (``optimize``'s export, SPEC-ADDITIONS): the ground plane of the camera
+    centres and the camera's mount on the robot that the mapping run's joint solve found —
+    what ``stream localize --smooth`` holds from a run's first frame instead of fitting them
+    to its own history first. The plane: its normal in the map's world (unit, up), its offset
+    ``n . c`` (m) and the normal seen from the camera; the mount (null when the wheeled-drive
+    prior was not applied): the robot's forward axis in the camera frame and the camera's
+    distance ahead of the turning centre (m)."""
+
+    normal: Unit3
+    offset_m: float = Field(allow_inf_nan=False)
+    normal_camera: Unit3
+    forward_camera: Unit3 | None = None
+    lever_m: float | None = Field(None, allow_inf_nan=False)
 
 
 class SurveyTag(Document):

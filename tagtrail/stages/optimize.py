@@ -48,7 +48,12 @@ from tagtrail.schemas.artifacts import (
     sightings,
     timed,
 )
-from tagtrail.schemas.documents import MountDoc, OptimizeReport, PlacedComponent, TagGraph
+from tagtrail.schemas.documents import (
+    MountDoc,
+    OptimizeReport,
+    PlacedComponent,
+    TagGraph,
+)
 from tagtrail.schemas.pipeline import SurveyConfig
 from tagtrail.schemas.recording_files import diagnostics_file, recording_map_file
 from tagtrail.stages.base import Export, ExportFiles, Metric, StageParams, refuse_old_keys
@@ -378,6 +383,16 @@ def _tag_map_files(
     }
 
 
+def _ground_file(report: OptimizeReport | None) -> ExportFiles | None:
+    """``ground.json`` (:class:`~tagtrail.schemas.documents.KnownGround`): the plane and mount
+    the joint solve held, for the live smoother; none when the ground prior was not applied."""
+    g = None if report is None or report.bundle is None else report.bundle.ground
+    doc = None if g is None else g.known()
+    if doc is None:
+        return None
+    return {"ground.json": ("json", doc.model_dump(mode="json"))}
+
+
 EXPORTS = (
     Export(
         "tag_map",
@@ -385,6 +400,7 @@ EXPORTS = (
         {"tag_map": "optimize.tag_map", "report": "optimize.report"},
         _tag_map_files,
     ),
+    Export("ground", ("ground.json",), {"report": "optimize.report"}, _ground_file),
     Export(
         "diagnostics",
         ("diagnostics.csv",),

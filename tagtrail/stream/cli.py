@@ -398,6 +398,15 @@ def add_arguments(parser: argparse.ArgumentParser) -> argparse.ArgumentParser:
         "else fitted once the drive has turned)",
     )
     g.add_argument(
+        "--ground",
+        default=None,
+        metavar="FILE|none",
+        help="with --smooth: the mapping run's ground plane and camera mount (its ground.json, "
+        "optimize's export beside tag_map.yaml), held from the first frame while this run's "
+        "poses agree with them (default: the ground.json beside --map, if there is one; none: "
+        "fitted to this run's own poses once it has travelled 1 m)",
+    )
+    g.add_argument(
         "--prefix", default="localize", help="prefix of the --smooth outputs (default: %(default)s)"
     )
     _common(p, "stop after N input messages", express=True)
@@ -796,6 +805,37 @@ def _refit(word: str | None) -> bool | str | None:
     return {"true": True, "false": False}.get(word, word) if word is not None else None
 
 
+def _held_ground(ns: argparse.Namespace) -> Any:
+    """``--ground``'s :class:`~tagtrail.stream.continuity.HeldGround` (None: none), said in
+    the log either way."""
+    from tagtrail.io.layouts import ground_beside, read_ground
+    from tagtrail.stream.continuity import HeldGround
+
+    log = logging.getLogger("tagtrail.stream")
+    path = ns.ground
+    if path is None:
+        beside = ground_beside(ns.map)
+        if not beside.is_file():
+            log.info(
+                "localize: no ground.json beside the map: the ground plane and the camera's "
+                "mount are fitted to this run's poses once it has travelled 1 m (--ground FILE: "
+                "a mapping run's, held from the first frame)"
+            )
+            return None
+        path = beside
+    elif path == "none":
+        log.info("localize: --ground none: the ground plane is fitted to this run's poses")
+        return None
+    held = HeldGround.of(read_ground(Path(path)))
+    log.info(
+        "localize: the ground plane%s of %s held from the first frame (dropped, with a "
+        "warning, if this run's camera sits off it)",
+        "" if held.mount is None else " and the camera's mount",
+        path,
+    )
+    return held
+
+
 def _localize(ns: argparse.Namespace) -> int:
     from tagtrail.io import msgs
     from tagtrail.io.layouts import read_tag_map
@@ -860,7 +900,9 @@ def _localize(ns: argparse.Namespace) -> int:
             Smoother(
                 loc.world_T_tag,
                 loc.size_m,
-                SmootherSettings(window_s=ns.window, lever_m=ns.camera_forward_m),
+                SmootherSettings(
+                    window_s=ns.window, lever_m=ns.camera_forward_m, ground=_held_ground(ns)
+                ),
             ),
             DeadReckoning(latency_s=ns.odom_latency, camera_forward_m=ns.camera_forward_m or 0.0),
             ns.pose_key,

@@ -25,6 +25,7 @@ plane's normal.
 from __future__ import annotations
 
 import json
+import logging
 import math
 import time
 from bisect import bisect_left, bisect_right
@@ -94,8 +95,11 @@ from tagtrail.geometry.joint.solver import solve_joint
 from tagtrail.geometry.robust import rho
 from tagtrail.geometry.rotations import log_so3
 from tagtrail.geometry.se3 import R_of_rotvec, quat_xyzw_of
+from tagtrail.schemas.documents import KnownGround
 from tagtrail.stream import codec
 from tagtrail.stream.stats import DropError
+
+log = logging.getLogger("tagtrail.stream")
 
 BUDGET_SOLVES = 5  # the solves (at least 3) whose median time the budget judges
 HISTORY = 600  # smoothed poses kept for the plane and mount fits (20 s at 30 Hz)
@@ -117,6 +121,30 @@ AHEAD_MISSES, AHEAD_RETRY = 10, 30
 # 34 deg off, and held level through its U-turn that put the camera 5 cm low); a weaving drive
 # gives 30-1000 in its first second.
 MIN_PLANE_SPREAD = 100.0
+# A held ground plane (SmootherSettings.ground: a mapping run's) is dropped when the history's
+# median height off it or median tilt to it is beyond these: three times the ground prior's
+# sigmas (1 cm, 1 deg); another robot's camera, or one remounted, sits centimetres off.
+HELD_HEIGHT_M, HELD_TILT_DEG = 0.03, 3.0
+
+
+@dataclass(frozen=True)
+class HeldGround:
+    """The ground plane and the camera's mount on the robot that a mapping run found
+    (``ground.json``, :class:`~tagtrail.schemas.documents.KnownGround`): the smoother holds
+    them from its first frame, where it would otherwise wait for ``plane_after_m`` of travel to
+    fit them to its own history (the room's first 2 s: 0.65 mm lateral and 0.81 mm height
+    error against 0.21 / 0.23 offline). ``mount`` None: fitted to the history on the plane."""
+
+    plane: Plane
+    mount: Mount | None = None
+
+    @classmethod
+    def of(cls, doc: KnownGround) -> HeldGround:
+        """From a ``ground.json`` document."""
+        plane = Plane(np.array(doc.normal), doc.offset_m, np.array(doc.normal_camera))
+        if doc.forward_camera is None or doc.lever_m is None:
+            return cls(plane)
+        return cls(plane, Mount(np.array(doc.forward_camera), doc.lever_m))
 
 
 @dataclass(frozen=True)
@@ -149,6 +177,10 @@ class SmootherSettings:
     None: fitted to the history once it has turned ``MIN_TURN_RAD`` (0 until then), which a
     weaving drive along a corridor never does: there the held 0 pulls the camera sideways."""
     joint: JointSettings = field(default_factory=JointSettings)
+    ground: HeldGround | None = None
+    """A mapping run's plane and mount (``stream localize --ground``), held from the first
+    frame while the history agrees with them (:func:`held_off`); None: fitted to the history
+    once the camera has travelled ``plane_after_m``."""
 
 
 @dataclass(frozen=True)
@@ -260,17 +292,16 @@ class _Window:
     seen: int
     fitted: bool  # the history fitted before (the fits then every 30 frames)
     hist: tuple[F64, F64, F64] | None  # the history (R, t, t_s) when a fit may be due
+    held: HeldGround | None  # the mapping run's plane and mount, while the history agrees
 
 
 @dataclass(frozen=True)
 class _Solved:
-    """A window's re-solve, computed: the solver's answer, its CPU time (ms), and the camera's
-    travel with the ground plane and mount fitted when the history asks for it (``fit``: None
-    when not due)."""
+    """A window's re-solve, computed: the solver's answer, its CPU time (ms), and the ground
+    plane and mount fitted when the history asks for it (``fit``: None when not due)."""
 
     res: Any
     took_ms: float
-    travel: float
     fit: _Fit | None
 
 
@@ -300,12 +331,12 @@ def _resolve(w: _Window) -> _Solved:
         if len(Rs):
             travel += _moved((Rs[-1], ts[-1]), R, t)
         n = min(HISTORY, len(Rs) + 1)
-        if _fit_due(w.settings, travel, n, w.seen, w.fitted):
+        if _fit_due(w.settings, travel, n, w.seen, w.fitted, w.held):
             Rs = np.concatenate([Rs, R[None]])[-HISTORY:]
             ts = np.concatenate([ts, t[None]])[-HISTORY:]
             t_s = np.concatenate([t_s, [w.t_ns * 1e-9]])[-HISTORY:]
-            fit = _fit(w.settings, Rs, ts, t_s)
-    return _Solved(res, took_ms, travel, fit)
+            fit = _fit(w.settings, Rs, ts, t_s, w.held, travel)
+    return _Solved(res, took_ms, fit)
 
 
 class _Job:
@@ -351,6 +382,12 @@ class Smoother:
         self.level = False  # the plane's normal told by the history: its level term held
         self.fitted = False  # the history fitted once (then every 30 frames)
         self.mount: Mount | None = None
+        self.held = self.s.ground if self.s.joint.ground != "none" else None
+        if self.held is not None:  # a mapping run's: held from the first frame
+            self.plane, self.level = self.held.plane, True
+            if self.s.joint.drive != "free":
+                self.mount = self.held.mount
+        self.dropped = ""  # why the held plane was dropped (the history is off it)
         self.t_hist: deque[float] = deque(maxlen=HISTORY)
         self._travel = 0.0
         self._seen = 0
@@ -532,6 +569,7 @@ class Smoother:
             seen,
             fitted,
             self._history() if not fitted or seen % 30 == 0 else None,
+            self.held,
         )
         return _Job(fr, window)
 
@@ -717,22 +755,29 @@ class Smoother:
         it, the camera's mount on a wheeled robot (every 30 frames). ``drive: auto`` keeps the
         drive prior while the history's steps leave it unstrained
         (:func:`~tagtrail.geometry.joint.drive.strain`, as offline). ``done``: a re-solve
-        that computed the travel and the fits already (:meth:`_prepare`)."""
-        if done is not None:
-            self._travel = done.travel
-        elif self.history:
+        that computed the fits already (:meth:`_prepare`)."""
+        if self.history:
             self._travel += _moved(self.history[-1], R, t)
         self.history.append((R, t))
         self.t_hist.append(t_ns * 1e-9)
         self._seen += 1
         if done is not None:
             fit = done.fit
-        elif _fit_due(self.s, self._travel, len(self.history), self._seen, self.fitted):
-            fit = _fit(self.s, *self._history())
+        elif _fit_due(self.s, self._travel, len(self.history), self._seen, self.fitted, self.held):
+            fit = _fit(self.s, *self._history(), self.held, self._travel)
         else:
             fit = None
         if fit is not None:
-            self.plane, self.level, self.fitted = fit.plane, fit.told, True
+            if fit.dropped and self.held is not None:
+                self.held, self.dropped = None, fit.dropped
+                log.warning(
+                    "localize: the mapping run's ground plane (--ground) dropped: %s; the "
+                    "plane and mount are fitted to this run's own poses instead",
+                    fit.dropped,
+                )
+            # a held plane dropped before the history could tell one: wait for the travel
+            self.fitted = fit.plane is not None or not fit.dropped
+            self.plane, self.level = fit.plane, fit.told
             if fit.set_mount:
                 self.mount = fit.mount
 
@@ -757,35 +802,77 @@ class _Fit:
     told: bool
     mount: Mount | None
     set_mount: bool
+    dropped: str = ""  # the held plane's (SmootherSettings.ground) disagreement, in words
 
 
-def _fit_due(s: SmootherSettings, travel: float, n_hist: int, seen: int, fitted: bool) -> bool:
-    """Whether the history asks for the plane's (and mount's) fit (:meth:`Smoother._note`)."""
-    if travel < s.plane_after_m or n_hist < 10:
+def _fit_due(
+    s: SmootherSettings,
+    travel: float,
+    n_hist: int,
+    seen: int,
+    fitted: bool,
+    held: HeldGround | None = None,
+) -> bool:
+    """Whether the history asks for the plane's (and mount's) fit (:meth:`Smoother._note`);
+    a held plane is checked against it from its tenth pose, travelled or not."""
+    if (travel < s.plane_after_m and held is None) or n_hist < 10:
         return False
     return not (fitted and seen % 30)  # (the history stops at HISTORY poses)
 
 
-def _fit(s: SmootherSettings, Rs: F64, ts: F64, t_hist: F64) -> _Fit:
-    """The plane and the mount fitted to the history ``Rs, ts`` at times ``t_hist`` (s)."""
+def held_off(plane: Plane, Rs: F64, ts: F64) -> str:
+    """Why the poses ``cam_T_world`` ``(Rs, ts)`` are not on ``plane`` (a mapping run's): the
+    median height off it or tilt to it beyond :data:`HELD_HEIGHT_M` / :data:`HELD_TILT_DEG`;
+    '' when they are."""
+    h = float(np.median(np.abs(np.einsum("fji,fj->fi", Rs, -ts) @ plane.n - plane.d)))
+    u = plane.u / np.linalg.norm(plane.u)
+    cos = np.clip(np.einsum("fij,j->fi", Rs, plane.n) @ u, -1.0, 1.0)
+    tilt = float(np.degrees(np.median(np.arccos(cos))))
+    if h > HELD_HEIGHT_M or tilt > HELD_TILT_DEG:
+        return (
+            f"this run's camera sits {100 * h:.1f} cm off it and is tilted {tilt:.1f} deg to "
+            f"it (median; at most {100 * HELD_HEIGHT_M:.0f} cm, {HELD_TILT_DEG:.0f} deg): "
+            "another robot, or the camera remounted"
+        )
+    return ""
+
+
+def _fit(
+    s: SmootherSettings,
+    Rs: F64,
+    ts: F64,
+    t_hist: F64,
+    held: HeldGround | None = None,
+    travel: float = math.inf,
+) -> _Fit:
+    """The plane and the mount fitted to the history ``Rs, ts`` at times ``t_hist`` (s) —
+    or ``held``'s plane (and mount) while the history agrees with it (:func:`held_off`)."""
     t_s = np.asarray(t_hist, np.float64) - t_hist[0]
     keep = robust_plane_frames(Rs, ts)
     Rs, ts, t_s = Rs[keep], ts[keep], t_s[keep]
     js = s.joint
-    if js.ground == "auto":  # as offline: the planarity test, its plane fitted on the way
+    dropped = "" if held is None else held_off(held.plane, Rs, ts)
+    if held is not None and not dropped:
+        plane, told = held.plane, True
+        if held.mount is not None or js.drive == "free":
+            return _Fit(plane, told, held.mount, js.drive != "free")
+    elif travel < s.plane_after_m:
+        return _Fit(None, False, None, True, dropped)  # the history cannot tell one yet
+    elif js.ground == "auto":  # as offline: the planarity test, its plane fitted on the way
         plane, stat = planarity(Rs, ts, np.zeros((len(Rs), 6, 6)), GROUND)
         if stat >= PLANAR_BOUND:
-            return _Fit(None, False, None, True)  # not a ground robot's
+            return _Fit(None, False, None, True, dropped)  # not a ground robot's
+        told = plane_spread(Rs, ts, GROUND) >= MIN_PLANE_SPREAD
     else:
         plane = fit_plane(Rs, ts, GROUND)
-    told = plane_spread(Rs, ts, GROUND) >= MIN_PLANE_SPREAD
+        told = plane_spread(Rs, ts, GROUND) >= MIN_PLANE_SPREAD
     if js.ground == "none" or js.drive == "free":
-        return _Fit(plane, told, None, False)
+        return _Fit(plane, told, None, False, dropped)
     j = steps(t_s, js.max_gap_s)
     mount = fit_mount(Rs, ts, t_s, j, plane, MIN_TURN_RAD, s.lever_m)
     q = drive_terms(Rs, ts, t_s, j, plane, mount, DRIVE, unknowns=False)[0]
     wheeled = js.drive == "wheeled" or strain(q, DRIVE, 1.0) <= WHEELED_BOUND
-    return _Fit(plane, told, mount if wheeled else None, True)
+    return _Fit(plane, told, mount if wheeled else None, True, dropped)
 
 
 def _moved(prev: tuple[F64, F64], R: F64, t: F64) -> float:

@@ -6,12 +6,15 @@ from __future__ import annotations
 import logging
 from pathlib import Path
 
+import numpy as np
 import pytest
 import yaml
 from pydantic import BaseModel
 
 from tagtrail.cli import main
 from tagtrail.geometry.joint import JointSettings
+from tagtrail.geometry.se3 import T_from_xyz_quat
+from tagtrail.io.layouts import read_ground, read_trajectory
 from tagtrail.runner.execute import Runner
 from tagtrail.runner.spec import load_pipeline
 from tagtrail.sim import simulate
@@ -134,3 +137,32 @@ def test_a_parked_query_takes_the_maps_decisions_and_says_so(
         and r.getMessage().endswith("too little to decide on; held to neither")
         for r in caplog.records
     )
+
+
+def test_the_reference_exports_the_ground_plane_its_trajectory_keeps_to(
+    project: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """``ground.json`` (what ``stream localize --smooth`` holds from the first frame): the
+    plane and mount of the report's ground block, read back by the live node's reader; the
+    exported trajectory's camera centres sit on it and its cameras see its normal where it
+    says. The parked query, whose own map decided no plane, exports none."""
+    monkeypatch.chdir(project)
+    assert main(["run"]) == 0
+    runner = Runner(load_pipeline(project / "pipeline.yaml", REGISTRY))
+    keys = {(s.stage, s.dataset): s.key for s in runner.plan()}
+    ref = runner.store.load("optimize", keys["optimize", "reference"], "report")
+    out = project / "outputs"
+    g = read_ground(out / "reference")
+    assert ref.bundle.ground.applied and g == ref.bundle.ground.known()
+    assert g.forward_camera is not None and g.lever_m is not None  # a wheeled robot's
+    assert not (out / "query_1" / "ground.json").exists()
+    tr = read_trajectory(out / "reference" / "trajectory.csv")
+    T = T_from_xyz_quat(
+        tr[["x_m", "y_m", "z_m"]].to_numpy(), tr[["qx", "qy", "qz", "qw"]].to_numpy()
+    )
+    n, u = np.array(g.normal), np.array(g.normal_camera)
+    heights = T[:, :3, 3] @ n - g.offset_m
+    assert np.sqrt(np.mean(heights**2)) < 0.002, heights
+    seen = np.einsum("fji,j->fi", T[:, :3, :3], n)  # the normal in each camera's frame
+    assert np.degrees(np.arccos(np.clip(seen @ u, -1, 1))).max() < 0.5
+    assert abs(np.dot(np.array(g.forward_camera), u)) < 1e-9  # across the normal

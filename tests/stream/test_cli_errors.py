@@ -205,3 +205,67 @@ def test_replay_of_a_header_only_csv_is_an_error(tmp_path: Path) -> None:
     res = tagtrail("stream", "replay", tmp_path / "empty.csv", "--wait", "0", cwd=tmp_path)
     assert res.returncode == 2
     assert "empty.csv: no poses to replay" in one_error_line(res.stderr)
+
+
+GROUND = (
+    '{"normal": [0, 1, 0], "offset_m": -0.13, "normal_camera": [0, -1, 0], '
+    '"forward_camera": [0, 0, 1], "lever_m": 0.084}'
+)
+
+
+def _map_folder(tmp_path: Path, ground: str | None) -> Path:
+    """A tag map folder as ``optimize`` exports it, with ``ground.json`` (or without)."""
+    folder = tmp_path / "outputs" / "reference"
+    folder.mkdir(parents=True)
+    (folder / "tag_map.yaml").write_text(
+        "tags:\n  tag36h11:0:\n    position: {x: 0, y: 0, z: 0}\n"
+        "    orientation: {x: 0, y: 0, z: 0, w: 1}\n"
+    )
+    if ground is not None:
+        (folder / "ground.json").write_text(ground)
+    return folder
+
+
+@pytest.mark.parametrize(
+    ("ground", "flag", "said"),
+    [
+        (GROUND, [], "the ground plane and the camera's mount of "),
+        (GROUND.replace(', "forward_camera": [0, 0, 1], "lever_m": 0.084', ""), [], "plane of "),
+        (GROUND, ["--ground", "none"], "--ground none: the ground plane is fitted"),
+        (None, [], "no ground.json beside the map"),
+    ],
+)
+def test_localize_says_where_its_ground_plane_comes_from(
+    tmp_path: Path, ground: str | None, flag: list[str], said: str
+) -> None:
+    """``--smooth`` holds the ``ground.json`` beside the map (optimize's export) from the first
+    frame and says so; ``--ground none`` or no such file: fitted to the run, said too."""
+    folder = _map_folder(tmp_path, ground)
+    port = free_port()
+    res = tagtrail(
+        "stream", "localize", "--map", folder, "--smooth", "--camera-forward", "0.084", *flag,
+        "--listen", loopback(port), "--duration", "0.5", "--stats-period", "0",
+        cwd=tmp_path,
+    )  # fmt: skip
+    assert res.returncode == 0, res.stderr
+    assert said in res.stderr, res.stderr
+
+
+@pytest.mark.parametrize(
+    ("ground", "want"),
+    [
+        ('{"normal": [0, 0, 0], "offset_m": 0, "normal_camera": [0, -1, 0]}', "zero vector"),
+        ('{"normal": [0, 1, 0], "normal_camera": [0, -1, 0]}', "offset_m"),
+        ("{not json", "not a ground.json"),
+    ],
+)
+def test_a_bad_ground_json_is_one_error_line(tmp_path: Path, ground: str, want: str) -> None:
+    folder = _map_folder(tmp_path, ground)
+    res = tagtrail(
+        "stream", "localize", "--map", folder / "tag_map.yaml", "--smooth",
+        "--listen", loopback(free_port()), "--duration", "0.5",
+        cwd=tmp_path,
+    )  # fmt: skip
+    assert res.returncode == 2, res
+    line = one_error_line(res.stderr)
+    assert "ground.json" in line and want in line, line

@@ -272,6 +272,8 @@ class DriveReport(BaseModel):
     camera_yaw_deg: float
     lateral_rms_mps: float
     steps_off: int
+    forward_camera: tuple[float, float, float] | None = None
+    """The robot's forward axis in the camera frame (unit; :class:`Mount`'s ``g``)."""
 
     def line(self) -> str:
         """What was decided and found, in plain words (for the log)."""
@@ -308,4 +310,5 @@ def drive_report(
         camera_yaw_deg=float(yaw),
         lateral_rms_mps=float(np.sqrt(np.mean(lat**2))) if len(lat) else 0.0,
         steps_off=int((q * q > part.prior.f_scale**2).sum()),
+        forward_camera=(float(fwd[0]), float(fwd[1]), float(fwd[2])),
     )

@@ -35,6 +35,7 @@ solve's left ones, ``R <- Exp(w) R``, ``t <- Exp(w) t + v`` (so ``c <- c - R^T v
 
 from __future__ import annotations
 
+import math
 from collections.abc import Mapping
 from dataclasses import dataclass
 from typing import Any
@@ -285,8 +286,10 @@ class GroundReport:
     planarity figure that decided ``auto`` (:func:`planarity`), the plane's normal in the
     world, the camera's tilt to it (deg from its y axis), the camera centres' RMS height off it
     (m), the RMS tilt off the mean (deg), the frames the robust loss let go (beyond its scale),
-    the wheeled-drive prior's report (:class:`~.drive.DriveReport`; None without it) and, when
-    ``auto`` was not decided on this data, why (``note``, plain words)."""
+    the wheeled-drive prior's report (:class:`~.drive.DriveReport`; None without it), when
+    ``auto`` was not decided on this data, why (``note``, plain words), and the rest of the
+    :class:`Plane`: its offset ``n . c`` (m) and the normal seen from the camera (unit), for the
+    live smoother to hold from a run's first frame (``ground.json``)."""
 
     mode: str
     applied: bool
@@ -298,6 +301,8 @@ class GroundReport:
     frames_off: int
     drive: Any = None
     note: str = ""
+    offset_m: float = math.nan
+    normal_camera: tuple[float, ...] = ()
 
     def lines(self) -> list[str]:
         """What was decided, in a line or two of plain words (for the log)."""
@@ -359,4 +364,6 @@ def ground_report(
         frames_off=int((np.sum(p * p, axis=1) > prior.f_scale**2).sum()),
         drive=drive,
         note=note,
+        offset_m=float(plane.d),
+        normal_camera=tuple(float(v) for v in u),
     )
