@@ -621,7 +621,7 @@ class Smoother:
         if start is None:
             return
         nxt = _Frame(t_ns, np.zeros(0, np.int64), np.zeros((0, 4, 2)), *start)
-        priors = [p for p in self._priors([a, b, nxt], extra=False) if _reaches_newest(p)]
+        priors = self._priors([a, b, nxt], extra=False)
         rows = prior_rows(np.stack([a.R, b.R, start[0]]), np.stack([a.t, b.t, start[1]]), priors)
         self._next = (t_ns, start[0], start[1], rows, self._last, self._extras_ahead(a, b, start))
         self.ahead_taken += 1
@@ -692,7 +692,7 @@ class Smoother:
             self.ahead_used += 1
             priors: list[Any] = []
         else:
-            priors = [p for p in self._priors([*fr, frame], extra=False) if _reaches_newest(p)]
+            priors = self._priors([*fr, frame], extra=False)
             ahead = self._extras_ahead(fr[0], fr[1], start)
         extra, more = self._extra_on_arrival([*fr, frame], ahead, frame.t_ns, d)
         if more:
@@ -740,7 +740,7 @@ class Smoother:
             if ah is _ON_ARRIVAL:
                 t_s = np.array([(f.t_ns - fr[0].t_ns) * 1e-9 for f in fr])
                 prior = make(t_s, [f.t_ns for f in fr])
-                if prior is not None and _reaches_newest(prior):
+                if prior is not None:
                     priors.append(prior)
             elif ah is not None:
                 taker: Any = make  # (one with ahead and ahead_rows: PriorOf)
@@ -780,14 +780,6 @@ class Smoother:
             self.plane, self.level = fit.plane, fit.told
             if fit.set_mount:
                 self.mount = fit.mount
-
-
-def _reaches_newest(prior: Any) -> bool:
-    """Whether ``prior`` over the step's three frames has a term on the new one: not the
-    odometry when it does not reach the new frame's stamp, even carried on
-    (``LiveOdometry.EXTEND_S``: a gap in the stream), whose terms (~0.2 ms cold) the step
-    would evaluate to drop."""
-    return not isinstance(prior, FixedOdometry) or bool((prior.prior.j == 1).any())
 
 
 @dataclass(frozen=True)
