@@ -878,6 +878,10 @@ def _localize(ns: argparse.Namespace) -> int:
         )
     node.count = ns.count
     live, background = None, None
+    if ns.ground is not None and not ns.smooth:
+        logging.getLogger("tagtrail.stream").warning(
+            "localize: --ground is for --smooth (the smoother's ground plane): ignored"
+        )
     if ns.smooth:
         from tagtrail.stream.background import Background
         from tagtrail.stream.continuity import (

@@ -233,6 +233,7 @@ def _map_folder(tmp_path: Path, ground: str | None) -> Path:
         (GROUND.replace(', "forward_camera": [0, 0, 1], "lever_m": 0.084', ""), [], "plane of "),
         (GROUND, ["--ground", "none"], "--ground none: the ground plane is fitted"),
         (None, [], "no ground.json beside the map"),
+        (GROUND, ["--no-smooth", "--ground", "none"], "--ground is for --smooth"),
     ],
 )
 def test_localize_says_where_its_ground_plane_comes_from(
