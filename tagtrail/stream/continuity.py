@@ -125,6 +125,10 @@ MIN_PLANE_SPREAD = 100.0
 # median height off it or median tilt to it is beyond these: three times the ground prior's
 # sigmas (1 cm, 1 deg); another robot's camera, or one remounted, sits centimetres off.
 HELD_HEIGHT_M, HELD_TILT_DEG = 0.03, 3.0
+# ... and its mount is not held when its lever arm is this far from the one given (--camera-
+# forward): the rendered circle's mapping run solved -1.28 m for 0.084 (a pure arc cannot tell
+# the lever arm from the camera's yaw) and, held, made the live 0.34 -> 0.49 mm.
+HELD_LEVER_M = 0.02
 
 
 @dataclass(frozen=True)
@@ -382,7 +386,24 @@ class Smoother:
         self.level = False  # the plane's normal told by the history: its level term held
         self.fitted = False  # the history fitted once (then every 30 frames)
         self.mount: Mount | None = None
-        self.held = self.s.ground if self.s.joint.ground != "none" else None
+        held = self.s.ground if self.s.joint.ground != "none" else None
+        lever = self.s.lever_m
+        if (
+            held is not None
+            and held.mount is not None
+            and lever is not None
+            and abs(held.mount.lever_m - lever) > HELD_LEVER_M
+        ):
+            log.warning(
+                "localize: the mapping run's camera mount (--ground) is not held: its lever arm "
+                "%.3f m is not the %.3f m given (--camera-forward, the profile's); its drive "
+                "could not tell it (a pure arc: the lever arm and the camera's yaw trade against "
+                "each other) or it is another robot's. Its ground plane is held",
+                held.mount.lever_m,
+                lever,
+            )
+            held = HeldGround(held.plane)
+        self.held = held
         if self.held is not None:  # a mapping run's: held from the first frame
             self.plane, self.level = self.held.plane, True
             if self.s.joint.drive != "free":
@@ -837,27 +858,34 @@ def _fit(
     held: HeldGround | None = None,
     travel: float = math.inf,
 ) -> _Fit:
-    """The plane and the mount fitted to the history ``Rs, ts`` at times ``t_hist`` (s) —
-    or ``held``'s plane (and mount) while the history agrees with it (:func:`held_off`)."""
+    """The plane and the mount fitted to the history ``Rs, ts`` at times ``t_hist`` (s), once
+    the camera has ``travel``-led ``plane_after_m`` — or ``held``'s plane (and mount) while
+    the history agrees with it (:func:`held_off`): a mapping run's whole drive tells them
+    better than this run's last 20 s (the corridor's seed 3: 1.49 mm held, 1.59 with this
+    run's own once its weaving told the plane's normal)."""
     t_s = np.asarray(t_hist, np.float64) - t_hist[0]
     keep = robust_plane_frames(Rs, ts)
     Rs, ts, t_s = Rs[keep], ts[keep], t_s[keep]
     js = s.joint
     dropped = "" if held is None else held_off(held.plane, Rs, ts)
+    own: tuple[Plane, bool] | None = None  # the history's plane, whether it tells the normal
+    if (held is None or dropped) and travel >= s.plane_after_m:
+        if js.ground == "auto":  # as offline: the planarity test, its plane fitted on the way
+            fitted, stat = planarity(Rs, ts, np.zeros((len(Rs), 6, 6)), GROUND)
+            if stat < PLANAR_BOUND:  # (else not a ground robot's)
+                own = fitted, plane_spread(Rs, ts, GROUND) >= MIN_PLANE_SPREAD
+        else:
+            own = fit_plane(Rs, ts, GROUND), plane_spread(Rs, ts, GROUND) >= MIN_PLANE_SPREAD
     if held is not None and not dropped:
         plane, told = held.plane, True
         if held.mount is not None or js.drive == "free":
             return _Fit(plane, told, held.mount, js.drive != "free")
-    elif travel < s.plane_after_m:
-        return _Fit(None, False, None, True, dropped)  # the history cannot tell one yet
-    elif js.ground == "auto":  # as offline: the planarity test, its plane fitted on the way
-        plane, stat = planarity(Rs, ts, np.zeros((len(Rs), 6, 6)), GROUND)
-        if stat >= PLANAR_BOUND:
-            return _Fit(None, False, None, True, dropped)  # not a ground robot's
-        told = plane_spread(Rs, ts, GROUND) >= MIN_PLANE_SPREAD
+        if travel < s.plane_after_m:  # the mount fitted to this run's first metre, as without
+            return _Fit(plane, told, None, False)
+    elif own is None:
+        return _Fit(None, False, None, True, dropped)  # none yet, or not a ground robot's
     else:
-        plane = fit_plane(Rs, ts, GROUND)
-        told = plane_spread(Rs, ts, GROUND) >= MIN_PLANE_SPREAD
+        plane, told = own
     if js.ground == "none" or js.drive == "free":
         return _Fit(plane, told, None, False, dropped)
     j = steps(t_s, js.max_gap_s)
@@ -1101,6 +1129,14 @@ class LiveOdometry:
         self.yaw = (0.0, 0.0)  # the yaw the wheels read per metre (rad/m) and per second
         self._at = -self.REFRESH
 
+    def _plane(self) -> Plane | None:
+        """The smoother's plane once the camera has travelled ``plane_after_m``: the odometry
+        joins when its unknowns can be read against that much history (a mapping run's plane,
+        held from the first frame, let it join with them unread: the rendered circle 0.34 ->
+        0.50 mm)."""
+        sm = self.smoother
+        return sm.plane if sm._travel >= sm.s.plane_after_m else None
+
     def _odometry(self, t0_ns: int, since_ns: int | None = None) -> Odometry | None:
         """The odometry received (``since_ns``: only from the last sample at or before it on,
         what a window starting then needs), its times (s) from ``t0_ns``; None before 2
@@ -1123,7 +1159,8 @@ class LiveOdometry:
         """Read the scales again when ``REFRESH`` frames have been added since (1-2 ms over
         the history, once a second: in a frame's step it was a thirtieth of the frames' p99)."""
         sm = self.smoother
-        if sm._seen - self._at < self.REFRESH or len(sm.history) < 30 or sm.plane is None:
+        plane = self._plane()
+        if sm._seen - self._at < self.REFRESH or len(sm.history) < 30 or plane is None:
             return
         self._at = sm._seen
         Rs = np.stack([h[0] for h in sm.history])
@@ -1138,7 +1175,7 @@ class LiveOdometry:
         c = -np.einsum("fji,fj->fi", Rs, ts)
         d = np.linalg.norm(np.diff(c, axis=0)[ok], axis=1)
         E = Rs[:-1][ok] @ np.swapaxes(Rs[1:][ok], 1, 2)
-        yaw = np.einsum("pi,pi->p", log_so3(E), Rs[:-1][ok] @ sm.plane.n)
+        yaw = np.einsum("pi,pi->p", log_so3(E), Rs[:-1][ok] @ plane.n)
         lo, hi = self.SCALE_BOUNDS
         moved = d > 2e-3
         scale = (
@@ -1155,8 +1192,8 @@ class LiveOdometry:
         self.dead.errors = (*self.scales, *self.yaw)
 
     def __call__(self, t_s: F64, t_ns: list[int]) -> FixedOdometry | None:
-        sm = self.smoother
-        if sm.plane is None:
+        sm, plane = self.smoother, self._plane()
+        if plane is None:
             return None
         odo = self._odometry(t_ns[0], t_ns[0])
         if odo is None:
@@ -1165,8 +1202,8 @@ class LiveOdometry:
         j = covered_steps(t_s, odo, sm.s.joint.max_gap_s, 0.0)
         if not len(j):
             return None
-        state = self._state(sm.plane)
-        return FixedOdometry(OdometryPrior(odo, t_s, j, ODOMETRY_SIGMA_M, state, sm.plane))
+        state = self._state(plane)
+        return FixedOdometry(OdometryPrior(odo, t_s, j, ODOMETRY_SIGMA_M, state, plane))
 
     def _state(self, plane: Plane) -> OdometryState:
         """The unknowns held: the mount (the smoother's, else the camera looking along the
@@ -1189,7 +1226,7 @@ class LiveOdometry:
         _ahead``): what the odometry should read from frame ``b`` to the next at its start
         ``start`` (``cam_T_world``) and its Jacobians; the reading itself waits for the frame
         (:meth:`ahead_rows`). None without a plane (then no term, as :meth:`__call__`)."""
-        plane = self.smoother.plane
+        plane = self._plane()
         if plane is None:
             return None
         st = self._state(plane)
