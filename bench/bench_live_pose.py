@@ -18,6 +18,7 @@ phi goal <= 0.3 deg) and the CPU time per frame (ms, thread time: the machine is
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import datetime as dt
 import json
 import os
@@ -44,12 +45,14 @@ from tagtrail.geometry.joint.setup import odometry_input  # noqa: E402
 from tagtrail.geometry.se3 import T_from_xyz_quat  # noqa: E402
 from tagtrail.io.layouts import read_tag_map, read_trajectory  # noqa: E402
 from tagtrail.io.sources import open_source  # noqa: E402
+from tagtrail.schemas.documents import GroundSummary  # noqa: E402
 from tagtrail.schemas.pipeline import DatasetConfig  # noqa: E402
 from tagtrail.sim.simulate import simulate  # noqa: E402
 from tagtrail.stages.extract import odometry_outputs  # noqa: E402
 from tagtrail.stream import codec  # noqa: E402
 from tagtrail.stream.continuity import (  # noqa: E402
     DeadReckoning,
+    HeldGround,
     LivePoses,
     Smoother,
     SmootherSettings,
@@ -168,24 +171,74 @@ def _heading(R_wc: np.ndarray, up: np.ndarray) -> np.ndarray:
     return np.arctan2(z @ b, z @ a)
 
 
-def _case(rec: Path) -> dict[str, Any]:
-    gt = read_trajectory(rec / "ground_truth" / "trajectory.csv").set_index("t_ns")
-    tags = read_tag_map(rec / "ground_truth" / "tag_map.yaml")[0]
+def _topics(rec: Path) -> tuple[bool, list[str]]:
     image = "compressed" in (rec / "metadata.yaml").read_text()
     topics = (
         ["/camera/color/camera_info", "/camera/color/image_raw/compressed"]
         if image
         else ["/camera_info", "/detections"]
     )
+    return image, topics
+
+
+def _offline(rec: Path, loc: Localizer, obs: list[Any], odometry: bool) -> Any:
+    """The offline joint solve of the frames' corners ``obs`` against the fixed map, with the
+    recording's wheel odometry (read as extract reads it) or without."""
+    frame_idx = np.concatenate([[i] * len(o[1]) for i, o in enumerate(obs)])
+    t_all = np.concatenate([[o[0]] * len(o[1]) for o in obs])
+    tag = np.concatenate([o[1] for o in obs])
+    px = np.concatenate([o[2] for o in obs]).reshape(-1, 4, 2)
+    assert loc.camera is not None
+    ippe, _ = solve_ippe(px, loc.size_m[tag], loc.camera)
+    st = JointSettings()
+    rows = CornerRows(frame_idx, t_all, loc.ids[tag], px, loc.size_m[tag], ippe)
+    pb = corner_problem(rows, tag, loc.camera, st, True)
+    data = None
+    if odometry:
+        with open_source(DatasetConfig(source=rec)) as src:
+            read = odometry_outputs(src)
+        data = odometry_input(read["odometry"], read["mount"], None)
+    return solve_on_corners(pb, loc.world_T_tag, np.zeros(len(loc.ids), bool), st, odometry=data)
+
+
+def _mapping_ground(rec: Path) -> HeldGround:
+    """``stream localize --ground``'s input from a mapping run ``rec`` (another recording of the
+    scene): the plane and mount its offline joint solve with odometry held, as ``optimize``
+    exports them (``ground.json``; here the cameras against the fixed map)."""
+    image, topics = _topics(rec)
+    m = bag_messages(rec, topics)
+    loc = Localizer(read_tag_map(rec / "ground_truth" / "tag_map.yaml")[0])
+    obs = []
+    for k, p in zip(m.keys, m.payloads, strict=True):
+        if k.endswith("camera_info"):
+            loc.on_camera_info(p)
+            continue
+        try:
+            single = loc.on_image(p) if image else loc.on_detections(p)
+        except Exception:  # noqa: BLE001 - no pose for this frame
+            continue
+        q = codec.decode_pose(single[0][1])
+        assert loc._last_obs is not None
+        obs.append((q.sec * 10**9 + q.nanosec, *loc._last_obs))
+    sol = _offline(rec, loc, obs, odometry=True)
+    doc = GroundSummary.model_validate(dataclasses.asdict(sol.ground)).known()
+    assert doc is not None, "the mapping run's solve held no ground plane"
+    return HeldGround.of(doc)
+
+
+def _case(rec: Path, held: HeldGround | None = None) -> dict[str, Any]:
+    gt = read_trajectory(rec / "ground_truth" / "trajectory.csv").set_index("t_ns")
+    tags = read_tag_map(rec / "ground_truth" / "tag_map.yaml")[0]
+    image, topics = _topics(rec)
     m = bag_messages(rec, [*topics, "/odom"])  # the simulator's wheel odometry
     loc = Localizer(tags)
     # the camera's mount, as `--camera-forward` (or `--profile limo`) gives it to the node
     scene = yaml.safe_load((rec / "ground_truth" / "scene.yaml").read_text())
     forward = float(scene["options"]["mount"]["forward_m"])
 
-    def smoother() -> LivePoses:
+    def smoother(ground: HeldGround | None = None) -> LivePoses:
         return LivePoses(
-            Smoother(loc.world_T_tag, loc.size_m, SmootherSettings(lever_m=forward)),
+            Smoother(loc.world_T_tag, loc.size_m, SmootherSettings(lever_m=forward, ground=ground)),
             DeadReckoning(camera_forward_m=forward),
             "tag_only_pose",
             "localize",
@@ -193,7 +246,11 @@ def _case(rec: Path) -> dict[str, Any]:
         )
 
     live, blind = smoother(), smoother()  # with the odometry (--odom-key), without
+    # with the odometry and the mapping run's plane and mount (--ground)
+    mapped = smoother(held) if held is not None else None
     got: dict[str, list[Any]] = {"frame": [], "live": [], "no_odom": []}
+    if mapped is not None:
+        got["ground"] = []
     obs, cpu = [], []
     for k, p in zip(m.keys, m.payloads, strict=True):
         if k.endswith("camera_info"):
@@ -201,6 +258,8 @@ def _case(rec: Path) -> dict[str, Any]:
             continue
         if k.endswith("odom"):
             live.on_odometry(p)
+            if mapped is not None:
+                mapped.on_odometry(p)
             continue
         loc.live = None
         try:
@@ -223,24 +282,17 @@ def _case(rec: Path) -> dict[str, Any]:
         no = blind.on_frame(t_ns, own, loc._last_obs, loc.camera)
         blind.settle()
         got["no_odom"].append(dict(no)["tag_only_pose"])
-    frame_idx = np.concatenate([[i] * len(o[1]) for i, o in enumerate(obs)])
-    t_all = np.concatenate([[o[0]] * len(o[1]) for o in obs])
-    tag = np.concatenate([o[1] for o in obs])
-    px = np.concatenate([o[2] for o in obs]).reshape(-1, 4, 2)
-    assert loc.camera is not None
-    ippe, _ = solve_ippe(px, loc.size_m[tag], loc.camera)
-    st = JointSettings()
-    rows = CornerRows(frame_idx, t_all, loc.ids[tag], px, loc.size_m[tag], ippe)
-    pb = corner_problem(rows, tag, loc.camera, st, True)
-    sol = solve_on_corners(pb, loc.world_T_tag, np.zeros(len(loc.ids), bool), st)
+        if mapped is not None:
+            on = mapped.on_frame(t_ns, own, loc._last_obs, loc.camera)
+            mapped.settle()
+            got["ground"].append(dict(on)["tag_only_pose"])
+    sol = _offline(rec, loc, obs, odometry=False)
+    pb = sol.pb
     R_off = np.swapaxes(sol.res.R_cam, 1, 2)
     c_off = -np.einsum("fij,fj->fi", R_off, sol.res.t_cam)
     # the same with the recording's wheel odometry, read as extract reads it (variances, the
     # /tf_static mount): the pipeline's default when a bag has it
-    with open_source(DatasetConfig(source=rec)) as src:
-        read = odometry_outputs(src)
-    data = odometry_input(read["odometry"], read["mount"], None)
-    sol_o = solve_on_corners(pb, loc.world_T_tag, np.zeros(len(loc.ids), bool), st, odometry=data)
+    sol_o = _offline(rec, loc, obs, odometry=True)
     assert len(sol_o.pb.t_ns) == len(pb.t_ns)  # every frame has a tag: the same frames
     c_odo = -np.einsum("fji,fj->fi", sol_o.res.R_cam, sol_o.res.t_cam)
     cols = ["x_m", "y_m", "z_m"]
@@ -271,6 +323,8 @@ def _case(rec: Path) -> dict[str, Any]:
         }
     row["live_over_offline"] = row["live"]["rms_mm"] / row["offline"]["rms_mm"]
     row["live_over_offline_odom"] = row["live"]["rms_mm"] / row["offline_odom"]["rms_mm"]
+    if "ground" in row:
+        row["ground_over_offline_odom"] = row["ground"]["rms_mm"] / row["offline_odom"]["rms_mm"]
     row["offline_odometry_used"] = sol_o.odometry_part is not None
     c = np.array(cpu) * 1e3
     for j, part in enumerate(("pose", "settle")):  # the pose out, then the window's re-solve
@@ -287,6 +341,12 @@ SEEDED = [(name, scen, rec, opts) for name, scen, rec, opts in CASES if "rendere
 SEEDED = [c for c in SEEDED if c[1] in ("room", "corridor")]
 
 
+def _mapping_run(scen: str, rec: str, opts: dict[str, Any], out: Path, seed: int) -> Path:
+    """The mapping run of a case: the same scene and drive recorded again, another draw of the
+    simulator's errors (seed + 100)."""
+    return simulate(scen, out, corner_noise_px=0.3, seed=seed + 100, **opts)[rec]
+
+
 def main() -> None:
     ap = argparse.ArgumentParser()
     ap.add_argument("--write", action="store_true")
@@ -301,20 +361,26 @@ def main() -> None:
     with tempfile.TemporaryDirectory() as tmp:
         for i, (name, scen, rec, opts) in enumerate(CASES):
             recs = simulate(scen, Path(tmp) / str(i), corner_noise_px=0.3, seed=5, **opts)
-            row = {"case": name, **_case(recs[rec]), "load": os.getloadavg()[0]}
+            held = _mapping_ground(_mapping_run(scen, rec, opts, Path(tmp) / f"m{i}", 5))
+            row = {"case": name, **_case(recs[rec], held), "load": os.getloadavg()[0]}
             print(json.dumps(row), flush=True)
             rows.append(row)
         for name, scen, rec, opts in SEEDED:
             for seed in range(1, a.seeds + 1):
                 out = Path(tmp) / f"{scen}-{seed}"
                 recs = simulate(scen, out, corner_noise_px=0.3, seed=seed, **opts)
-                r = _case(recs[rec])
+                held = _mapping_ground(_mapping_run(scen, rec, opts, Path(tmp) / "m", seed))
+                r = _case(recs[rec], held)
                 row = {
                     "case": name,
                     "seed": seed,
-                    **{k: r[k]["rms_mm"] for k in ("live", "no_odom", "offline", "offline_odom")},
+                    **{
+                        k: r[k]["rms_mm"]
+                        for k in ("live", "no_odom", "offline", "offline_odom", "ground")
+                    },
                     "over": r["live_over_offline"],
                     "over_odom": r["live_over_offline_odom"],
+                    "ground_over_odom": r["ground_over_offline_odom"],
                 }
                 print(json.dumps(row), flush=True)
                 seeded.append(row)
@@ -329,41 +395,39 @@ def _write(rows: list[dict[str, Any]], seeded: list[dict[str, Any]]) -> None:
         f"{dt.date.today()}, load {os.getloadavg()[0]:.1f} on {os.cpu_count()} cores. "
         "`stream localize`'s handlers on every frame of a simulated recording: each frame on "
         "its own (`frame`), `--smooth --odom-key odom` (the fixed-lag smoother, 2 s / 60 "
-        "frames, 2 iterations, with the recording's wheel odometry; `live`), the same without "
-        "the odometry (`no odom`) and the offline joint solve of the same corners against the "
+        "frames, 2 iterations, with the recording's wheel odometry; `live`), the same with "
+        "the mapping run's ground plane and mount held from the first frame (`--ground`, "
+        "`live + ground`: the plane and mount the offline joint solve with odometry held on "
+        "another recording of the same scene and drive, simulator seed + 100, as optimize "
+        "exports them in ground.json), the same without the odometry or the ground "
+        "(`no odom`) and the offline joint solve of the same corners against the "
         "same fixed map (`offline`, no odometry; `offline + odom`: with the recording's "
-        "odometry, `odometry: auto`). Error = camera position vs ground truth; "
-        "heading = the optical "
-        "axis in the floor plane, its error's standard deviation (on the corridor: a straight "
-        "drive, phi's spread there). CPU = the smoother's thread time per frame: the pose "
-        "(the filter's step) / the window's re-solve after it (the per-frame pose comes on "
-        "top, ~1 ms). This run (2026-12-05 evening, after the map_branches fix, the stamp grid "
-        "offline again and the step ahead's give-up) is on a host ~1.4x slower than the "
-        "morning's (the same code's re-solve p50 10.5-11 ms against 7.5): every RMS is the "
-        "morning's to 3 digits but the corridor's seed 3 (1.665 -> 1.694 mm), whose window "
-        "the time budget (15 ms over the median of 5 solves) cut in a slow spell; run alone "
-        "it is 1.665 again: on a slow host the live figures depend on its load. Rerun late "
-        "that day with the step's odometry term in closed form (geometry/joint/odometry.py "
-        "step_model and a scalar reading, taken ahead with the other priors' terms), the six "
-        "cases of the table: every RMS the same to 3 digits; the pose's CPU p50 / p99 0.75 / "
-        "0.93, 0.76 / 0.91, 0.81 / 1.71, 0.76 / 0.98, 0.81 / 0.95, 0.81 / 1.07 ms in the "
-        "table's order, against its 1.1-1.4 / 1.4-2.6.",
+        "odometry, `odometry: auto`, the pipeline's default). Error = camera position vs "
+        "ground truth; heading = the optical axis in the floor plane, its error's standard "
+        "deviation (on the corridor: a straight drive, phi's spread there). CPU = the "
+        "smoother's thread time per frame (`live`): the pose (the filter's step) / the "
+        "window's re-solve after it (the per-frame pose comes on top, ~1 ms).",
         "",
-        "| case | frames | frame RMS / max mm | live RMS / max mm | no odom RMS / max mm | "
+        "| case | frames | frame RMS / max mm | live RMS / max mm | "
+        "live + ground RMS / max mm | no odom RMS / max mm | "
         "offline RMS / max mm | offline + odom RMS / max mm (applied) | "
-        "live / offline (/ + odom) | heading std deg frame / live / offline | "
+        "live / offline (/ + odom) | live + ground / (offline + odom) | "
+        "heading std deg frame / live / offline | "
         "live CPU ms p50 / p99: pose, re-solve | load |",
-        "|---|---|---|---|---|---|---|---|---|---|---|",
+        "|---|---|---|---|---|---|---|---|---|---|---|---|---|",
     ]
     for r in rows:
         f, li, no, o, oo = r["frame"], r["live"], r["no_odom"], r["offline"], r["offline_odom"]
+        gr = r["ground"]
         used = "yes" if r["offline_odometry_used"] else "no"
         lines.append(
             f"| {r['case']} | {r['frames']} | {f['rms_mm']:.2f} / {f['max_mm']:.1f} | "
-            f"{li['rms_mm']:.2f} / {li['max_mm']:.1f} | {no['rms_mm']:.2f} / {no['max_mm']:.1f} | "
+            f"{li['rms_mm']:.2f} / {li['max_mm']:.1f} | {gr['rms_mm']:.2f} / {gr['max_mm']:.1f} | "
+            f"{no['rms_mm']:.2f} / {no['max_mm']:.1f} | "
             f"{o['rms_mm']:.2f} / {o['max_mm']:.1f} | "
             f"{oo['rms_mm']:.2f} / {oo['max_mm']:.1f} ({used}) | "
             f"{r['live_over_offline']:.2f} / {r['live_over_offline_odom']:.2f} | "
+            f"{r['ground_over_offline_odom']:.2f} | "
             f"{f['heading_std_deg']:.3f} / "
             f"{li['heading_std_deg']:.3f} / {o['heading_std_deg']:.3f} | "
             f"{r['live_pose_cpu_ms_p50']:.1f} / {r['live_pose_cpu_ms_p99']:.1f}, "
@@ -377,21 +441,25 @@ def _write(rows: list[dict[str, Any]], seeded: list[dict[str, Any]]) -> None:
             "sign, the gyro's drift and the corners' noise), RMS mm; the median of the ratios "
             "last:",
             "",
-            "| case | seed | live | no odom | offline | offline + odom | live / offline | "
-            "live / (offline + odom) |",
-            "|---|---|---|---|---|---|---|---|",
+            "| case | seed | live | live + ground | no odom | offline | offline + odom | "
+            "live / offline | live / (offline + odom) | live + ground / (offline + odom) |",
+            "|---|---|---|---|---|---|---|---|---|---|",
         ]
         for name in dict.fromkeys(r["case"] for r in seeded):
             rs = [r for r in seeded if r["case"] == name]
             for r in rs:
                 lines.append(
-                    f"| {name} | {r['seed']} | {r['live']:.3f} | {r['no_odom']:.3f} | "
-                    f"{r['offline']:.3f} | {r['offline_odom']:.3f} | {r['over']:.2f} | "
-                    f"{r['over_odom']:.2f} |"
+                    f"| {name} | {r['seed']} | {r['live']:.3f} | {r['ground']:.3f} | "
+                    f"{r['no_odom']:.3f} | {r['offline']:.3f} | {r['offline_odom']:.3f} | "
+                    f"{r['over']:.2f} | {r['over_odom']:.2f} | {r['ground_over_odom']:.2f} |"
                 )
-            med = [float(np.median([r[k] for r in rs])) for k in ("over", "over_odom")]
+            keys = ("over", "over_odom", "ground_over_odom")
+            med = [float(np.median([r[k] for r in rs])) for k in keys]
+            top = [max(r[k] for r in rs) for k in keys]
             lines.append(
-                f"| {name} | median of {len(rs)} | | | | | **{med[0]:.2f}** | **{med[1]:.2f}** |"
+                f"| {name} | median of {len(rs)} (max) | | | | | | **{med[0]:.2f}** "
+                f"({top[0]:.2f}) | **{med[1]:.2f}** ({top[1]:.2f}) | **{med[2]:.2f}** "
+                f"({top[2]:.2f}) |"
             )
     lines += NOTES
     (ROOT / "bench" / "LIVE_POSE.md").write_text("\n".join(lines) + "\n", encoding="utf-8")

@@ -858,8 +858,8 @@ def _fit(
     held: HeldGround | None = None,
     travel: float = math.inf,
 ) -> _Fit:
-    """The plane and the mount fitted to the history ``Rs, ts`` at times ``t_hist`` (s), once
-    the camera has ``travel``-led ``plane_after_m`` — or ``held``'s plane (and mount) while
+    """The plane and the mount fitted to the history ``Rs, ts`` at times ``t_hist`` (s) once
+    the camera has travelled (``travel``) ``plane_after_m`` — or ``held``'s plane (and mount) while
     the history agrees with it (:func:`held_off`): a mapping run's whole drive tells them
     better than this run's last 20 s (the corridor's seed 3: 1.49 mm held, 1.59 with this
     run's own once its weaving told the plane's normal)."""
