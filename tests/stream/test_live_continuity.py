@@ -74,6 +74,23 @@ def _pose7(payload: bytes) -> tuple[float, ...]:
     return (q.x, q.y, q.z, q.qx, q.qy, q.qz, q.qw)
 
 
+def _offline(loc: Localizer, obs: list[tuple[Any, ...]]) -> tuple[Any, Any]:
+    """The offline joint solve (its problem and solution) of the frames ``obs`` — ``(t_ns,
+    map rows, corners px)`` as the node took them — the map held fixed."""
+    from tagtrail.geometry.ippe import solve_ippe
+
+    frame_idx = np.concatenate([[i] * len(o[1]) for i, o in enumerate(obs)])
+    t_all = np.concatenate([[o[0]] * len(o[1]) for o in obs])
+    tag = np.concatenate([o[1] for o in obs])
+    px = np.concatenate([o[2] for o in obs]).reshape(-1, 4, 2)
+    assert loc.camera is not None
+    ippe, _ = solve_ippe(px, loc.size_m[tag], loc.camera)
+    st = JointSettings()
+    rows = CornerRows(frame_idx, t_all, loc.ids[tag], px, loc.size_m[tag], ippe)
+    pb = corner_problem(rows, tag, loc.camera, st, True)
+    return pb, solve_on_corners(pb, loc.world_T_tag, np.zeros(len(loc.ids), bool), st)
+
+
 def test_smoothed_poses_beat_per_frame_and_approach_offline(noisy: Path) -> None:
     """Every frame posed; the smoothed poses' error is below the per-frame poses' and within
     2.5x the offline joint solve's on the same frames (measured: 2.2 mm vs 5.0 mm per frame vs
@@ -110,19 +127,7 @@ def test_smoothed_poses_beat_per_frame_and_approach_offline(noisy: Path) -> None
         e_live.append(_err(out["tag_only_pose"], gt))
     assert len(e_live) == N_FRAMES
     rms = {k: float(np.sqrt(np.mean(np.square(v)))) for k, v in (("f", e_frame), ("l", e_live))}
-    # the offline joint solve on the same corners, the same map fixed
-    frame_idx = np.concatenate([[i] * len(o[1]) for i, o in enumerate(obs)])
-    t_all = np.concatenate([[o[0]] * len(o[1]) for o in obs])
-    tag = np.concatenate([o[1] for o in obs])
-    px = np.concatenate([o[2] for o in obs]).reshape(-1, 4, 2)
-    from tagtrail.geometry.ippe import solve_ippe
-
-    assert loc.camera is not None
-    ippe, _ = solve_ippe(px, loc.size_m[tag], loc.camera)
-    st = JointSettings()
-    rows = CornerRows(frame_idx, t_all, loc.ids[tag], px, loc.size_m[tag], ippe)
-    pb = corner_problem(rows, tag, loc.camera, st, True)
-    sol = solve_on_corners(pb, loc.world_T_tag, np.zeros(len(loc.ids), bool), st)
+    pb, sol = _offline(loc, obs)  # the offline joint solve on the same corners
     c_off = -np.einsum("fji,fj->fi", sol.res.R_cam, sol.res.t_cam)
     g = gt.loc[pb.t_ns][["x_m", "y_m", "z_m"]].to_numpy()
     rms_off = float(np.sqrt(np.mean(np.sum((c_off - g) ** 2, axis=1))))
@@ -931,7 +936,6 @@ def mapped(tmp_path_factory: pytest.TempPathFactory) -> Any:
     circle (seed 6) against the map, as ``optimize`` reports and exports it."""
     import dataclasses
 
-    from tagtrail.geometry.ippe import solve_ippe
     from tagtrail.schemas.documents import GroundSummary
     from tagtrail.stream.continuity import HeldGround
 
@@ -953,20 +957,7 @@ def mapped(tmp_path_factory: pytest.TempPathFactory) -> Any:
             q = codec.decode_pose(loc.on_detections(p)[0][1])
             assert loc._last_obs is not None
             obs.append((q.sec * 10**9 + q.nanosec, *loc._last_obs))
-    frame_idx = np.concatenate([[i] * len(o[1]) for i, o in enumerate(obs)])
-    t_all = np.concatenate([[o[0]] * len(o[1]) for o in obs])
-    tag = np.concatenate([o[1] for o in obs])
-    px = np.concatenate([o[2] for o in obs]).reshape(-1, 4, 2)
-    assert loc.camera is not None
-    ippe, _ = solve_ippe(px, loc.size_m[tag], loc.camera)
-    st = JointSettings()
-    rows = CornerRows(frame_idx, t_all, loc.ids[tag], px, loc.size_m[tag], ippe)
-    sol = solve_on_corners(
-        corner_problem(rows, tag, loc.camera, st, True),
-        loc.world_T_tag,
-        np.zeros(len(loc.ids), bool),
-        st,
-    )
+    _, sol = _offline(loc, obs)
     assert sol.ground is not None
     doc = GroundSummary.model_validate(dataclasses.asdict(sol.ground)).known()
     assert doc is not None and doc.forward_camera is not None  # the plane and the mount
