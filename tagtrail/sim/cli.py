@@ -200,6 +200,13 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "and through a blackout) instead of each frame on its own",
     )
     f.add_argument(
+        "--low-latency",
+        action=argparse.BooleanOptionalAction,
+        default=True,
+        help="the nodes' links on zenoh's low-latency transport (stream ... --low-latency; "
+        "never the images'; default: on)",
+    )
+    f.add_argument(
         "--images",
         action="store_true",
         help="render 640x480 images (stream localize detects the tags) instead of "
@@ -370,6 +377,7 @@ def _follow(args: argparse.Namespace) -> int:
         law=args.law,
         images=args.images,
         smooth=args.smooth,
+        low_latency=args.low_latency,
     )
     keys = ("converged_s", "cross_track_rms_m", "cross_track_max_m", "completed")
     print(json.dumps({k: s[k] for k in keys}))

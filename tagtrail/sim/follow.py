@@ -214,9 +214,11 @@ def run(
     images: bool = False,
     max_time_s: float | None = None,
     smooth: bool = False,
+    low_latency: bool = True,
 ) -> dict[str, Any]:
     """Run the closed loop (module docstring); returns the summary written to
-    ``out/follow_summary.json``."""
+    ``out/follow_summary.json``. ``low_latency``: the nodes' links (and, with detections,
+    the simulator's) on zenoh's low-latency transport (``--low-latency``; never an image's)."""
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     opts = SimOptions(speed_mps=speed_mps, detections=True, seed=seed)
@@ -237,7 +239,8 @@ def run(
     odo = limo.WheelOdometry(rng)
     ports = [_port() for _ in range(3)]
     ep = [f"tcp/127.0.0.1:{p}" for p in ports]
-    session = zenoh.open(make_config("peer", listen=[ep[0]]))
+    small = low_latency and not images  # the simulator's samples: no image on the transport
+    session = zenoh.open(make_config("peer", listen=[ep[0]], low_latency=small))
     lock = threading.Lock()
     cmd = [0.0, 0.0]
     state: dict[str, Any] = {}
@@ -282,6 +285,7 @@ def run(
     quiet = ExitStack()
     try:
         common = ["--stats-period", "0"]
+        fast = ["--low-latency"] if low_latency else []
         inputs = (
             # corners re-fitted by the gradient alone: detection, re-fit and pose within a
             # frame's 33 ms on 2 cores (the intensity-profile model adds ~3 ms a tag)
@@ -315,6 +319,7 @@ def run(
                     "--connect",
                     ep[0],
                     *common,
+                    *(fast if small else []),
                 ],
                 out,
             )
@@ -335,6 +340,7 @@ def run(
                     "--path-period",
                     "0",
                     *common,
+                    *fast,
                 ],
                 out,
             )
@@ -359,12 +365,13 @@ def run(
                     "--connect",
                     ep[0],
                     *common,
+                    *fast,
                 ],
                 out,
             )
         )
         procs[-1].wait_for("follow: ready")
-        session_b = zenoh.open(make_config("peer", connect=[ep[2]]))
+        session_b = zenoh.open(make_config("peer", connect=[ep[2]], low_latency=low_latency))
         subs.append(session_b.declare_subscriber("relocalization/state", on_state))
         time.sleep(0.5)  # the links settle before the first frame
         limit = max_time_s or truth.length / speed_mps * 1.6 + blackout_s + 10.0
@@ -494,6 +501,7 @@ def run(
         "plane": PLANE,
         "input": "images" if images else "detections",
         "smooth": smooth,
+        "low_latency": low_latency,
     }
     summary = dict(_rounded(summary))
     np.savetxt(out / "follow.csv", data, delimiter=",", header=COLUMNS, comments="", fmt="%.6f")

@@ -35,6 +35,12 @@ from tagtrail.errors import SessionError, SpecError
 
 log = logging.getLogger("tagtrail.stream")
 DEFAULT_ENDPOINT = "tcp/127.0.0.1:7447"
+# zenoh's low-latency transport writes each sample to the socket from the publishing thread
+# (no hand-over to its transmit task: detections -> Twist p99 through three nodes 5.5 -> 5.0
+# ms, bench/FOLLOW.md). A link uses it only when both ends ask for it; it has no priority
+# lanes and does not fragment: a sample over its batch (64 KiB) is not for it (measured with
+# zenoh 1.x here: the first such sample on a link was lost).
+LOW_LATENCY_MAX_BYTES = 65_535
 MODES = ("peer", "client")
 
 
@@ -52,13 +58,15 @@ def make_config(
     connect: Sequence[str] = (),
     scouting: bool = False,
     gossip: bool | None = None,
+    low_latency: bool = False,
 ) -> zenoh.Config:
     """A zenoh config: ``mode`` (peer | client), explicit endpoints, scouting off by default.
 
     zenoh's own defaults listen on every interface and scout by multicast; both are replaced:
     with ``listen`` empty the session listens nowhere (it only connects out). ``gossip``
     (default: as ``scouting``): gossip scouting alone, as rmw_zenoh's sessions use it to learn
-    their peers from the router.
+    their peers from the router. ``low_latency``: zenoh's low-latency transport (see
+    :data:`LOW_LATENCY_MAX_BYTES`).
     """
     if mode not in MODES:
         raise SpecError(f"zenoh mode {mode!r}: use one of {', '.join(MODES)}")
@@ -66,6 +74,9 @@ def make_config(
         raise SpecError("a zenoh client needs --connect ENDPOINT (a router or peer to join)")
     cfg = zenoh.Config()
     cfg.insert_json5("mode", json.dumps(mode))
+    if low_latency:  # zenoh requires its QoS lanes off for it
+        cfg.insert_json5("transport/unicast/lowlatency", "true")
+        cfg.insert_json5("transport/unicast/qos/enabled", "false")
     cfg.insert_json5("scouting/multicast/enabled", json.dumps(bool(scouting)))
     cfg.insert_json5(
         "scouting/gossip/enabled", json.dumps(bool(scouting if gossip is None else gossip))
@@ -151,12 +162,15 @@ def config_from_args(ns: argparse.Namespace, default_role: str) -> zenoh.Config:
             [RMW_ROUTER],
             ns.scouting,
             gossip=True,
+            low_latency=getattr(ns, "low_latency", False),
         )
     if not listen and not connect and not ns.scouting:
         (listen if default_role == "listen" and ns.mode == "peer" else connect).append(
             DEFAULT_ENDPOINT
         )
-    return make_config(ns.mode, listen, connect, ns.scouting)
+    return make_config(
+        ns.mode, listen, connect, ns.scouting, low_latency=getattr(ns, "low_latency", False)
+    )
 
 
 def open_session(cfg: zenoh.Config) -> zenoh.Session:

@@ -270,3 +270,17 @@ def test_a_bad_ground_json_is_one_error_line(tmp_path: Path, ground: str, want: 
     assert res.returncode == 2, res
     line = one_error_line(res.stderr)
     assert "ground.json" in line and want in line, line
+
+
+def test_low_latency_is_refused_for_images(tmp_path: Path) -> None:
+    """zenoh's low-latency transport does not fragment: a localize node that takes images
+    refuses ``--low-latency`` (one error line) instead of losing frames over it."""
+    folder = _map_folder(tmp_path, None)
+    res = tagtrail(
+        "stream", "localize", "--map", folder / "tag_map.yaml", "--image-key", "image",
+        "--low-latency", "--listen", loopback(free_port()), "--duration", "0.5",
+        cwd=tmp_path,
+    )  # fmt: skip
+    assert res.returncode == 2, res
+    line = one_error_line(res.stderr)
+    assert "--low-latency" in line and "image" in line, line

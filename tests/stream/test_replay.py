@@ -70,6 +70,10 @@ def test_session_config_is_explicit() -> None:
     assert json.loads(cfg.get_json("scouting/multicast/enabled")) is False
     assert json.loads(cfg.get_json("scouting/gossip/enabled")) is False
     assert endpoint("udp/127.0.0.1:9") == "udp/127.0.0.1:9"
+    assert json.loads(cfg.get_json("transport/unicast/lowlatency")) is False  # zenoh's own
+    fast = make_config("peer", connect=["tcp/127.0.0.1:7001"], low_latency=True)
+    assert json.loads(fast.get_json("transport/unicast/lowlatency")) is True
+    assert json.loads(fast.get_json("transport/unicast/qos/enabled")) is False  # zenoh needs it
     with pytest.raises(SpecError):
         make_config("router")
     with pytest.raises(SpecError):
