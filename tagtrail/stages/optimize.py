@@ -48,12 +48,7 @@ from tagtrail.schemas.artifacts import (
     sightings,
     timed,
 )
-from tagtrail.schemas.documents import (
-    MountDoc,
-    OptimizeReport,
-    PlacedComponent,
-    TagGraph,
-)
+from tagtrail.schemas.documents import MountDoc, OptimizeReport, PlacedComponent, TagGraph
 from tagtrail.schemas.pipeline import SurveyConfig
 from tagtrail.schemas.recording_files import diagnostics_file, recording_map_file
 from tagtrail.stages.base import Export, ExportFiles, Metric, StageParams, refuse_old_keys

@@ -836,10 +836,12 @@ def _held_ground(ns: argparse.Namespace) -> Any:
         return None
     held = HeldGround.of(read_ground(Path(path)))
     log.info(
-        "localize: the ground plane%s of %s held from the first frame (dropped, with a "
-        "warning, if this run's camera sits off it)",
-        "" if held.mount is None else " and the camera's mount",
+        "localize: the ground plane of %s held from the first frame (dropped, with a warning, "
+        "if this run's camera sits off it)%s",
         path,
+        ""
+        if held.mount is None
+        else "; its camera mount too, unless its lever arm is over 2 cm from --camera-forward's",
     )
     return held
 

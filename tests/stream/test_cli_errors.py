@@ -229,8 +229,17 @@ def _map_folder(tmp_path: Path, ground: str | None) -> Path:
 @pytest.mark.parametrize(
     ("ground", "flag", "said"),
     [
-        (GROUND, [], "the ground plane and the camera's mount of "),
-        (GROUND.replace(', "forward_camera": [0, 0, 1], "lever_m": 0.084', ""), [], "plane of "),
+        (
+            GROUND,
+            [],
+            "held from the first frame (dropped, with a warning, if this run's "
+            "camera sits off it); its camera mount too, unless",
+        ),
+        (
+            GROUND.replace(', "forward_camera": [0, 0, 1], "lever_m": 0.084', ""),
+            [],
+            "camera sits off it)\n",
+        ),
         (GROUND, ["--ground", "none"], "--ground none: the ground plane is fitted"),
         (None, [], "no ground.json beside the map"),
         (GROUND, ["--no-smooth", "--ground", "none"], "--ground is for --smooth"),
