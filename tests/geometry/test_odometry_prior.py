@@ -20,7 +20,9 @@ from tagtrail.geometry.joint.odometry import (
     mount_from_base_T_camera,
     odometry_from_table,
     on_grid,
+    planar_step,
     predict,
+    reading_model,
 )
 from tagtrail.geometry.joint.problem import centres, left_update
 from tagtrail.geometry.joint.setup import Solved
@@ -70,6 +72,29 @@ def test_the_prediction_is_the_base_motion_through_the_mount() -> None:
     m = mount_from_base_T_camera(true_base_T_camera(), u)
     np.testing.assert_allclose(m.g, mount.g, atol=1e-12)
     assert m.lever_m == pytest.approx(MOUNT.forward_m)
+
+
+def test_the_read_path_is_bent_by_the_extra_turn_it_reads() -> None:
+    """Two wheels 4 % apart (the simulator's wheel odometry), the base driving straight at
+    1.2 m/s, read between 30 Hz frames (4 cm steps): the odometry turns 0.23 rad a metre that
+    the base does not and reads each step 0.19 mm to the side. The reading model with the
+    wheels' true errors gives that reading (without the bend it was read as the base's own)."""
+    from tagtrail.sim.odometry import TRACK_M, WheelOdometry
+
+    odo = WheelOdometry(rng=np.random.default_rng(0))
+    odo.scale_l, odo.scale_r, odo.drift_rps, odo.slip_per_mps2 = 0.98, 1.02, 0.0, 0.0
+    poses = [(0.0, 0.0, 0.0)]
+    for _ in range(20):  # frames at ~30 Hz (34 ms), the wheels integrated at 500 Hz
+        for _ in range(17):
+            odo.step(1.2, 0.0, 0.002)
+        poses.append((odo.x, odo.y, odo.yaw))
+    read = np.array([planar_step(a, b) for a, b in zip(poses, poses[1:], strict=False)])
+    true = np.zeros_like(read)
+    true[:, 0] = 1.2 * 17 * 0.002
+    st = OdometryState(Mount(np.array([0.0, 0.0, 1.0]), 0.0), yaw_per_m=0.04 / TRACK_M)
+    m = reading_model(true, st)
+    assert np.abs(read[:, 1]).min() > 1.8e-4  # sideways, though the base is not
+    np.testing.assert_allclose(m, read, atol=2e-6)
 
 
 def test_the_camera_jacobians_are_the_residuals_derivatives() -> None:
