@@ -35,12 +35,6 @@ from tagtrail.errors import SessionError, SpecError
 
 log = logging.getLogger("tagtrail.stream")
 DEFAULT_ENDPOINT = "tcp/127.0.0.1:7447"
-# zenoh's low-latency transport writes each sample to the socket from the publishing thread
-# (no hand-over to its transmit task: detections -> Twist p99 through three nodes 5.5 -> 5.0
-# ms, bench/FOLLOW.md). A link uses it only when both ends ask for it; it has no priority
-# lanes and does not fragment: a sample over its batch (64 KiB) is not for it (measured with
-# zenoh 1.x here: the first such sample on a link was lost).
-LOW_LATENCY_MAX_BYTES = 65_535
 MODES = ("peer", "client")
 
 
@@ -65,8 +59,12 @@ def make_config(
     zenoh's own defaults listen on every interface and scout by multicast; both are replaced:
     with ``listen`` empty the session listens nowhere (it only connects out). ``gossip``
     (default: as ``scouting``): gossip scouting alone, as rmw_zenoh's sessions use it to learn
-    their peers from the router. ``low_latency``: zenoh's low-latency transport (see
-    :data:`LOW_LATENCY_MAX_BYTES`).
+    their peers from the router. ``low_latency``: zenoh's low-latency transport, which writes
+    each sample to the socket from the publishing thread (no hand-over to its transmit task:
+    through the closed loop's three nodes ~0.1-0.4 ms less, bench/FOLLOW.md). A link uses it
+    only when both ends ask for it; it has no priority lanes and does not fragment: a sample
+    over its batch (64 KiB) is not for it (measured with zenoh 1.x here: the first such sample
+    on a link was lost).
     """
     if mode not in MODES:
         raise SpecError(f"zenoh mode {mode!r}: use one of {', '.join(MODES)}")
