@@ -149,6 +149,7 @@ def config_from_args(ns: argparse.Namespace, default_role: str) -> zenoh.Config:
     """The session config of a command; ``default_role`` (listen | connect) applies the default
     endpoint when neither ``--listen`` nor ``--connect`` is given."""
     listen, connect = list(ns.listen), list(ns.connect)
+    fast = getattr(ns, "low_latency", False)  # the controller chain's nodes have --low-latency
     if getattr(ns, "wire", "bridge") == "rmw_zenoh" and not listen and not connect:
         # rmw_zenoh's topology (design.md): a peer that connects to the router on this
         # machine, listens on the loopback and learns the other peers by gossip from the router
@@ -160,15 +161,13 @@ def config_from_args(ns: argparse.Namespace, default_role: str) -> zenoh.Config:
             [RMW_ROUTER],
             ns.scouting,
             gossip=True,
-            low_latency=getattr(ns, "low_latency", False),
+            low_latency=fast,
         )
     if not listen and not connect and not ns.scouting:
         (listen if default_role == "listen" and ns.mode == "peer" else connect).append(
             DEFAULT_ENDPOINT
         )
-    return make_config(
-        ns.mode, listen, connect, ns.scouting, low_latency=getattr(ns, "low_latency", False)
-    )
+    return make_config(ns.mode, listen, connect, ns.scouting, low_latency=fast)
 
 
 def open_session(cfg: zenoh.Config) -> zenoh.Session:
