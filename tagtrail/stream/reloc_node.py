@@ -46,10 +46,10 @@ from tagtrail.stream.markers import PoseMarkers, path_markers
 from tagtrail.stream.stats import DropError, Stats
 
 F64 = np.ndarray
-OUTPUTS = (
+OUTPUTS = (  # in publication order: the state (what stream follow steers by) first
+    "state",
     "distance_m",
     "heading_error_deg",
-    "state",
     "current_pose",
     "nearest_pose",
     "markers",
@@ -263,10 +263,9 @@ class Relocalizer:
         return list(self.iter_encode(o))
 
     def iter_encode(self, o: Outputs) -> Iterator[tuple[str, bytes]]:
-        """:meth:`encode` lazily: the distance is sent before the markers are even built."""
+        """:meth:`encode` lazily: the state is sent before the markers are even built."""
         key, enc = self.key, self._pose_enc
-        yield key["distance_m"], codec.encode_float64(o.distance_m)
-        yield key["heading_error_deg"], codec.encode_float64(o.heading_error_deg)
+        # the state first: what stream follow steers by leaves before the rest is encoded
         # = json.dumps of the SPEC state dict (floats are finite; json uses float.__repr__)
         yield (
             key["state"],
@@ -280,6 +279,8 @@ class Relocalizer:
                 f'{o.lookahead_v!r}, "lost": {"true" if o.lost else "false"}}}'
             ).encode(),
         )
+        yield key["distance_m"], codec.encode_float64(o.distance_m)
+        yield key["heading_error_deg"], codec.encode_float64(o.heading_error_deg)
         yield key["current_pose"], enc(o.sec, o.nanosec, *o.current)
         yield key["nearest_pose"], enc(o.sec, o.nanosec, *o.nearest)
         yield (
