@@ -92,3 +92,56 @@ def test_the_step_gives_the_re_solved_window_its_newest_frame(seed: int) -> None
     held = float(np.linalg.norm(c_held - c_full))
     assert off < 0.05 * pos_std, (off, pos_std)
     assert held > 4 * off, (held, off)
+
+
+def test_the_step_stops_once_it_moves_the_frame_less_than_its_tolerance() -> None:
+    """From where the window's re-solve puts the new frame one Gauss-Newton step moves it by
+    micrometres: with a tolerance of 1 mm the step stops there, at the pose the full count of
+    iterations gives (to 0.1 um); from 3 mm off, the first step moves it by more than the
+    tolerance and the step goes on."""
+    ob, W_tag, C, _, t_s = corner_problem(noise_px=0.3, seed=1)
+    R_tag, t_tag = W_tag[:, :3, :3], W_tag[:, :3, 3]
+    sig = JointSettings().motion_sigmas()
+    assert sig is not None
+    corners = Corners(FOCAL_PX, 0.3, CORNER_LOSS, CORNER_F_SCALE_PX)
+    free = np.zeros(len(R_tag), bool)
+    start = perturbed(C, 1, rot=2e-3, trans=3e-3)
+    prior = [MotionPrior(t_s[: N + 1], *sig, 1.0, loss="linear", frame="camera")]
+    full = solve_joint(
+        R_tag,
+        t_tag,
+        start[: N + 1, :3, :3],
+        start[: N + 1, :3, 3],
+        _frames(ob, ob.frame <= N),
+        free,
+        corners,
+        prior,
+        covariance="last",
+    )
+    assert full.converged and full.tail_cov is not None
+    new = _frames(ob, ob.frame == N)
+    step_prior = [MotionPrior(t_s[N - 2 : N + 1], *sig, 1.0, loss="linear", frame="camera")]
+
+    def step(R3: np.ndarray, t3: np.ndarray, tol: float) -> tuple[np.ndarray, int]:
+        res = solve_newest(
+            np.concatenate([full.R_cam[-3:-1], R3[None]]),
+            np.concatenate([full.t_cam[-3:-1], t3[None]]),
+            np.zeros((12, 12)),
+            R_tag,
+            t_tag,
+            new,
+            corners,
+            CORNER_F_SCALE_PX / full.sigma_px,
+            step_prior,
+            iters=4,
+            tol=tol,
+        )
+        assert res is not None
+        return _centre(res.R, res.t), res.steps
+
+    c_all, n_all = step(full.R_cam[-1], full.t_cam[-1], 0.0)
+    c_tol, n_tol = step(full.R_cam[-1], full.t_cam[-1], 1e-3)
+    assert (n_all, n_tol) == (4, 1)
+    assert np.linalg.norm(c_tol - c_all) < 1e-7
+    _, n_far = step(start[N, :3, :3], start[N, :3, 3], 1e-3)
+    assert n_far >= 2

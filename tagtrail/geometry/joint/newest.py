@@ -33,12 +33,14 @@ from tagtrail.geometry.se3 import R_of_rotvec
 
 @dataclass(frozen=True)
 class Newest:
-    """The new frame's ``cam_T_world`` ``(R, t)`` and the covariance ``(6, 6)`` of its
-    ``[w ; v]`` (unscaled: the inverse of its normal matrix)."""
+    """The new frame's ``cam_T_world`` ``(R, t)``, the covariance ``(6, 6)`` of its
+    ``[w ; v]`` (unscaled: the inverse of its normal matrix) and the Gauss-Newton ``steps``
+    taken."""
 
     R: F64
     t: F64
     cov: F64
+    steps: int
 
 
 def solve_newest(
@@ -53,6 +55,7 @@ def solve_newest(
     priors: Sequence[Prior],
     iters: int = 2,
     rows: Rows | None = None,
+    tol: float = 0.0,
 ) -> Newest | None:
     """The third of the frames ``cam_T_world`` ``R_cam (3, 3, 3)``, ``t_cam (3, 3)`` (the
     first two: the window's solved last frames, with joint covariance ``tail_cov (12, 12)``;
@@ -60,9 +63,10 @@ def solve_newest(
     weighed by ``corners`` with the window's loss scale ``f_scale``, in noise units) and the
     ``priors``' terms over the three frames that reach it (module docstring), those taken
     once at the start (their robust weights too: start where they expect the frame, e.g. at
-    the motion's extrapolation); ``iters`` Gauss-Newton steps on the corners. ``rows``: more
-    priors' terms, taken beforehand (:func:`prior_rows`, at this start). None when a step fails
-    (the caller re-solves its window)."""
+    the motion's extrapolation); ``iters`` Gauss-Newton steps on the corners, fewer once a
+    step moves the frame less than ``tol`` in each component (m, rad). ``rows``: more priors'
+    terms, taken beforehand (:func:`prior_rows`, at this start). None when a step fails (the
+    caller re-solves its window)."""
     R_cam, t_cam = R_cam.copy(), t_cam.copy()
     sig = np.broadcast_to(np.asarray(corners.sigma_px, np.float64), (len(ob.tag),))
     scale = corners.px_per_unit / sig
@@ -70,6 +74,7 @@ def solve_newest(
     Hp, gp = prior_normal(prior_rows(R_cam, t_cam, priors, rows), tail_cov)
     moved = np.zeros(6)  # the new frame's steps so far: the priors' linear model moves with it
     H = Hp
+    steps = 0
     for _ in range(iters):
         r, _, pc = project(R_cam[2:], t_cam[2:], R_tag, t_tag, ob)
         rv = r.reshape(len(r), 8) * scale[:, None]
@@ -88,11 +93,14 @@ def solve_newest(
         dR = R_of_rotvec(step[:3])  # left_update's, for one frame without scipy's ~40 us
         R_cam[2], t_cam[2] = dR @ R_cam[2], dR @ t_cam[2] + step[3:]
         moved += step
+        steps += 1
+        if np.abs(step).max() < tol:
+            break
     try:
         cov = np.asarray(np.linalg.inv(H + 1e-12 * np.eye(6)), np.float64)
     except np.linalg.LinAlgError:
         return None
-    return Newest(R_cam[2], t_cam[2], cov)
+    return Newest(R_cam[2], t_cam[2], cov, steps)
 
 
 Rows = tuple[F64, F64, F64]
