@@ -234,6 +234,21 @@ def _write(rows: list[dict[str, Any]], load: float) -> None:
         "met on a quiet host only: the p99 moves by +-0.7 ms run to run and by more "
         "with the host's other tenants.",
         "",
+        "2026-12-06 (the table below). The simulator puts a frame's detections a step "
+        "(~4 ms) after its camera_info, as a detector's output follows the camera driver's "
+        "message (apriltag_ros takes longer): put at once after it, the CameraInfo's "
+        "handling (~0.1 ms warm, 0.35 cold) lay on every frame's path, and in 4 alternated "
+        "pairs of --smooth runs the p99 went 4.75-5.63 -> 3.85-4.42 ms, p50 -0.5. Also: "
+        "relocalize publishes the state first (what follow steers by), and the live "
+        "smoother's step stops after one Gauss-Newton step when it moves the frame less "
+        "than 1 mm and 1 mrad (bench/LIVE_POSE.md). The host ran 30-40 % slower than in "
+        "the morning by the afternoon (the same in-process step: 1.12 -> 1.44 ms p50), "
+        "so the morning's runs of the code before (per frame p99 4.0-4.6, --smooth "
+        "4.8-5.5) are not the table's baseline. Here: per frame p99 3.8-4.3 ms (6 of 6 "
+        "under 5), --smooth 4.1-5.6 (median 4.5; 5 of 6 under 5, the one over at load "
+        "1.3), images 21-22 (33 ms target met). Tracking as before: converged 2.0-2.2 s, "
+        "max <= 0.48 cm, all completed.",
+        "",
         "`smooth`: `stream localize --smooth --odom-key odom` (the fixed-lag smoother and "
         "dead reckoning on the LIMO's odometry: it bridges the blackout); without it each "
         "frame is posed on its own and the follower stops in the blackout. Load: the "
