@@ -268,6 +268,12 @@ def run(
                 pending[0] = math.nan
                 answered.set()
 
+    def published(seen: bool, t_sim: float) -> None:
+        """A frame is out: its Twist is waited for (with a tag in view) from now."""
+        with lock:
+            pending[:] = [time.monotonic(), t_sim] if seen else [math.nan, math.nan]
+            answered.clear()
+
     def on_state(sample: zenoh.Sample) -> None:
         try:
             doc = json.loads(sample.payload.to_bytes())
@@ -413,9 +419,7 @@ def run(
             # robot; put at once after it, its handling lay on every frame's path (p99 +1 ms)
             for det, seen in detected:
                 pubs["detections"].put(det)
-                with lock:
-                    pending[:] = [time.monotonic(), t_sim] if seen else [math.nan, math.nan]
-                    answered.clear()
+                published(seen, t_sim)
             detected.clear()
             T = limo.camera_pose(scene, kin.x, kin.y, kin.yaw)
             ct, prog = truth(T)
@@ -428,15 +432,11 @@ def run(
                     img, info = limo.image(renderer, scene, T_shot, stamp_ns, rng, blind)
                     pubs[IMAGE_INFO_KEY].put(info)
                     pubs[IMAGE_KEY].put(img)
-                    seen = not blind
+                    published(not blind, t_sim)
                 else:
                     det, info, n_tags = limo.detections(scene, T_shot, stamp_ns, opts, rng, blind)
                     pubs["camera_info"].put(info)
                     detected.append((det, n_tags > 0))
-                    continue
-                with lock:
-                    pending[:] = [time.monotonic(), t_sim] if seen else [math.nan, math.nan]
-                    answered.clear()
             for read in reads:
                 pubs["odom"].put(read)
             if reads:

@@ -265,7 +265,6 @@ class Relocalizer:
     def iter_encode(self, o: Outputs) -> Iterator[tuple[str, bytes]]:
         """:meth:`encode` lazily: the state is sent before the markers are even built."""
         key, enc = self.key, self._pose_enc
-        # the state first: what stream follow steers by leaves before the rest is encoded
         # = json.dumps of the SPEC state dict (floats are finite; json uses float.__repr__)
         yield (
             key["state"],
